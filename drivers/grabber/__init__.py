@@ -1,0 +1,3 @@
+from .base import Grabber
+
+__all__ = ["Grabber"]

@@ -1,0 +1,42 @@
+"""The one interface every frame source implements (V4L2 grabber, simulated grabber, session replay)."""
+
+from __future__ import annotations
+
+import abc
+
+from ...camera import CameraModel
+from ...types import Frame
+from ..health import Health
+
+
+class Grabber(abc.ABC):
+    """Delivers frames stamped with their capture time."""
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        ...
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        ...
+
+    @abc.abstractmethod
+    def read(self, timeout_s: float | None = None) -> Frame | None:
+        """The next frame, or None when the source has ended."""
+
+    @property
+    def camera(self) -> CameraModel | None:
+        """The calibrated camera when the source knows it (simulator, session); None for a bare grabber."""
+        return None
+
+    @property
+    @abc.abstractmethod
+    def health(self) -> Health:
+        ...
+
+    def __enter__(self) -> "Grabber":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,3 @@
+from .base import RobotDriver
+
+__all__ = ["RobotDriver"]

@@ -1,0 +1,86 @@
+"""Rigid transforms as 4x4 float64 matrices named ``T_a_b`` (maps points from frame b to frame a)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    R = T[:3, :3]
+    return make_T(R.T, -R.T @ T[:3, 3])
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply T to (N, 3) points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=float)
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=float)
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle (rad) of a rotation matrix, robust near 0 and pi."""
+    return float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(position error in metres, rotation error in radians) between two camera poses T_world_camera."""
+    dt = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    return dt, rotation_angle(T_est[:3, :3].T @ T_true[:3, :3])
+
+
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose at fraction s in [0, 1] between T0 and T1: slerp on rotation, linear on translation
+    (the SE(3) interpolation used for poses at frame times). s outside [0, 1] extrapolates."""
+    r0 = Rotation.from_matrix(T0[:3, :3])
+    dr = (r0.inv() * Rotation.from_matrix(T1[:3, :3])).as_rotvec()
+    R = (r0 * Rotation.from_rotvec(s * dr)).as_matrix()
+    return make_T(R, (1.0 - s) * T0[:3, 3] + s * T1[:3, 3])
+
+
+def to_tum(t_s: float, T: np.ndarray) -> str:
+    """One TUM trajectory line: ``t tx ty tz qx qy qz qw``."""
+    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    x, y, z = T[:3, 3]
+    return f"{t_s:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """T_world_camera of an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``."""
+    z = np.asarray(target, float) - np.asarray(eye, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(-np.asarray(up, float), z)  # image y points down, against `up`
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.column_stack([x, y, z]), eye)
+
+
+__all__ = [
+    "Rotation",
+    "Slerp",
+    "inv_T",
+    "interpolate_pose",
+    "look_at",
+    "make_T",
+    "pose_error",
+    "rot_x",
+    "rot_z",
+    "rotation_angle",
+    "to_tum",
+    "transform_points",
+]

@@ -1,0 +1,144 @@
+"""Robot kinematics with Pinocchio: URDF + hand-eye -> camera pose, its covariance, and pose at a time.
+
+The camera is added to the Pinocchio model as an operational frame placed at ``T_tip_camera`` on the tip
+link, so FK and the manipulator Jacobian of the camera come from one model.
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from .errors import ConfigError
+from .geometry import interpolate_pose, make_T
+from .types import JointLimits, JointSample, PosePrior, RobotInfo
+
+
+@dataclass(frozen=True)
+class RobotModelSpec:
+    """Which URDF, which link holds the scope, and where the robot base sits in the world."""
+
+    urdf: str
+    tip_frame: str
+    T_world_base: np.ndarray
+
+
+class CameraKinematics:
+    """FK of the camera frame: T_world_camera = T_world_base * FK_tip(q) * T_tip_camera."""
+
+    def __init__(self, urdf_file: str, tip_frame: str, T_tip_camera: np.ndarray,
+                 T_world_base: np.ndarray | None = None) -> None:
+        try:
+            self.model = pin.buildModelFromUrdf(str(urdf_file))
+        except (RuntimeError, ValueError) as exc:
+            raise ConfigError(f"{urdf_file}: cannot load URDF ({str(exc).splitlines()[0]})") from None
+        if not self.model.existFrame(tip_frame):
+            names = [f.name for f in self.model.frames]
+            raise ConfigError(f"{urdf_file}: no frame '{tip_frame}' (frames: {', '.join(names)})")
+        tip_id = self.model.getFrameId(tip_frame)
+        tip = self.model.frames[tip_id]
+        placement = tip.placement * pin.SE3(T_tip_camera[:3, :3].copy(), T_tip_camera[:3, 3].copy())
+        self.camera_frame = self.model.addFrame(
+            pin.Frame("camera", tip.parentJoint, tip_id, placement, pin.FrameType.OP_FRAME))
+        self.tip_frame = tip_id
+        self.data = self.model.createData()
+        self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, float)
+        self.T_tip_camera = np.asarray(T_tip_camera, float)
+        if self.model.nq != self.model.nv:
+            raise ConfigError(f"{urdf_file}: only revolute/prismatic joints are supported (nq != nv)")
+        self.info = RobotInfo(
+            name=self.model.name,
+            joint_names=tuple(self.model.names[1:]),
+            limits=JointLimits(self.model.lowerPositionLimit.copy(), self.model.upperPositionLimit.copy()),
+        )
+
+    @property
+    def n_joints(self) -> int:
+        return self.model.nq
+
+    def _fk(self, q: np.ndarray, frame: int) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        pin.framesForwardKinematics(self.model, self.data, q)
+        M = self.data.oMf[frame]
+        return self.T_world_base @ make_T(M.rotation, M.translation)
+
+    def tip_pose(self, q: np.ndarray) -> np.ndarray:
+        return self._fk(q, self.tip_frame)
+
+    def camera_pose(self, q: np.ndarray) -> np.ndarray:
+        return self._fk(q, self.camera_frame)
+
+    def camera_covariance(self, q: np.ndarray, joint_sigma: np.ndarray, floor_rot: float,
+                          floor_trans: float) -> np.ndarray:
+        """6x6 covariance of the camera pose in GTSAM's tangent order (rotation, translation), camera frame,
+        from independent joint errors: Sigma = J diag(sigma^2) J^T + floor. A rotation error at the RCM
+        moves a camera far from it: the Jacobian carries that leverage into correlated terms."""
+        q = np.asarray(q, dtype=float)
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        J = pin.getFrameJacobian(self.model, self.data, self.camera_frame, pin.ReferenceFrame.LOCAL)
+        J = np.vstack([J[3:], J[:3]])  # pinocchio: (linear, angular); GTSAM Pose3: (angular, linear)
+        sigma = np.asarray(joint_sigma, float)
+        if sigma.shape != (self.n_joints,):
+            raise ConfigError(f"prior.joint_sigma has {sigma.size} values; the robot has {self.n_joints} joints")
+        cov = J @ np.diag(sigma**2) @ J.T
+        cov += np.diag([floor_rot**2] * 3 + [floor_trans**2] * 3)
+        return cov
+
+
+class PoseAtTime:
+    """Joint samples in a bounded buffer; the camera pose at any requested time.
+
+    The pose at t is FK at the two samples that bracket t, interpolated on SE(3); ``offset_ns`` is the
+    known video-to-kinematics offset (kinematics time = video time + offset).
+    """
+
+    def __init__(self, kinematics: CameraKinematics, joint_sigma, floor_rot: float, floor_trans: float,
+                 offset_ns: int = 0, capacity: int = 4096) -> None:
+        self.kin = kinematics
+        self.joint_sigma = np.asarray(joint_sigma, float)
+        self.floor_rot = floor_rot
+        self.floor_trans = floor_trans
+        self.offset_ns = offset_ns
+        self._samples: collections.deque[JointSample] = collections.deque(maxlen=capacity)
+        self._times: collections.deque[int] = collections.deque(maxlen=capacity)
+
+    def add(self, sample: JointSample) -> None:
+        if self._times and sample.t_ns <= self._times[-1]:
+            return  # out of order or duplicate: the newest sample wins, time never runs backwards
+        self._samples.append(sample)
+        self._times.append(sample.t_ns)
+
+    def extend(self, samples) -> None:
+        for s in samples:
+            self.add(s)
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def joints_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """(q before, q after, fraction) bracketing kinematics time t_ns (clamped to the buffer's ends)."""
+        if not self._samples:
+            raise ConfigError("no joint samples received yet: is the robot connected?")
+        times = list(self._times)
+        i = bisect.bisect_right(times, t_ns)
+        if i == 0:
+            s = self._samples[0]
+            return s.q, s.q, 0.0
+        if i >= len(times):
+            s = self._samples[-1]
+            return s.q, s.q, 0.0
+        a, b = self._samples[i - 1], self._samples[i]
+        return a.q, b.q, (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
+
+    def prior_at(self, t_ns: int) -> PosePrior:
+        qa, qb, s = self.joints_at(t_ns + self.offset_ns)
+        Ta = self.kin.camera_pose(qa)
+        T = Ta if s == 0.0 else interpolate_pose(Ta, self.kin.camera_pose(qb), s)
+        q = qa + s * (qb - qa)
+        cov = self.kin.camera_covariance(q, self.joint_sigma, self.floor_rot, self.floor_trans)
+        return PosePrior(T_world_camera=T, cov=cov, t_ns=t_ns)

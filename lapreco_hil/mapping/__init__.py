@@ -1,0 +1,1 @@
+"""Structure from tracks and robot poses: triangulation, keyframes, robust bundle adjustment (GTSAM)."""

@@ -1,0 +1,243 @@
+"""The mapper: keyframes from robot motion and track loss, triangulation of tracks as they grow, local
+robust bundle adjustment over a sliding window of keyframes with robot pose priors, and at the end a global
+pass that labels inliers.
+
+Poses are T_world_camera; observations are undistorted pixels of the pinhole camera K.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import MapperConfig
+from ..geometry import interpolate_pose, inv_T, rotation_angle
+from ..types import Observations, PosePrior
+from . import bundle_adjustment as ba
+from .triangulation import triangulate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    id: int
+    frame_seq: int
+    t_ns: int
+    prior: PosePrior
+    T_world_camera: np.ndarray
+    track_ids: np.ndarray
+    uv: np.ndarray
+    colors: np.ndarray
+    refined: bool = False
+
+
+@dataclass
+class FrameRecord:
+    seq: int
+    t_ns: int
+    T_prior: np.ndarray
+    keyframe: int | None
+
+
+@dataclass
+class MapResult:
+    keyframes: list[Keyframe]
+    frames: list[FrameRecord]
+    frame_poses: np.ndarray  # (F, 4, 4) refined T_world_camera of every frame
+    landmark_ids: np.ndarray
+    points: np.ndarray  # (N, 3)
+    colors: np.ndarray  # (N, 3) uint8
+    inlier: np.ndarray  # (N,) bool
+    observations: int
+    inlier_observations: int
+    stats: dict = field(default_factory=dict)
+
+
+class Mapper:
+    def __init__(self, K: np.ndarray, config: MapperConfig) -> None:
+        self.K = np.asarray(K, float)
+        self.config = config
+        self.keyframes: list[Keyframe] = []
+        self.frames: list[FrameRecord] = []
+        self.tracks: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(keyframe id, uv)]
+        self.landmarks: dict[int, np.ndarray] = {}  # track id -> X
+        self.landmark_colors: dict[int, np.ndarray] = {}
+        self.ba_times: list[float] = []
+        self.ba_iterations: list[int] = []
+
+    # --- per frame -----------------------------------------------------------------------------------------
+    def add(self, obs: Observations, prior: PosePrior) -> bool:
+        """Take one frame's observations and pose prior; returns True if it became a keyframe."""
+        is_kf = self._is_keyframe(obs, prior)
+        self.frames.append(FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera,
+                                       len(self.keyframes) if is_kf else None))
+        if not is_kf:
+            return False
+        kf = Keyframe(len(self.keyframes), obs.frame_seq, obs.t_ns, prior, self._predict_pose(prior),
+                      obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
+        self.keyframes.append(kf)
+        for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
+            self.tracks.setdefault(tid, []).append((kf.id, uv))
+        self._triangulate_new(kf)
+        if len(self.keyframes) >= 2:
+            self._local_ba()
+        return True
+
+    def _predict_pose(self, prior: PosePrior) -> np.ndarray:
+        """Start a new keyframe from its prior corrected like the previous keyframe (robot errors drift
+        slowly, so the last correction is the best guess)."""
+        if not self.keyframes:
+            return prior.T_world_camera.copy()
+        last = self.keyframes[-1]
+        correction = last.T_world_camera @ inv_T(last.prior.T_world_camera)
+        return correction @ prior.T_world_camera
+
+    def _is_keyframe(self, obs: Observations, prior: PosePrior) -> bool:
+        if not self.keyframes:
+            return len(obs) > 0
+        cfg = self.config
+        last = self.keyframes[-1]
+        T0, T1 = last.prior.T_world_camera, prior.T_world_camera
+        if np.linalg.norm(T1[:3, 3] - T0[:3, 3]) > cfg.keyframe_translation_m:
+            return True
+        if rotation_angle(T0[:3, :3].T @ T1[:3, :3]) > cfg.keyframe_rotation_rad:
+            return True
+        alive = np.isin(last.track_ids, obs.track_ids).sum()
+        return alive < cfg.keyframe_track_ratio * max(len(last.track_ids), 1)
+
+    # --- structure -----------------------------------------------------------------------------------------
+    def _triangulate_new(self, kf: Keyframe) -> None:
+        cfg = self.config
+        cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks[t]) >= 2]
+        if not cands:
+            return
+        kf_ids = sorted({k for t in cands for k, _ in self.tracks[t]})
+        col = {k: i for i, k in enumerate(kf_ids)}
+        uv = np.zeros((len(cands), len(kf_ids), 2))
+        seen = np.zeros((len(cands), len(kf_ids)), bool)
+        for n, t in enumerate(cands):
+            for k, p in self.tracks[t]:
+                uv[n, col[k]] = p
+                seen[n, col[k]] = True
+        poses = np.array([self.keyframes[k].T_world_camera for k in kf_ids])
+        res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
+        color_of = dict(zip(kf.track_ids.tolist(), kf.colors))
+        for n in np.flatnonzero(res.valid):
+            t = cands[n]
+            self.landmarks[t] = res.points[n]
+            self.landmark_colors[t] = color_of[t]
+
+    # --- bundle adjustment ---------------------------------------------------------------------------------
+    def _problem(self, free_kfs: list[int], fixed_limit: int | None,
+                 edge_free: bool = False) -> tuple[ba.BAProblem, list[int]] | None:
+        free = set(free_kfs)
+        point_ids = sorted({t for k in free_kfs for t in self.keyframes[k].track_ids.tolist() if t in self.landmarks})
+        if not point_ids:
+            return None
+        obs = [(k, t, uv) for t in point_ids for k, uv in self.tracks[t]]
+        fixed = sorted({k for k, _, _ in obs if k not in free}, reverse=True)
+        if fixed_limit is not None:
+            fixed = fixed[:fixed_limit]
+        if edge_free:
+            free |= set(fixed)
+        kf_ids = sorted(free) + sorted(set(fixed) - free)
+        index = {k: i for i, k in enumerate(kf_ids)}
+        obs = [o for o in obs if o[0] in index]
+        pidx = {t: i for i, t in enumerate(point_ids)}
+        kfs = [self.keyframes[k] for k in kf_ids]
+        problem = ba.BAProblem(
+            K=self.K,
+            pose_ids=np.array(kf_ids),
+            poses=np.array([k.T_world_camera for k in kfs]),
+            fixed=np.array([k not in free for k in kf_ids]),
+            prior_poses=np.array([k.prior.T_world_camera for k in kfs]),
+            prior_covs=np.array([k.prior.cov for k in kfs]),
+            point_ids=np.array(point_ids),
+            points=np.array([self.landmarks[t] for t in point_ids]),
+            obs_pose=np.array([index[k] for k, _, _ in obs], dtype=np.int64),
+            obs_point=np.array([pidx[t] for _, t, _ in obs], dtype=np.int64),
+            obs_uv=np.array([uv for _, _, uv in obs]),
+        )
+        return problem, kf_ids
+
+    def _apply(self, problem: ba.BAProblem, result: ba.BAResult) -> None:
+        for i, k in enumerate(problem.pose_ids.tolist()):
+            if not problem.fixed[i]:
+                self.keyframes[k].T_world_camera = result.poses[i]
+                self.keyframes[k].refined = True
+        for j, t in enumerate(problem.point_ids.tolist()):
+            self.landmarks[t] = result.points[j]
+        self.ba_times.append(result.seconds)
+        self.ba_iterations.append(result.iterations)
+
+    def _local_ba(self) -> None:
+        cfg = self.config
+        window = list(range(max(0, len(self.keyframes) - cfg.window_keyframes), len(self.keyframes)))
+        # co-visible older keyframes join as free variables with their robot priors (a soft edge): holding
+        # them fixed would carry their errors into every later window
+        built = self._problem(window, fixed_limit=2 * cfg.window_keyframes, edge_free=True)
+        if built is None:
+            return
+        problem, _ = built
+        result = ba.solve(problem, cfg.pixel_sigma, "cauchy", cfg.cauchy_k, cfg.ba_iterations)
+        self._apply(problem, result)
+
+    # --- end of sequence -----------------------------------------------------------------------------------
+    def finish(self) -> MapResult:
+        cfg = self.config
+        t0 = time.perf_counter()
+        built = self._problem(list(range(len(self.keyframes))), fixed_limit=None) if self.keyframes else None
+        ids = np.array(sorted(self.landmarks), dtype=np.int64)
+        inlier = np.zeros(len(ids), bool)
+        n_obs = n_inlier_obs = 0
+        if built is not None:
+            problem, _ = built
+            if cfg.final_global_ba:
+                result = ba.solve(problem, cfg.pixel_sigma, "cauchy", cfg.cauchy_k, 2 * cfg.ba_iterations)
+                self._apply(problem, result)
+                residuals = result.residuals_px
+            else:
+                residuals = ba.reprojection_residuals(problem.K, problem.poses, problem.points, problem.obs_pose,
+                                                      problem.obs_point, problem.obs_uv)
+            good = residuals <= cfg.inlier_threshold_px
+            counts = np.bincount(problem.obs_point[good], minlength=len(problem.point_ids))
+            in_problem = dict(zip(problem.point_ids.tolist(), counts >= cfg.min_inlier_observations))
+            inlier = np.array([in_problem.get(t, False) for t in ids.tolist()], bool)
+            n_obs, n_inlier_obs = int(len(residuals)), int(good.sum())
+        points = np.array([self.landmarks[t] for t in ids.tolist()]).reshape(-1, 3)
+        colors = np.array([self.landmark_colors[t] for t in ids.tolist()], np.uint8).reshape(-1, 3)
+        stats = {
+            "keyframes": len(self.keyframes),
+            "tracks": len(self.tracks),
+            "landmarks": int(len(ids)),
+            "inliers": int(inlier.sum()),
+            "outliers": int((~inlier).sum()),
+            "local_ba_runs": len(self.ba_times) - (1 if built is not None and cfg.final_global_ba else 0),
+            "local_ba_mean_s": float(np.mean(self.ba_times[:-1])) if len(self.ba_times) > 1 else 0.0,
+            "final_ba_s": time.perf_counter() - t0,
+        }
+        return MapResult(self.keyframes, self.frames, self._frame_poses(), ids, points, colors, inlier, n_obs,
+                         n_inlier_obs, stats)
+
+    def _frame_poses(self) -> np.ndarray:
+        """Every frame's refined pose: its prior, corrected by the keyframe corrections interpolated in time."""
+        if not self.keyframes:
+            return np.array([f.T_prior for f in self.frames])
+        kt = np.array([k.t_ns for k in self.keyframes])
+        corr = [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in self.keyframes]
+        out = []
+        for f in self.frames:
+            i = int(np.searchsorted(kt, f.t_ns))
+            if i == 0:
+                C = corr[0]
+            elif i >= len(kt):
+                C = corr[-1]
+            else:
+                s = (f.t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
+                C = interpolate_pose(corr[i - 1], corr[i], s)
+            out.append(C @ f.T_prior)
+        return np.array(out)

@@ -1,0 +1,56 @@
+"""Multi-view triangulation from known poses (linear DLT on normalised coordinates), with the checks that
+decide whether a point may enter the map: cheirality, parallax angle, reprojection error."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TriangulationResult:
+    points: np.ndarray  # (N, 3) world
+    valid: np.ndarray  # (N,) bool: passed every check
+    parallax_deg: np.ndarray  # (N,) largest angle between two observing rays
+    max_error_px: np.ndarray  # (N,) worst reprojection error over the observing views
+
+
+def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K: np.ndarray,
+                min_parallax_deg: float, max_error_px: float) -> TriangulationResult:
+    """uv: (N, M, 2) undistorted pixels of N tracks in M views, ``seen`` (N, M) marks which exist;
+    T_world_cameras: (M, 4, 4)."""
+    N, M = seen.shape
+    T_cw = np.linalg.inv(T_world_cameras)  # (M, 4, 4) world -> camera
+    P = T_cw[:, :3, :]  # normalised projection matrices
+    xn = (uv[..., 0] - K[0, 2]) / K[0, 0]
+    yn = (uv[..., 1] - K[1, 2]) / K[1, 1]
+    w = seen.astype(float)
+    rows_x = (xn[..., None] * P[None, :, 2, :] - P[None, :, 0, :]) * w[..., None]
+    rows_y = (yn[..., None] * P[None, :, 2, :] - P[None, :, 1, :]) * w[..., None]
+    A = np.concatenate([rows_x, rows_y], axis=1)  # (N, 2M, 4)
+    _, _, vh = np.linalg.svd(A)
+    Xh = vh[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    finite = np.all(np.isfinite(X), axis=1) & (np.abs(Xh[:, 3]) > 1e-12)
+    X = np.where(finite[:, None], X, 0.0)
+    # depth and reprojection in every view
+    Xc = np.einsum("mij,nj->nmi", T_cw[:, :3, :3], X) + T_cw[None, :, :3, 3]  # (N, M, 3)
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * Xc[..., 0] / z + K[0, 2]
+        v = K[1, 1] * Xc[..., 1] / z + K[1, 2]
+    err = np.hypot(u - uv[..., 0], v - uv[..., 1])
+    err = np.where(seen, err, 0.0)
+    cheiral = np.all(~seen | (z > 1e-4), axis=1)
+    # parallax: the largest angle between rays from the observing camera centres
+    rays = X[:, None, :] - T_world_cameras[None, :, :3, 3]
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
+    cosines = np.einsum("nai,nbi->nab", rays, rays)
+    both = seen[:, :, None] & seen[:, None, :]
+    min_cos = np.where(both, cosines, 1.0).min(axis=(1, 2))
+    parallax = np.degrees(np.arccos(np.clip(min_cos, -1.0, 1.0)))
+    max_err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
+    valid = finite & cheiral & (parallax >= min_parallax_deg) & (max_err <= max_error_px) & (seen.sum(1) >= 2)
+    return TriangulationResult(X, valid, parallax, max_err)

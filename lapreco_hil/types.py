@@ -1,0 +1,70 @@
+"""Plain data that flows between stages. Every sample carries its capture time (int ns, one monotonic
+clock) and a sequence number, stamped where it was captured, never after processing."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One video frame as the grabber delivered it (distorted, BGR uint8, H x W x 3)."""
+
+    image: np.ndarray
+    t_ns: int
+    seq: int
+
+
+@dataclass(frozen=True)
+class JointSample:
+    """One reading of all joints: positions in SI units (rad, m) in the robot's joint order."""
+
+    q: np.ndarray
+    t_ns: int
+    seq: int
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+@dataclass(frozen=True)
+class RobotInfo:
+    """What a robot driver says about itself."""
+
+    name: str
+    joint_names: tuple[str, ...]
+    limits: JointLimits
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """Camera pose from kinematics at a frame time with its covariance.
+
+    ``cov`` is 6x6 in GTSAM's Pose3 tangent order (rotation, translation), expressed in the camera frame.
+    """
+
+    T_world_camera: np.ndarray
+    cov: np.ndarray
+    t_ns: int
+
+
+@dataclass(frozen=True)
+class Observations:
+    """What the front-end saw in one frame: undistorted pixel positions (ideal pinhole with the camera's K)
+    of live tracks, keyed by track id, with the colour (RGB uint8) under each."""
+
+    frame_seq: int
+    t_ns: int
+    track_ids: np.ndarray  # (N,) int64
+    uv: np.ndarray  # (N, 2) float64, undistorted pixels
+    colors: np.ndarray  # (N, 3) uint8 RGB
+    n_new: int = 0
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.track_ids.shape[0])

@@ -1,0 +1,52 @@
+"""Choosing the Warp device: ``auto`` takes CUDA when there is one, else the CPU.
+
+Warp prints a banner and, on machines without a GPU driver, a C-level warning on stderr at ``init``; the app
+routes both to its log instead, so the command line shows only what the user needs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import tempfile
+
+from .errors import DeviceError
+
+log = logging.getLogger(__name__)
+
+
+def init_warp():
+    """Import and initialise Warp quietly (idempotent); returns the module."""
+    import warp as wp
+
+    if hasattr(wp.config, "log_level"):
+        wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
+    wp.config.quiet = True
+    # wp.init() is idempotent; only its first call prints
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        text = captured.read().decode(errors="replace").strip()
+    if text:
+        log.info("warp: %s", text)
+    return wp
+
+
+def resolve_device(name: str = "auto") -> str:
+    wp = init_warp()
+    has_cuda = wp.is_cuda_available()
+    if name == "auto":
+        return "cuda:0" if has_cuda else "cpu"
+    if name.startswith("cuda") and not has_cuda:
+        raise DeviceError(f"--device {name}: no CUDA device is visible to Warp on this machine; use --device cpu")
+    if name not in ("cpu",) and not name.startswith("cuda"):
+        raise DeviceError(f"--device {name}: expected auto, cpu, cuda or cuda:N")
+    return "cuda:0" if name == "cuda" else name

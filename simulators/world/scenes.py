@@ -1,0 +1,174 @@
+"""Ground-truth scenes at real scale, in metres.
+
+Each scene is given in its own *scene frame*: the region of interest (ROI) at the origin, +z pointing out of
+the viewed surface towards where the scope looks from, +y up in the image. The simulated world places the
+scene frame in front of the scope's home pose, so one scan trajectory fits every scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+
+import numpy as np
+
+from lapreco_hil.errors import SceneError
+
+from .renderer import Material
+from .textures import (apple_texture, bone_texture, fat_texture, gallbladder_texture, liver_texture,
+                       value_noise)
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    description: str
+    vertices: np.ndarray  # (V, 3) float64, scene frame, metres
+    faces: np.ndarray  # (F, 3) int32
+    face_material: np.ndarray  # (F,) int32
+    materials: tuple[Material, ...]
+    working_distance_m: float  # camera-to-ROI distance at the home pose
+
+
+def _asset(name: str) -> str:
+    return str(resources.files(__package__).joinpath("assets", name))
+
+
+def _read_mesh(name: str) -> tuple[np.ndarray, np.ndarray]:
+    import pyvista as pv
+
+    mesh = pv.read(_asset(name)).triangulate().clean()
+    faces = mesh.faces.reshape(-1, 4)[:, 1:].astype(np.int32)
+    return np.asarray(mesh.points, dtype=np.float64), faces
+
+
+def _surface_hit(vertices, faces, origin, direction) -> np.ndarray:
+    """First intersection of a ray with a triangle mesh (Moller-Trumbore, vectorised over triangles)."""
+    v0, v1, v2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    e1, e2 = v1 - v0, v2 - v0
+    p = np.cross(direction, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-15
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = origin - v0
+    u = np.einsum("ij,ij->i", s, p) * inv
+    qv = np.cross(s, e1)
+    v = (qv @ direction) * inv
+    t = np.einsum("ij,ij->i", e2, qv) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    if not hit.any():
+        raise SceneError("scene construction: the ROI ray misses the mesh")
+    return origin + direction * t[hit].min()
+
+
+def _grid_sheet(size_m: float, n: int, height_fn) -> tuple[np.ndarray, np.ndarray]:
+    """A square height-field sheet in the xy plane (z = height_fn(x, y)), triangulated."""
+    xs = np.linspace(-size_m / 2, size_m / 2, n)
+    X, Y = np.meshgrid(xs, xs)
+    Z = height_fn(X, Y)
+    verts = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])]).astype(np.int32)
+    return verts, faces
+
+
+def _merge(parts):
+    verts, faces, mats = [], [], []
+    base = 0
+    for v, f, m in parts:
+        verts.append(v)
+        faces.append(f + base)
+        mats.append(np.full(len(f), m, np.int32))
+        base += len(v)
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int32), np.concatenate(mats)
+
+
+def skull_scene(rng: np.random.Generator) -> Scene:
+    """A real skull scan scaled to 190 mm length, viewed at the face from 110 mm."""
+    v, f = _read_mesh("skull.obj")
+    v = v * (0.19 / float(np.ptp(v[:, 2])))  # mesh: +y up, +z forward (face); z extent = skull length
+    roi = _surface_hit(v, f, np.array([0.0, float(v[:, 1].min() + 0.5 * np.ptp(v[:, 1])), 1.0]),
+                       np.array([0.0, 0.0, -1.0]))
+    v = v - roi
+    bone = Material(bone_texture(rng), texel_size_m=0.00012, specular=0.12, shininess=18.0)
+    return Scene("skull", "skull (real scan, 190 mm long), face and orbits", v, f, np.zeros(len(f), np.int32),
+                 (bone,), working_distance_m=0.11)
+
+
+def liver_scene(rng: np.random.Generator) -> Scene:
+    """Liver and gallbladder (real models, mm -> m) viewed anteriorly, over a fat/omentum sheet."""
+    liver_v, liver_f = _read_mesh("liver.vtk")
+    gb_v, gb_f = _read_mesh("gallbladder.vtk")
+    # models in mm; view from -y (anterior), +z up: scene x = x, y = z, z = -y
+    to_scene = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+    liver_v = liver_v @ to_scene.T * 1e-3
+    gb_v = gb_v @ to_scene.T * 1e-3
+    aim = 0.65 * gb_v.mean(axis=0) + 0.35 * liver_v.mean(axis=0)
+    roi = _surface_hit(liver_v, liver_f, np.array([aim[0], aim[1], 1.0]), np.array([0.0, 0.0, -1.0]))
+    liver_v, gb_v = liver_v - roi, gb_v - roi
+    lobules = value_noise((64, 64), rng, octaves=3, base_cells=6)
+
+    def omentum(x, y):
+        i = np.clip(((x + 0.2) / 0.4 * 63).astype(int), 0, 63)
+        j = np.clip(((y + 0.2) / 0.4 * 63).astype(int), 0, 63)
+        return -0.05 + 0.004 * lobules[j, i] + 0.002 * np.sin(x * 180) * np.cos(y * 150)
+
+    sheet_v, sheet_f = _grid_sheet(0.4, 160, omentum)
+    v, f, m = _merge([(liver_v, liver_f, 0), (gb_v, gb_f, 1), (sheet_v, sheet_f, 2)])
+    mats = (
+        Material(liver_texture(rng), texel_size_m=0.00010, specular=0.45, shininess=60.0),
+        Material(gallbladder_texture(rng), texel_size_m=0.00010, specular=0.5, shininess=50.0),
+        Material(fat_texture(rng), texel_size_m=0.00012, specular=0.3, shininess=30.0),
+    )
+    return Scene("liver", "liver and gallbladder (real models) over omentum, anterior view", v, f, m, mats,
+                 working_distance_m=0.10)
+
+
+def apple_scene(rng: np.random.Generator) -> Scene:
+    """A 76 mm apple on a drape, seen from 40 degrees above the table (the seed's first experiment)."""
+    radius = 0.038
+    nt, nphi = 96, 192
+    theta = np.linspace(0.0, np.pi, nt)
+    phi = np.linspace(0.0, 2 * np.pi, nphi, endpoint=False)
+    T, P = np.meshgrid(theta, phi, indexing="ij")
+    # dimples at stem (theta=0) and calyx, slightly wider shoulders
+    r = radius * (1.0 - 0.22 * np.exp(-(T**2) / 0.05) - 0.12 * np.exp(-((np.pi - T) ** 2) / 0.06)
+                  + 0.04 * np.sin(T) * np.cos(T) + 0.01 * np.cos(5 * P) * np.sin(T))
+    pts = np.stack([r * np.sin(T) * np.cos(P), r * np.sin(T) * np.sin(P), r * np.cos(T)], -1).reshape(-1, 3)
+    idx = np.arange(nt * nphi).reshape(nt, nphi)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
+    apple_f = np.concatenate([np.column_stack([a, c, d]), np.column_stack([a, d, b])]).astype(np.int32)
+    apple_v = pts + np.array([0.0, 0.0, 0.95 * radius])  # resting on the table (z = 0)
+    table_v, table_f = _grid_sheet(0.4, 60, lambda x, y: np.zeros_like(x))
+    v, f, m = _merge([(apple_v, apple_f, 0), (table_v, table_f, 1)])
+    # table frame -> scene frame: the scope looks from 40 degrees elevation
+    elev = np.deg2rad(40.0)
+    z_s = np.array([0.0, -np.cos(elev), np.sin(elev)])
+    y_s = np.array([0.0, 0.0, 1.0]) - z_s * z_s[2]
+    y_s /= np.linalg.norm(y_s)
+    x_s = np.cross(y_s, z_s)
+    R = np.vstack([x_s, y_s, z_s])
+    v = v @ R.T
+    roi = _surface_hit(v, f, np.array([0.0, (apple_v.mean(axis=0) @ R.T)[1], 1.0]), np.array([0.0, 0.0, -1.0]))
+    v = v - roi
+    drape = np.ones((256, 256, 3), np.float32) * np.array([0.18, 0.40, 0.42], np.float32)
+    drape *= (0.7 + 0.6 * value_noise((256, 256), rng, octaves=6, base_cells=16))[..., None]
+    mats = (
+        Material(apple_texture(rng), texel_size_m=0.00010, specular=0.6, shininess=80.0),
+        Material(drape, texel_size_m=0.00025, specular=0.05, shininess=10.0),
+    )
+    return Scene("apple", "apple (76 mm) on a drape, 40 degrees from above", v, f, m, mats,
+                 working_distance_m=0.09)
+
+
+SCENES = {"skull": skull_scene, "liver": liver_scene, "apple": apple_scene}
+
+
+def build_scene(name: str, seed: int = 0) -> Scene:
+    try:
+        builder = SCENES[name]
+    except KeyError:
+        raise SceneError(f"unknown scene '{name}' (known: {', '.join(sorted(SCENES))})") from None
+    return builder(np.random.default_rng(seed))

@@ -1,0 +1,103 @@
+"""The simulated world: a scene, a camera on the simulated holder, a light at the scope tip, and a clock.
+
+A simulated robot and a simulated grabber opened with the same name share one SimWorld (see
+``lapreco_hil.registry.DeviceContext``), the way python-can's virtual buses with the same channel do.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.geometry import make_T, rot_x, transform_points
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.robot_models import urdf_path
+
+from ..robot import ComplianceModel, ScanTrajectory, SimulatedArm
+from .renderer import Lighting, Renderer
+from .scenes import build_scene
+
+T0_NS = 1_000_000_000  # simulated time starts at 1 s: timestamps are never 0
+
+
+def default_camera(width: int, height: int, hfov_deg: float = 70.0) -> CameraModel:
+    """A laparoscope-like camera: strong barrel distortion in the seed's model, circular field of view."""
+    fx = (width / 2) / np.tan(np.deg2rad(hfov_deg) / 2)
+    return CameraModel.from_paper_model(
+        width, height, fx, fx, (width - 1) / 2 + 0.004 * width, (height - 1) / 2 - 0.003 * height,
+        k=(-0.28, 0.09, -0.012), t=(0.0006, -0.0004), p=(0.0008, -0.0006),
+        fov_radius_px=0.68 * np.hypot(width, height) / 2,
+    )
+
+
+def thirty_degree_optics(angle_deg: float = 30.0) -> np.ndarray:
+    """Hand-eye T_tip_camera of an angled scope: optical axis tilted from the shaft (tip z), lens 1.5 mm
+    off the shaft axis."""
+    return make_T(rot_x(np.deg2rad(angle_deg)), [0.0, -0.0015, 0.0])
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    scene: str = "skull"
+    width: int = 640
+    height: int = 480
+    fps: float = 25.0
+    robot_rate_hz: float = 200.0
+    hfov_deg: float = 70.0
+    seed: int = 0
+    device: str | None = None
+    delivery_latency_s: float = 0.02  # frame transfer: robot samples up to capture + this are available
+    trajectory: ScanTrajectory = field(default_factory=ScanTrajectory)
+    compliance: ComplianceModel = field(default_factory=ComplianceModel)
+    lighting: Lighting = field(default_factory=Lighting)
+
+
+class SimWorld:
+    def __init__(self, settings: SimSettings) -> None:
+        self.settings = settings
+        self.scene = build_scene(settings.scene, seed=settings.seed)
+        self.camera = default_camera(settings.width, settings.height, settings.hfov_deg)
+        self.T_tip_camera = thirty_degree_optics()
+        self.robot_model = "ecm"
+        self.tip_frame = "ecm_tip"
+        self.kinematics = CameraKinematics(str(urdf_path(self.robot_model)), self.tip_frame, self.T_tip_camera)
+        self.arm = SimulatedArm(settings.trajectory, settings.compliance, settings.seed)
+        # place the scene's ROI on the optical axis of the home pose, facing the camera
+        T_world_home = self.kinematics.camera_pose(np.asarray(settings.trajectory.home))
+        T_home_scene = make_T(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, self.scene.working_distance_m])
+        self.T_world_scene = T_world_home @ T_home_scene
+        self.vertices_world = transform_points(self.T_world_scene, self.scene.vertices)
+        self.renderer = Renderer(self.vertices_world, self.scene.faces, self.scene.face_material,
+                                 list(self.scene.materials), self.camera, settings.lighting, settings.device)
+        self._lock = threading.Lock()
+        self._now_ns = T0_NS
+
+    # --- time -------------------------------------------------------------------------------------------
+    def now_ns(self) -> int:
+        with self._lock:
+            return self._now_ns
+
+    def advance_to(self, t_ns: int) -> None:
+        with self._lock:
+            self._now_ns = max(self._now_ns, int(t_ns))
+
+    @staticmethod
+    def seconds(t_ns: int) -> float:
+        return (t_ns - T0_NS) * 1e-9
+
+    # --- truth --------------------------------------------------------------------------------------------
+    def true_camera_pose(self, t_ns: int) -> np.ndarray:
+        return self.kinematics.camera_pose(self.arm.true_joints(self.seconds(t_ns)))
+
+    def render(self, t_ns: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.renderer.render(self.true_camera_pose(t_ns), seed=self.settings.seed * 1_000_003 + seq)
+
+    def surface_mesh(self):
+        """The ground-truth surface in the world frame, as a pyvista PolyData (metres)."""
+        import pyvista as pv
+
+        faces = np.hstack([np.full((len(self.scene.faces), 1), 3), self.scene.faces]).ravel()
+        return pv.PolyData(self.vertices_world, faces)

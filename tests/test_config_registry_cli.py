@@ -1,0 +1,83 @@
+import numpy as np
+import pytest
+
+from lapreco_hil.cli.main import main
+from lapreco_hil.config import PipelineConfig, load_config
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+
+
+def test_config_defaults_and_overrides(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[mapper]\nwindow_keyframes = 5\n[prior]\njoint_sigma = [0.001, 0.001, 0.0001, 0.001]\n")
+    cfg = load_config(path)
+    assert cfg.mapper.window_keyframes == 5
+    assert cfg.prior.joint_sigma == (0.001, 0.001, 0.0001, 0.001)
+    assert cfg.tracker == PipelineConfig().tracker
+
+
+@pytest.mark.parametrize("text,match", [
+    ("[mapper]\nbogus = 1\n", "unknown key 'mapper.bogus'"),
+    ("[mapper]\nwindow_keyframes = 'many'\n", "'mapper.window_keyframes' must be an integer"),
+    ("[mapper\n", "not valid TOML"),
+    ("mapper = 3\n", "'mapper' must be a table"),
+])
+def test_malformed_config_names_file_and_key(tmp_path, text, match):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match) as info:
+        load_config(path)
+    assert str(path) in str(info.value)
+
+
+def test_unknown_url_scheme_lists_the_known_ones():
+    with pytest.raises(ConfigError, match=r"unknown scheme 'bogus' \(known: sim\)"):
+        open_robot("bogus://x", DeviceContext())
+    with pytest.raises(ConfigError, match="no scheme"):
+        open_grabber("skull", DeviceContext())
+
+
+def test_sim_devices_with_one_name_share_one_world(warp_cpu):
+    ctx = DeviceContext(device=warp_cpu)
+    robot = open_robot("sim://apple?width=160&height=120", ctx)
+    grabber = open_grabber("sim://apple?width=160&height=120&frames=2", ctx)
+    assert robot.world is grabber.world
+    assert open_robot("sim://apple", DeviceContext(device=warp_cpu)).world is not robot.world
+    with pytest.raises(ConfigError, match="conflicts"):
+        open_grabber("sim://apple?width=320", ctx)
+    with robot, grabber:
+        samples = robot.read()
+        assert len(samples) <= 1  # no simulated time has passed yet
+        frame = grabber.read()
+        samples += robot.read()
+    # the robot's samples cover the frame's capture time, so the pose can be interpolated there
+    assert samples[0].t_ns <= frame.t_ns < samples[-1].t_ns
+    assert np.all(np.diff([s.t_ns for s in samples]) > 0)
+
+
+@pytest.mark.parametrize("args,match", [
+    (["demo", "--scene", "nope"], "unknown scene 'nope' (known: apple, liver, skull)"),
+    (["demo", "--out", "/proc/forbidden/out"], "cannot write to output folder '/proc/forbidden/out'"),
+])
+def test_cli_bad_input_is_one_clear_line(tmp_path, capsys, args, match):
+    if "--out" not in args:
+        args = args + ["--out", str(tmp_path / "o")]
+    assert main(args + ["--no-progress", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"lapreco: error: {match}"] or (len(err) == 1 and match in err[0])
+    assert "Traceback" not in "".join(err)
+
+
+def test_cli_malformed_config(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[tracker]\nmax_features = -\n")
+    assert main(["demo", "--config", str(cfg), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cfg) in err[0] and "not valid TOML" in err[0]
+
+
+def test_cli_rejects_bad_resolution(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["demo", "--resolution", "big"])
+    assert info.value.code == 2
+    assert "must look like 640x480" in capsys.readouterr().err
