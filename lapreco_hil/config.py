@@ -53,14 +53,19 @@ class MapperConfig:
     keyframe_translation_m: float = 0.002
     keyframe_rotation_rad: float = 0.02
     keyframe_track_ratio: float = 0.7
+    keyframe_parallax_deg: float = 1.0
     min_parallax_deg: float = 2.0
     max_reprojection_px: float = 3.0
-    pixel_sigma: float = 1.0
     window_keyframes: int = 8
-    ba_iterations: int = 15
-    cauchy_k: float = 2.0
-    inlier_threshold_px: float = 2.5
+    # the seed's robust schedule: Cauchy then Tukey, MAD scale re-estimated before each stage
+    local_cauchy_iterations: int = 3
+    local_tukey_iterations: int = 3
+    final_cauchy_iterations: int = 15
+    final_tukey_iterations: int = 15
+    sigma_floor_px: float = 0.2
+    # a landmark is an inlier with at least this many inlier observations, making up at least this share
     min_inlier_observations: int = 3
+    min_inlier_fraction: float = 0.5
     final_global_ba: bool = True
 
 

@@ -42,7 +42,7 @@ class ComplianceModel:
     """Per-joint deflection: OU wander (sigma, time constant) + backlash b * tanh(qdot / v0)."""
 
     sigma: tuple[float, ...] = (0.0030, 0.0030, 0.00025, 0.0025)
-    tau_s: float = 0.4
+    tau_s: float = 0.15
     backlash: tuple[float, ...] = (0.0015, 0.0015, 0.0001, 0.0010)
     backlash_velocity: tuple[float, ...] = (0.01, 0.01, 0.001, 0.01)
     encoder_resolution: tuple[float, ...] = (2 * np.pi / 65536, 2 * np.pi / 65536, 1e-6, 2 * np.pi / 65536)

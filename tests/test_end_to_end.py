@@ -31,8 +31,19 @@ def test_points_lie_on_the_true_surface(demo):
 def test_refined_poses_are_closer_to_the_truth_than_raw_fk(demo):
     _, report = demo
     acc = report["accuracy"]
-    assert acc["camera_refined"]["position_rms_mm"] < 0.85 * acc["camera_raw_fk"]["position_rms_mm"], acc
-    assert acc["keyframes_refined"]["position_rms_mm"] < acc["keyframes_raw_fk"]["position_rms_mm"]
+    # every frame is refined (keyframes by BA, the rest by pose-only refinement against the map)
+    assert acc["camera_refined"]["position_rms_mm"] < 0.4 * acc["camera_raw_fk"]["position_rms_mm"], acc
+    assert acc["camera_refined"]["position_max_mm"] < acc["camera_raw_fk"]["position_rms_mm"], acc
+    assert acc["keyframes_refined"]["position_rms_mm"] < 0.4 * acc["keyframes_raw_fk"]["position_rms_mm"]
+    assert acc["camera_refined"]["rotation_rms_deg"] < 0.5 * acc["camera_raw_fk"]["rotation_rms_deg"]
+
+
+@pytest.mark.slow
+def test_outliers_are_labelled_and_not_exported(demo):
+    out, report = demo
+    assert report["outliers"] > 0
+    assert report["inliers"] + report["outliers"] == report["landmarks"]
+    assert report["accuracy"]["points_to_surface"]["p95_mm"] <= report["accuracy"]["all_points_to_surface"]["p95_mm"]
 
 
 @pytest.mark.slow

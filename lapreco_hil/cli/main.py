@@ -7,7 +7,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..errors import LaprecoError
+from ..errors import LaprecoError, OutputError
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -49,7 +49,30 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
+
+    bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
+    bench_sub = bench.add_subparsers(dest="bench", required=True)
+    bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")
+    bench_ba.add_argument("--repeats", type=_positive_int, default=3)
+    bench_ba.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_ba.set_defaults(func=_cmd_bench_ba)
     return parser
+
+
+def _cmd_bench_ba(args) -> int:
+    import json
+
+    from ..bench.ba import format_table, run
+
+    result = run(repeats=args.repeats)
+    print(format_table(result))
+    if args.json:
+        try:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump(result, fh, indent=2)
+        except OSError as exc:
+            raise OutputError(f"cannot write benchmark JSON '{args.json}' ({exc.strerror})") from None
+    return 0
 
 
 def _cmd_demo(args) -> int:

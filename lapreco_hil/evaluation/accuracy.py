@@ -31,3 +31,24 @@ def pose_error_stats(estimated: np.ndarray, truth: np.ndarray) -> dict:
     return {"n": int(len(pos)), "position_rms_mm": float(np.sqrt(np.mean(pos**2))),
             "position_median_mm": float(np.median(pos)), "position_max_mm": float(pos.max()),
             "rotation_rms_deg": float(np.sqrt(np.mean(rot**2)))}
+
+
+def similarity_align(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (Umeyama 1991) mapping corresponding points: target ~ s R source + t.
+    Returns (s, R, t)."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    S, T = source - mu_s, target - mu_t
+    U, D, Vt = np.linalg.svd(T.T @ S / len(source))
+    E = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        E[2, 2] = -1
+    R = U @ E @ Vt
+    s = float(np.trace(np.diag(D) @ E) / (S**2).sum(1).mean())
+    return s, R, mu_t - s * R @ mu_s
+
+
+def shape_error(points: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per-point error after the best similarity alignment: the error BA can be blamed for, free of the
+    gauge (global pose and scale) that priors alone fix."""
+    s, R, t = similarity_align(points, truth)
+    return np.linalg.norm(s * points @ R.T + t - truth, axis=1)

@@ -78,38 +78,145 @@ def reprojection_residuals(K: np.ndarray, poses: np.ndarray, points: np.ndarray,
     return np.where(Xc[:, 2] > 0, r, np.inf)
 
 
-def solve(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
-          max_iterations: int = 15) -> BAResult:
-    t0 = time.perf_counter()
+def _build(problem: BAProblem, noise: gtsam.noiseModel.Base):
     p = problem
     cal = gtsam.Cal3_S2(p.K[0, 0], p.K[1, 1], 0.0, p.K[0, 2], p.K[1, 2])
     graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
     for i, pid in enumerate(p.pose_ids):
         key = X(int(pid))
-        values.insert(key, pose3(p.poses[i]))
         if p.fixed[i]:
             # a very tight prior rather than NonlinearEqualityPose3, which made LM 5x slower here
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.poses[i]), _FIXED_NOISE))
         else:
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.prior_poses[i]),
                                              gtsam.noiseModel.Gaussian.Covariance(p.prior_covs[i])))
-    for j, lid in enumerate(p.point_ids):
-        values.insert(L(int(lid)), gtsam.Point3(*p.points[j]))
-    noise = robust_pixel_noise(pixel_sigma, loss, k)
+    n_priors = graph.size()
     pose_keys = [X(int(pid)) for pid in p.pose_ids]
     point_keys = [L(int(lid)) for lid in p.point_ids]
     for o in range(len(p.obs_pose)):
         graph.add(gtsam.GenericProjectionFactorCal3_S2(
             p.obs_uv[o], noise, pose_keys[p.obs_pose[o]], point_keys[p.obs_point[o]], cal, False, False))
+    return graph, pose_keys, point_keys, n_priors
+
+
+def _values(problem: BAProblem, poses: np.ndarray, points: np.ndarray) -> gtsam.Values:
+    values = gtsam.Values()
+    for i, pid in enumerate(problem.pose_ids):
+        values.insert(X(int(pid)), pose3(poses[i]))
+    for j, lid in enumerate(problem.point_ids):
+        values.insert(L(int(lid)), gtsam.Point3(*points[j]))
+    return values
+
+
+def _unpack(result: gtsam.Values, pose_keys, point_keys, fallback_poses):
+    poses = np.array([matrix(result.atPose3(k)) for k in pose_keys]) if pose_keys else fallback_poses.copy()
+    points = np.array([result.atPoint3(k) for k in point_keys]).reshape(-1, 3)
+    return poses, points
+
+
+def _points_first(pose_keys, point_keys) -> gtsam.Ordering:
+    """Eliminate landmarks before poses (the Schur-complement order); measured no slower than COLAMD."""
+    ordering = gtsam.Ordering()
+    for k in point_keys:
+        ordering.push_back(k)
+    for k in pose_keys:
+        ordering.push_back(k)
+    return ordering
+
+
+def _lm(graph, values, iterations: int, ordering: gtsam.Ordering | None = None):
     params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
+    if ordering is not None:
+        params.setOrdering(ordering)
+    params.setMaxIterations(iterations)
     params.setRelativeErrorTol(1e-5)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    initial_error = graph.error(values)
     result = optimizer.optimize()
-    poses = np.array([matrix(result.atPose3(k)) for k in pose_keys]) if len(pose_keys) else p.poses.copy()
-    points = np.array([result.atPoint3(k) for k in point_keys]).reshape(-1, 3)
+    return result, int(optimizer.iterations())
+
+
+def solve(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
+          max_iterations: int = 15) -> BAResult:
+    """One Levenberg-Marquardt run with a fixed pixel sigma and m-estimator (k in units of sigma)."""
+    t0 = time.perf_counter()
+    p = problem
+    graph, pose_keys, point_keys, _ = _build(p, robust_pixel_noise(pixel_sigma, loss, k))
+    values = _values(p, p.poses, p.points)
+    initial_error = graph.error(values)
+    result, iterations = _lm(graph, values, max_iterations, _points_first(pose_keys, point_keys))
+    poses, points = _unpack(result, pose_keys, point_keys, p.poses)
     residuals = reprojection_residuals(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
-    return BAResult(poses, points, residuals, float(initial_error), float(graph.error(result)),
-                    int(optimizer.iterations()), time.perf_counter() - t0)
+    return BAResult(poses, points, residuals, float(initial_error), float(graph.error(result)), iterations,
+                    time.perf_counter() - t0)
+
+
+def residual_vectors(K, poses, points, obs_pose, obs_point, obs_uv) -> np.ndarray:
+    """(O, 2) reprojection error vectors (NaN behind the camera)."""
+    T_cw = np.linalg.inv(poses)[obs_pose]
+    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], points[obs_point]) + T_cw[:, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * Xc[:, 0] / Xc[:, 2] + K[0, 2]
+        v = K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]
+    r = np.column_stack([u - obs_uv[:, 0], v - obs_uv[:, 1]])
+    r[Xc[:, 2] <= 0] = np.nan
+    return r
+
+
+def solve_robust(problem: BAProblem, schedule: "RobustSchedule") -> BAResult:
+    """The seed's schedule: each stage re-estimates the MAD scale from the current residuals, whitens the
+    reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey). Observations beyond
+    the last stage's threshold are the outliers (``stats['inlier_obs']``)."""
+    from .robust import mad_sigma
+
+    t0 = time.perf_counter()
+    p = problem
+    poses, points = p.poses.copy(), p.points.copy()
+    stages, iterations = [], 0
+    initial_error = final_error = 0.0
+    sigma = 1.0
+    for n, stage in enumerate(schedule.stages):
+        r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+        sigma = min(mad_sigma(r, schedule.sigma_floor_px), schedule.sigma_ceiling_px)
+        noise = robust_pixel_noise(sigma, None if stage.loss == "none" else stage.loss, stage.k)
+        graph, pose_keys, point_keys, _ = _build(p, noise)
+        values = _values(p, poses, points)
+        error0 = graph.error(values)
+        result, its = _lm(graph, values, stage.iterations, _points_first(pose_keys, point_keys))
+        poses, points = _unpack(result, pose_keys, point_keys, poses)
+        final_error = float(graph.error(result))
+        if n == 0:
+            initial_error = float(error0)
+        iterations += its
+        stages.append({"loss": stage.loss, "sigma_px": sigma, "k": stage.k, "iterations": its,
+                       "error_before": float(error0), "error_after": final_error})
+    residuals = reprojection_residuals(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+    r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+    sigma_final = min(mad_sigma(r, schedule.sigma_floor_px), schedule.sigma_ceiling_px)
+    threshold = schedule.inlier_threshold_px(sigma_final)
+    return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
+                    {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,
+                     "inlier_obs": residuals <= threshold})
+
+
+def solve_gnc(problem: BAProblem, pixel_sigma: float, loss: str = "tls", inlier_threshold_px: float = 3.0,
+              max_iterations: int = 20) -> BAResult:
+    """GTSAM's graduated non-convexity (Yang et al. 2020) over the reprojection factors, robot priors known
+    inliers: the alternative the seed's schedule is compared with."""
+    t0 = time.perf_counter()
+    p = problem
+    graph, pose_keys, point_keys, n_priors = _build(p, gtsam.noiseModel.Isotropic.Sigma(2, pixel_sigma))
+    values = _values(p, p.poses, p.points)
+    initial_error = graph.error(values)
+    params = gtsam.GncLMParams()
+    params.setLossType(gtsam.GncLossType.TLS if loss == "tls" else gtsam.GncLossType.GM)
+    params.setKnownInliers(list(range(n_priors)))
+    params.setMaxIterations(max_iterations)
+    optimizer = gtsam.GncLMOptimizer(graph, values, params)
+    # threshold on the whitened squared error of one factor (0.5 ||e/sigma||^2)
+    optimizer.setInlierCostThresholds(0.5 * (inlier_threshold_px / pixel_sigma) ** 2)
+    result = optimizer.optimize()
+    poses, points = _unpack(result, pose_keys, point_keys, p.poses)
+    residuals = reprojection_residuals(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+    weights = np.asarray(optimizer.getWeights())[n_priors:]
+    return BAResult(poses, points, residuals, float(initial_error), float(graph.error(result)), -1,
+                    time.perf_counter() - t0, {"inlier_obs": weights > 0.5})

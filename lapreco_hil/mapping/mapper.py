@@ -17,6 +17,8 @@ from ..config import MapperConfig
 from ..geometry import interpolate_pose, inv_T, rotation_angle
 from ..types import Observations, PosePrior
 from . import bundle_adjustment as ba
+from .robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from .resection import refine_pose
 from .triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -40,7 +42,11 @@ class FrameRecord:
     seq: int
     t_ns: int
     T_prior: np.ndarray
+    cov: np.ndarray
     keyframe: int | None
+    track_ids: np.ndarray
+    uv: np.ndarray
+    T_refined: np.ndarray | None = None
 
 
 @dataclass
@@ -68,14 +74,23 @@ class Mapper:
         self.landmark_colors: dict[int, np.ndarray] = {}
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
+        self.last_sigma_px = float("nan")
+        self.local_schedule = RobustSchedule(
+            (RobustStage("cauchy", CAUCHY_K, config.local_cauchy_iterations),
+             RobustStage("tukey", TUKEY_C, config.local_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
+        self.final_schedule = RobustSchedule(
+            (RobustStage("cauchy", CAUCHY_K, config.final_cauchy_iterations),
+             RobustStage("tukey", TUKEY_C, config.final_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
 
     # --- per frame -----------------------------------------------------------------------------------------
     def add(self, obs: Observations, prior: PosePrior) -> bool:
         """Take one frame's observations and pose prior; returns True if it became a keyframe."""
         is_kf = self._is_keyframe(obs, prior)
-        self.frames.append(FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera,
-                                       len(self.keyframes) if is_kf else None))
+        record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
+                             len(self.keyframes) if is_kf else None, obs.track_ids.copy(), obs.uv.copy())
+        self.frames.append(record)
         if not is_kf:
+            record.T_refined = self._resect(record, self._predict_pose(prior))
             return False
         kf = Keyframe(len(self.keyframes), obs.frame_seq, obs.t_ns, prior, self._predict_pose(prior),
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
@@ -85,7 +100,18 @@ class Mapper:
         self._triangulate_new(kf)
         if len(self.keyframes) >= 2:
             self._local_ba()
+        record.T_refined = kf.T_world_camera
         return True
+
+    def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
+        """The frame's pose refined against the current map (its prior where it sees too few landmarks)."""
+        known = [i for i, t in enumerate(record.track_ids.tolist()) if t in self.landmarks]
+        if len(known) < 6:
+            return T_init
+        pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known])
+        sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
+        T, _ = refine_pose(record.T_prior, record.cov, pts, record.uv[known], self.K, sigma, T_init=T_init)
+        return T
 
     def _predict_pose(self, prior: PosePrior) -> np.ndarray:
         """Start a new keyframe from its prior corrected like the previous keyframe (robot errors drift
@@ -107,7 +133,25 @@ class Mapper:
         if rotation_angle(T0[:3, :3].T @ T1[:3, :3]) > cfg.keyframe_rotation_rad:
             return True
         alive = np.isin(last.track_ids, obs.track_ids).sum()
-        return alive < cfg.keyframe_track_ratio * max(len(last.track_ids), 1)
+        if alive < cfg.keyframe_track_ratio * max(len(last.track_ids), 1):
+            return True
+        return self._median_parallax_deg(last, obs, prior) > cfg.keyframe_parallax_deg
+
+    def _median_parallax_deg(self, last: Keyframe, obs: Observations, prior: PosePrior) -> float:
+        """Median angle between each common track's ray in the last keyframe and in this frame, with the
+        camera rotation between them removed: what a triangulation from the two would get."""
+        common, ia, ib = np.intersect1d(last.track_ids, obs.track_ids, return_indices=True)
+        if len(common) == 0:
+            return 0.0
+        Kinv = np.linalg.inv(self.K)
+
+        def rays(uv):
+            r = np.column_stack([uv, np.ones(len(uv))]) @ Kinv.T
+            return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+        R_rel = last.prior.T_world_camera[:3, :3].T @ prior.T_world_camera[:3, :3]
+        a, b = rays(last.uv[ia]), rays(obs.uv[ib]) @ R_rel.T
+        return float(np.degrees(np.median(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))))
 
     # --- structure -----------------------------------------------------------------------------------------
     def _triangulate_new(self, kf: Keyframe) -> None:
@@ -173,6 +217,7 @@ class Mapper:
             self.landmarks[t] = result.points[j]
         self.ba_times.append(result.seconds)
         self.ba_iterations.append(result.iterations)
+        self.last_sigma_px = result.stats.get("sigma_px", self.last_sigma_px)
 
     def _local_ba(self) -> None:
         cfg = self.config
@@ -183,8 +228,7 @@ class Mapper:
         if built is None:
             return
         problem, _ = built
-        result = ba.solve(problem, cfg.pixel_sigma, "cauchy", cfg.cauchy_k, cfg.ba_iterations)
-        self._apply(problem, result)
+        self._apply(problem, ba.solve_robust(problem, self.local_schedule))
 
     # --- end of sequence -----------------------------------------------------------------------------------
     def finish(self) -> MapResult:
@@ -194,20 +238,26 @@ class Mapper:
         ids = np.array(sorted(self.landmarks), dtype=np.int64)
         inlier = np.zeros(len(ids), bool)
         n_obs = n_inlier_obs = 0
+        threshold = float("nan")
         if built is not None:
             problem, _ = built
             if cfg.final_global_ba:
-                result = ba.solve(problem, cfg.pixel_sigma, "cauchy", cfg.cauchy_k, 2 * cfg.ba_iterations)
+                result = ba.solve_robust(problem, self.final_schedule)
                 self._apply(problem, result)
-                residuals = result.residuals_px
+                good = result.stats["inlier_obs"]
+                threshold = result.stats["inlier_threshold_px"]
             else:
-                residuals = ba.reprojection_residuals(problem.K, problem.poses, problem.points, problem.obs_pose,
-                                                      problem.obs_point, problem.obs_uv)
-            good = residuals <= cfg.inlier_threshold_px
-            counts = np.bincount(problem.obs_point[good], minlength=len(problem.point_ids))
-            in_problem = dict(zip(problem.point_ids.tolist(), counts >= cfg.min_inlier_observations))
+                r = ba.residual_vectors(problem.K, problem.poses, problem.points, problem.obs_pose,
+                                        problem.obs_point, problem.obs_uv)
+                threshold = self.final_schedule.inlier_threshold_px(mad_sigma(r, cfg.sigma_floor_px))
+                good = np.linalg.norm(r, axis=1) <= threshold
+            n_pts = len(problem.point_ids)
+            counts = np.bincount(problem.obs_point[good], minlength=n_pts)
+            totals = np.bincount(problem.obs_point, minlength=n_pts)
+            ok = (counts >= cfg.min_inlier_observations) & (counts >= cfg.min_inlier_fraction * totals)
+            in_problem = dict(zip(problem.point_ids.tolist(), ok))
             inlier = np.array([in_problem.get(t, False) for t in ids.tolist()], bool)
-            n_obs, n_inlier_obs = int(len(residuals)), int(good.sum())
+            n_obs, n_inlier_obs = int(len(good)), int(good.sum())
         points = np.array([self.landmarks[t] for t in ids.tolist()]).reshape(-1, 3)
         colors = np.array([self.landmark_colors[t] for t in ids.tolist()], np.uint8).reshape(-1, 3)
         stats = {
@@ -219,18 +269,25 @@ class Mapper:
             "local_ba_runs": len(self.ba_times) - (1 if built is not None and cfg.final_global_ba else 0),
             "local_ba_mean_s": float(np.mean(self.ba_times[:-1])) if len(self.ba_times) > 1 else 0.0,
             "final_ba_s": time.perf_counter() - t0,
+            "pixel_sigma_mad": self.last_sigma_px,
+            "inlier_threshold_px": float(threshold) if built is not None else None,
         }
         return MapResult(self.keyframes, self.frames, self._frame_poses(), ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
 
     def _frame_poses(self) -> np.ndarray:
-        """Every frame's refined pose: its prior, corrected by the keyframe corrections interpolated in time."""
+        """Every frame's refined pose against the final map: keyframes from the global BA, the others by
+        pose-only refinement started from the keyframe corrections interpolated in time."""
         if not self.keyframes:
             return np.array([f.T_prior for f in self.frames])
         kt = np.array([k.t_ns for k in self.keyframes])
         corr = [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in self.keyframes]
         out = []
         for f in self.frames:
+            if f.keyframe is not None:
+                f.T_refined = self.keyframes[f.keyframe].T_world_camera
+                out.append(f.T_refined)
+                continue
             i = int(np.searchsorted(kt, f.t_ns))
             if i == 0:
                 C = corr[0]
@@ -239,5 +296,6 @@ class Mapper:
             else:
                 s = (f.t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
                 C = interpolate_pose(corr[i - 1], corr[i], s)
-            out.append(C @ f.T_prior)
+            f.T_refined = self._resect(f, C @ f.T_prior)
+            out.append(f.T_refined)
         return np.array(out)

@@ -1,0 +1,1 @@
+"""Benchmarks behind ``lapreco bench ...``: figures for docs/benchmarks.md, never timed unit tests."""

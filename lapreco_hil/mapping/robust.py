@@ -1,0 +1,62 @@
+"""The seed's robust cost: minimise sum rho(||x - Pi(X)||^2), first with Cauchy's loss to get near the optimum,
+then with Tukey's biweight (redescending: gross outliers get no weight); the scale, i.e. the outlier
+threshold, comes from the median absolute deviation of the residuals and is re-estimated before each stage.
+
+GTSAM's m-estimators take a fixed k in whitened units, so the schedule whitens the reprojection errors with
+the MAD scale and uses the textbook tuning constants (95% efficiency at the Gaussian).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MAD_TO_SIGMA = 1.4826  # sigma of a Gaussian = 1.4826 x its median absolute deviation
+CAUCHY_K = 2.3849
+TUKEY_C = 4.6851
+
+
+def mad_sigma(residuals_xy: np.ndarray, floor: float = 0.0) -> float:
+    """Robust sigma of residual components (any shape; NaN/inf ignored): 1.4826 x MAD about the median."""
+    e = np.asarray(residuals_xy, dtype=float).ravel()
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return max(floor, 1.0)
+    return max(float(MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))), floor)
+
+
+@dataclass(frozen=True)
+class RobustStage:
+    loss: str  # "cauchy" | "tukey" | "huber" | "none"
+    k: float  # tuning constant in units of the MAD sigma
+    iterations: int
+
+
+@dataclass(frozen=True)
+class RobustSchedule:
+    """Stages run in order; the scale is re-estimated from the current residuals before each one."""
+
+    stages: tuple[RobustStage, ...] = (RobustStage("cauchy", CAUCHY_K, 10), RobustStage("tukey", TUKEY_C, 10))
+    sigma_floor_px: float = 0.2  # never trust the image more than this (MAD of a perfect fit goes to 0)
+    sigma_ceiling_px: float = 8.0
+
+    @staticmethod
+    def least_squares(iterations: int = 20, sigma_px: float | None = None) -> "RobustSchedule":
+        return RobustSchedule((RobustStage("none", 0.0, iterations),))
+
+    def inlier_threshold_px(self, sigma: float) -> float:
+        """Observations beyond the last stage's k x sigma are outliers (Tukey gives them zero weight)."""
+        last = self.stages[-1]
+        return (last.k if last.loss != "none" else 3.0) * sigma
+
+
+def irls_weight(loss: str, e: np.ndarray, k_sigma: float) -> np.ndarray:
+    """IRLS weight rho'(e)/e of residual norms ``e`` for a loss with threshold k_sigma (pixels)."""
+    if loss == "cauchy":
+        return 1.0 / (1.0 + (e / k_sigma) ** 2)
+    if loss == "tukey":
+        return np.where(e < k_sigma, (1.0 - (e / k_sigma) ** 2) ** 2, 0.0)
+    if loss == "huber":
+        return np.where(e <= k_sigma, 1.0, k_sigma / np.maximum(e, 1e-12))
+    return np.ones_like(e)

@@ -1,0 +1,70 @@
+"""Synthetic bundle-adjustment problems with known truth, generated apart from the solver (as GTSAM's
+examples do): cameras on a scan arc over a surface with relief, robot priors drawn from their covariance,
+pixel noise, and the gross outliers a laparoscope meets:
+
+- ``jump``: a track that jumps to other content half-way (its later observations are off),
+- ``highlight``: a specular highlight that looks like a feature and stays at one image position as the
+  camera moves (the light sits at the scope tip),
+- ``instrument``: points on a tool that moves through the scene between views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import Rotation, look_at, make_T
+from .bundle_adjustment import BAProblem
+
+
+@dataclass
+class SyntheticBA:
+    problem: BAProblem
+    true_poses: np.ndarray
+    true_points: np.ndarray
+    outlier_obs: np.ndarray  # (O,) bool: observation was corrupted
+    outlier_points: np.ndarray  # (N,) bool: the whole track is not a rigid scene point
+
+
+def make_problem(rng: np.random.Generator, n_views: int = 10, n_points: int = 600, pixel_noise: float = 0.5,
+                 rot_sigma: float = 0.003, trans_sigma: float = 0.0004, jump: float = 0.0, highlight: float = 0.0,
+                 instrument: float = 0.0, init_point_noise: float = 0.002) -> SyntheticBA:
+    K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+    xy = np.column_stack([rng.uniform(-0.045, 0.045, n_points), rng.uniform(-0.035, 0.035, n_points)])
+    z = 0.11 + 0.012 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)  # relief
+    pts = np.column_stack([xy, z])
+    angles = np.linspace(-0.12, 0.12, n_views)
+    poses = np.array([look_at(np.array([0.1 * np.sin(a), 0.03 * np.sin(2 * a), 0.1 * (1 - np.cos(a))]),
+                              np.array([0, 0, 0.11]), np.array([0, -1.0, 0])) for a in angles])
+    cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+    priors = np.array([T @ make_T(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
+                                  rng.normal(0, trans_sigma, 3)) for T in poses])
+
+    def project(T, X):
+        Tc = np.linalg.inv(T)
+        Xc = X @ Tc[:3, :3].T + Tc[:3, 3]
+        return np.column_stack([K[0, 0] * Xc[:, 0] / Xc[:, 2] + K[0, 2], K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]])
+
+    uv = np.stack([project(T, pts) for T in poses], 1) + rng.normal(0, pixel_noise, (n_points, n_views, 2))
+    kind = rng.choice(4, n_points, p=[1 - jump - highlight - instrument, jump, highlight, instrument])
+    bad_obs = np.zeros((n_points, n_views), bool)
+    half = n_views // 2
+    for i in np.flatnonzero(kind == 1):  # jump: later half displaced by 6-25 px
+        uv[i, half:] += rng.uniform(6, 25, 2) * rng.choice([-1, 1], 2)
+        bad_obs[i, half:] = True
+    for i in np.flatnonzero(kind == 2):  # highlight: stuck at its first-view image position
+        uv[i, :] = uv[i, 0] + rng.normal(0, pixel_noise, (n_views, 2))
+        bad_obs[i, 1:] = True
+    for i in np.flatnonzero(kind == 3):  # instrument: moves 1.5 mm per view across the scene
+        v = rng.normal(0, 1, 3)
+        v *= 0.0015 / np.linalg.norm(v)
+        uv[i] = np.stack([project(T, (pts[i] + m * v)[None])[0] for m, T in enumerate(poses)])
+        bad_obs[i, 1:] = True
+    obs_point = np.repeat(np.arange(n_points), n_views)
+    obs_pose = np.tile(np.arange(n_views), n_points)
+    problem = BAProblem(K, np.arange(n_views), priors.copy(), np.zeros(n_views, bool), priors,
+                        np.repeat(cov[None], n_views, 0), np.arange(n_points),
+                        pts + rng.normal(0, init_point_noise, pts.shape), obs_pose, obs_point,
+                        uv.reshape(-1, 2))
+    return SyntheticBA(problem, poses, pts, bad_obs.ravel(), kind != 0)
