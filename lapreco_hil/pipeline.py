@@ -47,11 +47,11 @@ class RunResult:
 
 
 def run_sequence(grabber, robot, rig: Rig, config: PipelineConfig, tracker: str = "opencv",
-                 progress=None) -> RunResult:
+                 progress=None, device: str | None = None) -> RunResult:
     kin = CameraKinematics(str(urdf_path(rig.urdf)), rig.tip_frame, rig.T_tip_camera, rig.T_world_base)
     pose_at = PoseAtTime(kin, config.prior.joint_sigma, config.prior.floor_rot_sigma_rad,
                          config.prior.floor_trans_sigma_m)
-    frontend = make_frontend(tracker, rig.camera, config.tracker)
+    frontend = make_frontend(tracker, rig.camera, config.tracker, device)
     mapper = Mapper(rig.camera.K, config.mapper)
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []

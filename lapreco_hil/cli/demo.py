@@ -8,7 +8,10 @@ import time
 
 import numpy as np
 
+from dataclasses import replace
+
 from ..config import load_config
+from ..frontend import resolve_tracker
 from ..evaluation.accuracy import distance_stats_mm, pose_error_stats, surface_distances
 from ..outputs import prepare_output_dir, write_mesh_ply, write_points_ply, write_report, write_tum
 from ..pipeline import Rig, run_sequence
@@ -19,13 +22,17 @@ from ..warp_device import resolve_device
 
 
 def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps: float = 25.0,
-             out: str = "lapreco-demo", device: str = "auto", tracker: str = "opencv",
-             config_path: str | None = None, seed: int = 0, progress: bool = True) -> dict:
+             out: str = "lapreco-demo", device: str = "auto", tracker: str = "auto",
+             config_path: str | None = None, seed: int = 0, progress: bool = True,
+             drift_check: bool | None = None) -> dict:
     from tqdm import tqdm
 
     config = load_config(config_path)
+    if drift_check is not None:
+        config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
     out_dir = prepare_output_dir(out)
     device = resolve_device(device)
+    tracker = resolve_tracker(tracker, device)
     url = f"sim://{scene}?width={resolution[0]}&height={resolution[1]}&fps={fps}&seed={seed}"
     context = DeviceContext(device=device)
     robot = open_robot(url, context)
@@ -33,7 +40,7 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
     rig = Rig(grabber.camera, robot.urdf, robot.tip_frame, robot.T_tip_camera)
     bar = tqdm(total=frames, desc=f"demo {scene}", unit="frame", file=sys.stderr, disable=not progress)
     with robot, grabber, bar:
-        run = run_sequence(grabber, robot, rig, config, tracker=tracker, progress=bar)
+        run = run_sequence(grabber, robot, rig, config, tracker=tracker, progress=bar, device=device)
     t0 = time.perf_counter()
     m = run.map
     points, colors = m.points[m.inlier], m.colors[m.inlier]
@@ -75,6 +82,7 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
         "command": "demo",
         "scene": scene,
         "tracker": tracker,
+        "drift_check": config.tracker.drift_check,
         "device": device,
         "resolution": list(resolution),
         "out": str(out_dir),

@@ -44,7 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--fps", type=float, default=25.0, help="simulated frame rate (default: 25)")
     demo.add_argument("--out", default="lapreco-demo", help="output folder (default: ./lapreco-demo)")
     demo.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda (default: auto)")
-    demo.add_argument("--tracker", default="opencv", help="front-end: opencv (default: opencv)")
+    demo.add_argument("--tracker", default="auto",
+                      help="front-end: warp | opencv | auto (default: auto = warp on a GPU, opencv on a CPU)")
+    demo.add_argument("--no-drift-check", dest="drift_check", action="store_const", const=False, default=None,
+                      help="switch off the Zinsser drift check (for the seed's four-way comparison)")
     demo.add_argument("--config", default=None, help="pipeline configuration (TOML)")
     demo.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -80,7 +83,7 @@ def _cmd_demo(args) -> int:
 
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
-                      seed=args.seed, progress=not args.no_progress)
+                      seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check)
     acc = report.get("accuracy", {})
     pts = acc.get("points_to_surface", {})
     print(f"lapreco demo: {report['frames']['processed']} frames in {report['wall_s']:.1f} s; "

@@ -1,0 +1,261 @@
+"""The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
+into observations. Only small per-track arrays cross to the host in the steady state (positions, status,
+colours, and the compact list of corner candidates when new features are needed); images stay on the device.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import warp as wp
+
+from ...camera import CameraModel
+from ...config import TrackerConfig
+from ...types import Frame, Observations
+from . import kernels as K
+
+MAX_CANDIDATES = 65536
+# LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
+# own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
+LK_MIN_EIG = 1.5e-6
+
+
+class WarpFrontEnd:
+    def __init__(self, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> None:
+        from ...warp_device import init_warp
+
+        init_warp()
+        self.camera = camera
+        self.config = config
+        self.device = wp.get_device(device)
+        self.width, self.height = camera.width, camera.height
+        W, H = self.width, self.height
+        # pyramid layout: one flat array, per-level offsets
+        self.levels = config.pyramid_levels + 1
+        offs, ws, hs, total, w, h = [], [], [], 0, W, H
+        for _ in range(self.levels):
+            offs.append(total)
+            ws.append(w)
+            hs.append(h)
+            total += w * h
+            w, h = (w + 1) // 2, (h + 1) // 2
+        self._lv = (offs, ws, hs)
+        map_x, map_y = camera.undistort_maps()
+        fov = cv2.remap(camera.fov_mask(margin_px=config.fov_margin_px), map_x, map_y, cv2.INTER_NEAREST,
+                        borderValue=0)
+        sigma = config.shading_sigma_px
+        radius = int(np.ceil(3 * sigma)) if sigma > 0 else 7
+        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / max(sigma, 1.0)) ** 2)
+        n = config.max_features
+        with wp.ScopedDevice(self.device):
+            self._remap = wp.array(np.stack([map_x, map_y], -1).astype(np.float32), dtype=wp.vec2)
+            self._mask = wp.array(fov, dtype=wp.uint8)
+            self._weights = wp.array((g / g.sum()).astype(np.float32), dtype=float)
+            self._offs = wp.array(np.array(offs, np.int32), dtype=int)
+            self._ws = wp.array(np.array(ws, np.int32), dtype=int)
+            self._hs = wp.array(np.array(hs, np.int32), dtype=int)
+            self._frame = wp.zeros((H, W, 3), dtype=wp.uint8)
+            self._gray = wp.zeros((H, W), dtype=float)
+            self._log = wp.zeros((H, W), dtype=float)
+            self._tmp = wp.zeros((H, W), dtype=float)
+            self._lit = wp.zeros((H, W), dtype=float)
+            self._pyr = [wp.zeros(total, dtype=float) for _ in range(2)]  # current / previous, swapped
+            self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
+            self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
+            self._eig = wp.zeros((H, W), dtype=float)
+            self._max_eig = wp.zeros(1, dtype=float)
+            self._occ = wp.zeros((H, W), dtype=wp.int32)
+            self._cand_pos = wp.zeros(MAX_CANDIDATES, dtype=wp.vec2)
+            self._cand_score = wp.zeros(MAX_CANDIDATES, dtype=float)
+            self._cand_count = wp.zeros(1, dtype=wp.int32)
+            self._pts = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]
+            self._A = [wp.zeros(n, dtype=wp.mat22) for _ in range(2)]
+            self._patches = [wp.zeros((n, K.PATCH * K.PATCH), dtype=float) for _ in range(2)]
+            self._lk_pts = wp.zeros(n, dtype=wp.vec2)
+            self._status = wp.zeros(n, dtype=wp.int32)
+            self._error = wp.zeros(n, dtype=float)
+            self._keep = wp.zeros(n, dtype=wp.int32)
+            self._residual = wp.zeros(n, dtype=float)
+            self._index = wp.zeros(n, dtype=wp.int32)
+            self._colors = wp.zeros(n, dtype=wp.vec3)
+        self._cur = 0  # which of the double buffers holds the current pyramid / track state
+        self._has_prev = False
+        self._ids = np.zeros(0, np.int64)
+        self._next_id = 0
+        self.drift_dropped = 0
+        self._lit_min = float(np.log1p(config.min_brightness))
+
+    @property
+    def n_tracks(self) -> int:
+        return len(self._ids)
+
+    # --- image stages -----------------------------------------------------------------------------------------
+    def _launch(self, kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def _prepare(self, image: np.ndarray) -> None:
+        """Undistort, remove shading, build the pyramid and its gradients into the current buffers."""
+        cfg = self.config
+        H, W = self.height, self.width
+        wp.copy(self._frame, wp.array(image, dtype=wp.uint8, device="cpu"))
+        self._launch(K.undistort_gray, (H, W), [self._frame, self._remap, self._gray])
+        self._launch(K.log_image, (H, W), [self._gray, self._log])
+        self._launch(K.blur_rows, (H, W), [self._log, self._weights, self._tmp])
+        self._launch(K.blur_cols, (H, W), [self._tmp, self._weights, self._lit])
+        pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
+        if cfg.shading_sigma_px > 0:
+            self._launch(K.to_level0, (H, W), [self._log, self._lit, 1.0, 1, pyr])
+        else:
+            self._launch(K.to_level0, (H, W), [self._gray, self._lit, 1.0 / 255.0, 0, pyr])
+        offs, ws, hs = self._lv
+        for l in range(1, self.levels):
+            self._launch(K.pyr_down, (hs[l], ws[l]), [pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l]])
+        for l in range(self.levels):
+            self._launch(K.sobel, (hs[l], ws[l]), [pyr, offs[l], ws[l], hs[l], gx, gy])
+
+    # --- tracking -----------------------------------------------------------------------------------------------
+    def _track(self) -> np.ndarray:
+        """LK from the previous pyramid, then the drift check; returns the keep mask (host)."""
+        cfg = self.config
+        n = self.n_tracks
+        prev, cur = 1 - self._cur, self._cur
+        pts = self._pts[prev]
+        wp.launch_tiled(K.lk_track, dim=[n], inputs=[
+            self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
+            self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, pts, n, self._lk_pts, self._status, self._error],
+            block_dim=64, device=self.device)
+        keep = self._status.numpy()[:n] == 1
+        if cfg.drift_check:
+            wp.launch_tiled(K.drift_check, dim=[n], inputs=[
+                self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
+                self._A[prev], self._lk_pts, n, 6, cfg.drift_max_residual, 1.6, 3.0, self._pts[prev],
+                self._keep, self._residual], block_dim=64, device=self.device)
+            drift_keep = self._keep.numpy()[:n] == 1
+            self.drift_dropped += int((keep & ~drift_keep).sum())
+            keep &= drift_keep
+        else:
+            wp.copy(self._pts[prev], self._lk_pts, count=n)
+        positions = self._pts[prev].numpy()[:n]
+        keep &= self._inside(positions)
+        return keep
+
+    def _inside(self, pts: np.ndarray) -> np.ndarray:
+        xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.width - 1)
+        yi = np.clip(np.round(pts[:, 1]).astype(int), 0, self.height - 1)
+        inb = (pts[:, 0] >= 0) & (pts[:, 0] <= self.width - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= self.height - 1)
+        return inb & (self._mask_host()[yi, xi] > 0)
+
+    def _mask_host(self) -> np.ndarray:
+        if not hasattr(self, "_mask_np"):
+            self._mask_np = self._mask.numpy()
+        return self._mask_np
+
+    def _compact(self, keep: np.ndarray) -> None:
+        """Move the surviving tracks' state from the previous buffers to the current ones."""
+        src, dst = 1 - self._cur, self._cur
+        index = np.flatnonzero(keep).astype(np.int32)
+        if len(index):
+            wp.copy(self._index, wp.array(index, dtype=wp.int32, device="cpu"), count=len(index))
+            self._launch(K.compact_tracks, (len(index), K.PATCH * K.PATCH), [
+                self._pts[src], self._A[src], self._patches[src], self._index, self._pts[dst], self._A[dst],
+                self._patches[dst]])
+        self._ids = self._ids[keep]
+
+    # --- detection ----------------------------------------------------------------------------------------------
+    def _detect(self) -> int:
+        cfg = self.config
+        H, W = self.height, self.width
+        n = self.n_tracks
+        want = cfg.max_features - n
+        if want <= 0:
+            return 0
+        cur = self._cur
+        self._occ.zero_()
+        if n:
+            r = int(np.ceil(cfg.min_distance_px))
+            self._launch(K.occupancy, (n, (2 * r + 1) ** 2), [self._pts[cur], n, float(cfg.min_distance_px), self._occ])
+        lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
+        self._max_eig.zero_()
+        self._launch(K.min_eigenvalue, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._mask,
+                                                 self._lit, lit_min, self._occ, self._eig, self._max_eig])
+        self._cand_count.zero_()
+        self._launch(K.corner_candidates, (H, W), [
+            self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ,
+            cfg.block_size // 2 + 1, self._cand_pos, self._cand_score, self._cand_count])
+        m = min(int(self._cand_count.numpy()[0]), MAX_CANDIDATES)
+        if m == 0:
+            return 0
+        pos = self._cand_pos.numpy()[:m]
+        score = self._cand_score.numpy()[:m]
+        chosen = _select_with_min_distance(pos, score, cfg.min_distance_px, want)
+        k = len(chosen)
+        if k == 0:
+            return 0
+        new = pos[chosen].astype(np.float32)
+        wp.copy(self._pts[cur], wp.array(new, dtype=wp.vec2, device="cpu"), dest_offset=n, count=k)
+        self._launch(K.sample_patches, (k, K.PATCH * K.PATCH), [self._pyr[cur], W, H, self._pts[cur], n,
+                                                                 self._patches[cur], self._A[cur]])
+        self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + k)])
+        self._next_id += k
+        return k
+
+    # --- the frame ----------------------------------------------------------------------------------------------
+    def process(self, frame: Frame) -> Observations:
+        cfg = self.config
+        t0 = time.perf_counter()
+        self._cur = 1 - self._cur
+        self._prepare(frame.image)
+        wp.synchronize_device(self.device)
+        t1 = time.perf_counter()
+        if self._has_prev and self.n_tracks:
+            keep = self._track()
+        else:
+            keep = np.zeros(0, bool)
+        self._compact(keep)
+        t2 = time.perf_counter()
+        n_new = 0
+        if self.n_tracks < cfg.redetect_below * cfg.max_features:
+            n_new = self._detect()
+        n = self.n_tracks
+        if n:
+            self._launch(K.gather_colors, n, [self._frame, self._remap, self._pts[self._cur], n, self._colors])
+            uv = self._pts[self._cur].numpy()[:n].astype(np.float64)
+            colors = np.clip(np.round(self._colors.numpy()[:n]), 0, 255).astype(np.uint8)
+        else:
+            uv, colors = np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
+        t3 = time.perf_counter()
+        self._has_prev = True
+        return Observations(frame.seq, frame.t_ns, self._ids.copy(), uv, colors, n_new,
+                            {"prepare": t1 - t0, "track": t2 - t1, "detect": t3 - t2})
+
+
+def _select_with_min_distance(pos: np.ndarray, score: np.ndarray, min_distance: float, budget: int) -> np.ndarray:
+    """OpenCV's rule: strongest first, skip a corner closer than min_distance to one already taken."""
+    order = np.argsort(-score, kind="stable")
+    cell = max(min_distance, 1.0)
+    grid: dict[tuple[int, int], list[int]] = {}
+    chosen: list[int] = []
+    d2 = min_distance * min_distance
+    for i in order:
+        x, y = pos[i]
+        cx, cy = int(x // cell), int(y // cell)
+        close = False
+        for gx in (cx - 1, cx, cx + 1):
+            for gy in (cy - 1, cy, cy + 1):
+                for j in grid.get((gx, gy), ()):
+                    if (pos[j, 0] - x) ** 2 + (pos[j, 1] - y) ** 2 < d2:
+                        close = True
+                        break
+                if close:
+                    break
+            if close:
+                break
+        if close:
+            continue
+        grid.setdefault((cx, cy), []).append(int(i))
+        chosen.append(int(i))
+        if len(chosen) >= budget:
+            break
+    return np.array(chosen, dtype=np.int64)

@@ -1,0 +1,504 @@
+"""Private Warp kernels of the front-end. Images are float32; a pyramid is one flat array with per-level
+offsets, widths and heights (kernels cannot take a list of arrays).
+
+Tiled kernels (one block per feature) stride their lane loops by ``wp.block_dim()``: Warp's CPU device runs a
+tiled launch with one lane per block, so a constant stride would silently use a fraction of the window there.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+PATCH = 13  # drift-check patch side (pixels)
+HIGHPASS_RANGE = 128.0 / 96.0  # what frontend.opencv.to_u8 keeps of the log high-pass
+HALF_PATCH = 6
+
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+vec44 = wp.types.vector(length=44, dtype=wp.float32)  # upper triangle of an 8x8 normal matrix (36) + gradient (8)
+mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float32)
+
+
+# --- sampling ----------------------------------------------------------------------------------------------
+@wp.func
+def _px(img: wp.array(dtype=float), off: int, w: int, h: int, x: int, y: int) -> float:
+    xc = wp.clamp(x, 0, w - 1)
+    yc = wp.clamp(y, 0, h - 1)
+    return img[off + yc * w + xc]
+
+
+@wp.func
+def bilinear(img: wp.array(dtype=float), off: int, w: int, h: int, x: float, y: float) -> float:
+    """Bilinear sample, border replicated; integer coordinates are pixel centres (OpenCV's convention)."""
+    x0f = wp.floor(x)
+    y0f = wp.floor(y)
+    fx = x - x0f
+    fy = y - y0f
+    x0 = int(x0f)
+    y0 = int(y0f)
+    a = _px(img, off, w, h, x0, y0)
+    b = _px(img, off, w, h, x0 + 1, y0)
+    c = _px(img, off, w, h, x0, y0 + 1)
+    d = _px(img, off, w, h, x0 + 1, y0 + 1)
+    return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
+
+
+@wp.func
+def _bgr(frame: wp.array3d(dtype=wp.uint8), x: int, y: int) -> wp.vec3:
+    xc = wp.clamp(x, 0, frame.shape[1] - 1)
+    yc = wp.clamp(y, 0, frame.shape[0] - 1)
+    return wp.vec3(float(frame[yc, xc, 0]), float(frame[yc, xc, 1]), float(frame[yc, xc, 2]))
+
+
+@wp.func
+def bilinear_bgr(frame: wp.array3d(dtype=wp.uint8), x: float, y: float) -> wp.vec3:
+    x0f = wp.floor(x)
+    y0f = wp.floor(y)
+    fx = x - x0f
+    fy = y - y0f
+    x0 = int(x0f)
+    y0 = int(y0f)
+    a = _bgr(frame, x0, y0)
+    b = _bgr(frame, x0 + 1, y0)
+    c = _bgr(frame, x0, y0 + 1)
+    d = _bgr(frame, x0 + 1, y0 + 1)
+    return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
+
+
+# --- image stages ------------------------------------------------------------------------------------------
+@wp.kernel
+def undistort_gray(frame: wp.array3d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
+                   gray: wp.array2d(dtype=float)):
+    """One resampling pass: undistorted pixel <- bilinear sample of the distorted BGR frame at the
+    precomputed map, converted to grey (0-255). Outside the frame: 0, as cv2.remap's constant border."""
+    y, x = wp.tid()
+    m = remap[y, x]
+    if m[0] < -1.0 or m[1] < -1.0 or m[0] > float(frame.shape[1]) or m[1] > float(frame.shape[0]):
+        gray[y, x] = 0.0
+        return
+    c = bilinear_bgr(frame, m[0], m[1])
+    gray[y, x] = 0.114 * c[0] + 0.587 * c[1] + 0.299 * c[2]
+
+
+@wp.kernel
+def log_image(gray: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
+    y, x = wp.tid()
+    out[y, x] = wp.log(1.0 + gray[y, x])
+
+
+@wp.kernel
+def blur_rows(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), dst: wp.array2d(dtype=float)):
+    y, x = wp.tid()
+    r = (weights.shape[0] - 1) // 2
+    s = float(0.0)
+    for k in range(weights.shape[0]):
+        xx = wp.clamp(x + k - r, 0, src.shape[1] - 1)
+        s += weights[k] * src[y, xx]
+    dst[y, x] = s
+
+
+@wp.kernel
+def blur_cols(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), dst: wp.array2d(dtype=float)):
+    y, x = wp.tid()
+    r = (weights.shape[0] - 1) // 2
+    s = float(0.0)
+    for k in range(weights.shape[0]):
+        yy = wp.clamp(y + k - r, 0, src.shape[0] - 1)
+        s += weights[k] * src[yy, x]
+    dst[y, x] = s
+
+
+@wp.kernel
+def to_level0(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), scale: float, subtract: int,
+              pyr: wp.array(dtype=float)):
+    """Level 0 of the pyramid: (a - b) for the shading-free log image, clamped to the range the OpenCV
+    baseline keeps in 8 bits (so silhouettes against black do not dominate the corner threshold), or
+    a * scale for plain intensity."""
+    y, x = wp.tid()
+    v = a[y, x] * scale
+    if subtract != 0:
+        v = wp.clamp(a[y, x] - b[y, x], -HIGHPASS_RANGE, HIGHPASS_RANGE)
+    pyr[y * a.shape[1] + x] = v
+
+
+@wp.kernel
+def pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int):
+    """Gaussian 5-tap [1 4 6 4 1]/16 in both directions, then every other pixel (cv2.pyrDown)."""
+    y, x = wp.tid()
+    if x >= dw or y >= dh:
+        return
+    s = float(0.0)
+    for j in range(5):
+        wy = float(1.0)
+        if j == 1 or j == 3:
+            wy = 4.0
+        if j == 2:
+            wy = 6.0
+        for i in range(5):
+            wx = float(1.0)
+            if i == 1 or i == 3:
+                wx = 4.0
+            if i == 2:
+                wx = 6.0
+            s += wx * wy * _px(pyr, src_off, sw, sh, 2 * x + i - 2, 2 * y + j - 2)
+    pyr[dst_off + y * dw + x] = s / 256.0
+
+
+@wp.kernel
+def sobel(pyr: wp.array(dtype=float), off: int, w: int, h: int, gx: wp.array(dtype=float),
+          gy: wp.array(dtype=float)):
+    """3x3 Sobel / 8: the derivative per pixel (cv2.Sobel ksize=3, scale 1/8)."""
+    y, x = wp.tid()
+    if x >= w or y >= h:
+        return
+    a = _px(pyr, off, w, h, x - 1, y - 1)
+    b = _px(pyr, off, w, h, x, y - 1)
+    c = _px(pyr, off, w, h, x + 1, y - 1)
+    d = _px(pyr, off, w, h, x - 1, y)
+    f = _px(pyr, off, w, h, x + 1, y)
+    g = _px(pyr, off, w, h, x - 1, y + 1)
+    hh = _px(pyr, off, w, h, x, y + 1)
+    i = _px(pyr, off, w, h, x + 1, y + 1)
+    gx[off + y * w + x] = ((c + 2.0 * f + i) - (a + 2.0 * d + g)) / 8.0
+    gy[off + y * w + x] = ((g + 2.0 * hh + i) - (a + 2.0 * b + c)) / 8.0
+
+
+# --- Shi-Tomasi ----------------------------------------------------------------------------------------------
+@wp.func
+def _allowed(mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit_min: float,
+             occ: wp.array2d(dtype=wp.int32), x: int, y: int) -> bool:
+    return mask[y, x] != wp.uint8(0) and occ[y, x] == 0 and lit[y, x] >= lit_min
+
+
+@wp.kernel
+def min_eigenvalue(gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int, h: int, block: int,
+                   mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit_min: float,
+                   occ: wp.array2d(dtype=wp.int32), eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=float)):
+    """Smaller eigenvalue of the structure tensor summed over a block x block window (cornerMinEigenVal); the
+    maximum that the quality level is relative to is taken where corners may start, as OpenCV takes it
+    inside the mask."""
+    y, x = wp.tid()
+    r = block // 2
+    a = float(0.0)
+    b = float(0.0)
+    c = float(0.0)
+    for j in range(block):
+        for i in range(block):
+            xx = wp.clamp(x + i - r, 0, w - 1)
+            yy = wp.clamp(y + j - r, 0, h - 1)
+            u = gx[yy * w + xx]
+            v = gy[yy * w + xx]
+            a += u * u
+            b += u * v
+            c += v * v
+    half = 0.5 * (a + c)
+    d = half - wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))
+    eig[y, x] = d
+    if _allowed(mask, lit, lit_min, occ, x, y):
+        wp.atomic_max(max_eig, 0, d)
+
+
+@wp.kernel
+def occupancy(positions: wp.array(dtype=wp.vec2), count: int, radius: float, occ: wp.array2d(dtype=wp.int32)):
+    """Mark the disc of radius min_distance around each live track: no new corner may start there."""
+    t, j = wp.tid()
+    if t >= count:
+        return
+    r = int(wp.ceil(radius))
+    side = 2 * r + 1
+    dy = j // side - r
+    dx = j % side - r
+    if float(dx * dx + dy * dy) > radius * radius:
+        return
+    p = positions[t]
+    x = int(wp.round(p[0])) + dx
+    y = int(wp.round(p[1])) + dy
+    if x >= 0 and y >= 0 and x < occ.shape[1] and y < occ.shape[0]:
+        occ[y, x] = 1
+
+
+@wp.kernel
+def corner_candidates(eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=float), quality: float,
+                      mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit_min: float,
+                      occ: wp.array2d(dtype=wp.int32), border: int, out_pos: wp.array(dtype=wp.vec2),
+                      out_score: wp.array(dtype=float), counter: wp.array(dtype=wp.int32)):
+    """Local maxima (3x3) above quality x the frame's best response, inside the field of view, lit, and away
+    from live tracks; appended to a compact list."""
+    y, x = wp.tid()
+    h = eig.shape[0]
+    w = eig.shape[1]
+    if x < border or y < border or x >= w - border or y >= h - border:
+        return
+    v = eig[y, x]
+    if v < quality * max_eig[0] or v <= 0.0:
+        return
+    if not _allowed(mask, lit, lit_min, occ, x, y):
+        return
+    for j in range(3):
+        for i in range(3):
+            n = eig[y + j - 1, x + i - 1]
+            if n > v or (n == v and (j * 3 + i) < 4):
+                return
+    k = wp.atomic_add(counter, 0, 1)
+    if k < out_pos.shape[0]:
+        out_pos[k] = wp.vec2(float(x), float(y))
+        out_score[k] = v
+
+
+# --- pyramidal Lucas-Kanade, one block per feature -----------------------------------------------------------
+@wp.kernel
+def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
+             cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
+             hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
+             pts: wp.array(dtype=wp.vec2), count: int, out_pts: wp.array(dtype=wp.vec2),
+             status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
+    """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
+    Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them."""
+    f, lane = wp.tid()
+    nl = wp.block_dim()
+    n = win * win
+    r = float(win - 1) * 0.5
+    valid = f < count
+    p0 = wp.vec2(0.0, 0.0)
+    if valid:
+        p0 = pts[f]
+    g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
+    ok = int(1)
+    residual = float(0.0)
+    for li in range(levels):
+        lvl = levels - 1 - li
+        off = offs[lvl]
+        w = ws[lvl]
+        h = hs[lvl]
+        scale = 1.0 / float(1 << lvl)
+        p = p0 * scale
+        # spatial gradient matrix over the window in the previous image
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        k = lane
+        while k < n:
+            x = p[0] + float(k % win) - r
+            y = p[1] + float(k // win) - r
+            ix = bilinear(prev_gx, off, w, h, x, y)
+            iy = bilinear(prev_gy, off, w, h, x, y)
+            acc += wp.vec3(ix * ix, ix * iy, iy * iy)
+            k += nl
+        G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+        det = G[0] * G[2] - G[1] * G[1]
+        lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
+        if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
+            ok = 0
+        nu = wp.vec2(0.0, 0.0)
+        done = int(0)
+        for _it in range(iterations):
+            bacc = wp.vec3(0.0, 0.0, 0.0)
+            k = lane
+            while k < n:
+                x = p[0] + float(k % win) - r
+                y = p[1] + float(k // win) - r
+                diff = bilinear(prev, off, w, h, x, y) - bilinear(cur, off, w, h, x + g[0] + nu[0], y + g[1] + nu[1])
+                ix = bilinear(prev_gx, off, w, h, x, y)
+                iy = bilinear(prev_gy, off, w, h, x, y)
+                bacc += wp.vec3(diff * ix, diff * iy, wp.abs(diff))
+                k += nl
+            b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
+            residual = b[2] / float(n)
+            if done == 0 and ok == 1:
+                step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
+                nu = nu + step
+                if wp.length(step) < eps:
+                    done = 1
+        if lvl > 0:
+            g = (g + nu) * 2.0
+        else:
+            g = g + nu
+    if valid and lane == 0:
+        q = p0 + g
+        inside = q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+        out_pts[f] = q
+        status[f] = wp.where(ok == 1 and inside, 1, 0)
+        error[f] = residual
+
+
+# --- Zinsser drift check, one block per feature --------------------------------------------------------------
+@wp.func
+def _chol_solve8(H: mat88, g: vec8) -> vec8:
+    Lm = mat88()
+    for j in range(8):
+        s = H[j, j]
+        for k in range(j):
+            s -= Lm[j, k] * Lm[j, k]
+        d = wp.sqrt(wp.max(s, 1.0e-12))
+        Lm[j, j] = d
+        for i in range(j + 1, 8):
+            t = H[i, j]
+            for k in range(j):
+                t -= Lm[i, k] * Lm[j, k]
+            Lm[i, j] = t / d
+    y = vec8()
+    for i in range(8):
+        t = g[i]
+        for k in range(i):
+            t -= Lm[i, k] * y[k]
+        y[i] = t / Lm[i, i]
+    x = vec8()
+    for ii in range(8):
+        i = 7 - ii
+        t = y[i]
+        for k in range(i + 1, 8):
+            t -= Lm[k, i] * x[k]
+        x[i] = t / Lm[i, i]
+    return x
+
+
+@wp.kernel
+def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2), first: int,
+                   patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22)):
+    """The first patch of each new track (slots first..), and an identity warp."""
+    t, k = wp.tid()
+    p = pts[first + t]
+    dx = float(k % PATCH - HALF_PATCH)
+    dy = float(k // PATCH - HALF_PATCH)
+    patches[first + t, k] = bilinear(img, 0, w, h, p[0] + dx, p[1] + dy)
+    if k == 0:
+        A[first + t] = wp.identity(n=2, dtype=float)
+
+
+@wp.kernel
+def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
+                h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
+                pts: wp.array(dtype=wp.vec2), count: int, iterations: int, max_residual: float,
+                max_stretch: float, max_correction: float, out_pts: wp.array(dtype=wp.vec2),
+                keep: wp.array(dtype=wp.int32), residual_out: wp.array(dtype=float)):
+    """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
+    tracker's position b; the fitted b is the drift-free position. Dropped: large normalised residual, too
+    much stretch or a flip of A, a correction larger than max_correction, an absurd gain."""
+    f, lane = wp.tid()
+    nl = wp.block_dim()
+    n = PATCH * PATCH
+    valid = f < count
+    b = wp.vec2(0.0, 0.0)
+    Am = wp.identity(n=2, dtype=float)
+    if valid:
+        b = pts[f]
+        Am = A[f]
+    b0 = b
+    # gain and bias from the patch statistics
+    st = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    k = lane
+    while k < n:
+        dx = float(k % PATCH - HALF_PATCH)
+        dy = float(k // PATCH - HALF_PATCH)
+        ref = float(0.0)
+        if valid:
+            ref = patches[f, k]
+        q = b + Am * wp.vec2(dx, dy)
+        j = bilinear(img, 0, w, h, q[0], q[1])
+        st += wp.vec4(ref, ref * ref, j, j * j)
+        k += nl
+    S = wp.tile_sum(wp.tile(st, preserve_type=True))[0]
+    fn = float(n)
+    ref_mean = S[0] / fn
+    ref_std = wp.sqrt(wp.max(S[1] / fn - ref_mean * ref_mean, 0.0)) + 1.0e-6
+    cur_mean = S[2] / fn
+    cur_std = wp.sqrt(wp.max(S[3] / fn - cur_mean * cur_mean, 0.0)) + 1.0e-6
+    alpha = cur_std / ref_std
+    beta = cur_mean - alpha * ref_mean
+    for _it in range(iterations):
+        acc = vec44()
+        k = lane
+        while k < n:
+            dx = float(k % PATCH - HALF_PATCH)
+            dy = float(k // PATCH - HALF_PATCH)
+            ref = float(0.0)
+            if valid:
+                ref = patches[f, k]
+            q = b + Am * wp.vec2(dx, dy)
+            j = bilinear(img, 0, w, h, q[0], q[1])
+            u = bilinear(gx, 0, w, h, q[0], q[1])
+            v = bilinear(gy, 0, w, h, q[0], q[1])
+            r = j - alpha * ref - beta
+            row = vec8(u * dx, u * dy, v * dx, v * dy, u, v, -ref, -1.0)
+            idx = int(0)
+            for a in range(8):
+                for c in range(a, 8):
+                    acc[idx] += row[a] * row[c]
+                    idx += 1
+                acc[36 + a] += row[a] * r
+            k += nl
+        tot = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+        H = mat88()
+        gvec = vec8()
+        idx = int(0)
+        for a in range(8):
+            for c in range(a, 8):
+                H[a, c] = tot[idx]
+                H[c, a] = tot[idx]
+                idx += 1
+            H[a, a] = H[a, a] + 1.0e-6
+            gvec[a] = -tot[36 + a]
+        d = _chol_solve8(H, gvec)
+        Am = Am + wp.mat22(d[0], d[1], d[2], d[3])
+        b = b + wp.vec2(d[4], d[5])
+        alpha = alpha + d[6]
+        beta = beta + d[7]
+    # final normalised residual
+    racc = float(0.0)
+    k = lane
+    while k < n:
+        dx = float(k % PATCH - HALF_PATCH)
+        dy = float(k // PATCH - HALF_PATCH)
+        ref = float(0.0)
+        if valid:
+            ref = patches[f, k]
+        q = b + Am * wp.vec2(dx, dy)
+        r = bilinear(img, 0, w, h, q[0], q[1]) - alpha * ref - beta
+        racc += r * r
+        k += nl
+    rss = wp.tile_sum(wp.tile(racc))[0]
+    if valid and lane == 0:
+        res = wp.sqrt(rss / fn) / (wp.abs(alpha) * ref_std)
+        # singular values of the 2x2 warp
+        a11 = Am[0, 0]
+        a12 = Am[0, 1]
+        a21 = Am[1, 0]
+        a22 = Am[1, 1]
+        s1 = a11 * a11 + a12 * a12 + a21 * a21 + a22 * a22
+        det = a11 * a22 - a12 * a21
+        disc = wp.sqrt(wp.max(s1 * s1 - 4.0 * det * det, 0.0))
+        smax = wp.sqrt(0.5 * (s1 + disc))
+        smin = wp.sqrt(wp.max(0.5 * (s1 - disc), 0.0))
+        moved = wp.length(b - b0)
+        good = res <= max_residual and smax <= max_stretch and smin >= 1.0 / max_stretch and det > 0.0
+        good = good and moved <= max_correction and alpha > 0.2 and alpha < 5.0 and not wp.isnan(res)
+        out_pts[f] = b
+        A[f] = Am
+        keep[f] = wp.where(good, 1, 0)
+        residual_out[f] = res
+
+
+# --- bookkeeping -------------------------------------------------------------------------------------------
+@wp.kernel
+def compact_tracks(src_pts: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
+                   src_patches: wp.array2d(dtype=float), index: wp.array(dtype=wp.int32),
+                   dst_pts: wp.array(dtype=wp.vec2), dst_A: wp.array(dtype=wp.mat22),
+                   dst_patches: wp.array2d(dtype=float)):
+    t, k = wp.tid()
+    s = index[t]
+    dst_patches[t, k] = src_patches[s, k]
+    if k == 0:
+        dst_pts[t] = src_pts[s]
+        dst_A[t] = src_A[s]
+
+
+@wp.kernel
+def gather_colors(frame: wp.array3d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
+                  pts: wp.array(dtype=wp.vec2), count: int, colors: wp.array(dtype=wp.vec3)):
+    """Colour under each track: its undistorted position mapped back into the distorted frame."""
+    t = wp.tid()
+    if t >= count:
+        return
+    p = pts[t]
+    x = wp.clamp(int(wp.round(p[0])), 0, remap.shape[1] - 1)
+    y = wp.clamp(int(wp.round(p[1])), 0, remap.shape[0] - 1)
+    m = remap[y, x]
+    c = bilinear_bgr(frame, m[0], m[1])
+    colors[t] = wp.vec3(c[2], c[1], c[0])  # RGB
