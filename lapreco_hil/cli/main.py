@@ -59,22 +59,45 @@ def build_parser() -> argparse.ArgumentParser:
     bench_ba.add_argument("--repeats", type=_positive_int, default=3)
     bench_ba.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_ba.set_defaults(func=_cmd_bench_ba)
+    bench_fe = bench_sub.add_parser("frontend", help="Warp front-end vs the OpenCV baseline, per stage")
+    bench_fe.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    bench_fe.add_argument("--resolution", type=_resolution, nargs="+", default=[(1920, 1080)])
+    bench_fe.add_argument("--features", type=_positive_int, nargs="+", default=[2000])
+    bench_fe.add_argument("--frames", type=_positive_int, default=40)
+    bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_fe.set_defaults(func=_cmd_bench_frontend)
     return parser
 
 
-def _cmd_bench_ba(args) -> int:
+def _write_json(path: str | None, result: dict) -> None:
     import json
 
+    if not path:
+        return
+    try:
+        with open(path, "w", encoding="utf-8") as fh:
+            json.dump(result, fh, indent=2)
+    except OSError as exc:
+        raise OutputError(f"cannot write benchmark JSON '{path}' ({exc.strerror})") from None
+
+
+def _cmd_bench_frontend(args) -> int:
+    from ..bench.frontend import format_table, run
+    from ..warp_device import resolve_device
+
+    device = resolve_device(args.device)
+    result = run(device, args.resolution, args.features, frames=args.frames)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def _cmd_bench_ba(args) -> int:
     from ..bench.ba import format_table, run
 
     result = run(repeats=args.repeats)
     print(format_table(result))
-    if args.json:
-        try:
-            with open(args.json, "w", encoding="utf-8") as fh:
-                json.dump(result, fh, indent=2)
-        except OSError as exc:
-            raise OutputError(f"cannot write benchmark JSON '{args.json}' ({exc.strerror})") from None
+    _write_json(args.json, result)
     return 0
 
 

@@ -34,7 +34,23 @@ def _asset(name: str) -> str:
     return str(resources.files(__package__).joinpath("assets", name))
 
 
+def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a Wavefront OBJ (polygons fanned): the skull loads without VTK."""
+    verts, faces = [], []
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            if line.startswith("v "):
+                verts.append([float(v) for v in line.split()[1:4]])
+            elif line.startswith("f "):
+                idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
+                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+                faces.extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
+    return np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int32)
+
+
 def _read_mesh(name: str) -> tuple[np.ndarray, np.ndarray]:
+    if name.endswith(".obj"):
+        return _read_obj(_asset(name))
     import pyvista as pv
 
     mesh = pv.read(_asset(name)).triangulate().clean()

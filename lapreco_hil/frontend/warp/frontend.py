@@ -126,7 +126,8 @@ class WarpFrontEnd:
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
             self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, pts, n, self._lk_pts, self._status, self._error],
             block_dim=64, device=self.device)
-        keep = self._status.numpy()[:n] == 1
+        keep = self._status.numpy()[:n] == 1  # reading back synchronises: the LK time is device time
+        self._t_lk = time.perf_counter()
         if cfg.drift_check:
             wp.launch_tiled(K.drift_check, dim=[n], inputs=[
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
@@ -209,12 +210,14 @@ class WarpFrontEnd:
         self._prepare(frame.image)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
+        self._t_lk = t1
         if self._has_prev and self.n_tracks:
             keep = self._track()
         else:
             keep = np.zeros(0, bool)
         self._compact(keep)
         t2 = time.perf_counter()
+        t_lk = self._t_lk
         n_new = 0
         if self.n_tracks < cfg.redetect_below * cfg.max_features:
             n_new = self._detect()
@@ -228,7 +231,7 @@ class WarpFrontEnd:
         t3 = time.perf_counter()
         self._has_prev = True
         return Observations(frame.seq, frame.t_ns, self._ids.copy(), uv, colors, n_new,
-                            {"prepare": t1 - t0, "track": t2 - t1, "detect": t3 - t2})
+                            {"prepare": t1 - t0, "lk": t_lk - t1, "drift_check": t2 - t_lk, "detect": t3 - t2})
 
 
 def _select_with_min_distance(pos: np.ndarray, score: np.ndarray, min_distance: float, budget: int) -> np.ndarray:

@@ -288,7 +288,12 @@ def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_g
             ok = 0
         nu = wp.vec2(0.0, 0.0)
         done = int(0)
+        if ok == 0:
+            done = 1
         for _it in range(iterations):
+            # every lane holds the same reduced values, so leaving the loop is uniform across the block
+            if done == 1:
+                break
             bacc = wp.vec3(0.0, 0.0, 0.0)
             k = lane
             while k < n:
@@ -301,11 +306,10 @@ def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_g
                 k += nl
             b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
             residual = b[2] / float(n)
-            if done == 0 and ok == 1:
-                step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
-                nu = nu + step
-                if wp.length(step) < eps:
-                    done = 1
+            step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
+            nu = nu + step
+            if wp.length(step) < eps:
+                done = 1
         if lvl > 0:
             g = (g + nu) * 2.0
         else:
