@@ -81,3 +81,13 @@ def test_cli_rejects_bad_resolution(capsys):
         main(["demo", "--resolution", "big"])
     assert info.value.code == 2
     assert "must look like 640x480" in capsys.readouterr().err
+
+
+def test_tracker_auto_is_warp_on_a_gpu_and_opencv_on_a_cpu():
+    from lapreco_hil.frontend import resolve_tracker
+
+    assert resolve_tracker("auto", "cuda:0") == "warp"
+    assert resolve_tracker("auto", "cpu") == "opencv"
+    assert resolve_tracker("warp", "cpu") == "warp"
+    with pytest.raises(ConfigError, match="unknown tracker 'klt'"):
+        resolve_tracker("klt", "cpu")

@@ -64,3 +64,11 @@ def test_outputs_contract(demo):
     for key in ("frames", "throughput_fps", "latency_ms", "stage_ms", "tracks", "inliers", "accuracy"):
         assert key in on_disk
     assert (out / "reconstruction.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_warp_tracker_without_drift_check_runs_through_the_pipeline(tmp_path, warp_cpu):
+    report = run_demo(scene="apple", frames=24, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
+                      tracker="warp", progress=False, drift_check=False)
+    assert report["tracker"] == "warp" and report["drift_check"] is False
+    assert report["tracks"] > 100 and report["landmarks"] > 20

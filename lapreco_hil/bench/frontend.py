@@ -76,12 +76,12 @@ def run(device: str, resolutions: list[tuple[int, int]], features: list[int], fr
 def format_table(result: dict) -> str:
     lines = [f"front-end on {result['device']} ({result['frames']} frames, {result['warmup']} warm-up, medians; "
              f"OpenCV on {result['cpu_threads']} threads)",
-             f"{'resolution':>10s} {'N':>5s} | {'warp total':>10s} {'prepare':>8s} {'lk':>7s} {'drift':>7s} {'detect':>7s}"
+             f"{'resolution':>10s} {'N':>5s} | {'warp total':>10s} {'upload':>7s} {'prepare':>8s} {'lk':>7s} {'drift':>7s} {'detect':>7s}"
              f" {'tracks':>6s} | {'cv total':>9s} {'cv lk':>7s} {'cv drift':>8s} | {'x total':>7s} {'x LK':>6s}"]
     for r in result["rows"]:
         w, c = r["warp"], r["opencv"]
         ws, cs = w["stages_ms"], c["stages_ms"]
-        lines.append(f"{r['resolution']:>10s} {r['features']:>5d} | {w['total_ms']:10.2f} {ws.get('prepare', 0):8.2f} "
+        lines.append(f"{r['resolution']:>10s} {r['features']:>5d} | {w['total_ms']:10.2f} {ws.get('upload', 0):7.2f} {ws.get('prepare', 0):8.2f} "
                      f"{ws.get('lk', 0):7.2f} {ws.get('drift_check', 0):7.2f} {ws.get('detect', 0):7.2f} "
                      f"{w['tracks_median']:6.0f} | {c['total_ms']:9.2f} {cs.get('track', 0):7.2f} "
                      f"{cs.get('drift_check', 0):8.2f} | {r['ratio_total']:7.1f} {r['ratio_lk']:6.1f}")

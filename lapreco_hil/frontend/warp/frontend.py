@@ -17,6 +17,9 @@ from ...types import Frame, Observations
 from . import kernels as K
 
 MAX_CANDIDATES = 65536
+# rounds of the parallel greedy selection; a corner still undecided after them is dropped (rare: a chain of
+# ever stronger neighbours longer than this)
+SELECTION_ROUNDS = 6
 # LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
 LK_MIN_EIG = 1.5e-6
@@ -80,6 +83,20 @@ class WarpFrontEnd:
             self._residual = wp.zeros(n, dtype=float)
             self._index = wp.zeros(n, dtype=wp.int32)
             self._colors = wp.zeros(n, dtype=wp.vec3)
+            cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
+            self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
+            self._best = wp.zeros(self._grid[1] * self._grid[2], dtype=float)
+            self._winner = wp.zeros(self._grid[1] * self._grid[2], dtype=wp.int32)
+            self._sel_keys = wp.zeros(2 * MAX_CANDIDATES, dtype=float)  # radix sort needs twice the room
+            self._sel_values = wp.zeros(2 * MAX_CANDIDATES, dtype=wp.int32)
+            self._n_sel = wp.zeros(1, dtype=wp.int32)
+            self._state = [wp.zeros(MAX_CANDIDATES, dtype=wp.int32) for _ in range(2)]
+        with wp.ScopedDevice("cpu"):
+            # frames arrive in host memory; a pinned staging buffer makes the upload one DMA
+            self._staging = wp.zeros((H, W, 3), dtype=wp.uint8, pinned=self.device.is_cuda)
+        self.use_graphs = True
+        self._graphs = [None, None]
+        self._prepared = [False, False]
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._has_prev = False
         self._ids = np.zeros(0, np.int64)
@@ -95,15 +112,35 @@ class WarpFrontEnd:
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def _prepare(self, image: np.ndarray) -> None:
+    def _upload(self, image: np.ndarray) -> None:
+        if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
+            raise ValueError(f"frame is {image.shape} {image.dtype}; the front-end was built for "
+                             f"{self.height}x{self.width}x3 uint8")
+        self._staging.numpy()[...] = image
+        wp.copy(self._frame, self._staging)
+
+    def _prepare(self) -> None:
+        """The image stages for the current buffers: on CUDA one graph replay (captured on the second use of
+        each buffer, once every kernel module is loaded), elsewhere plain launches."""
+        cur = self._cur
+        if not self.device.is_cuda or not self.use_graphs or not self._prepared[cur]:
+            self._prepare_kernels()
+            self._prepared[cur] = True
+            return
+        if self._graphs[cur] is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._prepare_kernels()
+            self._graphs[cur] = capture.graph
+        wp.capture_launch(self._graphs[cur])
+
+    def _prepare_kernels(self) -> None:
         """Undistort, remove shading, build the pyramid and its gradients into the current buffers."""
         cfg = self.config
         H, W = self.height, self.width
-        wp.copy(self._frame, wp.array(image, dtype=wp.uint8, device="cpu"))
         self._launch(K.undistort_gray, (H, W), [self._frame, self._remap, self._gray])
         self._launch(K.log_image, (H, W), [self._gray, self._log])
-        self._launch(K.blur_rows, (H, W), [self._log, self._weights, self._tmp])
-        self._launch(K.blur_cols, (H, W), [self._tmp, self._weights, self._lit])
+        self._launch(K.blur_1d, (H, W), [self._log, self._weights, 1, 0, self._tmp])
+        self._launch(K.blur_1d, (H, W), [self._tmp, self._weights, 0, 1, self._lit])
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
         if cfg.shading_sigma_px > 0:
             self._launch(K.to_level0, (H, W), [self._log, self._lit, 1.0, 1, pyr])
@@ -143,6 +180,7 @@ class WarpFrontEnd:
         return keep
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:
+        pts = np.nan_to_num(pts, nan=-1.0, posinf=-1.0, neginf=-1.0)
         xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.width - 1)
         yi = np.clip(np.round(pts[:, 1]).astype(int), 0, self.height - 1)
         inb = (pts[:, 0] >= 0) & (pts[:, 0] <= self.width - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= self.height - 1)
@@ -185,17 +223,29 @@ class WarpFrontEnd:
         self._launch(K.corner_candidates, (H, W), [
             self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ,
             cfg.block_size // 2 + 1, self._cand_pos, self._cand_score, self._cand_count])
-        m = min(int(self._cand_count.numpy()[0]), MAX_CANDIDATES)
-        if m == 0:
-            return 0
-        pos = self._cand_pos.numpy()[:m]
-        score = self._cand_score.numpy()[:m]
-        chosen = _select_with_min_distance(pos, score, cfg.min_distance_px, want)
-        k = len(chosen)
+        # selection on the device: per-cell best, radius NMS among cell winners, strongest first
+        cell, gw, gh = self._grid
+        self._best.fill_(-1.0e30)
+        self._winner.fill_(-1)
+        self._n_sel.zero_()
+        self._launch(K.cell_best, MAX_CANDIDATES, [self._cand_pos, self._cand_score, self._cand_count, cell, gw,
+                                                    self._best])
+        self._launch(K.cell_winner, MAX_CANDIDATES, [self._cand_pos, self._cand_score, self._cand_count, cell, gw,
+                                                      self._best, self._winner])
+        self._launch(K.selection_init, MAX_CANDIDATES, [self._cand_pos, self._cand_count, cell, gw, self._winner,
+                                                         self._state[0]])
+        for r in range(SELECTION_ROUNDS):
+            self._launch(K.selection_round, MAX_CANDIDATES, [
+                self._cand_pos, self._cand_score, self._cand_count, cell, gw, gh, self._winner,
+                float(cfg.min_distance_px), self._state[r % 2], self._state[(r + 1) % 2]])
+        self._launch(K.selection_collect, MAX_CANDIDATES, [self._cand_score, self._state[SELECTION_ROUNDS % 2],
+                                                            self._sel_keys, self._sel_values, self._n_sel])
+        m = int(self._n_sel.numpy()[0])  # the one number the host needs
+        k = min(m, want)
         if k == 0:
             return 0
-        new = pos[chosen].astype(np.float32)
-        wp.copy(self._pts[cur], wp.array(new, dtype=wp.vec2, device="cpu"), dest_offset=n, count=k)
+        wp.utils.radix_sort_pairs(self._sel_keys, self._sel_values, m)
+        self._launch(K.append_tracks, k, [self._cand_pos, self._sel_values, n, self._pts[cur]])
         self._launch(K.sample_patches, (k, K.PATCH * K.PATCH), [self._pyr[cur], W, H, self._pts[cur], n,
                                                                  self._patches[cur], self._A[cur]])
         self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + k)])
@@ -207,7 +257,10 @@ class WarpFrontEnd:
         cfg = self.config
         t0 = time.perf_counter()
         self._cur = 1 - self._cur
-        self._prepare(frame.image)
+        self._upload(frame.image)
+        wp.synchronize_device(self.device)
+        t_up = time.perf_counter()
+        self._prepare()
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         self._t_lk = t1
@@ -231,34 +284,5 @@ class WarpFrontEnd:
         t3 = time.perf_counter()
         self._has_prev = True
         return Observations(frame.seq, frame.t_ns, self._ids.copy(), uv, colors, n_new,
-                            {"prepare": t1 - t0, "lk": t_lk - t1, "drift_check": t2 - t_lk, "detect": t3 - t2})
-
-
-def _select_with_min_distance(pos: np.ndarray, score: np.ndarray, min_distance: float, budget: int) -> np.ndarray:
-    """OpenCV's rule: strongest first, skip a corner closer than min_distance to one already taken."""
-    order = np.argsort(-score, kind="stable")
-    cell = max(min_distance, 1.0)
-    grid: dict[tuple[int, int], list[int]] = {}
-    chosen: list[int] = []
-    d2 = min_distance * min_distance
-    for i in order:
-        x, y = pos[i]
-        cx, cy = int(x // cell), int(y // cell)
-        close = False
-        for gx in (cx - 1, cx, cx + 1):
-            for gy in (cy - 1, cy, cy + 1):
-                for j in grid.get((gx, gy), ()):
-                    if (pos[j, 0] - x) ** 2 + (pos[j, 1] - y) ** 2 < d2:
-                        close = True
-                        break
-                if close:
-                    break
-            if close:
-                break
-        if close:
-            continue
-        grid.setdefault((cx, cy), []).append(int(i))
-        chosen.append(int(i))
-        if len(chosen) >= budget:
-            break
-    return np.array(chosen, dtype=np.int64)
+                            {"upload": t_up - t0, "prepare": t1 - t_up, "lk": t_lk - t1, "drift_check": t2 - t_lk,
+                             "detect": t3 - t2})

@@ -86,24 +86,16 @@ def log_image(gray: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
 
 
 @wp.kernel
-def blur_rows(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), dst: wp.array2d(dtype=float)):
+def blur_1d(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), step_x: int, step_y: int,
+            dst: wp.array2d(dtype=float)):
+    """One pass of a separable filter along (step_x, step_y): run it along rows, then along columns."""
     y, x = wp.tid()
     r = (weights.shape[0] - 1) // 2
     s = float(0.0)
     for k in range(weights.shape[0]):
-        xx = wp.clamp(x + k - r, 0, src.shape[1] - 1)
-        s += weights[k] * src[y, xx]
-    dst[y, x] = s
-
-
-@wp.kernel
-def blur_cols(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), dst: wp.array2d(dtype=float)):
-    y, x = wp.tid()
-    r = (weights.shape[0] - 1) // 2
-    s = float(0.0)
-    for k in range(weights.shape[0]):
-        yy = wp.clamp(y + k - r, 0, src.shape[0] - 1)
-        s += weights[k] * src[yy, x]
+        xx = wp.clamp(x + (k - r) * step_x, 0, src.shape[1] - 1)
+        yy = wp.clamp(y + (k - r) * step_y, 0, src.shape[0] - 1)
+        s += weights[k] * src[yy, xx]
     dst[y, x] = s
 
 
@@ -316,7 +308,8 @@ def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_g
             g = g + nu
     if valid and lane == 0:
         q = p0 + g
-        inside = q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+        finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
+        inside = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
         out_pts[f] = q
         status[f] = wp.where(ok == 1 and inside, 1, 0)
         error[f] = residual
@@ -506,3 +499,92 @@ def gather_colors(frame: wp.array3d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.
     m = remap[y, x]
     c = bilinear_bgr(frame, m[0], m[1])
     colors[t] = wp.vec3(c[2], c[1], c[0])  # RGB
+
+
+# --- corner selection on the device: strongest first, none closer than min_distance -----------------------
+@wp.kernel
+def cell_best(pos: wp.array(dtype=wp.vec2), score: wp.array(dtype=float), count: wp.array(dtype=wp.int32),
+              cell: float, grid_w: int, best: wp.array(dtype=float)):
+    """Cells of side min_distance / sqrt(2): two corners in one cell are always too close, keep the best."""
+    i = wp.tid()
+    if i >= wp.min(count[0], pos.shape[0]):
+        return
+    p = pos[i]
+    c = int(p[1] / cell) * grid_w + int(p[0] / cell)
+    wp.atomic_max(best, c, score[i])
+
+
+@wp.kernel
+def cell_winner(pos: wp.array(dtype=wp.vec2), score: wp.array(dtype=float), count: wp.array(dtype=wp.int32),
+                cell: float, grid_w: int, best: wp.array(dtype=float), winner: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    if i >= wp.min(count[0], pos.shape[0]):
+        return
+    p = pos[i]
+    c = int(p[1] / cell) * grid_w + int(p[0] / cell)
+    if score[i] == best[c]:
+        wp.atomic_max(winner, c, i)
+
+
+@wp.kernel
+def selection_init(pos: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), cell: float, grid_w: int,
+                   winner: wp.array(dtype=wp.int32), state: wp.array(dtype=wp.int32)):
+    """0 = undecided (its cell's best), -1 = out."""
+    i = wp.tid()
+    state[i] = -1
+    if i < wp.min(count[0], pos.shape[0]):
+        p = pos[i]
+        if winner[int(p[1] / cell) * grid_w + int(p[0] / cell)] == i:
+            state[i] = 0
+
+
+@wp.kernel
+def selection_round(pos: wp.array(dtype=wp.vec2), score: wp.array(dtype=float), count: wp.array(dtype=wp.int32),
+                    cell: float, grid_w: int, grid_h: int, winner: wp.array(dtype=wp.int32), min_distance: float,
+                    state_in: wp.array(dtype=wp.int32), state_out: wp.array(dtype=wp.int32)):
+    """One round of greedy selection in parallel: an undecided corner is rejected next to a selected one, and
+    selected when no stronger undecided corner is within min_distance. Its fixed point is OpenCV's greedy
+    (strongest first) result."""
+    i = wp.tid()
+    st = state_in[i]
+    state_out[i] = st
+    if st != 0:
+        return
+    p = pos[i]
+    s = score[i]
+    cx = int(p[0] / cell)
+    cy = int(p[1] / cell)
+    reach = int(wp.ceil(min_distance / cell))
+    blocked = int(0)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            x = cx + dx
+            y = cy + dy
+            if x >= 0 and y >= 0 and x < grid_w and y < grid_h and (dx != 0 or dy != 0):
+                j = winner[y * grid_w + x]
+                if j >= 0:
+                    if wp.length(pos[j] - p) < min_distance:
+                        if state_in[j] == 1:
+                            state_out[i] = -1
+                            return
+                        if state_in[j] == 0 and (score[j] > s or (score[j] == s and j < i)):
+                            blocked = 1
+    if blocked == 0:
+        state_out[i] = 1
+
+
+@wp.kernel
+def selection_collect(score: wp.array(dtype=float), state: wp.array(dtype=wp.int32), keys: wp.array(dtype=float),
+                      values: wp.array(dtype=wp.int32), n_out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    if state[i] == 1:
+        k = wp.atomic_add(n_out, 0, 1)
+        keys[k] = -score[i]
+        values[k] = i
+
+
+@wp.kernel
+def append_tracks(pos: wp.array(dtype=wp.vec2), order: wp.array(dtype=wp.int32), first: int,
+                  pts: wp.array(dtype=wp.vec2)):
+    t = wp.tid()
+    pts[first + t] = pos[order[t]]
