@@ -81,7 +81,7 @@ class WarpFrontEnd:
             self._error = wp.zeros(n, dtype=float)
             self._keep = wp.zeros(n, dtype=wp.int32)
             self._residual = wp.zeros(n, dtype=float)
-            self._index = wp.zeros(n, dtype=wp.int32)
+            self._slot = wp.zeros(n, dtype=wp.int32)
             self._colors = wp.zeros(n, dtype=wp.vec3)
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
@@ -90,18 +90,22 @@ class WarpFrontEnd:
             self._sel_keys = wp.zeros(2 * MAX_CANDIDATES, dtype=float)  # radix sort needs twice the room
             self._sel_values = wp.zeros(2 * MAX_CANDIDATES, dtype=wp.int32)
             self._n_sel = wp.zeros(1, dtype=wp.int32)
+            self._n_dev = wp.zeros(1, dtype=wp.int32)
             self._state = [wp.zeros(MAX_CANDIDATES, dtype=wp.int32) for _ in range(2)]
         with wp.ScopedDevice("cpu"):
             # frames arrive in host memory; a pinned staging buffer makes the upload one DMA
             self._staging = wp.zeros((H, W, 3), dtype=wp.uint8, pinned=self.device.is_cuda)
         self.use_graphs = True
+        self.profile = False  # synchronise at stage ends to time each stage (benchmarks)
+        self._marks: dict[str, float] = {}
         self._graphs = [None, None]
         self._prepared = [False, False]
+        self._detect_graphs = [None, None]
+        self._detected = [False, False]
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._has_prev = False
         self._ids = np.zeros(0, np.int64)
         self._next_id = 0
-        self.drift_dropped = 0
         self._lit_min = float(np.log1p(config.min_brightness))
 
     @property
@@ -154,67 +158,49 @@ class WarpFrontEnd:
 
     # --- tracking -----------------------------------------------------------------------------------------------
     def _track(self) -> np.ndarray:
-        """LK from the previous pyramid, then the drift check; returns the keep mask (host)."""
+        """LK from the previous pyramid, the drift check (or LK's own verdict) and the field-of-view test, then
+        compaction into the current buffers on the device; one read-back (the keep flags, which the host
+        needs for the track ids)."""
         cfg = self.config
         n = self.n_tracks
         prev, cur = 1 - self._cur, self._cur
-        pts = self._pts[prev]
         wp.launch_tiled(K.lk_track, dim=[n], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, pts, n, self._lk_pts, self._status, self._error],
-            block_dim=64, device=self.device)
-        keep = self._status.numpy()[:n] == 1  # reading back synchronises: the LK time is device time
-        self._t_lk = time.perf_counter()
+            self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, self._pts[prev], n, self._lk_pts, self._status,
+            self._error], block_dim=64, device=self.device)
+        self._sync_for_profile("lk")
         if cfg.drift_check:
             wp.launch_tiled(K.drift_check, dim=[n], inputs=[
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
-                self._A[prev], self._lk_pts, n, 6, cfg.drift_max_residual, 1.6, 3.0, self._pts[prev],
-                self._keep, self._residual], block_dim=64, device=self.device)
-            drift_keep = self._keep.numpy()[:n] == 1
-            self.drift_dropped += int((keep & ~drift_keep).sum())
-            keep &= drift_keep
+                self._A[prev], self._lk_pts, self._status, self._mask, n, 6, cfg.drift_max_residual, 1.6, 3.0,
+                self._pts[prev], self._keep, self._residual], block_dim=64, device=self.device)
         else:
-            wp.copy(self._pts[prev], self._lk_pts, count=n)
-        positions = self._pts[prev].numpy()[:n]
-        keep &= self._inside(positions)
+            self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, n, self._pts[prev], self._keep])
+        wp.utils.array_scan(self._keep, self._slot, inclusive=False)
+        self._launch(K.scatter_tracks, (n, K.PATCH * K.PATCH), [
+            self._keep, self._slot, self._pts[prev], self._A[prev], self._patches[prev], self._pts[cur],
+            self._A[cur], self._patches[cur]])
+        keep = self._keep.numpy()[:n] == 1
+        self._ids = self._ids[keep]
         return keep
 
-    def _inside(self, pts: np.ndarray) -> np.ndarray:
-        pts = np.nan_to_num(pts, nan=-1.0, posinf=-1.0, neginf=-1.0)
-        xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.width - 1)
-        yi = np.clip(np.round(pts[:, 1]).astype(int), 0, self.height - 1)
-        inb = (pts[:, 0] >= 0) & (pts[:, 0] <= self.width - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= self.height - 1)
-        return inb & (self._mask_host()[yi, xi] > 0)
-
-    def _mask_host(self) -> np.ndarray:
-        if not hasattr(self, "_mask_np"):
-            self._mask_np = self._mask.numpy()
-        return self._mask_np
-
-    def _compact(self, keep: np.ndarray) -> None:
-        """Move the surviving tracks' state from the previous buffers to the current ones."""
-        src, dst = 1 - self._cur, self._cur
-        index = np.flatnonzero(keep).astype(np.int32)
-        if len(index):
-            wp.copy(self._index, wp.array(index, dtype=wp.int32, device="cpu"), count=len(index))
-            self._launch(K.compact_tracks, (len(index), K.PATCH * K.PATCH), [
-                self._pts[src], self._A[src], self._patches[src], self._index, self._pts[dst], self._A[dst],
-                self._patches[dst]])
-        self._ids = self._ids[keep]
+    def _sync_for_profile(self, name: str) -> None:
+        """Per-stage times need the device synchronised at stage ends; the steady state does without."""
+        if self.profile:
+            wp.synchronize_device(self.device)
+            self._marks[name] = time.perf_counter()
 
     # --- detection ----------------------------------------------------------------------------------------------
-    def _detect(self) -> int:
+    def _candidate_kernels(self) -> None:
+        """Occupancy around live tracks, Shi-Tomasi response, local maxima, and the greedy minimum-distance
+        selection, into (keys, values, count) on the device."""
         cfg = self.config
         H, W = self.height, self.width
-        n = self.n_tracks
-        want = cfg.max_features - n
-        if want <= 0:
-            return 0
         cur = self._cur
         self._occ.zero_()
-        if n:
-            r = int(np.ceil(cfg.min_distance_px))
-            self._launch(K.occupancy, (n, (2 * r + 1) ** 2), [self._pts[cur], n, float(cfg.min_distance_px), self._occ])
+        r = int(np.ceil(cfg.min_distance_px))
+        self._launch(K.occupancy, (cfg.max_features, (2 * r + 1) ** 2),
+                     [self._pts[cur], self._n_dev, float(cfg.min_distance_px), self._occ])
         lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
         self._max_eig.zero_()
         self._launch(K.min_eigenvalue, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._mask,
@@ -223,7 +209,6 @@ class WarpFrontEnd:
         self._launch(K.corner_candidates, (H, W), [
             self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ,
             cfg.block_size // 2 + 1, self._cand_pos, self._cand_score, self._cand_count])
-        # selection on the device: per-cell best, radius NMS among cell winners, strongest first
         cell, gw, gh = self._grid
         self._best.fill_(-1.0e30)
         self._winner.fill_(-1)
@@ -234,13 +219,33 @@ class WarpFrontEnd:
                                                       self._best, self._winner])
         self._launch(K.selection_init, MAX_CANDIDATES, [self._cand_pos, self._cand_count, cell, gw, self._winner,
                                                          self._state[0]])
-        for r in range(SELECTION_ROUNDS):
+        for rnd in range(SELECTION_ROUNDS):
             self._launch(K.selection_round, MAX_CANDIDATES, [
                 self._cand_pos, self._cand_score, self._cand_count, cell, gw, gh, self._winner,
-                float(cfg.min_distance_px), self._state[r % 2], self._state[(r + 1) % 2]])
+                float(cfg.min_distance_px), self._state[rnd % 2], self._state[(rnd + 1) % 2]])
         self._launch(K.selection_collect, MAX_CANDIDATES, [self._cand_score, self._state[SELECTION_ROUNDS % 2],
                                                             self._sel_keys, self._sel_values, self._n_sel])
+
+    def _detect(self) -> int:
+        cfg = self.config
+        n = self.n_tracks
+        want = cfg.max_features - n
+        if want <= 0:
+            return 0
+        cur = self._cur
+        self._n_dev.fill_(n)  # the graph reads the live-track count from the device
+        # everything up to the selection count has a fixed shape: one graph replay per buffer on CUDA
+        if not self.device.is_cuda or not self.use_graphs or not self._detected[cur]:
+            self._candidate_kernels()
+            self._detected[cur] = True
+        else:
+            if self._detect_graphs[cur] is None:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._candidate_kernels()
+                self._detect_graphs[cur] = capture.graph
+            wp.capture_launch(self._detect_graphs[cur])
         m = int(self._n_sel.numpy()[0])  # the one number the host needs
+        W, H = self.width, self.height
         k = min(m, want)
         if k == 0:
             return 0
@@ -255,22 +260,18 @@ class WarpFrontEnd:
     # --- the frame ----------------------------------------------------------------------------------------------
     def process(self, frame: Frame) -> Observations:
         cfg = self.config
+        self._marks = {}
         t0 = time.perf_counter()
         self._cur = 1 - self._cur
         self._upload(frame.image)
-        wp.synchronize_device(self.device)
-        t_up = time.perf_counter()
+        self._sync_for_profile("upload")
         self._prepare()
-        wp.synchronize_device(self.device)
-        t1 = time.perf_counter()
-        self._t_lk = t1
+        self._sync_for_profile("prepare")
         if self._has_prev and self.n_tracks:
-            keep = self._track()
+            self._track()
         else:
-            keep = np.zeros(0, bool)
-        self._compact(keep)
-        t2 = time.perf_counter()
-        t_lk = self._t_lk
+            self._ids = self._ids[:0]
+        self._sync_for_profile("track")
         n_new = 0
         if self.n_tracks < cfg.redetect_below * cfg.max_features:
             n_new = self._detect()
@@ -281,8 +282,12 @@ class WarpFrontEnd:
             colors = np.clip(np.round(self._colors.numpy()[:n]), 0, 255).astype(np.uint8)
         else:
             uv, colors = np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
-        t3 = time.perf_counter()
+        t_end = time.perf_counter()
         self._has_prev = True
-        return Observations(frame.seq, frame.t_ns, self._ids.copy(), uv, colors, n_new,
-                            {"upload": t_up - t0, "prepare": t1 - t_up, "lk": t_lk - t1, "drift_check": t2 - t_lk,
-                             "detect": t3 - t2})
+        timings = {"total": t_end - t0}
+        if self.profile:
+            m = self._marks
+            timings.update({"upload": m["upload"] - t0, "prepare": m["prepare"] - m["upload"],
+                            "lk": m.get("lk", m["prepare"]) - m["prepare"],
+                            "drift_check": m["track"] - m.get("lk", m["prepare"]), "detect": t_end - m["track"]})
+        return Observations(frame.seq, frame.t_ns, self._ids.copy(), uv, colors, n_new, timings)

@@ -190,10 +190,12 @@ def min_eigenvalue(gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
 
 
 @wp.kernel
-def occupancy(positions: wp.array(dtype=wp.vec2), count: int, radius: float, occ: wp.array2d(dtype=wp.int32)):
-    """Mark the disc of radius min_distance around each live track: no new corner may start there."""
+def occupancy(positions: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), radius: float,
+              occ: wp.array2d(dtype=wp.int32)):
+    """Mark the disc of radius min_distance around each live track: no new corner may start there. The track
+    count is read on the device, so the launch has a fixed shape and can live in a CUDA graph."""
     t, j = wp.tid()
-    if t >= count:
+    if t >= count[0]:
         return
     r = int(wp.ceil(radius))
     side = 2 * r + 1
@@ -362,7 +364,8 @@ def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dty
 @wp.kernel
 def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
                 h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
-                pts: wp.array(dtype=wp.vec2), count: int, iterations: int, max_residual: float,
+                pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
+                count: int, iterations: int, max_residual: float,
                 max_stretch: float, max_correction: float, out_pts: wp.array(dtype=wp.vec2),
                 keep: wp.array(dtype=wp.int32), residual_out: wp.array(dtype=float)):
     """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
@@ -466,6 +469,7 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
         moved = wp.length(b - b0)
         good = res <= max_residual and smax <= max_stretch and smin >= 1.0 / max_stretch and det > 0.0
         good = good and moved <= max_correction and alpha > 0.2 and alpha < 5.0 and not wp.isnan(res)
+        good = good and status[f] == 1 and _in_view(mask, b)
         out_pts[f] = b
         A[f] = Am
         keep[f] = wp.where(good, 1, 0)
@@ -473,17 +477,42 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
 
 
 # --- bookkeeping -------------------------------------------------------------------------------------------
+@wp.func
+def _in_view(mask: wp.array2d(dtype=wp.uint8), p: wp.vec2) -> bool:
+    if wp.isnan(p[0]) or wp.isnan(p[1]):
+        return False
+    x = int(wp.round(p[0]))
+    y = int(wp.round(p[1]))
+    if x < 0 or y < 0 or x >= mask.shape[1] or y >= mask.shape[0]:
+        return False
+    return mask[y, x] != wp.uint8(0)
+
+
 @wp.kernel
-def compact_tracks(src_pts: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
-                   src_patches: wp.array2d(dtype=float), index: wp.array(dtype=wp.int32),
-                   dst_pts: wp.array(dtype=wp.vec2), dst_A: wp.array(dtype=wp.mat22),
-                   dst_patches: wp.array2d(dtype=float)):
+def lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
+            count: int, out_pts: wp.array(dtype=wp.vec2), keep: wp.array(dtype=wp.int32)):
+    """Without the drift check: keep what LK tracked into the field of view."""
+    f = wp.tid()
+    if f >= count:
+        return
+    out_pts[f] = pts[f]
+    keep[f] = wp.where(status[f] == 1 and _in_view(mask, pts[f]), 1, 0)
+
+
+@wp.kernel
+def scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
+                   src_pts: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
+                   src_patches: wp.array2d(dtype=float), dst_pts: wp.array(dtype=wp.vec2),
+                   dst_A: wp.array(dtype=wp.mat22), dst_patches: wp.array2d(dtype=float)):
+    """Compaction on the device: a kept track moves to its slot (exclusive prefix sum of the keep flags)."""
     t, k = wp.tid()
-    s = index[t]
-    dst_patches[t, k] = src_patches[s, k]
+    if keep[t] == 0:
+        return
+    s = slot[t]
+    dst_patches[s, k] = src_patches[t, k]
     if k == 0:
-        dst_pts[t] = src_pts[s]
-        dst_A[t] = src_A[s]
+        dst_pts[s] = src_pts[t]
+        dst_A[s] = src_A[t]
 
 
 @wp.kernel
