@@ -1,5 +1,6 @@
-"""A short simulated run through the whole pipeline: the reconstruction lies on the true surface and bundle
-adjustment brings the camera poses closer to the truth than raw forward kinematics."""
+"""The default simulated run through the whole pipeline (150 frames, as `lapreco demo`): the reconstruction lies
+on the true surface and bundle adjustment brings the camera poses closer to the truth than raw forward
+kinematics."""
 
 import json
 
@@ -13,7 +14,7 @@ from lapreco_hil.cli.demo import run_demo
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory, warp_cpu):
     out = tmp_path_factory.mktemp("demo")
-    report = run_demo(scene="skull", frames=100, resolution=(640, 480), out=str(out), device=warp_cpu,
+    report = run_demo(scene="skull", frames=150, resolution=(640, 480), out=str(out), device=warp_cpu,
                       progress=False)
     return out, report
 
@@ -31,8 +32,10 @@ def test_points_lie_on_the_true_surface(demo):
 def test_refined_poses_are_closer_to_the_truth_than_raw_fk(demo):
     _, report = demo
     acc = report["accuracy"]
-    # every frame is refined (keyframes by BA, the rest by pose-only refinement against the map)
-    assert acc["camera_refined"]["position_rms_mm"] < 0.4 * acc["camera_raw_fk"]["position_rms_mm"], acc
+    # every frame is refined (keyframes by BA, the rest by pose-only refinement against the map); on the
+    # default simulated compliance the refined positions are >= 5x closer to the truth (measured 7.0x)
+    assert acc["position_improvement_ratio"] >= 5.0, acc
+    assert acc["camera_refined"]["position_rms_mm"] < 0.2 * acc["camera_raw_fk"]["position_rms_mm"], acc
     assert acc["camera_refined"]["position_max_mm"] < acc["camera_raw_fk"]["position_rms_mm"], acc
     assert acc["keyframes_refined"]["position_rms_mm"] < 0.4 * acc["keyframes_raw_fk"]["position_rms_mm"]
     assert acc["camera_refined"]["rotation_rms_deg"] < 0.5 * acc["camera_raw_fk"]["rotation_rms_deg"]
@@ -57,7 +60,7 @@ def test_outputs_contract(demo):
     mesh = pv.read(out / "mesh.ply")
     assert mesh.n_cells > 100
     lines = [l for l in (out / "trajectory.tum").read_text().splitlines() if not l.startswith("#")]
-    assert len(lines) == report["frames"]["processed"] == 100
+    assert len(lines) == report["frames"]["processed"] == 150
     q = np.array([[float(v) for v in l.split()[4:]] for l in lines])
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
     on_disk = json.loads((out / "report.json").read_text())
