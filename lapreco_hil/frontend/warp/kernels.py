@@ -11,6 +11,7 @@ import warp as wp
 
 PATCH = 13  # drift-check patch side (pixels)
 HIGHPASS_RANGE = 128.0 / 96.0  # what frontend.opencv.to_u8 keeps of the log high-pass
+LK_CACHE = 8  # window pixels a lane keeps in registers: 8 x 64 lanes covers windows up to 22 x 22
 HALF_PATCH = 6
 
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
@@ -284,20 +285,45 @@ def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_g
         done = int(0)
         if ok == 0:
             done = 1
+        # with enough lanes (CUDA), each lane keeps its pixels of the previous window in registers, so the
+        # iterations sample only the current image; with one lane (the CPU device) it re-samples instead
+        cached = n <= LK_CACHE * nl
+        c_i = vec8()
+        c_x = vec8()
+        c_y = vec8()
+        if cached:
+            for j in range(LK_CACHE):
+                k = lane + j * nl
+                if k < n:
+                    x = p[0] + float(k % win) - r
+                    y = p[1] + float(k // win) - r
+                    c_i[j] = bilinear(prev, off, w, h, x, y)
+                    c_x[j] = bilinear(prev_gx, off, w, h, x, y)
+                    c_y[j] = bilinear(prev_gy, off, w, h, x, y)
         for _it in range(iterations):
             # every lane holds the same reduced values, so leaving the loop is uniform across the block
             if done == 1:
                 break
             bacc = wp.vec3(0.0, 0.0, 0.0)
-            k = lane
-            while k < n:
-                x = p[0] + float(k % win) - r
-                y = p[1] + float(k // win) - r
-                diff = bilinear(prev, off, w, h, x, y) - bilinear(cur, off, w, h, x + g[0] + nu[0], y + g[1] + nu[1])
-                ix = bilinear(prev_gx, off, w, h, x, y)
-                iy = bilinear(prev_gy, off, w, h, x, y)
-                bacc += wp.vec3(diff * ix, diff * iy, wp.abs(diff))
-                k += nl
+            if cached:
+                for j in range(LK_CACHE):
+                    k = lane + j * nl
+                    if k < n:
+                        x = p[0] + float(k % win) - r + g[0] + nu[0]
+                        y = p[1] + float(k // win) - r + g[1] + nu[1]
+                        diff = c_i[j] - bilinear(cur, off, w, h, x, y)
+                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+            else:
+                k = lane
+                while k < n:
+                    x = p[0] + float(k % win) - r
+                    y = p[1] + float(k // win) - r
+                    diff = bilinear(prev, off, w, h, x, y) - bilinear(cur, off, w, h, x + g[0] + nu[0],
+                                                                      y + g[1] + nu[1])
+                    ix = bilinear(prev_gx, off, w, h, x, y)
+                    iy = bilinear(prev_gy, off, w, h, x, y)
+                    bacc += wp.vec3(diff * ix, diff * iy, wp.abs(diff))
+                    k += nl
             b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
             residual = b[2] / float(n)
             step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
