@@ -8,7 +8,7 @@ import pytest
 from lapreco_hil.evaluation.accuracy import shape_error
 from lapreco_hil.geometry import pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
-from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, mad_sigma
 from lapreco_hil.mapping.synthetic import make_problem
 
 

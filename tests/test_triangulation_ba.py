@@ -2,7 +2,6 @@
 the solver)."""
 
 import numpy as np
-import pytest
 
 from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba

@@ -15,6 +15,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from ..geometry import make_T
+from .robust import RobustSchedule, mad_sigma
 
 
 @dataclass
@@ -162,12 +163,10 @@ def residual_vectors(K, poses, points, obs_pose, obs_point, obs_uv) -> np.ndarra
     return r
 
 
-def solve_robust(problem: BAProblem, schedule: "RobustSchedule") -> BAResult:
+def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
     """The seed's schedule: each stage re-estimates the MAD scale from the current residuals, whitens the
     reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey). Observations beyond
     the last stage's threshold are the outliers (``stats['inlier_obs']``)."""
-    from .robust import mad_sigma
-
     t0 = time.perf_counter()
     p = problem
     poses, points = p.poses.copy(), p.points.copy()
