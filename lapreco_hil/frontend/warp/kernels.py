@@ -374,15 +374,27 @@ def _chol_solve8(H: mat88, g: vec8) -> vec8:
     return x
 
 
+@wp.func
+def _patch_offset(k: int) -> wp.vec2:
+    """Offset of pixel k of a PATCH x PATCH patch from its centre."""
+    return wp.vec2(float(k % PATCH - HALF_PATCH), float(k // PATCH - HALF_PATCH))
+
+
+@wp.func
+def _reference(patches: wp.array2d(dtype=float), f: int, k: int, valid: bool) -> float:
+    # lanes of a block past the last track still take part in the reductions, with zeros
+    if valid:
+        return patches[f, k]
+    return 0.0
+
+
 @wp.kernel
 def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2), first: int,
                    patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22)):
     """The first patch of each new track (slots first..), and an identity warp."""
     t, k = wp.tid()
-    p = pts[first + t]
-    dx = float(k % PATCH - HALF_PATCH)
-    dy = float(k // PATCH - HALF_PATCH)
-    patches[first + t, k] = bilinear(img, 0, w, h, p[0] + dx, p[1] + dy)
+    q = pts[first + t] + _patch_offset(k)
+    patches[first + t, k] = bilinear(img, 0, w, h, q[0], q[1])
     if k == 0:
         A[first + t] = wp.identity(n=2, dtype=float)
 
@@ -411,12 +423,8 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
     st = wp.vec4(0.0, 0.0, 0.0, 0.0)
     k = lane
     while k < n:
-        dx = float(k % PATCH - HALF_PATCH)
-        dy = float(k // PATCH - HALF_PATCH)
-        ref = float(0.0)
-        if valid:
-            ref = patches[f, k]
-        q = b + Am * wp.vec2(dx, dy)
+        ref = _reference(patches, f, k, valid)
+        q = b + Am * _patch_offset(k)
         j = bilinear(img, 0, w, h, q[0], q[1])
         st += wp.vec4(ref, ref * ref, j, j * j)
         k += nl
@@ -432,17 +440,14 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
         acc = vec44()
         k = lane
         while k < n:
-            dx = float(k % PATCH - HALF_PATCH)
-            dy = float(k // PATCH - HALF_PATCH)
-            ref = float(0.0)
-            if valid:
-                ref = patches[f, k]
-            q = b + Am * wp.vec2(dx, dy)
+            ref = _reference(patches, f, k, valid)
+            o = _patch_offset(k)
+            q = b + Am * o
             j = bilinear(img, 0, w, h, q[0], q[1])
             u = bilinear(gx, 0, w, h, q[0], q[1])
             v = bilinear(gy, 0, w, h, q[0], q[1])
             r = j - alpha * ref - beta
-            row = vec8(u * dx, u * dy, v * dx, v * dy, u, v, -ref, -1.0)
+            row = vec8(u * o[0], u * o[1], v * o[0], v * o[1], u, v, -ref, -1.0)
             idx = int(0)
             for a in range(8):
                 for c in range(a, 8):
@@ -470,12 +475,8 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
     racc = float(0.0)
     k = lane
     while k < n:
-        dx = float(k % PATCH - HALF_PATCH)
-        dy = float(k // PATCH - HALF_PATCH)
-        ref = float(0.0)
-        if valid:
-            ref = patches[f, k]
-        q = b + Am * wp.vec2(dx, dy)
+        ref = _reference(patches, f, k, valid)
+        q = b + Am * _patch_offset(k)
         r = bilinear(img, 0, w, h, q[0], q[1]) - alpha * ref - beta
         racc += r * r
         k += nl
