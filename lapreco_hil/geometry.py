@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -72,7 +72,6 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "Rotation",
-    "Slerp",
     "inv_T",
     "interpolate_pose",
     "look_at",

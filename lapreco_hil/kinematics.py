@@ -7,7 +7,6 @@ link, so FK and the manipulator Jacobian of the camera come from one model.
 from __future__ import annotations
 
 import bisect
-import collections
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,14 +103,19 @@ class PoseAtTime:
         self.floor_rot = floor_rot
         self.floor_trans = floor_trans
         self.offset_ns = offset_ns
-        self._samples: collections.deque[JointSample] = collections.deque(maxlen=capacity)
-        self._times: collections.deque[int] = collections.deque(maxlen=capacity)
+        self.capacity = capacity
+        # plain lists, searched with bisect; the oldest half is dropped when full (amortised O(1) per sample)
+        self._samples: list[JointSample] = []
+        self._times: list[int] = []
 
     def add(self, sample: JointSample) -> None:
         if self._times and sample.t_ns <= self._times[-1]:
             return  # out of order or duplicate: the newest sample wins, time never runs backwards
         self._samples.append(sample)
         self._times.append(sample.t_ns)
+        if len(self._times) > 2 * self.capacity:
+            del self._samples[: self.capacity]
+            del self._times[: self.capacity]
 
     def extend(self, samples) -> None:
         for s in samples:
@@ -124,7 +128,7 @@ class PoseAtTime:
         """(q before, q after, fraction) bracketing kinematics time t_ns (clamped to the buffer's ends)."""
         if not self._samples:
             raise ConfigError("no joint samples received yet: is the robot connected?")
-        times = list(self._times)
+        times = self._times
         i = bisect.bisect_right(times, t_ns)
         if i == 0:
             s = self._samples[0]

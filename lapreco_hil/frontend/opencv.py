@@ -40,7 +40,6 @@ class OpenCVFrontEnd:
         self._next_id = 0
         self.drift = (AffineDriftCheck(config.drift_patch_px, max_residual=config.drift_max_residual)
                       if config.drift_check else None)
-        self.drift_dropped = 0
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._A = np.zeros((0, 2, 2))
         w = config.window_px
@@ -79,7 +78,6 @@ class OpenCVFrontEnd:
             reg = self.drift.register(intensity, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
             keep = reg.keep & self._inside(reg.positions)
-            self.drift_dropped += int((~keep).sum())
             self._filter(keep, reg.positions.astype(np.float32))
         t_drift = time.perf_counter()
         n_new = 0

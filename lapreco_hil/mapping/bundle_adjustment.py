@@ -68,17 +68,6 @@ def robust_pixel_noise(pixel_sigma: float, loss: str | None, k: float) -> gtsam.
     return gtsam.noiseModel.Robust.Create(estimators[loss].Create(k), base)
 
 
-def reprojection_residuals(K: np.ndarray, poses: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
-                           obs_point: np.ndarray, obs_uv: np.ndarray) -> np.ndarray:
-    T_cw = np.linalg.inv(poses)[obs_pose]
-    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], points[obs_point]) + T_cw[:, :3, 3]
-    z = np.where(np.abs(Xc[:, 2]) > 1e-9, Xc[:, 2], 1e-9)
-    u = K[0, 0] * Xc[:, 0] / z + K[0, 2]
-    v = K[1, 1] * Xc[:, 1] / z + K[1, 2]
-    r = np.hypot(u - obs_uv[:, 0], v - obs_uv[:, 1])
-    return np.where(Xc[:, 2] > 0, r, np.inf)
-
-
 def _build(problem: BAProblem, noise: gtsam.noiseModel.Base):
     p = problem
     cal = gtsam.Cal3_S2(p.K[0, 0], p.K[1, 1], 0.0, p.K[0, 2], p.K[1, 2])
@@ -163,6 +152,12 @@ def residual_vectors(K, poses, points, obs_pose, obs_point, obs_uv) -> np.ndarra
     return r
 
 
+def reprojection_residuals(K, poses, points, obs_pose, obs_point, obs_uv) -> np.ndarray:
+    """(O,) reprojection error norms; inf behind the camera."""
+    e = np.linalg.norm(residual_vectors(K, poses, points, obs_pose, obs_point, obs_uv), axis=1)
+    return np.where(np.isfinite(e), e, np.inf)
+
+
 def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
     """The seed's schedule: each stage re-estimates the MAD scale from the current residuals, whitens the
     reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey). Observations beyond
@@ -188,8 +183,9 @@ def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
         iterations += its
         stages.append({"loss": stage.loss, "sigma_px": sigma, "k": stage.k, "iterations": its,
                        "error_before": float(error0), "error_after": final_error})
-    residuals = reprojection_residuals(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
     r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+    residuals = np.linalg.norm(r, axis=1)
+    residuals[~np.isfinite(residuals)] = np.inf
     sigma_final = min(mad_sigma(r, schedule.sigma_floor_px), schedule.sigma_ceiling_px)
     threshold = schedule.inlier_threshold_px(sigma_final)
     return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
