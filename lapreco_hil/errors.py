@@ -43,3 +43,7 @@ class OutputError(LaprecoError):
 
 class ReconstructionError(LaprecoError):
     """The pipeline could not produce a reconstruction from its input (too few tracks, no parallax)."""
+
+
+class SessionError(LaprecoError):
+    """A recorded session is missing, malformed or cut short in a way that cannot be read."""

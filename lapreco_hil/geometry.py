@@ -60,6 +60,21 @@ def to_tum(t_s: float, T: np.ndarray) -> str:
     return f"{t_s:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
 
 
+def pose_from_tum(values) -> np.ndarray:
+    """T from ``tx ty tz qx qy qz qw`` (Hamilton quaternion, scalar last, as in TUM files)."""
+    tx, ty, tz, qx, qy, qz, qw = (float(v) for v in values)
+    q = np.array([qx, qy, qz, qw])
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or abs(n - 1.0) > 1e-3:
+        raise ValueError(f"quaternion ({qx}, {qy}, {qz}, {qw}) is not a unit quaternion (norm {n:.6g})")
+    return make_T(Rotation.from_quat(q / n).as_matrix(), [tx, ty, tz])
+
+
+def tum_values(T: np.ndarray) -> list[float]:
+    """``[tx, ty, tz, qx, qy, qz, qw]`` of T."""
+    return [*map(float, T[:3, 3]), *map(float, Rotation.from_matrix(T[:3, :3]).as_quat())]
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     """T_world_camera of an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``."""
     z = np.asarray(target, float) - np.asarray(eye, float)
@@ -77,9 +92,11 @@ __all__ = [
     "look_at",
     "make_T",
     "pose_error",
+    "pose_from_tum",
     "rot_x",
     "rot_z",
     "rotation_angle",
     "to_tum",
     "transform_points",
+    "tum_values",
 ]

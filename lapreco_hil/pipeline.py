@@ -9,30 +9,15 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
-
-import numpy as np
+from dataclasses import dataclass
 
 from .camera import CameraModel
 from .config import PipelineConfig
 from .errors import ReconstructionError
 from .frontend import make_frontend
-from .kinematics import CameraKinematics, PoseAtTime
 from .mapping.mapper import Mapper, MapResult
-from .robot_models import urdf_path
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Rig:
-    """What the pipeline must know about the hardware: lens, robot model, hand-eye."""
-
-    camera: CameraModel
-    urdf: str
-    tip_frame: str
-    T_tip_camera: np.ndarray
-    T_world_base: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 @dataclass
@@ -46,13 +31,11 @@ class RunResult:
     last_frame_t_ns: int
 
 
-def run_sequence(grabber, robot, rig: Rig, config: PipelineConfig, tracker: str = "opencv",
+def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
                  progress=None, device: str | None = None) -> RunResult:
-    kin = CameraKinematics(str(urdf_path(rig.urdf)), rig.tip_frame, rig.T_tip_camera, rig.T_world_base)
-    pose_at = PoseAtTime(kin, config.prior.joint_sigma, config.prior.floor_rot_sigma_rad,
-                         config.prior.floor_trans_sigma_m)
-    frontend = make_frontend(tracker, rig.camera, config.tracker, device)
-    mapper = Mapper(rig.camera.K, config.mapper)
+    """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources)."""
+    frontend = make_frontend(tracker, camera, config.tracker, device)
+    mapper = Mapper(camera.K, config.mapper)
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = 0
@@ -65,8 +48,8 @@ def run_sequence(grabber, robot, rig: Rig, config: PipelineConfig, tracker: str 
             break
         t1 = time.perf_counter()
         frames_in += 1
-        pose_at.extend(robot.read())
-        prior = pose_at.prior_at(frame.t_ns)
+        poses.poll()
+        prior = poses.prior_at(frame.t_ns)
         t2 = time.perf_counter()
         obs = frontend.process(frame)
         t3 = time.perf_counter()

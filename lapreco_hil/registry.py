@@ -20,10 +20,13 @@ from .errors import ConfigError
 
 ROBOT_BACKENDS = MappingProxyType({
     "sim": "lapreco_hil.simulators.devices:SimRobot",
+    "replay": "lapreco_hil.sessions.replay:ReplayRobot",
 })
 
 GRABBER_BACKENDS = MappingProxyType({
     "sim": "lapreco_hil.simulators.devices:SimGrabber",
+    "replay": "lapreco_hil.sessions.replay:ReplayGrabber",
+    "v4l2": "lapreco_hil.drivers.grabber.v4l2:V4L2Grabber",
 })
 
 

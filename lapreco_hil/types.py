@@ -68,3 +68,14 @@ class Observations:
 
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    """What turns joint readings into camera poses: the URDF (a packaged name such as 'ecm' or a file path),
+    the link that holds the scope, the hand-eye T_tip_camera, and where the robot base sits in the world."""
+
+    urdf: str
+    tip_frame: str
+    T_tip_camera: np.ndarray
+    T_world_base: np.ndarray = field(default_factory=lambda: np.eye(4))

@@ -9,14 +9,14 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-import numpy as np
 
 from lapreco_hil.drivers.grabber.base import Grabber
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.registry import DeviceContext, DeviceURL
-from lapreco_hil.types import Frame, JointSample
+from lapreco_hil.evaluation.truth import GroundTruth
+from lapreco_hil.types import Frame, JointSample, RobotDescription
 
 from .world import SimSettings, SimWorld
 from .world.world import T0_NS
@@ -54,18 +54,10 @@ class SimRobot(RobotDriver):
         self._next_seq = 0
         self._open = False
 
-    # what a real robot's configuration file would say
     @property
-    def urdf(self) -> str:
-        return self.world.robot_model
-
-    @property
-    def tip_frame(self) -> str:
-        return self.world.tip_frame
-
-    @property
-    def T_tip_camera(self) -> np.ndarray:
-        return self.world.T_tip_camera
+    def description(self) -> RobotDescription:
+        """What a real robot's configuration file would say."""
+        return RobotDescription(self.world.robot_model, self.world.tip_frame, self.world.T_tip_camera)
 
     def open(self) -> None:
         self._open = True
@@ -110,6 +102,10 @@ class SimGrabber(Grabber):
     def camera(self):
         return self.world.camera
 
+    @property
+    def nominal_fps(self) -> float:
+        return self.world.settings.fps
+
     def open(self) -> None:
         self._open = True
         self._wall0 = time.monotonic()
@@ -138,9 +134,6 @@ class SimGrabber(Grabber):
     def health(self) -> Health:
         return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=self.world.now_ns())
 
-    # ground truth, which only simulated and recorded sources carry
-    def true_camera_pose(self, t_ns: int) -> np.ndarray:
-        return self.world.true_camera_pose(t_ns)
-
-    def surface_mesh(self):
-        return self.world.surface_mesh()
+    @property
+    def ground_truth(self) -> GroundTruth:
+        return GroundTruth(self.world.surface_mesh(), self.world.true_camera_pose)

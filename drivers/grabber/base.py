@@ -30,6 +30,11 @@ class Grabber(abc.ABC):
         return None
 
     @property
+    def ground_truth(self):
+        """A GroundTruth (true surface, true camera poses) when the source has one (simulator, session)."""
+        return None
+
+    @property
     @abc.abstractmethod
     def health(self) -> Health:
         ...

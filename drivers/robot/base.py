@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import abc
 
-from ...types import JointSample, RobotInfo
+from ...types import JointSample, RobotDescription, RobotInfo
 from ..health import Health
 
 
@@ -12,6 +12,8 @@ class RobotDriver(abc.ABC):
     """Reads joint positions (SI units) with capture timestamps. Reading only: never commands motion."""
 
     info: RobotInfo
+    # URDF, tip link and hand-eye when the back-end knows them (simulator, session); else from configuration
+    description: RobotDescription | None = None
 
     @abc.abstractmethod
     def open(self) -> None:

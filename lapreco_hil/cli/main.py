@@ -7,7 +7,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..errors import LaprecoError, OutputError
+from ..errors import ConfigError, LaprecoError, OutputError
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -53,6 +53,47 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
 
+    rec = sub.add_parser("record", help="record frames and joint readings from devices into a session")
+    rec.add_argument("--robot", required=True, help="robot URL, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4 or sim://skull")
+    rec.add_argument("--grabber", required=True, help="grabber URL, e.g. v4l2:///dev/video0 or sim://skull")
+    rec.add_argument("--out", required=True, help="new session folder")
+    rec.add_argument("--seconds", type=float, default=None, help="stop after this much capture time")
+    rec.add_argument("--frames", type=_positive_int, default=None, help="stop after this many frames")
+    rec.add_argument("--camera", default=None, help="lens calibration (OpenCV YAML) when the grabber has none")
+    rec.add_argument("--robot-model", default=None, help="packaged robot model name or URDF path")
+    rec.add_argument("--tip-frame", default=None, help="the URDF link that holds the scope")
+    rec.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera)")
+    rec.add_argument("--device", default="auto", help="Warp device for simulated devices: auto | cpu | cuda")
+    rec.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rec.set_defaults(func=_cmd_record)
+
+    simrec = sub.add_parser("sim-record", help="record a simulated session with ground truth")
+    simrec.add_argument("--scene", default="skull", help="skull | liver | apple (default: skull)")
+    simrec.add_argument("--out", required=True, help="new session folder")
+    simrec.add_argument("--frames", type=_positive_int, default=150, help="frames (default: 150)")
+    simrec.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH (default: 640x480)")
+    simrec.add_argument("--fps", type=float, default=25.0, help="frame rate (default: 25)")
+    simrec.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    simrec.add_argument("--device", default="auto", help="Warp device for rendering: auto | cpu | cuda")
+    simrec.add_argument("--no-progress", action="store_true", help="no progress bar")
+    simrec.set_defaults(func=_cmd_sim_record)
+
+    rep = sub.add_parser("replay", help="run the pipeline on a recorded session; writes the outputs contract")
+    rep.add_argument("session", help="session folder (docs/session-format.md)")
+    rep.add_argument("--out", required=True, help="output folder")
+    rep.add_argument("--tracker", default="auto", help="warp | opencv | auto (default: auto)")
+    rep.add_argument("--no-drift-check", dest="drift_check", action="store_const", const=False, default=None,
+                     help="switch off the Zinsser drift check")
+    pace = rep.add_mutually_exclusive_group()
+    pace.add_argument("--as-fast-as-possible", dest="realtime", action="store_false", default=False,
+                      help="do not wait between frames (default)")
+    pace.add_argument("--realtime", dest="realtime", action="store_true",
+                      help="hand frames on at their recorded rate")
+    rep.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    rep.add_argument("--config", default=None, help="pipeline configuration (TOML)")
+    rep.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rep.set_defaults(func=_cmd_replay)
+
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")
@@ -66,7 +107,21 @@ def build_parser() -> argparse.ArgumentParser:
     bench_fe.add_argument("--frames", type=_positive_int, default=40)
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
+    bench_s = bench_sub.add_parser("session", help="session write (crash-safe) and read throughput")
+    bench_s.add_argument("--resolution", type=_resolution, nargs="+", default=[(640, 480), (1920, 1080)])
+    bench_s.add_argument("--frames", type=_positive_int, default=60)
+    bench_s.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_s.set_defaults(func=_cmd_bench_session)
     return parser
+
+
+def _cmd_bench_session(args) -> int:
+    from ..bench.session import format_table, run
+
+    result = run(args.resolution, frames=args.frames)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
 
 
 def _write_json(path: str | None, result: dict) -> None:
@@ -101,19 +156,97 @@ def _cmd_bench_ba(args) -> int:
     return 0
 
 
+def _cmd_record(args) -> int:
+    from ..registry import DeviceContext, open_grabber, open_robot
+    from ..sessions.recorder import record
+    from ..warp_device import resolve_device
+
+    context = DeviceContext(device=resolve_device(args.device))
+    robot, grabber = open_robot(args.robot, context), open_grabber(args.grabber, context)
+    camera, description = _rig_overrides(args, robot)
+    with robot, grabber:
+        stats = record(grabber, robot, args.out, seconds=args.seconds, max_frames=args.frames, camera=camera,
+                       description=description, source={"robot": args.robot, "grabber": args.grabber},
+                       progress=not args.no_progress)
+    _print_record(args.out, stats)
+    return 0
+
+
+def _rig_overrides(args, robot):
+    """Lens and robot description from files, where the devices do not know them."""
+    from dataclasses import replace
+
+    from ..calib.files import read_camera_yaml, read_handeye_yaml
+    from ..types import RobotDescription
+
+    camera = read_camera_yaml(args.camera) if args.camera else None
+    description = robot.description
+    if args.hand_eye or args.robot_model or args.tip_frame:
+        he = read_handeye_yaml(args.hand_eye) if args.hand_eye else {}
+        base = description or RobotDescription("", "", None)
+        description = replace(base, urdf=args.robot_model or he.get("robot_model") or base.urdf,
+                              tip_frame=args.tip_frame or he.get("tip_frame") or base.tip_frame,
+                              T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
+        missing = [n for n, v in (("--robot-model", description.urdf), ("--tip-frame", description.tip_frame),
+                                  ("--hand-eye", description.T_tip_camera)) if v is None or v == ""]
+        if missing:
+            raise ConfigError(f"robot '{args.robot}': also give {', '.join(missing)}")
+    return camera, description
+
+
+def _print_record(out: str, stats) -> None:
+    print(f"lapreco record: {stats.frames} frames and {stats.joint_samples} joint samples "
+          f"({stats.capture_span_s:.2f} s of capture) in {stats.wall_s:.1f} s = {stats.frames_per_s:.1f} frames/s; "
+          f"stopped by {stats.stopped_by}; session in {out}")
+
+
+def _cmd_sim_record(args) -> int:
+    from ..registry import DeviceContext, open_grabber, open_robot
+    from ..sessions.recorder import record
+    from ..warp_device import resolve_device
+
+    device = resolve_device(args.device)
+    w, h = args.resolution
+    url = f"sim://{args.scene}?width={w}&height={h}&fps={args.fps}&seed={args.seed}"
+    context = DeviceContext(device=device)
+    robot, grabber = open_robot(url, context), open_grabber(url + f"&frames={args.frames}", context)
+    with robot, grabber:
+        stats = record(grabber, robot, args.out, max_frames=args.frames, progress=not args.no_progress,
+                       source={"simulator": url, "scene": args.scene, "seed": args.seed})
+    _print_record(args.out, stats)
+    return 0
+
+
+def _cmd_replay(args) -> int:
+    from .replay import run_replay
+
+    report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
+                        config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
+                        progress=not args.no_progress)
+    _print_run("replay", report)
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
                       seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check)
+    _print_run("demo", report)
+    return 0
+
+
+def _print_run(command: str, report: dict) -> None:
     acc = report.get("accuracy", {})
     pts = acc.get("points_to_surface", {})
-    print(f"lapreco demo: {report['frames']['processed']} frames in {report['wall_s']:.1f} s; "
-          f"{report['inliers']} inlier points, RMS to true surface {_fmt(pts.get('rms_mm'))} mm; "
-          f"camera position RMS raw FK {_fmt(acc.get('camera_raw_fk', {}).get('position_rms_mm'))} mm -> refined "
-          f"{_fmt(acc.get('camera_refined', {}).get('position_rms_mm'))} mm; outputs in {report['out']}")
-    return 0
+    line = (f"lapreco {command}: {report['frames']['processed']} frames in {report['wall_s']:.1f} s; "
+            f"{report['inliers']} inlier points")
+    if acc:
+        line += (f", RMS to true surface {_fmt(pts.get('rms_mm'))} mm; camera position RMS raw "
+                 f"{_fmt(acc.get('camera_raw_fk', {}).get('position_rms_mm'))} mm -> refined "
+                 f"{_fmt(acc.get('camera_refined', {}).get('position_rms_mm'))} mm")
+    print(line + f"; outputs in {report['out']}")
 
 
 def _fmt(v) -> str:

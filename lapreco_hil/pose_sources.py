@@ -1,0 +1,61 @@
+"""Where camera-pose priors come from: a robot's joint readings through its kinematics, or camera poses
+given directly (an external optical tracker, a calibrated stereo rig). Both answer ``prior_at(t_ns)``."""
+
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+
+from .config import PriorConfig
+from .errors import ConfigError
+from .geometry import interpolate_pose
+from .kinematics import CameraKinematics, PoseAtTime
+from .robot_models import urdf_path
+from .types import PosePrior, RobotDescription
+
+
+class RobotPoseSource:
+    """Joint samples from a RobotDriver -> FK of the camera at frame times, with the Jacobian covariance."""
+
+    def __init__(self, robot, description: RobotDescription, prior: PriorConfig, offset_ns: int = 0) -> None:
+        self.robot = robot
+        kin = CameraKinematics(str(urdf_path(description.urdf)), description.tip_frame, description.T_tip_camera,
+                               description.T_world_base)
+        self.pose_at = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
+                                  offset_ns=offset_ns)
+
+    def poll(self) -> None:
+        self.pose_at.extend(self.robot.read(timeout_s=0.0))
+
+    def prior_at(self, t_ns: int) -> PosePrior:
+        return self.pose_at.prior_at(t_ns)
+
+
+class GivenPoseSource:
+    """Camera poses T_world_camera known at times (an optical tracker): interpolated on SE(3) at frame
+    times, clamped at the ends, with a fixed diagonal covariance."""
+
+    def __init__(self, t_ns: np.ndarray, poses: np.ndarray, sigma_rotation_rad: float, sigma_translation_m: float,
+                 offset_ns: int = 0) -> None:
+        if len(t_ns) == 0:
+            raise ConfigError("no camera poses given")
+        self.t_ns = [int(t) for t in t_ns]
+        self.poses = np.asarray(poses, float)
+        self.offset_ns = offset_ns
+        self.cov = np.diag([sigma_rotation_rad**2] * 3 + [sigma_translation_m**2] * 3)
+
+    def poll(self) -> None:
+        pass
+
+    def prior_at(self, t_ns: int) -> PosePrior:
+        t = t_ns + self.offset_ns
+        i = bisect.bisect_right(self.t_ns, t)
+        if i == 0:
+            T = self.poses[0]
+        elif i >= len(self.t_ns):
+            T = self.poses[-1]
+        else:
+            s = (t - self.t_ns[i - 1]) / (self.t_ns[i] - self.t_ns[i - 1])
+            T = interpolate_pose(self.poses[i - 1], self.poses[i], s)
+        return PosePrior(T_world_camera=T.copy(), cov=self.cov.copy(), t_ns=t_ns)

@@ -1,0 +1,124 @@
+"""Sessions as devices: ``replay://<session folder>?pace=afap|realtime`` for a grabber and a robot.
+
+A grabber and a robot opened on the same session in one DeviceContext share one reader and one replay
+clock: each frame handed on releases the joint samples captured up to one frame period after it (what a
+live run would have had in hand), so replays are deterministic.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from ..drivers.grabber.base import Grabber
+from ..drivers.health import Health, HealthState
+from ..drivers.robot.base import RobotDriver
+from ..errors import ConfigError, SessionError
+from ..kinematics import CameraKinematics
+from ..registry import DeviceContext, DeviceURL
+from ..robot_models import urdf_path
+from ..types import Frame, JointLimits, JointSample, RobotInfo
+from .session import Session
+
+
+class _ReplayClock:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.now_ns = -(2**62)
+
+    def advance_to(self, t_ns: int) -> None:
+        with self._lock:
+            self.now_ns = max(self.now_ns, t_ns)
+
+
+def _shared(url: DeviceURL, context: DeviceContext) -> tuple[Session, _ReplayClock]:
+    if not url.name:
+        raise ConfigError(f"device URL '{url.raw}': give the session folder, e.g. replay://recordings/run1")
+    session = context.shared("replay", url.name, lambda: Session(url.name))
+    clock = context.shared("replay-clock", url.name, _ReplayClock)
+    return session, clock
+
+
+class ReplayGrabber(Grabber):
+    def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        self.url = url
+        self.session, self.clock = _shared(url, context)
+        pace = url.get("pace", "afap")
+        if pace not in ("afap", "realtime"):
+            raise ConfigError(f"device URL '{url.raw}': pace must be 'afap' or 'realtime', got '{pace}'")
+        self.realtime = pace == "realtime"
+        self._i = 0
+        self._open = False
+        self._wall0 = 0.0
+
+    @property
+    def camera(self):
+        return self.session.meta.camera
+
+    @property
+    def ground_truth(self):
+        return self.session.ground_truth()
+
+    def __len__(self) -> int:
+        return len(self.session)
+
+    def open(self) -> None:
+        self._open = True
+        self._wall0 = time.monotonic()
+
+    def close(self) -> None:
+        self._open = False
+
+    def read(self, timeout_s: float | None = None) -> Frame | None:
+        if self._i >= len(self.session):
+            return None
+        frame = self.session.frame(self._i)
+        if self.realtime:
+            delay = self._wall0 + (frame.t_ns - int(self.session.frame_t_ns[0])) * 1e-9 - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        self.clock.advance_to(frame.t_ns + self.session.meta.time_offset_ns + self.session.frame_period_ns)
+        self._i += 1
+        return frame
+
+    @property
+    def health(self) -> Health:
+        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED)
+
+
+class ReplayRobot(RobotDriver):
+    def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        self.url = url
+        self.session, self.clock = _shared(url, context)
+        if self.session.meta.pose_source != "joints":
+            raise SessionError(f"session '{url.name}' carries camera poses, not joint readings; replay it with "
+                               f"'lapreco replay {url.name}'")
+        self.description = self.session.robot
+        meta = self.session.meta
+        kin = CameraKinematics(str(urdf_path(self.description.urdf)), self.description.tip_frame,
+                               self.description.T_tip_camera)
+        if kin.n_joints != len(meta.joint_names):
+            raise SessionError(f"session '{url.name}': joints.csv has {len(meta.joint_names)} joints, the robot "
+                               f"model {kin.n_joints}")
+        self.info = RobotInfo(kin.info.name, meta.joint_names, JointLimits(kin.info.limits.lower,
+                                                                           kin.info.limits.upper))
+        self._i = 0
+        self._open = False
+
+    def open(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    def read(self, timeout_s: float | None = None) -> list[JointSample]:
+        samples = self.session.joint_samples
+        now = self.clock.now_ns
+        start = self._i
+        while self._i < len(samples) and samples[self._i].t_ns <= now:
+            self._i += 1
+        return samples[start:self._i]
+
+    @property
+    def health(self) -> Health:
+        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED)

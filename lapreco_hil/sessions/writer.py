@@ -1,0 +1,196 @@
+"""Writing a session while capturing, crash-safe.
+
+Each frame is encoded to a temporary file and renamed into place before its row is appended to
+frames.csv, and every table is flushed to the OS after each frame: a process killed at any moment (kill -9)
+leaves a session whose complete rows all point at complete files. (Flushing to the OS survives a killed
+process; ``fsync_every`` also survives a power cut, at a cost in throughput.)
+
+PNG encoding is the cost of recording (tens of ms per HD frame on one core), so frames are encoded by a
+pool of threads (OpenCV releases the GIL) and their rows appended in capture order as they finish; at most
+``2 x workers`` frames wait, after which ``add_frame`` waits for the oldest (the grabber's own queue then
+drops and counts frames, rather than memory growing without bound).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import shutil
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import OutputError, SessionError
+from ..geometry import tum_values
+from ..types import Frame, JointSample
+from . import format as fmt
+
+
+def _write_json_atomic(path: Path, doc: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+class SessionWriter:
+    """Opens a new session folder and appends to it. Use as a context manager; ``close`` marks it complete."""
+
+    def __init__(self, folder: str | Path, meta: fmt.SessionMeta, urdf_file: str | Path | None = None,
+                 png_compression: int = 1, fsync_every: int = 0, workers: int | None = None) -> None:
+        self.folder = Path(folder)
+        if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
+            raise OutputError(f"session folder '{self.folder}' already exists and is not empty; choose a new "
+                              f"--out (sessions are never overwritten)")
+        try:
+            (self.folder / fmt.FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create session folder '{self.folder}' ({exc.strerror})") from None
+        if meta.pose_source == "joints":
+            if meta.robot is None or urdf_file is None:
+                raise SessionError("a session with pose_source 'joints' needs a robot description and its URDF")
+            shutil.copyfile(urdf_file, self.folder / "robot.urdf")
+            meta = replace(meta, robot=replace(meta.robot, urdf="robot.urdf"))
+        self.meta = meta
+        # Huffman-only deflate: faster than level 1 and smaller on noisy video
+        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression),
+                     cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
+        self.workers = workers or max(1, min(8, os.cpu_count() or 1))
+        self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="session-png")
+        self._pending: collections.deque[tuple[Future, str]] = collections.deque()
+        self._fsync_every = fsync_every
+        self.n_frames = self.n_queued = self.n_joints = self.n_poses = self.n_truth = 0
+        self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
+        _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json())
+        self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, ("seq", "t_ns", "file"))}
+        if meta.pose_source == "joints":
+            self._tables["joints"] = self._open_table(fmt.JOINTS_FILE, ("seq", "t_ns", *meta.joint_names))
+        else:
+            self._tables["poses"] = self._open_table(fmt.CAMERA_POSES_FILE, fmt.POSE_COLUMNS)
+        self.closed = False
+
+    def _open_table(self, name: str, header) -> object:
+        path = self.folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(path, "w", encoding="utf-8", newline="\n")
+        fh.write(",".join(header) + "\n")
+        fh.flush()
+        return fh
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- appending ------------------------------------------------------------------------------------------
+    def add_frame(self, frame: Frame) -> None:
+        if self._last_frame_t is not None and frame.t_ns <= self._last_frame_t:
+            raise SessionError(f"frame seq {frame.seq}: capture time {frame.t_ns} ns is not after the previous "
+                               f"frame's {self._last_frame_t} ns; not recorded")
+        cam = self.meta.camera
+        if frame.image.shape[:2] != (cam.height, cam.width):
+            raise SessionError(f"frame seq {frame.seq} is {frame.image.shape[1]}x{frame.image.shape[0]}, the "
+                               f"session's camera is {cam.width}x{cam.height}")
+        name = f"{fmt.FRAMES_DIR}/{self.n_queued:06d}.png"
+        self.n_queued += 1
+        self._last_frame_t = frame.t_ns
+        while len(self._pending) >= 2 * self.workers:
+            self._drain(block_on_oldest=True)
+        self._pending.append((self._pool.submit(self._encode, frame, self.folder / name),
+                              f"{frame.seq},{frame.t_ns},{name}\n"))
+        self._drain()
+
+    def _encode(self, frame: Frame, final: Path) -> None:
+        ok, buf = cv2.imencode(".png", frame.image, self._png)
+        if not ok:
+            raise OutputError(f"cannot encode frame seq {frame.seq} as PNG")
+        tmp = final.with_name(final.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            fh.write(buf.tobytes())
+        os.replace(tmp, final)
+
+    def _drain(self, block_on_oldest: bool = False, all_: bool = False) -> None:
+        """Append the rows of finished frames, oldest first, stopping at the first unfinished one."""
+        wrote = False
+        while self._pending and (self._pending[0][0].done() or block_on_oldest or all_):
+            future, row = self._pending.popleft()
+            future.result()  # re-raises an encoding or disk error here, in the recording thread
+            self._tables["frames"].write(row)
+            self.n_frames += 1
+            wrote = True
+            block_on_oldest = False
+        if wrote:
+            self._flush()
+
+    def add_joints(self, samples: list[JointSample]) -> int:
+        """Append the samples that are valid and newer than the last one; returns how many were skipped."""
+        fh = self._tables["joints"]
+        scale = self.meta.joint_scale
+        skipped = 0
+        for s in samples:
+            q = np.asarray(s.q, float)
+            if (self._last_joint_t is not None and s.t_ns <= self._last_joint_t) or q.shape != scale.shape \
+                    or not np.all(np.isfinite(q)):
+                skipped += 1
+                continue
+            fh.write(f"{s.seq},{s.t_ns}," + ",".join(f"{v:.9g}" for v in q / scale) + "\n")
+            self._last_joint_t = s.t_ns
+            self.n_joints += 1
+        return skipped
+
+    def add_camera_pose(self, t_ns: int, T_world_camera: np.ndarray) -> None:
+        if self._last_pose_t is not None and t_ns <= self._last_pose_t:
+            return
+        self._tables["poses"].write(self._pose_row(t_ns, T_world_camera))
+        self._last_pose_t = t_ns
+        self.n_poses += 1
+
+    def add_true_pose(self, t_ns: int, T_world_camera: np.ndarray) -> None:
+        if "truth" not in self._tables:
+            self._tables["truth"] = self._open_table(fmt.TRUTH_POSES_FILE, fmt.POSE_COLUMNS)
+        if self._last_truth_t is not None and t_ns <= self._last_truth_t:
+            return
+        self._tables["truth"].write(self._pose_row(t_ns, T_world_camera))
+        self._last_truth_t = t_ns
+        self.n_truth += 1
+
+    def _pose_row(self, t_ns: int, T: np.ndarray) -> str:
+        v = tum_values(T)
+        scale = fmt.LENGTH_UNITS[self.meta.length_unit]
+        v[:3] = [x / scale for x in v[:3]]
+        return f"{t_ns}," + ",".join(f"{x:.9g}" for x in v) + "\n"
+
+    def set_truth_surface(self, mesh) -> None:
+        path = self.folder / fmt.TRUTH_SURFACE_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name("surface.tmp.ply")
+        mesh.scale(1.0 / fmt.LENGTH_UNITS[self.meta.length_unit]).save(str(tmp), binary=True)
+        os.replace(tmp, path)
+
+    def _flush(self) -> None:
+        for fh in self._tables.values():
+            fh.flush()
+        if self._fsync_every and self.n_frames % self._fsync_every == 0:
+            for fh in self._tables.values():
+                os.fsync(fh.fileno())
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._drain(all_=True)
+        finally:
+            self._pool.shutdown(wait=True)
+        for fh in self._tables.values():
+            fh.flush()
+            os.fsync(fh.fileno())
+            fh.close()
+        counts = {"frames": self.n_frames, "joint_samples": self.n_joints, "camera_poses": self.n_poses,
+                  "true_camera_poses": self.n_truth}
+        self.meta = replace(self.meta, complete=True, counts=counts)
+        _write_json_atomic(self.folder / fmt.META_FILE, self.meta.to_json())

@@ -1,0 +1,243 @@
+"""Sessions: record a simulated session, replay it (twice, identically), a hand-written two-view session,
+and every kind of bad or cut-short session giving one clear error."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lapreco_hil.cli.main import main
+from lapreco_hil.cli.replay import run_replay
+from lapreco_hil.errors import SessionError
+from lapreco_hil.geometry import make_T, pose_error, tum_values
+from lapreco_hil.sessions import Session
+
+SIM = ["--scene", "skull", "--resolution", "320x240", "--device", "cpu", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, warp_cpu):
+    """A 30-frame simulated session with ground truth, written by `lapreco sim-record`."""
+    path = tmp_path_factory.mktemp("rec") / "skull"
+    assert main(["sim-record", *SIM, "--frames", "30", "--out", str(path)]) == 0
+    return path
+
+
+def test_sim_record_writes_a_complete_session_with_truth(recorded):
+    s = Session(recorded)
+    assert s.meta.complete and s.meta.pose_source == "joints" and len(s) == 30
+    assert s.meta.robot.urdf == "robot.urdf" and (recorded / "robot.urdf").is_file()
+    assert np.all(np.diff(s.frame_t_ns) == 40_000_000)  # 25 fps capture times, not processing times
+    # joint readings at the robot's rate (200 Hz), bracketing every frame
+    t_joint = np.array([j.t_ns for j in s.joint_samples])
+    assert len(t_joint) > 5 * len(s) and t_joint[0] <= s.frame_t_ns[0] and t_joint[-1] >= s.frame_t_ns[-1]
+    truth = s.ground_truth()
+    assert truth.surface.n_points > 1000
+    # frames are lossless: re-reading a PNG gives back the bytes that were rendered
+    image = s.frame(3).image
+    assert image.shape == (240, 320, 3) and image.dtype == np.uint8 and image.std() > 10
+
+
+def test_replay_is_deterministic_and_reports_accuracy(recorded, tmp_path, warp_cpu):
+    reports = [run_replay(str(recorded), str(tmp_path / f"r{i}"), tracker="opencv", device=warp_cpu,
+                          progress=False) for i in range(2)]
+    for name in ("trajectory.tum", "points.ply", "mesh.ply"):
+        assert (tmp_path / "r0" / name).read_bytes() == (tmp_path / "r1" / name).read_bytes(), name
+    r = reports[0]
+    assert r["frames"]["processed"] == 30 and r["inliers"] > 50
+    acc = r["accuracy"]
+    assert acc["points_to_surface"]["rms_mm"] < 3.0
+    assert acc["camera_refined"]["position_rms_mm"] < acc["camera_raw_fk"]["position_rms_mm"]
+
+
+def test_replay_with_the_warp_tracker_and_no_drift_check(recorded, tmp_path, warp_cpu):
+    r = run_replay(str(recorded), str(tmp_path / "w"), tracker="warp", device=warp_cpu, drift_check=False,
+                   progress=False)
+    assert r["tracker"] == "warp" and r["drift_check"] is False and r["inliers"] > 50
+
+
+def write_stereo_session(folder: Path, warp_device: str, baseline_m: float = 0.006) -> tuple[np.ndarray, ...]:
+    """Two frames and two given camera poses, written with json/csv/cv2 only, as docs/session-format.md
+    tells another program to; the images are rendered by the simulated world at the two poses."""
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+    world = SimWorld(SimSettings(scene="skull", width=320, height=240, device=warp_device))
+    T0 = world.true_camera_pose(1_000_000_000)
+    T1 = T0 @ make_T(np.eye(3), [baseline_m, 0.0, 0.0])
+    (folder / "frames").mkdir(parents=True)
+    frames, poses = ["seq,t_ns,file"], ["t_ns,tx,ty,tz,qx,qy,qz,qw"]
+    for i, T in enumerate((T0, T1)):
+        image, _ = world.renderer.render(T, seed=i)
+        cv2.imwrite(str(folder / "frames" / f"view{i}.png"), image)
+        frames.append(f"{i},{5000 + i},frames/view{i}.png")
+        poses.append(f"{5000 + i}," + ",".join(f"{v:.12g}" for v in tum_values(T)))
+    (folder / "frames.csv").write_text("\n".join(frames) + "\n")
+    (folder / "camera_poses.csv").write_text("\n".join(poses) + "\n")
+    cam = world.camera
+    (folder / "session.json").write_text(json.dumps({
+        "format": "lapreco-session", "version": 1, "units": {"length": "m", "angle": "rad", "time": "ns"},
+        "camera": {"width": cam.width, "height": cam.height, "K": cam.K.tolist(), "dist": list(cam.dist)},
+        "pose_source": "camera_poses",
+        "camera_poses": {"sigma_rotation_rad": 0.0005, "sigma_translation_m": 0.0002}}))
+    (folder / "truth").mkdir()
+    world.surface_mesh().save(str(folder / "truth" / "surface.ply"))
+    return T0, T1
+
+
+def test_hand_written_two_view_session_reconstructs(tmp_path, warp_cpu):
+    T0, T1 = write_stereo_session(tmp_path / "stereo", warp_cpu)
+    r = run_replay(str(tmp_path / "stereo"), str(tmp_path / "out"), tracker="opencv", device=warp_cpu,
+                   progress=False)
+    assert r["pose_source"] == "camera_poses" and r["keyframes"] == 2
+    assert r["inliers"] >= 20
+    assert r["accuracy"]["points_to_surface"]["median_mm"] < 1.5
+    traj = np.loadtxt(tmp_path / "out" / "trajectory.tum")
+    assert traj.shape == (2, 8)
+    pos_err = np.linalg.norm(traj[:, 1:4] - np.array([T0[:3, 3], T1[:3, 3]]), axis=1)
+    assert np.all(pos_err < 0.002)
+
+
+def test_session_in_millimetres_and_degrees_reads_as_si(recorded, tmp_path):
+    s_m = Session(recorded)
+    copy = tmp_path / "mm"
+    shutil.copytree(recorded, copy)
+    meta = json.loads((copy / "session.json").read_text())
+    meta["units"] = {"length": "mm", "angle": "deg", "time": "ns"}
+    (copy / "session.json").write_text(json.dumps(meta))
+    lines = (copy / "joints.csv").read_text().splitlines()
+    scale = np.array([180 / np.pi, 180 / np.pi, 1000.0, 180 / np.pi])
+    out = [lines[0]] + [",".join(c[:2] + [repr(float(v) * float(k)) for v, k in zip(c[2:], scale)])
+                        for c in (ln.split(",") for ln in lines[1:])]
+    (copy / "joints.csv").write_text("\n".join(out) + "\n")
+    s_mm = Session(copy)
+    q_m = np.array([j.q for j in s_m.joint_samples])
+    q_mm = np.array([j.q for j in s_mm.joint_samples])
+    np.testing.assert_allclose(q_mm, q_m, rtol=1e-7, atol=1e-12)
+
+
+# --- bad sessions: one clear error naming the file and the problem -------------------------------------------------
+
+def _edit_json(folder: Path, **changes) -> None:
+    meta = json.loads((folder / "session.json").read_text())
+    meta.update(changes)
+    (folder / "session.json").write_text(json.dumps(meta))
+
+
+def _edit_line(folder: Path, name: str, lineno: int, new: str) -> None:
+    lines = (folder / name).read_text().splitlines()
+    lines[lineno - 1] = new
+    (folder / name).write_text("\n".join(lines) + "\n")
+
+
+BAD = {
+    "unknown version": (lambda f: _edit_json(f, version=7), "session.json", "unknown session format version 7"),
+    "wrong units": (lambda f: _edit_json(f, units={"length": "furlong", "angle": "rad", "time": "ns"}),
+                    "session.json", "units.length' is 'furlong'"),
+    "seconds": (lambda f: _edit_json(f, units={"length": "m", "angle": "rad", "time": "s"}),
+                "session.json", "integer nanoseconds"),
+    "no metadata": (lambda f: (f / "session.json").unlink(), "skull", "no session.json"),
+    "bad json": (lambda f: (f / "session.json").write_text("{\"format\": "), "session.json", "not valid JSON"),
+    "missing frame file": (lambda f: (f / "frames" / "000004.png").unlink(), "frames.csv",
+                           "line 6: frame file 'frames/000004.png' is missing"),
+    "backwards time": (lambda f: _edit_line(f, "frames.csv", 4, "2,1000000000,frames/000002.png"), "frames.csv",
+                       "line 4: t_ns 1000000000 does not increase"),
+    "text timestamp": (lambda f: _edit_line(f, "joints.csv", 3, "1,soon,0,0,0.1,0"), "joints.csv",
+                       "line 3: column 't_ns' = 'soon' is not an integer"),
+    "nan joint": (lambda f: _edit_line(f, "joints.csv", 5, "3,1015000000,nan,0,0.1,0"), "joints.csv",
+                  "line 5: column 'yaw' = 'nan' is not a finite number"),
+    "missing joint column": (lambda f: _edit_line(f, "joints.csv", 5, "3,1015000000,0,0.1,0"), "joints.csv",
+                             "line 5: 5 columns, expected 6"),
+    "corrupt image": (lambda f: (f / "frames" / "000000.png").write_bytes(b"\x89PNG garbage"), "000000.png",
+                      "cannot decode"),
+    "not rigid": (lambda f: _edit_json(f, robot={**json.loads((f / "session.json").read_text())["robot"],
+                                                 "T_tip_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                                  [0, 0, 0, 1]]}),
+                  "session.json", "robot.T_tip_camera' is not a rigid transform"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_session_gives_one_clear_line(case, recorded, tmp_path, capsys):
+    corrupt, file_part, message = BAD[case]
+    folder = tmp_path / "skull"
+    shutil.copytree(recorded, folder)
+    corrupt(folder)
+    status = main(["replay", str(folder), "--out", str(tmp_path / "out"), "--tracker", "opencv", "--device", "cpu",
+                   "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2
+    assert len(err.splitlines()) == 1 and err.startswith("lapreco: error: "), err
+    assert file_part in err and message in err, err
+
+
+def test_unfinished_last_rows_are_ignored(recorded, tmp_path):
+    folder = tmp_path / "cut"
+    shutil.copytree(recorded, folder)
+    with open(folder / "frames.csv", "a") as fh:
+        fh.write("30,2200000000,frames/0000")  # a row cut short by a kill: no newline
+    with open(folder / "joints.csv", "a") as fh:
+        fh.write("999,2200000000,0.1,0.")
+    s = Session(folder)
+    assert len(s) == 30 and set(s.truncated) == {"frames.csv", "joints.csv"}
+
+
+def test_kill_9_during_recording_leaves_a_replayable_session(tmp_path, warp_cpu):
+    """A real recorder process killed with SIGKILL mid-run: every frame it listed is complete."""
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "lapreco_hil.cli.main", "sim-record", *SIM, "--frames", "400",
+                             "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            csv = out / "frames.csv"
+            if csv.is_file() and csv.read_text().count("\n") > 8:
+                break
+            time.sleep(0.05)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    s = Session(out)
+    assert not s.meta.complete and len(s) >= 8
+    for i in range(len(s)):
+        assert s.frame(i).image.shape == (240, 320, 3)  # every listed frame decodes
+    assert s.joint_samples[-1].t_ns >= s.frame_t_ns[-1] - 40_000_000
+    r = run_replay(str(out), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False)
+    assert r["frames"]["processed"] == len(s) and r["session_complete"] is False
+
+
+def test_existing_session_is_never_overwritten(recorded, tmp_path, capsys):
+    status = main(["sim-record", *SIM, "--frames", "2", "--out", str(recorded)])
+    assert status == 2 and "already exists and is not empty" in capsys.readouterr().err
+    assert len(Session(recorded)) == 30
+
+
+def test_replay_robot_refuses_a_pose_session(tmp_path, warp_cpu):
+    from lapreco_hil.registry import DeviceContext, open_robot
+
+    write_stereo_session(tmp_path / "stereo", warp_cpu)
+    with pytest.raises(SessionError, match="carries camera poses, not joint readings"):
+        open_robot(f"replay://{tmp_path / 'stereo'}", DeviceContext())
+
+
+def test_given_pose_source_interpolates_on_se3():
+    from lapreco_hil.geometry import rot_z
+    from lapreco_hil.pose_sources import GivenPoseSource
+
+    T0 = make_T(np.eye(3), [0, 0, 0])
+    T1 = make_T(rot_z(0.2), [0.01, 0, 0])
+    src = GivenPoseSource(np.array([100, 200]), np.array([T0, T1]), 0.001, 0.0005)
+    mid = src.prior_at(150).T_world_camera
+    assert pose_error(mid, make_T(rot_z(0.1), [0.005, 0, 0]))[0] < 1e-12
+    assert pose_error(mid, make_T(rot_z(0.1), [0.005, 0, 0]))[1] < 1e-12
+    assert np.array_equal(src.prior_at(50).T_world_camera, T0) and np.array_equal(src.prior_at(900).T_world_camera, T1)
+    assert src.prior_at(150).cov[0, 0] == pytest.approx(1e-6)
