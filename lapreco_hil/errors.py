@@ -33,6 +33,10 @@ class DeviceTimeoutError(DeviceError):
     """A device did not answer in time."""
 
 
+class DeviceDisconnectedError(DeviceError):
+    """A device that was open went away (cable pulled, port closed); drivers try to reconnect."""
+
+
 class ProtocolError(DeviceError):
     """A device answered with bytes that break its protocol (CRC, framing, error byte)."""
 

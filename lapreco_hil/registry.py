@@ -21,6 +21,8 @@ from .errors import ConfigError
 ROBOT_BACKENDS = MappingProxyType({
     "sim": "lapreco_hil.simulators.devices:SimRobot",
     "replay": "lapreco_hil.sessions.replay:ReplayRobot",
+    "serial": "lapreco_hil.drivers.robot.dynamixel:DynamixelRobot",
+    "canopen": "lapreco_hil.drivers.robot.canopen402:CANopenRobot",
 })
 
 GRABBER_BACKENDS = MappingProxyType({

@@ -1,7 +1,12 @@
 """Simulated robot and grabber: the RobotDriver and Grabber interfaces over one SimWorld.
 
-``sim://<scene>?width=640&height=480&fps=25&seed=0&device=cpu&frames=150&pace=afap|realtime``
+``sim://<scene>?width=640&height=480&fps=25&seed=0&device=cpu&frames=150&pace=afap|realtime&speed=0.2``
 A robot and a grabber with the same scene name, opened in the same DeviceContext, share one world.
+
+``link=serial|canopen`` on the robot puts the real driver in between: the simulated arm's encoder-side
+joints drive a device emulator (a Dynamixel chain on a pseudo-terminal, CiA 402 nodes on a python-can
+virtual bus) and the robot's samples are what the real driver reads from it. Polling needs time to pass
+between frames, so a linked world's clock flows (``speed``, default 0.2 x real time).
 """
 
 from __future__ import annotations
@@ -21,7 +26,10 @@ from lapreco_hil.types import Frame, JointSample, RobotDescription
 from .world import SimSettings, SimWorld
 from .world.world import T0_NS
 
-_WORLD_KEYS = {"width": int, "height": int, "fps": float, "seed": int, "device": str, "rate": float}
+_WORLD_KEYS = {"width": int, "height": int, "fps": float, "seed": int, "device": str, "rate": float,
+               "speed": float}
+_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}
+LINKS = ("direct", "serial", "canopen")
 
 
 def _world_for(url: DeviceURL, context: DeviceContext) -> SimWorld:
@@ -29,15 +37,14 @@ def _world_for(url: DeviceURL, context: DeviceContext) -> SimWorld:
 
     def make() -> SimWorld:
         settings = SimSettings(scene=url.name)
-        fields = {"rate": "robot_rate_hz"}
-        settings = replace(settings, **{fields.get(k, k): v for k, v in params.items()})
+        settings = replace(settings, **{_FIELDS.get(k, k): v for k, v in params.items()})
         if settings.device is None and context.options.get("device"):
             settings = replace(settings, device=context.options["device"])
         return SimWorld(settings)
 
     world = context.shared("sim", url.name, make)
     for k, v in params.items():
-        have = getattr(world.settings, {"rate": "robot_rate_hz"}.get(k, k))
+        have = getattr(world.settings, _FIELDS.get(k, k))
         if have != v:
             raise ConfigError(f"device URL '{url.raw}': {k}={v} conflicts with the simulated world "
                               f"'{url.name}' already opened with {k}={have}; give both devices the same parameters")
@@ -45,14 +52,59 @@ def _world_for(url: DeviceURL, context: DeviceContext) -> SimWorld:
 
 
 class SimRobot(RobotDriver):
-    """Encoder readings of the simulated holder, at ``rate`` Hz of simulated time."""
+    """Encoder readings of the simulated holder, at ``rate`` Hz of simulated time (``link=direct``), or
+    what a real driver reads from a device emulator (``link=serial|canopen``)."""
 
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
         self.url = url
+        self.link = url.get("link", "direct")
+        if self.link not in LINKS:
+            raise ConfigError(f"device URL '{url.raw}': link must be one of {', '.join(LINKS)}, got '{self.link}'")
+        if self.link != "direct" and "speed" not in url.query:
+            url = replace(url, query={**url.query, "speed": "0.2"})
         self.world = _world_for(url, context)
+        if self.link != "direct" and self.world.settings.clock_speed is None:
+            raise ConfigError(f"device URL '{url.raw}': link={self.link} needs a flowing clock; open the grabber "
+                              f"of '{url.name}' with the same speed=... (e.g. speed=0.2)")
         self.info = self.world.kinematics.info
+        self._context = context
         self._next_seq = 0
         self._open = False
+        self.emulator = None
+        self.driver: RobotDriver | None = None
+
+    def _open_link(self) -> None:
+        from lapreco_hil.drivers.robot.joint_map import JointMap
+        from lapreco_hil.registry import open_robot
+
+        world = self.world
+        ids = list(range(1, len(self.info.joint_names) + 1))
+        # the robot's own rate in simulated time, as wall-clock polling on the flowing clock
+        rate = world.settings.robot_rate_hz * world.settings.clock_speed
+
+        def joints_at(t_ns: int):
+            return world.arm.motor_joints(world.seconds(t_ns))
+
+        context = DeviceContext(**{**self._context.options, "clock_ns": world.now_ns})
+        if self.link == "serial":
+            from .dynamixel_emulator import DynamixelChainEmulator
+
+            joint_map = JointMap.for_model(world.robot_model)
+            self.emulator = DynamixelChainEmulator(ids, joint_map, joints_at, world.now_ns)
+            url = f"serial://{self.emulator.port}?baud=1000000&ids={','.join(map(str, ids))}&rate={rate}"
+        else:
+            from .canopen_emulator import CANopenDriveChainEmulator
+
+            joint_map = JointMap.for_model(world.robot_model, counts_per_rev=4 * 4096)
+            channel = f"lapreco-sim-{id(self)}"
+            self.emulator = CANopenDriveChainEmulator(channel, ids, joint_map, joints_at, world.now_ns)
+            url = f"canopen://virtual/{channel}?nodes=1-{len(ids)}&rate={rate}"
+        self.driver = open_robot(url + f"&model={world.robot_model}", context)
+        try:
+            self.driver.open()
+        except BaseException:
+            self.emulator.close()
+            raise
 
     @property
     def description(self) -> RobotDescription:
@@ -60,15 +112,23 @@ class SimRobot(RobotDriver):
         return RobotDescription(self.world.robot_model, self.world.tip_frame, self.world.T_tip_camera)
 
     def open(self) -> None:
+        if self.link != "direct" and self.driver is None:
+            self._open_link()
         self._open = True
 
     def close(self) -> None:
         self._open = False
+        if self.driver is not None:
+            self.driver.close()
+            self.emulator.close()
+            self.driver = self.emulator = None
 
     def sample_time_ns(self, seq: int) -> int:
         return T0_NS + int(round(seq * 1e9 / self.world.settings.robot_rate_hz))
 
     def read(self, timeout_s: float | None = None) -> list[JointSample]:
+        if self.driver is not None:
+            return self.driver.read(timeout_s)
         now = self.world.now_ns()
         out = []
         while self.sample_time_ns(self._next_seq) <= now:
@@ -80,6 +140,8 @@ class SimRobot(RobotDriver):
 
     @property
     def health(self) -> Health:
+        if self.driver is not None:
+            return self.driver.health
         return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=self.world.now_ns())
 
 

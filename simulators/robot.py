@@ -98,10 +98,15 @@ class SimulatedArm:
     def true_joints(self, t_s: float) -> np.ndarray:
         return self.trajectory.q(t_s)
 
+    def motor_joints(self, t_s: float) -> np.ndarray:
+        """Encoder-side joint positions at t (the link side minus compliance), before quantisation: what a
+        device emulator turns into its own encoder counts."""
+        return self.true_joints(t_s) - self.deflection.at(t_s)
+
     def reported_joints(self, t_s: float, seq: int) -> np.ndarray:
         """What the encoders read at t: motor side, quantised, with noise (seeded by the sample number)."""
         c = self.compliance
-        q_motor = self.true_joints(t_s) - self.deflection.at(t_s)
+        q_motor = self.motor_joints(t_s)
         rng = np.random.default_rng((self._seed, seq))
         q = q_motor + rng.standard_normal(q_motor.shape) * np.asarray(c.encoder_noise)
         res = np.asarray(c.encoder_resolution)

@@ -31,7 +31,7 @@ def test_malformed_config_names_file_and_key(tmp_path, text, match):
 
 
 def test_unknown_url_scheme_lists_the_known_ones():
-    with pytest.raises(ConfigError, match=r"unknown scheme 'bogus' \(known: replay, sim\)"):
+    with pytest.raises(ConfigError, match=r"unknown scheme 'bogus' \(known: canopen, replay, serial, sim\)"):
         open_robot("bogus://x", DeviceContext())
     with pytest.raises(ConfigError, match="no scheme"):
         open_grabber("skull", DeviceContext())

@@ -60,6 +60,22 @@ def test_replay_is_deterministic_and_reports_accuracy(recorded, tmp_path, warp_c
     assert acc["camera_refined"]["position_rms_mm"] < acc["camera_raw_fk"]["position_rms_mm"]
 
 
+@pytest.mark.parametrize("link", ["serial", "canopen"])
+def test_record_through_real_driver_and_emulator_then_replay_twice(link, tmp_path, warp_cpu):
+    session = tmp_path / "linked"
+    assert main(["sim-record", *SIM, "--frames", "20", "--robot-link", link, "--sim-speed", "0.3",
+                 "--out", str(session)]) == 0
+    s = Session(session)
+    assert len(s) == 20 and s.meta.source["robot_link"] == link
+    t_joint = np.array([j.t_ns for j in s.joint_samples])
+    assert np.all(np.diff(t_joint) > 0) and len(t_joint) > 3 * len(s)  # denser than the frames
+    r = [run_replay(str(session), str(tmp_path / f"r{i}"), tracker="opencv", device=warp_cpu, progress=False)
+         for i in range(2)]
+    assert (tmp_path / "r0" / "trajectory.tum").read_bytes() == (tmp_path / "r1" / "trajectory.tum").read_bytes()
+    assert r[0]["inliers"] == r[1]["inliers"] > 30
+    assert r[0]["accuracy"]["camera_raw_fk"]["position_rms_mm"] < 1.0
+
+
 def test_replay_with_the_warp_tracker_and_no_drift_check(recorded, tmp_path, warp_cpu):
     r = run_replay(str(recorded), str(tmp_path / "w"), tracker="warp", device=warp_cpu, drift_check=False,
                    progress=False)

@@ -50,8 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
                       help="switch off the Zinsser drift check (for the seed's four-way comparison)")
     demo.add_argument("--config", default=None, help="pipeline configuration (TOML)")
     demo.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    demo.add_argument("--robot-link", choices=("direct", "serial", "canopen"), default="direct",
+                      help="read the simulated robot directly, or through the real Dynamixel (serial) or CANopen "
+                           "driver talking to a device emulator (default: direct)")
+    demo.add_argument("--sim-speed", type=float, default=0.2,
+                      help="with a serial/canopen link: simulated time per real second (default: 0.2)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
+
+    dev = sub.add_parser("devices", help="list the serial ports, CAN interfaces and video devices this machine sees")
+    dev.set_defaults(func=_cmd_devices)
 
     rec = sub.add_parser("record", help="record frames and joint readings from devices into a session")
     rec.add_argument("--robot", required=True, help="robot URL, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4 or sim://skull")
@@ -75,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     simrec.add_argument("--fps", type=float, default=25.0, help="frame rate (default: 25)")
     simrec.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
     simrec.add_argument("--device", default="auto", help="Warp device for rendering: auto | cpu | cuda")
+    simrec.add_argument("--robot-link", choices=("direct", "serial", "canopen"), default="direct",
+                        help="record the robot through the real Dynamixel/CANopen driver and a device emulator")
+    simrec.add_argument("--sim-speed", type=float, default=0.2,
+                        help="with a serial/canopen link: simulated time per real second (default: 0.2)")
     simrec.add_argument("--no-progress", action="store_true", help="no progress bar")
     simrec.set_defaults(func=_cmd_sim_record)
 
@@ -107,12 +119,27 @@ def build_parser() -> argparse.ArgumentParser:
     bench_fe.add_argument("--frames", type=_positive_int, default=40)
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
+    bench_r = bench_sub.add_parser("robot", help="robot drivers on their emulators: sample rate, jitter, latency")
+    bench_r.add_argument("--link", nargs="+", choices=("serial", "canopen"), default=["serial", "canopen"])
+    bench_r.add_argument("--rate", type=float, nargs="+", default=[100.0, 500.0])
+    bench_r.add_argument("--seconds", type=float, default=5.0)
+    bench_r.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_r.set_defaults(func=_cmd_bench_robot)
     bench_s = bench_sub.add_parser("session", help="session write (crash-safe) and read throughput")
     bench_s.add_argument("--resolution", type=_resolution, nargs="+", default=[(640, 480), (1920, 1080)])
     bench_s.add_argument("--frames", type=_positive_int, default=60)
     bench_s.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_s.set_defaults(func=_cmd_bench_session)
     return parser
+
+
+def _cmd_bench_robot(args) -> int:
+    from ..bench.robot import format_table, run
+
+    result = run(args.link, args.rate, args.seconds)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
 
 
 def _cmd_bench_session(args) -> int:
@@ -153,6 +180,13 @@ def _cmd_bench_ba(args) -> int:
     result = run(repeats=args.repeats)
     print(format_table(result))
     _write_json(args.json, result)
+    return 0
+
+
+def _cmd_devices(args) -> int:
+    from ..drivers.discovery import discover, format_devices
+
+    print(format_devices(discover()))
     return 0
 
 
@@ -208,11 +242,15 @@ def _cmd_sim_record(args) -> int:
     device = resolve_device(args.device)
     w, h = args.resolution
     url = f"sim://{args.scene}?width={w}&height={h}&fps={args.fps}&seed={args.seed}"
+    if args.robot_link != "direct":
+        url += f"&speed={args.sim_speed}"
     context = DeviceContext(device=device)
-    robot, grabber = open_robot(url, context), open_grabber(url + f"&frames={args.frames}", context)
+    robot = open_robot(url + f"&link={args.robot_link}", context)
+    grabber = open_grabber(url + f"&frames={args.frames}", context)
     with robot, grabber:
         stats = record(grabber, robot, args.out, max_frames=args.frames, progress=not args.no_progress,
-                       source={"simulator": url, "scene": args.scene, "seed": args.seed})
+                       source={"simulator": url, "scene": args.scene, "seed": args.seed,
+                               "robot_link": args.robot_link})
     _print_record(args.out, stats)
     return 0
 
@@ -232,7 +270,8 @@ def _cmd_demo(args) -> int:
 
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
-                      seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check)
+                      seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check,
+                      robot_link=args.robot_link, sim_speed=args.sim_speed)
     _print_run("demo", report)
     return 0
 

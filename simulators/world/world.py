@@ -7,6 +7,7 @@ A simulated robot and a simulated grabber opened with the same name share one Si
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,10 @@ class SimSettings:
     seed: int = 0
     device: str | None = None
     delivery_latency_s: float = 0.02  # frame transfer: robot samples up to capture + this are available
+    # None: simulated time advances only as frames are delivered (as fast as possible, deterministic);
+    # a number: it flows with the wall clock at this rate, so threads that poll devices (real drivers on
+    # emulators) see time pass between frames
+    clock_speed: float | None = None
     trajectory: ScanTrajectory = field(default_factory=ScanTrajectory)
     compliance: ComplianceModel = field(default_factory=ComplianceModel)
     lighting: Lighting = field(default_factory=Lighting)
@@ -74,13 +79,24 @@ class SimWorld:
                                  list(self.scene.materials), self.camera, settings.lighting, settings.device)
         self._lock = threading.Lock()
         self._now_ns = T0_NS
+        self._wall0_ns = time.monotonic_ns()
 
     # --- time -------------------------------------------------------------------------------------------
     def now_ns(self) -> int:
+        speed = self.settings.clock_speed
         with self._lock:
+            if speed is not None:
+                self._now_ns = max(self._now_ns, T0_NS + int((time.monotonic_ns() - self._wall0_ns) * speed))
             return self._now_ns
 
     def advance_to(self, t_ns: int) -> None:
+        """Stepped clock: time moves to t. Flowing clock: wait (sleep) until it has got there."""
+        speed = self.settings.clock_speed
+        if speed is not None:
+            behind = t_ns - self.now_ns()
+            if behind > 0:
+                time.sleep(behind * 1e-9 / speed)
+            return
         with self._lock:
             self._now_ns = max(self._now_ns, int(t_ns))
 

@@ -1,0 +1,152 @@
+"""A robot of ROBOTIS Dynamixel X-series servos on one serial bus, Protocol 2.0, through the official
+``dynamixel-sdk`` (PortHandler, Protocol2PacketHandler: framing, byte stuffing, CRC-16).
+
+``serial:///dev/ttyUSB0?baud=1000000&ids=1,2,3,4&rate=100&model=ecm&map=joints.toml``
+
+Each poll is one Sync Read of the block 120..135 of every servo (Realtime Tick, current, velocity, Present
+Position), servo IDs in joint order. A reading is stamped at the middle of the request/reply exchange on the
+injected clock (the servos sample their encoders when they build the reply). A reply with the error byte's
+alert bit set marks the robot faulted until replies come back clean.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .joint_map import JointMap
+from .polling import PollingRobotDriver
+from ...errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
+                       ProtocolError)
+
+log = logging.getLogger(__name__)
+
+BLOCK_START = 120  # Realtime Tick (2), Moving (1), Moving Status (1), PWM (2), Current (2), Velocity (4), Position (4)
+BLOCK_LEN = 16
+POSITION_OFFSET = 132 - BLOCK_START
+ALERT_BIT = 0x80
+X_SERIES_MODELS = {1020: "XM430-W350", 1030: "XM430-W210", 1060: "XL430-W250", 1120: "XM540-W270", 1000: "XH430-W350"}
+
+
+def serial_ports() -> list[str]:
+    from serial.tools import list_ports
+
+    return sorted(p.device for p in list_ports.comports())
+
+
+def parse_ids(text: str, what: str = "ids") -> list[int]:
+    """``1,2,3`` or ``1-4`` or ``1-2,5``."""
+    ids: list[int] = []
+    try:
+        for part in text.split(","):
+            if "-" in part:
+                a, b = (int(v) for v in part.split("-"))
+                ids.extend(range(a, b + 1))
+            elif part.strip():
+                ids.append(int(part))
+    except ValueError:
+        raise DeviceError(f"'{what}={text}' must be numbers like 1,2,3,4 or 1-4") from None
+    if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= 252 for i in ids):
+        raise DeviceError(f"'{what}={text}' must list distinct IDs in 0..252")
+    return ids
+
+
+class DynamixelRobot(PollingRobotDriver):
+    def __init__(self, url, context) -> None:
+        self.port_path = url.name
+        self.baud = url.get("baud", 1_000_000, int)
+        self.ids = parse_ids(url.get("ids", "1,2,3,4"))
+        joint_map = JointMap.for_model(url.get("model", "ecm"), url.get("counts_per_rev", 4096, float),
+                                       url.get("lead_m", 0.002, float), url.get("map", None))
+        if len(self.ids) != len(joint_map.names):
+            raise DeviceError(f"robot '{url.raw}': {len(self.ids)} servo IDs for {len(joint_map.names)} joints "
+                              f"({', '.join(joint_map.names)})")
+        super().__init__(url, context, joint_map, f"Dynamixel bus '{self.port_path}'")
+        self._port = None
+        self._packets = None
+        self.models: dict[int, int] = {}
+
+    def _connect(self) -> None:
+        import serial
+        from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
+
+        port = PortHandler(self.port_path)
+        try:
+            opened = port.openPort()
+        except (serial.SerialException, OSError) as exc:
+            ports = serial_ports()
+            raise DeviceNotFoundError(f"serial port '{self.port_path}' cannot be opened ({exc}); serial ports "
+                                      f"here: {', '.join(ports) if ports else 'none'}") from None
+        if not opened:
+            raise DeviceNotFoundError(f"serial port '{self.port_path}' cannot be opened")
+        if not port.setBaudRate(self.baud):
+            port.closePort()
+            raise DeviceError(f"serial port '{self.port_path}': baud rate {self.baud} is not supported")
+        packets = PacketHandler(2.0)
+        missing, models = [], {}
+        for dxl_id in self.ids:
+            for _ in range(3):  # a ping can be lost on a noisy line; a missing servo misses all three
+                port.ser.reset_input_buffer()
+                model, result, _ = packets.ping(port, dxl_id)
+                port.is_using = False
+                if result == COMM_SUCCESS:
+                    models[dxl_id] = model
+                    break
+            else:
+                missing.append(dxl_id)
+        if missing:
+            port.closePort()
+            found = ", ".join(str(i) for i in models) or "none"
+            raise DeviceNotFoundError(f"Dynamixel bus '{self.port_path}' at {self.baud} baud: no answer from "
+                                      f"ID(s) {', '.join(map(str, missing))} (answered: {found}); check the IDs, the "
+                                      f"baud rate and the servos' power")
+        for dxl_id, model in models.items():
+            if model not in X_SERIES_MODELS:
+                log.warning("Dynamixel ID %d reports model %d, not a known X-series servo; assuming the X-series "
+                            "control table", dxl_id, model)
+        self._port, self._packets, self.models = port, packets, models
+
+    def _disconnect(self) -> None:
+        if self._port is not None:
+            port, self._port = self._port, None
+            port.closePort()
+
+    def _poll(self) -> tuple[np.ndarray, int]:
+        import termios
+
+        import serial
+        from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS
+
+        port, packets = self._port, self._packets
+        counts = np.empty(len(self.ids), np.int64)
+        try:
+            port.ser.reset_input_buffer()  # a late reply from the last cycle must not pass for this one's
+            port.is_using = False
+            t0 = self._clock()
+            result = packets.syncReadTx(port, BLOCK_START, BLOCK_LEN, self.ids, len(self.ids), False)
+            if result != COMM_SUCCESS:
+                raise ProtocolError(f"{self.device_name}: Sync Read not sent ({packets.getTxRxResult(result)})")
+            for j, dxl_id in enumerate(self.ids):
+                data, result, error = packets.readRx(port, dxl_id, BLOCK_LEN)
+                if result == COMM_RX_TIMEOUT:
+                    raise DeviceTimeoutError(f"{self.device_name}: servo ID {dxl_id} did not answer the Sync Read")
+                if result != COMM_SUCCESS:
+                    raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {packets.getTxRxResult(result)}")
+                if error & ALERT_BIT:
+                    self.set_device_fault(f"servo {dxl_id}", "hardware error alert (see Hardware Error Status, "
+                                                             "address 70)")
+                else:
+                    self.set_device_fault(f"servo {dxl_id}", None)
+                if error & ~ALERT_BIT:
+                    raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {packets.getRxPacketError(error)}")
+                if len(data) != BLOCK_LEN:
+                    raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {len(data)} data bytes, "
+                                        f"expected {BLOCK_LEN}")
+                counts[j] = int.from_bytes(bytes(data[POSITION_OFFSET:POSITION_OFFSET + 4]), "little", signed=True)
+            t1 = self._clock()
+        except (serial.SerialException, OSError, termios.error) as exc:
+            raise DeviceDisconnectedError(f"{self.device_name}: lost ({exc}); reconnecting") from None
+        finally:
+            port.is_using = False
+        return counts, (t0 + t1) // 2

@@ -1,0 +1,130 @@
+"""CiA 402 drives as canopen LocalNodes on a python-can bus: the device side of the CANopen robot.
+
+Each node has the same object dictionary as the driver's RemoteNodes (drivers/robot/cia402.py), answers
+SDO, follows NMT, produces its heartbeat at the period the master writes to 0x1017, and on every SYNC
+latches its position actual value (from ``joints_at(t_ns)`` through the shared JointMap: encoder counts)
+and sends TPDO1 with the mapping the master configured.
+
+Tests use python-can's in-process ``virtual`` interface (``canopen://virtual/<channel>``); nothing leaves
+the process. Faults on demand: a node that goes silent (no TPDO, no heartbeat), a node whose heartbeat
+stops, an EMCY (and its reset), the statusword's fault bit, a position out of the joint's limits.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import canopen
+
+from lapreco_hil.drivers.robot.cia402 import (POSITION_ACTUAL, STATUS_FAULT_BIT, STATUS_OPERATION_ENABLED,
+                                              STATUSWORD, cia402_object_dictionary)
+from lapreco_hil.drivers.robot.joint_map import JointMap
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CANopenFaults:
+    silent_nodes: set[int] = field(default_factory=set)  # no TPDO and no heartbeat (node off the bus)
+    fault_bit_nodes: set[int] = field(default_factory=set)  # statusword fault bit set
+    position_override: dict[int, int] = field(default_factory=dict)  # node -> raw increments
+    late_tpdo_s: float = 0.0  # TPDOs sent this late after SYNC
+
+
+class CANopenDriveChainEmulator:
+    def __init__(self, channel: str, node_ids: list[int], joint_map: JointMap, joints_at,
+                 clock_ns=time.monotonic_ns, interface: str = "virtual") -> None:
+        if interface != "virtual":
+            # the network rule: emulated traffic stays inside this process
+            raise ValueError("the CANopen emulator runs only on python-can's in-process 'virtual' interface")
+        self.node_ids = list(node_ids)
+        self.joint_map = joint_map
+        self.joints_at = joints_at
+        self.clock_ns = clock_ns
+        self.faults = CANopenFaults()
+        self.stats = {"syncs": 0, "tpdos": 0}
+        self._lock = threading.Lock()
+        self.network = canopen.Network()
+        self.network.connect(interface="virtual", channel=channel)
+        self.nodes: dict[int, canopen.LocalNode] = {}
+        self._mapping_loaded: dict[int, bool] = {}
+        for node_id in self.node_ids:
+            node = canopen.LocalNode(node_id, cia402_object_dictionary())
+            self.network.add_node(node)
+            node.add_write_callback(lambda index, node_id=node_id, **kw: self._on_write(node_id, index))
+            self.nodes[node_id] = node
+            self._mapping_loaded[node_id] = False
+            node.nmt.state = "PRE-OPERATIONAL"
+        self.network.subscribe(0x80, self._on_sync)
+
+    def _on_write(self, node_id: int, index: int) -> None:
+        if 0x1800 <= index <= 0x1A03:
+            self._mapping_loaded[node_id] = False  # the master changed the PDO set-up: reload before sending
+
+    def _on_sync(self, can_id, data, timestamp) -> None:
+        t_ns = self.clock_ns()
+        self.stats["syncs"] += 1
+        counts = self.joint_map.to_counts(self.joints_at(t_ns))
+        with self._lock:
+            faults = (set(self.faults.silent_nodes), set(self.faults.fault_bit_nodes),
+                      dict(self.faults.position_override), self.faults.late_tpdo_s)
+        silent, fault_bit, override, late = faults
+        if late:
+            time.sleep(late)
+        for j, node_id in enumerate(self.node_ids):
+            node = self.nodes[node_id]
+            if node_id in silent or node.nmt.state != "OPERATIONAL":
+                continue
+            status = STATUS_OPERATION_ENABLED | (STATUS_FAULT_BIT if node_id in fault_bit else 0)
+            position = int(override.get(node_id, counts[j]))
+            node.set_data(STATUSWORD, 0, status.to_bytes(2, "little"))
+            node.set_data(POSITION_ACTUAL, 0, position.to_bytes(4, "little", signed=True))
+            tpdo = node.tpdo[1]
+            if not self._mapping_loaded[node_id]:
+                tpdo.read()
+                self._mapping_loaded[node_id] = True
+            if not tpdo.enabled or tpdo.trans_type != 1:
+                continue
+            for var in tpdo.map:
+                var.raw = {STATUSWORD: status, POSITION_ACTUAL: position}.get(var.index, 0)
+            tpdo.transmit()
+            self.stats["tpdos"] += 1
+
+    # --- faults ---------------------------------------------------------------------------------------------
+    def set_silent(self, node_id: int, silent: bool = True) -> None:
+        """The node drops off the bus: no TPDO and no heartbeat (or comes back)."""
+        with self._lock:
+            (self.faults.silent_nodes.add if silent else self.faults.silent_nodes.discard)(node_id)
+        node = self.nodes[node_id]
+        if silent:
+            node.nmt.stop_heartbeat()
+        else:
+            node.nmt.start_heartbeat(node.sdo[0x1017].raw)
+
+    def stop_heartbeat(self, node_id: int) -> None:
+        self.nodes[node_id].nmt.stop_heartbeat()
+
+    def resume_heartbeat(self, node_id: int) -> None:
+        node = self.nodes[node_id]
+        node.nmt.start_heartbeat(node.sdo[0x1017].raw)
+
+    def send_emcy(self, node_id: int, code: int = 0x4210, register: int = 0x08) -> None:
+        """An emergency (default: 0x4210, excess temperature in the device)."""
+        self.nodes[node_id].emcy.send(code, register)
+
+    def reset_emcy(self, node_id: int) -> None:
+        self.nodes[node_id].emcy.reset()
+
+    def close(self) -> None:
+        for node in self.nodes.values():
+            node.nmt.stop_heartbeat()
+        self.network.disconnect()
+
+    def __enter__(self) -> "CANopenDriveChainEmulator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,252 @@
+"""A chain of Dynamixel X-series servos behind a pseudo-terminal: the device side of Protocol 2.0.
+
+The real driver opens ``emulator.port`` (a stable symlink to the pty's slave, like /dev/ttyUSB0) with
+pyserial through dynamixel-sdk and cannot tell it from a USB-RS485 adapter. Each servo has an X-series
+control table; Present Position comes from ``joints_at(t_ns)`` (the simulated robot's encoder-side joints)
+through the shared JointMap, which quantises to encoder counts. Framing, byte stuffing and the CRC are the
+SDK's own routines (the SDK is written for the master side; the device side here parses and answers).
+
+Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
+replies, late replies, a silent bus, a servo's hardware-error alert, a joint reading out of its limits,
+and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import tempfile
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lapreco_hil.drivers.robot.joint_map import JointMap
+
+log = logging.getLogger(__name__)
+
+HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
+INST_PING, INST_READ, INST_WRITE, INST_SYNC_READ, INST_STATUS = 0x01, 0x02, 0x03, 0x82, 0x55
+BROADCAST = 0xFE
+ERR_INSTRUCTION, ERR_DATA_RANGE, ERR_ALERT = 0x02, 0x04, 0x80
+MODEL_XM430_W350 = 1020
+TABLE_SIZE = 147
+
+
+def status_packet(sdk, dxl_id: int, error: int, params: bytes) -> bytearray:
+    """A Protocol 2.0 status packet, stuffed and with its CRC (``sdk``: a Protocol2PacketHandler)."""
+    length = len(params) + 4  # instruction + error + params + CRC
+    packet = list(HEADER) + [dxl_id, length & 0xFF, length >> 8, INST_STATUS, error] + list(params) + [0, 0]
+    sdk.addStuffing(packet)  # updates the length field too
+    total = 7 + (packet[5] | (packet[6] << 8))
+    crc = sdk.updateCRC(0, packet, total - 2)
+    packet[total - 2], packet[total - 1] = crc & 0xFF, crc >> 8
+    return bytearray(packet[:total])
+
+
+@dataclass
+class DynamixelFaults:
+    """Switches the tests (and the fault-injection suite) turn on; counts are consumed as replies go out."""
+
+    corrupt_replies: int = 0  # the next N replies get a flipped byte (CRC fails at the master)
+    garbage_before_reply: int = 0  # N random bytes on the line before the next reply
+    drop_replies: int = 0  # the next N replies are never sent
+    reply_delay_s: float = 0.0  # every reply is late by this much
+    silent: bool = False  # no replies at all (cable cut on the data line)
+    hardware_alert: set[int] = field(default_factory=set)  # servo IDs reporting a hardware error
+    position_override: dict[int, int] = field(default_factory=dict)  # servo ID -> raw counts (e.g. off limits)
+
+
+class DynamixelChainEmulator:
+    def __init__(self, ids: list[int], joint_map: JointMap, joints_at, clock_ns=time.monotonic_ns,
+                 link_dir: str | None = None, seed: int = 0) -> None:
+        from dynamixel_sdk import PacketHandler
+
+        self.ids = list(ids)
+        self.joint_map = joint_map
+        self.joints_at = joints_at
+        self.clock_ns = clock_ns
+        self.faults = DynamixelFaults()
+        self.stats = {"packets": 0, "bad_crc": 0, "replies": 0}
+        self._sdk = PacketHandler(2.0)  # its CRC and stuffing routines
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self._tick0 = clock_ns()
+        self._dir = Path(link_dir or tempfile.mkdtemp(prefix="lapreco-dxl-"))
+        self.port = str(self._dir / "ttyDXL0")
+        self._master = self._slave = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._open_pty()
+
+    # --- the pseudo-terminal ------------------------------------------------------------------------------
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        tty.setraw(master)
+        self._master, self._slave = master, slave
+        tmp = self.port + ".tmp"
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        os.symlink(os.ttyname(slave), tmp)
+        os.replace(tmp, self.port)  # the stable name, re-pointed on reconnect like udev's by-id links
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._serve, args=(master,), name="dynamixel emulator", daemon=True)
+        self._thread.start()
+
+    def _close_pty(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._master = self._slave = -1
+
+    def disconnect(self) -> None:
+        """The adapter is unplugged: the device node disappears and the driver's port fails."""
+        self._close_pty()
+        if os.path.lexists(self.port):
+            os.unlink(self.port)
+
+    def reconnect(self) -> None:
+        """Plugged back in: a new pty behind the same name."""
+        self._open_pty()
+
+    def close(self) -> None:
+        self.disconnect()
+        try:
+            self._dir.rmdir()
+        except OSError:
+            pass
+
+    def __enter__(self) -> "DynamixelChainEmulator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- serving ----------------------------------------------------------------------------------------------
+    def _serve(self, master: int) -> None:
+        buf = bytearray()
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([master], [], [], 0.05)
+                if not ready:
+                    continue
+                chunk = os.read(master, 4096)
+            except OSError:
+                return  # the pty was closed under us (disconnect)
+            buf.extend(chunk)
+            for packet in self._packets(buf):
+                self._handle(master, packet)
+
+    def _packets(self, buf: bytearray):
+        """Complete, CRC-valid instruction packets taken off the front of ``buf`` (garbage skipped)."""
+        while True:
+            start = buf.find(HEADER)
+            if start < 0:
+                del buf[: max(0, len(buf) - 3)]
+                return
+            del buf[:start]
+            if len(buf) < 7:
+                return
+            length = buf[5] | (buf[6] << 8)
+            total = 7 + length
+            if length < 3 or total > 1024:
+                del buf[:1]
+                continue
+            if len(buf) < total:
+                return
+            packet = bytes(buf[:total])
+            del buf[:total]
+            self.stats["packets"] += 1
+            crc = self._sdk.updateCRC(0, list(packet), total - 2)
+            if crc != (packet[-2] | (packet[-1] << 8)):
+                self.stats["bad_crc"] += 1  # a servo ignores a corrupt instruction; the master times out
+                continue
+            yield packet
+
+    @staticmethod
+    def _unstuff(params: bytes) -> bytes:
+        return params.replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
+
+    def _handle(self, master: int, packet: bytes) -> None:
+        dxl_id, inst = packet[4], packet[7]
+        params = self._unstuff(packet[8:-2])
+        t_ns = self.clock_ns()
+        if inst == INST_PING:
+            targets = self.ids if dxl_id == BROADCAST else [dxl_id] if dxl_id in self.ids else []
+            for i in targets:
+                self._reply(master, i, 0, bytes([MODEL_XM430_W350 & 0xFF, MODEL_XM430_W350 >> 8, 52]))
+        elif inst == INST_READ and dxl_id in self.ids and len(params) == 4:
+            addr, n = params[0] | (params[1] << 8), params[2] | (params[3] << 8)
+            self._reply_block(master, dxl_id, addr, n, t_ns)
+        elif inst == INST_SYNC_READ and dxl_id == BROADCAST and len(params) >= 5:
+            addr, n = params[0] | (params[1] << 8), params[2] | (params[3] << 8)
+            for i in params[4:]:  # each servo answers in the order the master listed them
+                if i in self.ids:
+                    self._reply_block(master, i, addr, n, t_ns)
+        elif inst == INST_WRITE and dxl_id in self.ids:
+            self._reply(master, dxl_id, 0, b"")  # acknowledged; this robot is read-only and never moves
+        elif dxl_id in self.ids:
+            self._reply(master, dxl_id, ERR_INSTRUCTION, b"")
+
+    def _table(self, dxl_id: int, t_ns: int) -> bytearray:
+        table = bytearray(TABLE_SIZE)
+        table[0:2] = MODEL_XM430_W350.to_bytes(2, "little")
+        table[6] = 52  # firmware version
+        table[7] = dxl_id
+        j = self.ids.index(dxl_id)
+        counts = int(self.joint_map.to_counts(self.joints_at(t_ns))[j])
+        counts = self.faults.position_override.get(dxl_id, counts)
+        alert = dxl_id in self.faults.hardware_alert
+        table[70] = 0x04 if alert else 0  # Hardware Error Status: overheating
+        table[64] = 1  # Torque Enable
+        tick = ((t_ns - self._tick0) // 1_000_000) % 32768
+        table[120:122] = int(tick).to_bytes(2, "little")
+        table[132:136] = int(counts).to_bytes(4, "little", signed=True)
+        table[144:146] = (120).to_bytes(2, "little")  # 12.0 V
+        table[146] = 38  # degrees C
+        return table
+
+    def _reply_block(self, master: int, dxl_id: int, addr: int, n: int, t_ns: int) -> None:
+        if addr + n > TABLE_SIZE or n == 0:
+            self._reply(master, dxl_id, ERR_DATA_RANGE, b"")
+            return
+        error = ERR_ALERT if dxl_id in self.faults.hardware_alert else 0
+        self._reply(master, dxl_id, error, bytes(self._table(dxl_id, t_ns)[addr:addr + n]))
+
+    def _reply(self, master: int, dxl_id: int, error: int, params: bytes) -> None:
+        f = self.faults
+        with self._lock:
+            if f.silent:
+                return
+            if f.drop_replies > 0:
+                f.drop_replies -= 1
+                return
+            corrupt = f.corrupt_replies > 0
+            f.corrupt_replies -= corrupt
+            garbage, f.garbage_before_reply = f.garbage_before_reply, 0
+            delay = f.reply_delay_s
+        data = status_packet(self._sdk, dxl_id, error, params)
+        total = len(data)
+        if corrupt:
+            data[9 + int(self._rng.integers(0, max(1, total - 11)))] ^= 0x5A
+        if garbage:
+            data = bytearray(self._rng.integers(0, 256, garbage, dtype=np.uint8).tobytes()) + data
+        if delay:
+            time.sleep(delay)
+        try:
+            os.write(master, bytes(data))
+            self.stats["replies"] += 1
+        except OSError:
+            pass

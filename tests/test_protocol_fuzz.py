@@ -1,0 +1,163 @@
+"""Protocol parsing under random and mutated frames (hypothesis): the drivers' decoding of Dynamixel status
+packets and CANopen PDO/EMCY frames, and the emulator's instruction parser. No crash, no hang: a reading
+or a typed, counted error."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+from dynamixel_sdk import PacketHandler
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.errors import DeviceTimeoutError, ProtocolError
+from lapreco_hil.registry import DeviceContext, open_robot
+from lapreco_hil.drivers.robot.dynamixel import BLOCK_LEN
+from lapreco_hil.simulators.dynamixel_emulator import status_packet
+
+SDK = PacketHandler(2.0)
+IDS = [1, 2, 3, 4]
+FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+class ScriptedPort:
+    """Stands in for dynamixel-sdk's PortHandler: the reply bytes are scripted, then the line goes quiet."""
+
+    class _Serial:
+        def reset_input_buffer(self):
+            pass
+
+    def __init__(self, reply: bytes):
+        self.ser = self._Serial()
+        self.is_using = False
+        self._reply = bytearray(reply)
+        self._quiet_reads = 0
+
+    def clearPort(self):
+        pass
+
+    def writePort(self, packet):
+        return len(packet)
+
+    def readPort(self, n):
+        chunk = bytes(self._reply[:n])
+        del self._reply[:n]
+        if not chunk:
+            self._quiet_reads += 1
+        return chunk
+
+    def setPacketTimeout(self, n):
+        self._quiet_reads = 0
+
+    def setPacketTimeoutMillis(self, ms):
+        self._quiet_reads = 0
+
+    def isPacketTimeout(self):
+        return self._quiet_reads > 2  # quiet line: the SDK's timeout, without waiting for it
+
+
+def _driver():
+    robot = open_robot("serial:///dev/null-fuzz?ids=1,2,3,4", DeviceContext())
+    robot._packets = SDK
+    return robot
+
+
+def _valid_reply(counts) -> bytes:
+    out = bytearray()
+    for dxl_id, c in zip(IDS, counts):
+        block = bytearray(BLOCK_LEN)
+        block[12:16] = int(c).to_bytes(4, "little", signed=True)
+        out += status_packet(SDK, dxl_id, 0, bytes(block))
+    return bytes(out)
+
+
+def _poll(robot, reply: bytes):
+    robot._port = ScriptedPort(reply)
+    t0 = time.monotonic()
+    try:
+        return robot._poll()
+    finally:
+        assert time.monotonic() - t0 < 2.0  # never hangs
+
+
+@FUZZ
+@given(st.lists(st.integers(-2**31, 2**31 - 1), min_size=4, max_size=4))
+def test_valid_replies_decode_exactly(counts):
+    got, _ = _poll(_driver(), _valid_reply(counts))
+    assert got.tolist() == counts
+
+
+@FUZZ
+@given(st.binary(max_size=200))
+def test_random_bytes_give_a_typed_error(data):
+    robot = _driver()
+    try:
+        _poll(robot, data)
+    except (DeviceTimeoutError, ProtocolError):
+        pass  # the only ways a garbled line may fail
+
+
+@FUZZ
+@given(st.lists(st.integers(-2**20, 2**20), min_size=4, max_size=4), st.data())
+def test_mutated_replies_decode_or_fail_cleanly(counts, data):
+    reply = bytearray(_valid_reply(counts))
+    op = data.draw(st.sampled_from(["flip", "insert", "delete", "truncate", "error_byte"]))
+    i = data.draw(st.integers(0, len(reply) - 1))
+    if op == "flip":
+        reply[i] ^= data.draw(st.integers(1, 255))
+    elif op == "insert":
+        reply[i:i] = data.draw(st.binary(min_size=1, max_size=8))
+    elif op == "delete":
+        del reply[i]
+    elif op == "truncate":
+        del reply[i:]
+    else:
+        reply[8] = data.draw(st.integers(1, 255))  # the first servo's error byte
+    robot = _driver()
+    try:
+        got, _ = _poll(robot, bytes(reply))
+    except (DeviceTimeoutError, ProtocolError):
+        return
+    # a reply that decodes must be the true one: the CRC lets no corruption through
+    assert got.tolist() == counts
+
+
+@FUZZ
+@given(st.binary(max_size=300), st.binary(max_size=40))
+def test_emulator_parser_skips_garbage_and_finds_valid_instructions(noise, tail):
+    from lapreco_hil.simulators import dynamixel_emulator as de
+
+    emu = de.DynamixelChainEmulator.__new__(de.DynamixelChainEmulator)  # the parser alone, no pty
+    emu._sdk, emu.stats = SDK, {"packets": 0, "bad_crc": 0, "replies": 0}
+    ping = [0xFF, 0xFF, 0xFD, 0x00, 3, 3, 0, de.INST_PING, 0, 0]
+    crc = SDK.updateCRC(0, ping, 8)
+    ping[8:10] = [crc & 0xFF, crc >> 8]
+    buf = bytearray(noise.replace(b"\xff\xff\xfd", b"") + bytes(ping) + tail)
+    found = list(emu._packets(buf))
+    assert bytes(ping) in found  # the noise holds no header (removed above), so the ping is always recovered
+
+
+_channels = itertools.count()
+
+
+def test_random_can_frames_on_pdo_and_emcy_ids_are_survived():
+    import can
+
+    from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
+
+    jm = JointMap.for_model("ecm", counts_per_rev=16384)
+    channel = f"fuzz-{next(_channels)}"
+    rng = np.random.default_rng(7)
+    with CANopenDriveChainEmulator(channel, IDS, jm, lambda t: np.array([0.1, -0.2, 0.12, 0.3])):
+        robot = open_robot(f"canopen://virtual/{channel}?nodes=1-4&rate=100&heartbeat_ms=100", DeviceContext())
+        with robot, can.Bus(interface="virtual", channel=channel) as noise:
+            for _ in range(400):
+                cob = int(rng.choice([0x181, 0x182, 0x81, 0x82, 0x701, 0x80]))
+                data = rng.integers(0, 256, int(rng.integers(0, 9)), dtype=np.uint8).tobytes()
+                noise.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+            time.sleep(0.2)
+            assert robot.read(timeout_s=0.5)  # still reading
+            assert robot.faults["protocol_errors"] >= 1  # wrong-length TPDOs were seen and counted
