@@ -22,8 +22,9 @@ def _open(path: str | Path, mode: int) -> cv2.FileStorage:
         raise CalibrationError(f"{path}: no such calibration file")
     try:
         fs = cv2.FileStorage(str(path), mode)
-    except cv2.error as exc:
-        raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file ({exc.err.strip()})") from None
+    except (cv2.error, SystemError) as exc:  # OpenCV's bindings raise either for a malformed file
+        reason = getattr(exc, "err", None) or str(exc.__cause__ or exc)
+        raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file ({reason.strip()})") from None
     if not fs.isOpened():
         raise CalibrationError(f"{path}: cannot open as OpenCV YAML/XML")
     return fs

@@ -67,6 +67,9 @@ class SimRobot(RobotDriver):
             raise ConfigError(f"device URL '{url.raw}': link={self.link} needs a flowing clock; open the grabber "
                               f"of '{url.name}' with the same speed=... (e.g. speed=0.2)")
         self.info = self.world.kinematics.info
+        # a kinematics clock that is off: readings of time t are stamped t + offset (public surgical datasets
+        # have offsets up to seconds; calibrate time-offset recovers it)
+        self.stamp_offset_ns = int(round(url.get("offset_ms", 0.0, float) * 1e6))
         self._context = context
         self._next_seq = 0
         self._open = False
@@ -128,13 +131,14 @@ class SimRobot(RobotDriver):
 
     def read(self, timeout_s: float | None = None) -> list[JointSample]:
         if self.driver is not None:
-            return self.driver.read(timeout_s)
+            return [JointSample(s.q, s.t_ns + self.stamp_offset_ns, s.seq) for s in self.driver.read(timeout_s)]
         now = self.world.now_ns()
         out = []
         while self.sample_time_ns(self._next_seq) <= now:
             seq = self._next_seq
             t_ns = self.sample_time_ns(seq)
-            out.append(JointSample(self.world.arm.reported_joints(self.world.seconds(t_ns), seq), t_ns, seq))
+            q = self.world.arm.reported_joints(self.world.seconds(t_ns), seq)
+            out.append(JointSample(q, t_ns + self.stamp_offset_ns, seq))
             self._next_seq += 1
         return out
 

@@ -87,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="record the robot through the real Dynamixel/CANopen driver and a device emulator")
     simrec.add_argument("--sim-speed", type=float, default=0.2,
                         help="with a serial/canopen link: simulated time per real second (default: 0.2)")
+    simrec.add_argument("--kinematics-offset-ms", type=float, default=0.0,
+                        help="stamp the robot's readings this late (a known video-kinematics offset to recover)")
     simrec.add_argument("--no-progress", action="store_true", help="no progress bar")
     simrec.set_defaults(func=_cmd_sim_record)
 
@@ -103,8 +105,16 @@ def build_parser() -> argparse.ArgumentParser:
                       help="hand frames on at their recorded rate")
     rep.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
     rep.add_argument("--config", default=None, help="pipeline configuration (TOML)")
+    rep.add_argument("--camera", default=None, help="use this lens calibration (OpenCV YAML) instead of the session's")
+    rep.add_argument("--hand-eye", default=None, help="use this hand-eye (OpenCV YAML) instead of the session's")
+    rep.add_argument("--time-offset-ms", type=float, default=None,
+                     help="video-to-kinematics offset instead of the session's time_offset_ns")
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
+
+    from .calibrate import add_parsers as add_calibrate_parsers
+
+    add_calibrate_parsers(sub, _positive_int)
 
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
@@ -245,7 +255,7 @@ def _cmd_sim_record(args) -> int:
     if args.robot_link != "direct":
         url += f"&speed={args.sim_speed}"
     context = DeviceContext(device=device)
-    robot = open_robot(url + f"&link={args.robot_link}", context)
+    robot = open_robot(url + f"&link={args.robot_link}&offset_ms={args.kinematics_offset_ms}", context)
     grabber = open_grabber(url + f"&frames={args.frames}", context)
     with robot, grabber:
         stats = record(grabber, robot, args.out, max_frames=args.frames, progress=not args.no_progress,
@@ -260,7 +270,8 @@ def _cmd_replay(args) -> int:
 
     report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
                         config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, camera_file=args.camera, hand_eye_file=args.hand_eye,
+                        time_offset_ms=args.time_offset_ms)
     _print_run("replay", report)
     return 0
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+from ..calib.files import read_camera_yaml, read_handeye_yaml
 from ..config import load_config
+from ..errors import CalibrationError
 from ..frontend import resolve_tracker
 from ..offline import reconstruct
 from ..outputs import prepare_output_dir
@@ -15,7 +17,11 @@ from ..warp_device import resolve_device
 
 
 def run_replay(session: str, out: str, tracker: str = "auto", device: str = "auto", config_path: str | None = None,
-               drift_check: bool | None = None, realtime: bool = False, progress: bool = True) -> dict:
+               drift_check: bool | None = None, realtime: bool = False, progress: bool = True,
+               camera_file: str | None = None, hand_eye_file: str | None = None,
+               time_offset_ms: float | None = None) -> dict:
+    """``camera_file`` / ``hand_eye_file`` (OpenCV YAML from ``lapreco calibrate``) and ``time_offset_ms``
+    replace what the session says."""
     config = load_config(config_path)
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
@@ -25,22 +31,33 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
     url = f"replay://{Path(session).as_posix()}?pace={'realtime' if realtime else 'afap'}"
     grabber = open_grabber(url, context)  # reads and checks the whole session (but not the images) first
     meta = grabber.session.meta
+    camera = read_camera_yaml(camera_file) if camera_file else meta.camera
+    if (camera.width, camera.height) != (meta.camera.width, meta.camera.height):
+        raise CalibrationError(f"{camera_file}: calibrated for {camera.width}x{camera.height}, the session's frames "
+                               f"are {meta.camera.width}x{meta.camera.height}")
+    offset_ns = meta.time_offset_ns if time_offset_ms is None else int(round(time_offset_ms * 1e6))
     out_dir = prepare_output_dir(out)
     if meta.pose_source == "joints":
         robot = open_robot(url, context)
-        poses = RobotPoseSource(robot, robot.description, config.prior, offset_ns=meta.time_offset_ns)
+        description = robot.description
+        if hand_eye_file:
+            description = replace(description, T_tip_camera=read_handeye_yaml(hand_eye_file)["T_tip_camera"])
+        poses = RobotPoseSource(robot, description, config.prior, offset_ns=offset_ns)
     else:
+        if hand_eye_file:
+            raise CalibrationError(f"session '{session}' gives camera poses directly; a hand-eye does not apply")
         robot = None
         s = grabber.session
         poses = GivenPoseSource(s.pose_t_ns, s.poses, meta.pose_sigma.rotation_rad, meta.pose_sigma.translation_m,
-                                offset_ns=meta.time_offset_ns)
+                                offset_ns=offset_ns)
     fields = {"command": "replay", "session": str(session), "pose_source": meta.pose_source,
+              "time_offset_ms": offset_ns * 1e-6, "camera_file": camera_file, "hand_eye_file": hand_eye_file,
               "session_complete": meta.complete, "pace": "realtime" if realtime else "afap"}
     with grabber:
         if robot is not None:
             robot.open()
         try:
-            return reconstruct(grabber, poses, meta.camera, config, out_dir, tracker=tracker, device=device,
+            return reconstruct(grabber, poses, camera, config, out_dir, tracker=tracker, device=device,
                                truth=grabber.ground_truth, progress=progress, total=len(grabber),
                                label=f"replay {Path(session).name}", report_fields=fields)
         finally:

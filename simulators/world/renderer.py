@@ -89,6 +89,10 @@ def _render_kernel(
     mat_texel_m: wp.array(dtype=float),
     mat_ks: wp.array(dtype=float),
     mat_shininess: wp.array(dtype=float),
+    mat_planar: wp.array(dtype=int),  # 1: texture mapped on a plane (origin, u, v axes in the world)
+    mat_origin: wp.array(dtype=wp.vec3),
+    mat_u: wp.array(dtype=wp.vec3),
+    mat_v: wp.array(dtype=wp.vec3),
     intrinsics: wp.vec4,  # fx, fy, cx, cy
     dist: wp.array(dtype=float),  # OpenCV's 12 coefficients
     R_wc: wp.mat33,
@@ -163,10 +167,16 @@ def _render_kernel(
             cw = n[2] * n[2] * n[2] * n[2]
             ws = aw + bw + cw
             nl = mat_levels[mat]
-            ca = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[1] / texel, p[2] / texel)
-            cb = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[0] / texel, p[2] / texel)
-            cc = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[0] / texel, p[1] / texel)
-            albedo = (ca * aw + cb * bw + cc * cw) / ws
+            albedo = wp.vec3(0.0, 0.0, 0.0)
+            if mat_planar[mat] == 1:
+                rel = p - mat_origin[mat]
+                albedo = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, wp.dot(rel, mat_u[mat]) / texel,
+                                           wp.dot(rel, mat_v[mat]) / texel)
+            else:
+                ca = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[1] / texel, p[2] / texel)
+                cb = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[0] / texel, p[2] / texel)
+                cc = _sample_trilinear(tex, lv_off, lv_w, lv_h, nl, mat, lod, p[0] / texel, p[1] / texel)
+                albedo = (ca * aw + cb * bw + cc * cw) / ws
             spot = d_cam[2] * d_cam[2]
             irradiance = light_w * spot / (q.t * q.t)
             spec = mat_ks[mat] * wp.pow(cos_i, mat_shininess[mat]) * irradiance
@@ -186,6 +196,9 @@ class Material:
     texel_size_m: float  # metres per texel at level 0
     specular: float = 0.3
     shininess: float = 40.0
+    # texture on a plane instead of triplanar: (origin, u axis, v axis) in the scene frame; texel (s, t) lies
+    # at origin + s * texel_size * u + t * texel_size * v (a calibration board must be exact, not blended)
+    planar: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -201,7 +214,7 @@ class Renderer:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
                  materials: list[Material], camera: CameraModel, lighting: Lighting = Lighting(),
-                 device: str | None = None) -> None:
+                 device: str | None = None, T_world_scene: np.ndarray | None = None) -> None:
         from lapreco_hil.simulators.world.textures import mip_chain
 
         self.device = wp.get_device(device)
@@ -237,6 +250,13 @@ class Renderer:
             self._mat_texel = wp.array(np.array([m.texel_size_m for m in materials], np.float32), dtype=float)
             self._mat_ks = wp.array(np.array([m.specular for m in materials], np.float32), dtype=float)
             self._mat_sh = wp.array(np.array([m.shininess for m in materials], np.float32), dtype=float)
+            T = np.eye(4) if T_world_scene is None else np.asarray(T_world_scene, float)
+            planar = [m.planar or ((0, 0, 0), (1, 0, 0), (0, 1, 0)) for m in materials]
+            self._mat_planar = wp.array(np.array([m.planar is not None for m in materials], np.int32), dtype=int)
+            self._mat_origin = wp.array(np.array([T[:3, :3] @ o + T[:3, 3] for o, _, _ in planar], np.float32),
+                                        dtype=wp.vec3)
+            self._mat_u = wp.array(np.array([T[:3, :3] @ u for _, u, _ in planar], np.float32), dtype=wp.vec3)
+            self._mat_v = wp.array(np.array([T[:3, :3] @ v for _, _, v in planar], np.float32), dtype=wp.vec3)
             self._dist = wp.array(np.asarray(camera.dist, np.float32), dtype=float)
             self._image = wp.zeros((camera.height, camera.width, 3), dtype=wp.uint8)
             self._depth = wp.zeros((camera.height, camera.width), dtype=float)
@@ -252,6 +272,7 @@ class Renderer:
             inputs=[
                 self._mesh.id, self._normals, self._indices, self._tri_material, self._tex, self._lv_off,
                 self._lv_w, self._lv_h, self._mat_levels, self._mat_texel, self._mat_ks, self._mat_sh,
+                self._mat_planar, self._mat_origin, self._mat_u, self._mat_v,
                 wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy), self._dist, wp.mat33(*R.ravel()), wp.vec3(*t),
                 float(cam.fov_radius_px), light.light_w, light.ambient, light.noise_read, light.noise_shot,
                 int(seed), self._image, self._depth,

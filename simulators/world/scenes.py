@@ -28,6 +28,8 @@ class Scene:
     face_material: np.ndarray  # (F,) int32
     materials: tuple[Material, ...]
     working_distance_m: float  # camera-to-ROI distance at the home pose
+    # a calibration board in the scene: its spec (lapreco_hil.calib.boards) and T_scene_board
+    board: tuple[str, np.ndarray] | None = None
 
 
 def _asset(name: str) -> str:
@@ -179,7 +181,41 @@ def apple_scene(rng: np.random.Generator) -> Scene:
                  working_distance_m=0.09)
 
 
-SCENES = {"skull": skull_scene, "liver": liver_scene, "apple": apple_scene}
+BOARD_SPEC = "charuco:10x7:0.004:0.003:DICT_5X5_100"
+
+
+def board_scene(rng: np.random.Generator) -> Scene:
+    """A ChArUco calibration board (10 x 7 squares of 4 mm, 3 mm markers: 9 x 6 = 54 inner corners) on a
+    flat plate, viewed from 70 mm, as used to calibrate a laparoscope's lens and hand-eye."""
+    import cv2
+
+    square, px = 0.004, 64  # texels per square: the texture is exact at the board's corners
+    cols, rows, margin = 10, 7, 2 * px
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_100)
+    board = cv2.aruco.CharucoBoard((cols, rows), square, 0.003, dictionary)
+    gray = board.generateImage((cols * px, rows * px), marginSize=0).astype(np.float32) / 255.0
+    tex = np.ones((rows * px + 2 * margin, cols * px + 2 * margin), np.float32)
+    tex[margin:margin + rows * px, margin:margin + cols * px] = gray
+    tex = np.repeat((0.02 + 0.33 * tex)[..., None], 3, axis=2)  # matte plate: white not saturated at 70 mm
+    texel = square / px
+    w, h = tex.shape[1] * texel, tex.shape[0] * texel
+    verts = np.array([[-w / 2, h / 2, 0.0], [w / 2, h / 2, 0.0], [w / 2, -h / 2, 0.0], [-w / 2, -h / 2, 0.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    origin, u, v = verts[0], np.array([1.0, 0.0, 0.0]), np.array([0.0, -1.0, 0.0])  # texture rows run down
+    T_scene_board = np.eye(4)
+    T_scene_board[:3, :3] = np.column_stack([u, v, np.cross(u, v)])  # OpenCV board frame: z into the board
+    T_scene_board[:3, 3] = origin + margin * texel * (u + v)
+    # the board's centre at the scene origin (the ROI on the optical axis)
+    centre = T_scene_board[:3, :3] @ np.array([cols * square / 2, rows * square / 2, 0.0]) + T_scene_board[:3, 3]
+    verts = verts - centre
+    origin = origin - centre
+    T_scene_board[:3, 3] -= centre
+    plate = Material(tex, texel_size_m=texel, specular=0.15, shininess=30.0, planar=(origin, u, v))
+    return Scene("board", "ChArUco calibration board, 10 x 7 squares of 4 mm", verts, faces,
+                 np.zeros(2, np.int32), (plate,), working_distance_m=0.07, board=(BOARD_SPEC, T_scene_board))
+
+
+SCENES = {"skull": skull_scene, "liver": liver_scene, "apple": apple_scene, "board": board_scene}
 
 
 def build_scene(name: str, seed: int = 0) -> Scene:

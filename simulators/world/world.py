@@ -76,7 +76,8 @@ class SimWorld:
         self.T_world_scene = T_world_home @ T_home_scene
         self.vertices_world = transform_points(self.T_world_scene, self.scene.vertices)
         self.renderer = Renderer(self.vertices_world, self.scene.faces, self.scene.face_material,
-                                 list(self.scene.materials), self.camera, settings.lighting, settings.device)
+                                 list(self.scene.materials), self.camera, settings.lighting, settings.device,
+                                 T_world_scene=self.T_world_scene)
         self._lock = threading.Lock()
         self._now_ns = T0_NS
         self._wall0_ns = time.monotonic_ns()
