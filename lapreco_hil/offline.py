@@ -43,6 +43,15 @@ def accuracy_report(run: RunResult, truth: GroundTruth) -> dict:
     return acc
 
 
+def write_frame_timings(path: Path, frames, stage_s: dict) -> None:
+    """Per-frame stage times (ms), for plots of tracking time over a sequence (the seed's Fig 5)."""
+    names = [k for k in ("capture", "pose", "frontend", "mapper") if len(stage_s.get(k, [])) == len(frames)]
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(",".join(["seq", "t_ns", *(f"{n}_ms" for n in names)]) + "\n")
+        for i, f in enumerate(frames):
+            fh.write(",".join([str(f.seq), str(f.t_ns), *(f"{stage_s[n][i] * 1e3:.3f}" for n in names)]) + "\n")
+
+
 def _percentiles_ms(values_s) -> dict:
     ms = np.asarray(values_s) * 1e3
     return {"mean": float(np.mean(ms)), "p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)),
@@ -74,6 +83,7 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     render_reconstruction(str(out_dir / "reconstruction.png"), mesh, points, colors, cams,
                           (camera.width, camera.height),
                           (config.surface.render_width, config.surface.render_height), camera.fx)
+    write_frame_timings(out_dir / "frame_timings.csv", m.frames, run.stage_s)
     output_s = time.perf_counter() - t1
 
     stage_ms = {k: _percentiles_ms(v) for k, v in run.stage_s.items() if v}
@@ -86,6 +96,7 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
         "drift_check": config.tracker.drift_check,
         "device": device,
         "resolution": [camera.width, camera.height],
+        "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist)},
         "out": str(out_dir),
         "frames": {"in": run.frames_in, "processed": run.frames_processed,
                    "dropped": run.frames_in - run.frames_processed},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -112,6 +113,23 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
 
+    ev = sub.add_parser("evaluate", help="ICP of a run's points to a ground-truth surface: RMS, scale, coverage")
+    ev.add_argument("outdir", help="a run's output folder (points.ply, trajectory.tum, report.json)")
+    ev.add_argument("--truth", required=True, help="ground-truth surface mesh in the world frame, metres (PLY, "
+                                                   "OBJ, STL, VTK)")
+    ev.add_argument("--coverage-mm", type=float, default=3.0, help="coverage radius (default 3 mm)")
+    ev.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ev.set_defaults(func=_cmd_evaluate)
+
+    cmp_ = sub.add_parser("compare", help="the seed's four-way comparison (Warp/OpenCV x drift check) on a session")
+    cmp_.add_argument("session", help="a session (with ground truth for the ICP error)")
+    cmp_.add_argument("--out", required=True, help="output folder: one run per variant, comparison.md/.json, "
+                                                   "tracking_time.png")
+    cmp_.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    cmp_.add_argument("--config", default=None, help="pipeline configuration (TOML)")
+    cmp_.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cmp_.set_defaults(func=_cmd_compare)
+
     from .calibrate import add_parsers as add_calibrate_parsers
 
     add_calibrate_parsers(sub, _positive_int)
@@ -190,6 +208,59 @@ def _cmd_bench_ba(args) -> int:
     result = run(repeats=args.repeats)
     print(format_table(result))
     _write_json(args.json, result)
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+    import pyvista as pv
+
+    from ..evaluation.compare import read_points_ply, read_tum
+    from ..evaluation.icp import evaluate_points
+
+    out = Path(args.outdir)
+    points_file = out / "points.ply"
+    if not points_file.is_file():
+        raise ConfigError(f"{points_file}: missing; give a run's output folder (lapreco demo/replay/run --out)")
+    truth_path = Path(args.truth)
+    if not truth_path.is_file():
+        raise ConfigError(f"{truth_path}: no such ground-truth mesh")
+    try:
+        truth = pv.read(str(truth_path))
+    except Exception as exc:  # VTK raises several kinds for a file it cannot parse
+        raise ConfigError(f"{truth_path}: cannot read the mesh ({exc})") from None
+    if truth.n_points == 0 or truth.n_cells == 0:
+        raise ConfigError(f"{truth_path}: the mesh is empty")
+    poses = K = size = None
+    if (out / "trajectory.tum").is_file() and (out / "report.json").is_file():
+        cam = json.loads((out / "report.json").read_text()).get("camera")
+        if cam:
+            _, poses = read_tum(out / "trajectory.tum")
+            K, size = np.array(cam["K"]), (cam["width"], cam["height"])
+    result = evaluate_points(read_points_ply(points_file), truth, poses, K, size, args.coverage_mm)
+    if "error" in result:
+        raise ConfigError(f"{points_file}: {result['error']}")
+    icp = result["icp"]
+    cov = result.get("coverage", {}).get("covered_fraction")
+    print(f"lapreco evaluate: {result['points']} points; after similarity ICP RMS {icp['rms_mm']:.3f} mm, median "
+          f"{icp['median_mm']:.3f} mm, p95 {icp['p95_mm']:.3f} mm, scale {icp['scale']:.4f}; coverage "
+          f"{'n/a' if cov is None else f'{cov:.0%}'} of the visible true surface within {args.coverage_mm:g} mm; "
+          f"before alignment RMS {result['unaligned']['rms_mm']:.3f} mm")
+    _write_json(args.json, result)
+    return 0
+
+
+def _cmd_compare(args) -> int:
+    from ..evaluation.compare import run_comparison
+    from ..warp_device import resolve_device
+
+    result = run_comparison(args.session, args.out, device=resolve_device(args.device), config_path=args.config,
+                            progress=not args.no_progress)
+    from ..evaluation.compare import format_markdown
+
+    print(format_markdown(result))
     return 0
 
 
