@@ -77,11 +77,26 @@ class SurfaceConfig:
 
 
 @dataclass(frozen=True)
+class RuntimeConfig:
+    """The live runtime's queues and rates (lapreco_hil/runtime)."""
+
+    capture_queue: int = 4  # frames between capture and tracking; the oldest is dropped when full
+    mapper_slots: int = 16  # observation slots in shared memory between tracking and the mapper process
+    mapper_backlog_skip_ba: int = 2  # local BA is deferred while more frames than this wait for the mapper
+    max_tracks: int = 4096
+    max_landmarks: int = 200_000
+    surface_period_s: float = 2.0  # live mesh rebuild
+    view_period_s: float = 0.0  # live textured view to PNG (0 = off)
+    record_queue: int = 64
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
 
 def _build(cls, data: dict, where: str, source: str):

@@ -15,14 +15,14 @@ from .config import PipelineConfig
 from .evaluation.accuracy import distance_stats_mm, pose_error_stats, surface_distances
 from .evaluation.truth import GroundTruth
 from .outputs import write_mesh_ply, write_points_ply, write_report, write_tum
-from .pipeline import RunResult, run_sequence
+from .pipeline import run_sequence
 from .surface.mesh import alpha_shape
 from .surface.render import render_reconstruction
 
 
-def accuracy_report(run: RunResult, truth: GroundTruth) -> dict:
-    """Points to the true surface (mm) and camera poses before/after BA against the true poses."""
-    m = run.map
+def accuracy_report(m, truth: GroundTruth) -> dict:
+    """Points to the true surface (mm) and camera poses before/after BA against the true poses (``m``: a
+    MapResult)."""
     acc: dict = {}
     if truth.surface is not None:
         points = m.points[m.inlier]
@@ -68,12 +68,27 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, disable=not progress)
     with bar:
         run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device)
+    write_frame_timings(out_dir / "frame_timings.csv", run.map.frames, run.stage_s)
+    metrics = {
+        "frames": {"in": run.frames_in, "processed": run.frames_processed,
+                   "dropped": run.frames_in - run.frames_processed},
+        "throughput_fps": run.frames_processed / run.wall_s,
+        "latency_ms": {**_percentiles_ms(run.latency_s),
+                       "note": "frame received -> pose and points updated (sequential runner)"},
+        "stage_ms": {k: _percentiles_ms(v) for k, v in run.stage_s.items() if v},
+    }
+    return write_outputs(run.map, camera, config, out_dir, tracker=tracker, device=device, truth=truth,
+                         report_fields=report_fields, metrics=metrics, run_wall_s=run.wall_s)
+
+
+def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path, *, tracker: str, device: str,
+                  truth: GroundTruth | None, report_fields: dict | None, metrics: dict, run_wall_s: float) -> dict:
+    """The outputs contract from a finished map: mesh, PLYs, TUM trajectory, picture, report.json."""
     t0 = time.perf_counter()
-    m = run.map
     points, colors = m.points[m.inlier], m.colors[m.inlier]
     mesh = alpha_shape(points, colors, config.surface.alpha_factor)
     surface_s = time.perf_counter() - t0
-    accuracy = accuracy_report(run, truth) if truth is not None else None
+    accuracy = accuracy_report(m, truth) if truth is not None else None
 
     t1 = time.perf_counter()
     write_points_ply(out_dir / "points.ply", points, colors)
@@ -83,10 +98,9 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     render_reconstruction(str(out_dir / "reconstruction.png"), mesh, points, colors, cams,
                           (camera.width, camera.height),
                           (config.surface.render_width, config.surface.render_height), camera.fx)
-    write_frame_timings(out_dir / "frame_timings.csv", m.frames, run.stage_s)
     output_s = time.perf_counter() - t1
 
-    stage_ms = {k: _percentiles_ms(v) for k, v in run.stage_s.items() if v}
+    stage_ms = dict(metrics.pop("stage_ms", {}))
     stage_ms["surface"] = {"mean": surface_s * 1e3}
     stage_ms["outputs"] = {"mean": output_s * 1e3}
     report = {
@@ -98,12 +112,8 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
         "resolution": [camera.width, camera.height],
         "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist)},
         "out": str(out_dir),
-        "frames": {"in": run.frames_in, "processed": run.frames_processed,
-                   "dropped": run.frames_in - run.frames_processed},
-        "wall_s": run.wall_s + surface_s + output_s,
-        "throughput_fps": run.frames_processed / run.wall_s,
-        "latency_ms": {**_percentiles_ms(run.latency_s),
-                       "note": "frame received -> pose and points updated (sequential runner)"},
+        **metrics,
+        "wall_s": run_wall_s + surface_s + output_s,
         "stage_ms": stage_ms,
         "tracks": m.stats["tracks"],
         "keyframes": m.stats["keyframes"],

@@ -25,8 +25,11 @@ class RobotPoseSource:
         self.pose_at = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
                                   offset_ns=offset_ns)
 
-    def poll(self) -> None:
-        self.pose_at.extend(self.robot.read(timeout_s=0.0))
+    def poll(self) -> list:
+        """Take the robot's new samples; returns them (a live run records them)."""
+        samples = self.robot.read(timeout_s=0.0)
+        self.pose_at.extend(samples)
+        return samples
 
     def prior_at(self, t_ns: int) -> PosePrior:
         return self.pose_at.prior_at(t_ns)
@@ -45,8 +48,8 @@ class GivenPoseSource:
         self.offset_ns = offset_ns
         self.cov = np.diag([sigma_rotation_rad**2] * 3 + [sigma_translation_m**2] * 3)
 
-    def poll(self) -> None:
-        pass
+    def poll(self) -> list:
+        return []
 
     def prior_at(self, t_ns: int) -> PosePrior:
         t = t_ns + self.offset_ns

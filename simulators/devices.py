@@ -27,7 +27,7 @@ from .world import SimSettings, SimWorld
 from .world.world import T0_NS
 
 _WORLD_KEYS = {"width": int, "height": int, "fps": float, "seed": int, "device": str, "rate": float,
-               "speed": float}
+               "speed": float, "instrument": lambda v: v.lower() in ("1", "true", "yes")}
 _FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}
 LINKS = ("direct", "serial", "canopen")
 
@@ -185,6 +185,14 @@ class SimGrabber(Grabber):
     def read(self, timeout_s: float | None = None) -> Frame | None:
         if self.max_frames is not None and self._seq >= self.max_frames:
             return None
+        if self.realtime:
+            # a camera does not wait for its reader: frames whose time has passed are gone (the sequence
+            # numbers show the gap, as a real grabber's do)
+            due = int((time.monotonic() - self._wall0) * self.world.settings.fps)
+            if due > self._seq:
+                self._seq = due
+                if self.max_frames is not None and self._seq >= self.max_frames:
+                    return None
         seq = self._seq
         t_ns = self.frame_time_ns(seq)
         if self.realtime:

@@ -56,7 +56,7 @@ def test_sim_devices_with_one_name_share_one_world(warp_cpu):
 
 
 @pytest.mark.parametrize("args,match", [
-    (["demo", "--scene", "nope"], "unknown scene 'nope' (known: apple, board, liver, skull)"),
+    (["demo", "--scene", "nope"], "unknown scene 'nope' (known: apple, board, liver, skull, uterus)"),
     (["demo", "--out", "/proc/forbidden/out"], "cannot write to output folder '/proc/forbidden/out'"),
 ])
 def test_cli_bad_input_is_one_clear_line(tmp_path, capsys, args, match):

@@ -17,7 +17,8 @@ from ..warp_device import resolve_device
 def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps: float = 25.0,
              out: str = "lapreco-demo", device: str = "auto", tracker: str = "auto",
              config_path: str | None = None, seed: int = 0, progress: bool = True,
-             drift_check: bool | None = None, robot_link: str = "direct", sim_speed: float = 0.2) -> dict:
+             drift_check: bool | None = None, robot_link: str = "direct", sim_speed: float = 0.2,
+             instrument: bool = False, runtime: str = "live", view_every: float = 0.0) -> dict:
     """``robot_link`` 'serial' or 'canopen' reads the simulated robot through the real driver and a device
     emulator; the simulated clock then flows at ``sim_speed`` x real time so the driver can poll it."""
     config = load_config(config_path)
@@ -27,13 +28,24 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
     device = resolve_device(device)
     tracker = resolve_tracker(tracker, device)
     url = f"sim://{scene}?width={resolution[0]}&height={resolution[1]}&fps={fps}&seed={seed}"
+    if instrument:
+        url += "&instrument=1"
     if robot_link != "direct":
         url += f"&speed={sim_speed}"
     context = DeviceContext(device=device)
     robot = open_robot(url + f"&link={robot_link}", context)
     grabber = open_grabber(url + f"&frames={frames}", context)
+    fields = {"command": "demo", "scene": scene, "robot_link": robot_link, "instrument": instrument,
+              "runtime": runtime}
+    if runtime == "live":
+        from .run import run_live
+
+        if view_every:
+            config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))
+        return run_live(robot, grabber, config, str(out_dir), tracker=tracker, device=device, progress=progress,
+                        total=frames, report_fields=fields)
     poses = RobotPoseSource(robot, robot.description, config.prior)
     with robot, grabber:
         return reconstruct(grabber, poses, grabber.camera, config, out_dir, tracker=tracker, device=device,
                            truth=grabber.ground_truth, progress=progress, total=frames, label=f"demo {scene}",
-                           report_fields={"command": "demo", "scene": scene, "robot_link": robot_link})
+                           report_fields=fields)

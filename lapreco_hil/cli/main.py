@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="simulated robot + simulated grabber through the pipeline, with accuracy "
                                         "against ground truth")
-    demo.add_argument("--scene", default="skull", help="skull | liver | apple (default: skull)")
+    demo.add_argument("--scene", default="skull", help="skull | liver | apple | uterus | board (default: skull)")
     demo.add_argument("--frames", type=_positive_int, default=150, help="frames to simulate (default: 150)")
     demo.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH (default: 640x480)")
     demo.add_argument("--fps", type=float, default=25.0, help="simulated frame rate (default: 25)")
@@ -56,6 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
                            "driver talking to a device emulator (default: direct)")
     demo.add_argument("--sim-speed", type=float, default=0.2,
                       help="with a serial/canopen link: simulated time per real second (default: 0.2)")
+    demo.add_argument("--sequential", action="store_true",
+                      help="one frame at a time through every stage (deterministic) instead of the live runtime")
+    demo.add_argument("--view-every", type=float, default=0.0,
+                      help="render the live textured view every S seconds (OUT/live/*.png, OUT/live.mp4)")
+    demo.add_argument("--instrument", action="store_true",
+                      help="a moving instrument in view (it is not part of the true surface)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
 
@@ -77,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.set_defaults(func=_cmd_record)
 
     simrec = sub.add_parser("sim-record", help="record a simulated session with ground truth")
-    simrec.add_argument("--scene", default="skull", help="skull | liver | apple (default: skull)")
+    simrec.add_argument("--scene", default="skull", help="skull | liver | apple | uterus | board (default: skull)")
     simrec.add_argument("--out", required=True, help="new session folder")
     simrec.add_argument("--frames", type=_positive_int, default=150, help="frames (default: 150)")
     simrec.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH (default: 640x480)")
@@ -88,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="record the robot through the real Dynamixel/CANopen driver and a device emulator")
     simrec.add_argument("--sim-speed", type=float, default=0.2,
                         help="with a serial/canopen link: simulated time per real second (default: 0.2)")
+    simrec.add_argument("--instrument", action="store_true", help="a moving instrument in view")
     simrec.add_argument("--kinematics-offset-ms", type=float, default=0.0,
                         help="stamp the robot's readings this late (a known video-kinematics offset to recover)")
     simrec.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -131,7 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.set_defaults(func=_cmd_compare)
 
     from .calibrate import add_parsers as add_calibrate_parsers
+    from .run import add_parser as add_run_parser
 
+    add_run_parser(sub)
     add_calibrate_parsers(sub, _positive_int)
 
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
@@ -147,6 +156,18 @@ def build_parser() -> argparse.ArgumentParser:
     bench_fe.add_argument("--frames", type=_positive_int, default=40)
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
+    bench_p = bench_sub.add_parser("pipeline", help="the live runtime in real time: sustained fps, drops, latency")
+    bench_p.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    bench_p.add_argument("--resolution", type=_resolution, default=None,
+                         help="WxH (default: 1920x1080 on a GPU, 384x288 on a CPU)")
+    bench_p.add_argument("--fps", type=float, default=None, help="frame rate (default: 60 on a GPU, 25 on a CPU)")
+    bench_p.add_argument("--seconds", type=float, default=20.0, help="duration (default 20)")
+    bench_p.add_argument("--features", type=_positive_int, default=None,
+                         help="tracked features (default: 2000 on a GPU, 800 on a CPU)")
+    bench_p.add_argument("--source", choices=("auto", "sim", "replay"), default="auto")
+    bench_p.add_argument("--tracker", default="auto", help="warp | opencv | auto")
+    bench_p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_p.set_defaults(func=_cmd_bench_pipeline)
     bench_r = bench_sub.add_parser("robot", help="robot drivers on their emulators: sample rate, jitter, latency")
     bench_r.add_argument("--link", nargs="+", choices=("serial", "canopen"), default=["serial", "canopen"])
     bench_r.add_argument("--rate", type=float, nargs="+", default=[100.0, 500.0])
@@ -159,6 +180,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench_s.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_s.set_defaults(func=_cmd_bench_session)
     return parser
+
+
+def _cmd_bench_pipeline(args) -> int:
+    from ..bench.pipeline import format_table, run
+    from ..warp_device import resolve_device
+
+    device = resolve_device(args.device)
+    gpu = device.startswith("cuda")
+    result = run(device, args.resolution or ((1920, 1080) if gpu else (384, 288)), args.fps or (60.0 if gpu else 25.0),
+                 args.seconds, args.features or (2000 if gpu else 800), args.source, args.tracker)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
 
 
 def _cmd_bench_robot(args) -> int:
@@ -278,35 +312,15 @@ def _cmd_record(args) -> int:
 
     context = DeviceContext(device=resolve_device(args.device))
     robot, grabber = open_robot(args.robot, context), open_grabber(args.grabber, context)
-    camera, description = _rig_overrides(args, robot)
+    from .run import rig_from
+
+    camera, description = rig_from(robot, grabber, args.camera, args.hand_eye, args.robot_model, args.tip_frame)
     with robot, grabber:
         stats = record(grabber, robot, args.out, seconds=args.seconds, max_frames=args.frames, camera=camera,
                        description=description, source={"robot": args.robot, "grabber": args.grabber},
                        progress=not args.no_progress)
     _print_record(args.out, stats)
     return 0
-
-
-def _rig_overrides(args, robot):
-    """Lens and robot description from files, where the devices do not know them."""
-    from dataclasses import replace
-
-    from ..calib.files import read_camera_yaml, read_handeye_yaml
-    from ..types import RobotDescription
-
-    camera = read_camera_yaml(args.camera) if args.camera else None
-    description = robot.description
-    if args.hand_eye or args.robot_model or args.tip_frame:
-        he = read_handeye_yaml(args.hand_eye) if args.hand_eye else {}
-        base = description or RobotDescription("", "", None)
-        description = replace(base, urdf=args.robot_model or he.get("robot_model") or base.urdf,
-                              tip_frame=args.tip_frame or he.get("tip_frame") or base.tip_frame,
-                              T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
-        missing = [n for n, v in (("--robot-model", description.urdf), ("--tip-frame", description.tip_frame),
-                                  ("--hand-eye", description.T_tip_camera)) if v is None or v == ""]
-        if missing:
-            raise ConfigError(f"robot '{args.robot}': also give {', '.join(missing)}")
-    return camera, description
 
 
 def _print_record(out: str, stats) -> None:
@@ -323,6 +337,8 @@ def _cmd_sim_record(args) -> int:
     device = resolve_device(args.device)
     w, h = args.resolution
     url = f"sim://{args.scene}?width={w}&height={h}&fps={args.fps}&seed={args.seed}"
+    if args.instrument:
+        url += "&instrument=1"
     if args.robot_link != "direct":
         url += f"&speed={args.sim_speed}"
     context = DeviceContext(device=device)
@@ -353,7 +369,8 @@ def _cmd_demo(args) -> int:
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
                       seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check,
-                      robot_link=args.robot_link, sim_speed=args.sim_speed)
+                      robot_link=args.robot_link, sim_speed=args.sim_speed, instrument=args.instrument,
+                      runtime="sequential" if args.sequential else "live", view_every=args.view_every)
     _print_run("demo", report)
     return 0
 

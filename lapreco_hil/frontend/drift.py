@@ -64,30 +64,41 @@ class AffineDriftCheck:
         bias = np.zeros(n)
         # gain and bias start from the patch statistics
         ref64 = ref.astype(np.float64)
+        ref32 = ref.astype(np.float32)
+        ox, oy = off[None, :, 0].astype(np.float32), off[None, :, 1].astype(np.float32)
+        active = np.arange(n)  # tracks still moving; converged ones leave the loop (most do in 2-3 steps)
+        # the Jacobian and residual in float32 (169 terms per sum: ample precision), solved in float64
+        G = np.empty((n, off.shape[0], 8), np.float32)
         for it in range(self.max_iterations):
-            wx = b[:, 0:1] + A[:, 0, 0:1] * off[None, :, 0] + A[:, 0, 1:2] * off[None, :, 1]
-            wy = b[:, 1:2] + A[:, 1, 0:1] * off[None, :, 0] + A[:, 1, 1:2] * off[None, :, 1]
-            J = sample(image, wx, wy).astype(np.float64)
+            a = active
+            Aa, ba, refa = A[a], b[a], ref32[a]
+            wx = ba[:, 0:1] + Aa[:, 0, 0:1] * ox + Aa[:, 0, 1:2] * oy
+            wy = ba[:, 1:2] + Aa[:, 1, 0:1] * ox + Aa[:, 1, 1:2] * oy
+            J = sample(image, wx, wy)
             if it == 0:
-                rs, js = ref64.std(1) + 1e-6, J.std(1) + 1e-6
+                rs, js = ref64.std(1) + 1e-6, J.std(1).astype(np.float64) + 1e-6
                 gain = js / rs
-                bias = J.mean(1) - gain * ref64.mean(1)
-            gx = sample(grad_x, wx, wy).astype(np.float64)
-            gy = sample(grad_y, wx, wy).astype(np.float64)
-            r = J - gain[:, None] * ref64 - bias[:, None]
-            G = np.stack([gx * off[None, :, 0], gx * off[None, :, 1], gy * off[None, :, 0], gy * off[None, :, 1],
-                          gx, gy, -ref64, -np.ones_like(ref64)], axis=2)  # (N, P, 8)
-            H = np.einsum("npi,npj->nij", G, G) + np.eye(8) * 1e-6
-            g = np.einsum("npi,np->ni", G, r)
+                bias = J.mean(1).astype(np.float64) - gain * ref64.mean(1)
+            gx = sample(grad_x, wx, wy)
+            gy = sample(grad_y, wx, wy)
+            r = J - gain[a, None].astype(np.float32) * refa - bias[a, None].astype(np.float32)
+            Ga = G[: len(a)]
+            Ga[..., 0], Ga[..., 1], Ga[..., 2], Ga[..., 3] = gx * ox, gx * oy, gy * ox, gy * oy
+            Ga[..., 4], Ga[..., 5], Ga[..., 6], Ga[..., 7] = gx, gy, -refa, -1.0
+            Gt = Ga.transpose(0, 2, 1)
+            H = (Gt @ Ga).astype(np.float64) + np.eye(8) * 1e-6  # batched BLAS: every track's normal equations
+            g = (Gt @ r[..., None])[..., 0].astype(np.float64)
             try:
                 delta = -np.linalg.solve(H, g[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                delta = np.zeros((n, 8))
-            A += delta[:, :4].reshape(n, 2, 2)
-            b += delta[:, 4:6]
-            gain += delta[:, 6]
-            bias += delta[:, 7]
-            if np.nanmax(np.abs(delta[:, 4:6])) < 0.01:
+                delta = np.zeros((len(a), 8))
+            A[a] += delta[:, :4].reshape(-1, 2, 2)
+            b[a] += delta[:, 4:6]
+            gain[a] += delta[:, 6]
+            bias[a] += delta[:, 7]
+            step = np.abs(delta[:, 4:6]).max(axis=1)
+            active = a[~(step < 0.01)]  # NaN steps stay active (and fail the checks below)
+            if len(active) == 0:
                 break
         wx = b[:, 0:1] + A[:, 0, 0:1] * off[None, :, 0] + A[:, 0, 1:2] * off[None, :, 1]
         wy = b[:, 1:2] + A[:, 1, 0:1] * off[None, :, 0] + A[:, 1, 1:2] * off[None, :, 1]

@@ -83,8 +83,9 @@ class Mapper:
              RobustStage("tukey", TUKEY_C, config.final_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
 
     # --- per frame -----------------------------------------------------------------------------------------
-    def add(self, obs: Observations, prior: PosePrior) -> bool:
-        """Take one frame's observations and pose prior; returns True if it became a keyframe."""
+    def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True) -> bool:
+        """Take one frame's observations and pose prior; returns True if it became a keyframe.
+        ``local_ba=False`` defers this keyframe's local BA to the next one (a live run that is behind)."""
         is_kf = self._is_keyframe(obs, prior)
         record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
                              len(self.keyframes) if is_kf else None, obs.track_ids.copy(), obs.uv.copy())
@@ -98,7 +99,7 @@ class Mapper:
         for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
             self.tracks.setdefault(tid, []).append((kf.id, uv))
         self._triangulate_new(kf)
-        if len(self.keyframes) >= 2:
+        if len(self.keyframes) >= 2 and local_ba:
             self._local_ba()
         record.T_refined = kf.T_world_camera
         return True

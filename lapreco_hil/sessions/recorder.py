@@ -51,10 +51,7 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
         raise ConfigError(f"robot '{robot.url.raw}' has no robot model/hand-eye; pass --robot-model and "
                           f"--hand-eye handeye.yaml")
     truth = grabber.ground_truth if with_truth else None
-    meta = SessionMeta(camera=camera, pose_source="joints", robot=description,
-                       joint_names=tuple(robot.info.joint_names),
-                       joint_units=_joint_units(description, len(robot.info.joint_names)),
-                       nominal_fps=getattr(grabber, "nominal_fps", None), source=source or {})
+    meta = session_meta_for(grabber, robot, camera, description, source)
     stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
     bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
     wall0 = time.perf_counter()
@@ -88,6 +85,14 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
         log.warning("%d joint samples were not recorded (non-finite, wrong size or not newer than the last)",
                     stats.skipped_joint_samples)
     return stats
+
+
+def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDescription,
+                     source: dict | None = None) -> SessionMeta:
+    return SessionMeta(camera=camera, pose_source="joints", robot=description,
+                       joint_names=tuple(robot.info.joint_names),
+                       joint_units=_joint_units(description, len(robot.info.joint_names)),
+                       nominal_fps=getattr(grabber, "nominal_fps", None), source=source or {})
 
 
 def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:

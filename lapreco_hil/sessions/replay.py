@@ -70,6 +70,13 @@ class ReplayGrabber(Grabber):
         self._open = False
 
     def read(self, timeout_s: float | None = None) -> Frame | None:
+        if self.realtime:
+            # like a camera, a real-time replay does not wait for its reader: frames whose time has passed
+            # (more than a frame period ago) are skipped, and the sequence numbers show the gap
+            t0 = int(self.session.frame_t_ns[0])
+            late_ns = int((time.monotonic() - self._wall0) * 1e9) - self.session.frame_period_ns
+            while self._i < len(self.session) and self.session.frame_t_ns[self._i] - t0 < late_ns:
+                self._i += 1
         if self._i >= len(self.session):
             return None
         frame = self.session.frame(self._i)

@@ -222,7 +222,8 @@ class Renderer:
         self.lighting = lighting
         v = np.ascontiguousarray(vertices, np.float32)
         f = np.ascontiguousarray(faces, np.int32)
-        normals = _vertex_normals(v, f)
+        normals = vertex_normals(v, f)
+        self._v_np, self._n_np = v.copy(), normals.copy()
         with wp.ScopedDevice(self.device):
             self._points = wp.array(v, dtype=wp.vec3)
             self._indices = wp.array(f.ravel(), dtype=int)
@@ -261,6 +262,14 @@ class Renderer:
             self._image = wp.zeros((camera.height, camera.width, 3), dtype=wp.uint8)
             self._depth = wp.zeros((camera.height, camera.width), dtype=float)
 
+    def move_vertices(self, start: int, vertices: np.ndarray, normals: np.ndarray) -> None:
+        """Replace vertices ``start:`` (a rigid part that moves, e.g. an instrument) and refit the BVH."""
+        self._v_np[start:] = vertices
+        self._n_np[start:] = normals
+        self._points.assign(self._v_np)
+        self._normals.assign(self._n_np)
+        self._mesh.refit()
+
     def render(self, T_world_camera: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(BGR uint8 image, depth along the optical axis in metres, 0 where nothing was hit)."""
         cam, light = self.camera, self.lighting
@@ -283,7 +292,7 @@ class Renderer:
         return self._image.numpy().copy(), self._depth.numpy().copy()
 
 
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # area-weighted
     n = np.zeros_like(v)
     for k in range(3):

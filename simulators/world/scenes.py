@@ -16,7 +16,7 @@ from lapreco_hil.errors import SceneError
 
 from .renderer import Material
 from .textures import (apple_texture, bone_texture, fat_texture, gallbladder_texture, liver_texture,
-                       value_noise)
+                       steel_texture, uterus_texture, value_noise)
 
 
 @dataclass(frozen=True)
@@ -181,6 +181,80 @@ def apple_scene(rng: np.random.Generator) -> Scene:
                  working_distance_m=0.09)
 
 
+def uterus_scene(rng: np.random.Generator) -> Scene:
+    """An ex-vivo uterus (about 80 x 55 x 40 mm, pear-shaped, wet and shiny) on a drape, as in the seed's second
+    experiment, viewed from above at 45 degrees."""
+    nt, nphi = 80, 160
+    theta = np.linspace(0.0, np.pi, nt)
+    phi = np.linspace(0.0, 2 * np.pi, nphi, endpoint=False)
+    T_, P = np.meshgrid(theta, phi, indexing="ij")
+    # long axis x: wider fundus (x > 0), narrowing to the cervix, flattened front to back
+    along = np.cos(T_)
+    radius = 0.026 * (1.0 + 0.25 * along) * (1.0 + 0.03 * np.sin(3 * P) * np.sin(T_))
+    x = 0.04 * along
+    y = radius * np.sin(T_) * np.cos(P)
+    z = 0.72 * radius * np.sin(T_) * np.sin(P)
+    pts = np.stack([x, y, z], -1).reshape(-1, 3) + np.array([0.0, 0.0, 0.016])
+    idx = np.arange(nt * nphi).reshape(nt, nphi)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
+    organ_f = np.concatenate([np.column_stack([a, c, d]), np.column_stack([a, d, b])]).astype(np.int32)
+    table_v, table_f = _grid_sheet(0.3, 60, lambda x_, y_: np.zeros_like(x_))
+    v, f, m = _merge([(pts, organ_f, 0), (table_v, table_f, 1)])
+    elev = np.deg2rad(45.0)
+    z_s = np.array([0.0, -np.cos(elev), np.sin(elev)])
+    y_s = np.array([0.0, 0.0, 1.0]) - z_s * z_s[2]
+    y_s /= np.linalg.norm(y_s)
+    R = np.vstack([np.cross(y_s, z_s), y_s, z_s])
+    v = v @ R.T
+    roi = _surface_hit(v, f, np.array([0.0, (pts.mean(axis=0) @ R.T)[1], 1.0]), np.array([0.0, 0.0, -1.0]))
+    v = v - roi
+    drape = np.ones((256, 256, 3), np.float32) * np.array([0.20, 0.35, 0.45], np.float32)
+    drape *= (0.7 + 0.6 * value_noise((256, 256), rng, octaves=6, base_cells=16))[..., None]
+    mats = (
+        Material(uterus_texture(rng), texel_size_m=0.00010, specular=0.7, shininess=90.0),
+        Material(drape, texel_size_m=0.00025, specular=0.05, shininess=10.0),
+    )
+    return Scene("uterus", "ex-vivo uterus (80 mm, wet serosa) on a drape, 45 degrees from above", v, f, m, mats,
+                 working_distance_m=0.09)
+
+
+def instrument_mesh(length_m: float = 0.12, radius_m: float = 0.0025, n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A 5 mm instrument shaft along +z from its tip at the origin, with a closed tip."""
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    zs = np.linspace(0.0, length_m, 25)
+    ring = np.column_stack([radius_m * np.cos(ang), radius_m * np.sin(ang)])
+    verts = np.concatenate([np.column_stack([ring, np.full(n, z)]) for z in zs] + [np.array([[0.0, 0.0, -0.002]])])
+    faces = []
+    for k in range(len(zs) - 1):
+        for i in range(n):
+            a, b = k * n + i, k * n + (i + 1) % n
+            faces += [[a, b + n, b], [a, a + n, b + n]]
+    tip = len(verts) - 1
+    faces += [[tip, (i + 1) % n, i] for i in range(n)]
+    return verts, np.array(faces, np.int32)
+
+
+def instrument_material() -> Material:
+    return Material(steel_texture(np.random.default_rng(0)), texel_size_m=0.0002, specular=0.9, shininess=120.0)
+
+
+def instrument_pose(t_s: float) -> np.ndarray:
+    """T_scene_instrument at t: the shaft pivots about a trocar up and to the side while its tip sweeps over
+    the region of interest, 6-14 mm above it, covering part of the view."""
+    trocar = np.array([0.07, 0.06, 0.08])
+    tip = np.array([0.014 * np.sin(2 * np.pi * t_s / 5.0), 0.010 * np.sin(2 * np.pi * t_s / 3.3 + 1.0),
+                    0.010 + 0.004 * np.sin(2 * np.pi * t_s / 4.1)])
+    z = trocar - tip
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = tip
+    return T
+
+
 BOARD_SPEC = "charuco:10x7:0.004:0.003:DICT_5X5_100"
 
 
@@ -215,7 +289,8 @@ def board_scene(rng: np.random.Generator) -> Scene:
                  np.zeros(2, np.int32), (plate,), working_distance_m=0.07, board=(BOARD_SPEC, T_scene_board))
 
 
-SCENES = {"skull": skull_scene, "liver": liver_scene, "apple": apple_scene, "board": board_scene}
+SCENES = {"skull": skull_scene, "liver": liver_scene, "apple": apple_scene, "uterus": uterus_scene,
+          "board": board_scene}
 
 
 def build_scene(name: str, seed: int = 0) -> Scene:

@@ -107,6 +107,21 @@ def bone_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     return np.clip(tex, 0, 1)
 
 
+def uterus_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
+    """Serosa of an ex-vivo uterus: pale pink, mottled, with fine subserosal vessels."""
+    base = np.array([0.80, 0.52, 0.50], np.float32)
+    tex = base * (0.75 + 0.25 * value_noise((size, size), rng, octaves=5, base_cells=8)[..., None])
+    tex *= (0.9 + 0.1 * value_noise((size, size), rng, octaves=3, base_cells=48))[..., None]
+    draw_vessels(tex, rng, n_trees=14, color=(0.55, 0.18, 0.22), max_width=2, segment_px=5)
+    return np.clip(tex, 0, 1)
+
+
+def steel_texture(rng: np.random.Generator, size: int = 64) -> np.ndarray:
+    """Brushed steel of an instrument shaft."""
+    streaks = value_noise((size, size), rng, octaves=2, base_cells=4)
+    return np.clip(np.ones((size, size, 3), np.float32) * (0.35 + 0.15 * streaks[..., None]), 0, 1)
+
+
 def apple_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     streak = value_noise((size, size // 8), rng, octaves=4, base_cells=4)
     streak = cv2.resize(streak, (size, size), interpolation=cv2.INTER_CUBIC)

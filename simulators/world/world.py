@@ -18,8 +18,8 @@ from lapreco_hil.kinematics import CameraKinematics
 from lapreco_hil.robot_models import urdf_path
 
 from ..robot import ComplianceModel, ScanTrajectory, SimulatedArm
-from .renderer import Lighting, Renderer
-from .scenes import build_scene
+from .renderer import Lighting, Renderer, vertex_normals
+from .scenes import build_scene, instrument_material, instrument_mesh, instrument_pose
 
 T0_NS = 1_000_000_000  # simulated time starts at 1 s: timestamps are never 0
 
@@ -55,6 +55,7 @@ class SimSettings:
     # a number: it flows with the wall clock at this rate, so threads that poll devices (real drivers on
     # emulators) see time pass between frames
     clock_speed: float | None = None
+    instrument: bool = False  # a moving instrument shaft in view (not part of the true surface)
     trajectory: ScanTrajectory = field(default_factory=ScanTrajectory)
     compliance: ComplianceModel = field(default_factory=ComplianceModel)
     lighting: Lighting = field(default_factory=Lighting)
@@ -75,9 +76,18 @@ class SimWorld:
         T_home_scene = make_T(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, self.scene.working_distance_m])
         self.T_world_scene = T_world_home @ T_home_scene
         self.vertices_world = transform_points(self.T_world_scene, self.scene.vertices)
-        self.renderer = Renderer(self.vertices_world, self.scene.faces, self.scene.face_material,
-                                 list(self.scene.materials), self.camera, settings.lighting, settings.device,
-                                 T_world_scene=self.T_world_scene)
+        vertices, faces, face_material = self.vertices_world, self.scene.faces, self.scene.face_material
+        materials = list(self.scene.materials)
+        self._instrument = None
+        if settings.instrument:
+            iv, iff = instrument_mesh()
+            self._instrument = (len(vertices), iv, vertex_normals(iv.astype(np.float32), iff))
+            vertices = np.concatenate([vertices, iv])
+            faces = np.concatenate([faces, iff + len(self.vertices_world)]).astype(np.int32)
+            face_material = np.concatenate([face_material, np.full(len(iff), len(materials), np.int32)])
+            materials.append(instrument_material())
+        self.renderer = Renderer(vertices, faces, face_material, materials, self.camera, settings.lighting,
+                                 settings.device, T_world_scene=self.T_world_scene)
         self._lock = threading.Lock()
         self._now_ns = T0_NS
         self._wall0_ns = time.monotonic_ns()
@@ -110,6 +120,10 @@ class SimWorld:
         return self.kinematics.camera_pose(self.arm.true_joints(self.seconds(t_ns)))
 
     def render(self, t_ns: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+        if self._instrument is not None:
+            start, iv, inormals = self._instrument
+            T = self.T_world_scene @ instrument_pose(self.seconds(t_ns))
+            self.renderer.move_vertices(start, transform_points(T, iv), inormals @ T[:3, :3].T)
         return self.renderer.render(self.true_camera_pose(t_ns), seed=self.settings.seed * 1_000_003 + seq)
 
     def surface_mesh(self):
