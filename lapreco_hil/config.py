@@ -81,7 +81,9 @@ class RuntimeConfig:
     """The live runtime's queues and rates (lapreco_hil/runtime)."""
 
     capture_queue: int = 4  # frames between capture and tracking; the oldest is dropped when full
-    mapper_slots: int = 16  # observation slots in shared memory between tracking and the mapper process
+    # observation slots in shared memory between tracking and the mapper process: enough to hold the frames
+    # that arrive during one local BA (about a second at 60 fps), which the mapper then catches up on cheaply
+    mapper_slots: int = 128
     mapper_backlog_skip_ba: int = 2  # local BA is deferred while more frames than this wait for the mapper
     max_tracks: int = 4096
     max_landmarks: int = 200_000

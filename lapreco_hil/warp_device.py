@@ -10,6 +10,7 @@ import logging
 import os
 import sys
 import tempfile
+import threading
 
 from .errors import DeviceError
 
@@ -50,3 +51,17 @@ def resolve_device(name: str = "auto") -> str:
     if name not in ("cpu",) and not name.startswith("cuda"):
         raise DeviceError(f"--device {name}: expected auto, cpu, cuda or cuda:N")
     return "cuda:0" if name == "cuda" else name
+
+
+# Warp's "current stream" is one per device for the whole process, not per thread: a kernel launched by one
+# thread while another captures a CUDA graph lands in the capture and breaks it. Threads that drive the same
+# device (the live runtime's capture thread rendering the simulated camera, its tracking thread running the
+# front-end) take turns through this lock; it guards that process-wide device state, nothing else.
+_DEVICE_LOCKS: dict[str, threading.RLock] = {}
+_DEVICE_LOCKS_GUARD = threading.Lock()
+
+
+def device_lock(device) -> threading.RLock:
+    key = str(device)
+    with _DEVICE_LOCKS_GUARD:
+        return _DEVICE_LOCKS.setdefault(key, threading.RLock())

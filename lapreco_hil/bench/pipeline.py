@@ -40,13 +40,13 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
             url = f"sim://{scene}?width={w}&height={h}&fps={fps}&speed=1.0"
             robot, grabber = open_robot(url, ctx), open_grabber(url + f"&pace=realtime&frames={frames}", ctx)
         report = run_live(robot, grabber, config, str(Path(tmp) / "out"), tracker=tracker, device=device,
-                          progress=False, report_fields={"command": "bench pipeline"})
+                          progress=False, report_fields={"command": "bench pipeline"}, write=False)
     f = report["frames"]
     return {"machine": platform.processor() or platform.machine(), "device": device, "tracker": tracker,
             "source": source, "resolution": f"{w}x{h}", "fps_target": fps, "seconds": seconds,
             "features": features, "tracks": report["tracks"], "frames": f,
             "sustained_fps": report["throughput_fps"], "latency_ms": report["latency_ms"],
-            "stage_ms": report["stage_ms"], "queue_depth": report.get("queue_depth", {}),
+            "stage_ms": report["stage_ms"], "wall_s": report.get("wall_s"), "queue_depth": report.get("queue_depth", {}),
             "live": report.get("live", {}), "inliers": report["inliers"]}
 
 
@@ -56,9 +56,9 @@ def format_table(r: dict) -> str:
         f"live pipeline, {r['resolution']} at {r['fps_target']:g} fps for {r['seconds']:g} s ({r['device']}, "
         f"{r['tracker']} tracker, {r['source']} source, {r['machine']})",
         "| sustained fps | frames in | mapped | dropped (source / capture / mapper) | latency p50 / p95 / p99 ms "
-        "| BA deferred |",
-        "|---|---|---|---|---|---|",
+        "| BA deferred | resection deferred |",
+        "|---|---|---|---|---|---|---|",
         f"| {r['sustained_fps']:.1f} | {f['in']} | {f['processed']} | {f['dropped']} ({f['dropped_source']} / "
         f"{f['dropped_capture']} / {f['mapper_skipped']}) | {lat.get('p50', 0):.0f} / {lat.get('p95', 0):.0f} / "
-        f"{lat.get('p99', 0):.0f} | {r['live'].get('local_ba_skipped', 0)} |",
+        f"{lat.get('p99', 0):.0f} | {r['live'].get('local_ba_skipped', 0)} | {r['live'].get('resection_skipped', 0)} |",
     ])

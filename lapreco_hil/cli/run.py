@@ -44,8 +44,9 @@ def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str 
 def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str = "auto", device: str = "auto",
              camera=None, description=None, record: str | None = None, seconds: float | None = None,
              progress: bool = True, total: int | None = None, report_fields: dict | None = None,
-             on_stage_error: str = "stop") -> dict:
-    """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers."""
+             on_stage_error: str = "stop", write: bool = True) -> dict:
+    """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers. ``write=False``
+    (benchmarks) returns the live metrics and map statistics without writing files or rendering."""
     from tqdm import tqdm
 
     from ..sessions.recorder import session_meta_for
@@ -72,6 +73,8 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             if recorder is not None:
                 recorder.close()
     fields = {"command": "run", **(report_fields or {}), "runtime": "live"}
+    if not write:
+        return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")}}
     if record:
         fields["recorded_session"] = record
     return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,

@@ -83,15 +83,18 @@ class Mapper:
              RobustStage("tukey", TUKEY_C, config.final_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
 
     # --- per frame -----------------------------------------------------------------------------------------
-    def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True) -> bool:
+    def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True, resect: bool = True) -> bool:
         """Take one frame's observations and pose prior; returns True if it became a keyframe.
-        ``local_ba=False`` defers this keyframe's local BA to the next one (a live run that is behind)."""
+        A live run that is behind passes ``local_ba=False`` (this keyframe's local BA is deferred to the next)
+        and ``resect=False`` (a non-keyframe takes its prior with the last keyframe's correction instead of a
+        pose refinement; ``finish`` refines every frame anyway)."""
         is_kf = self._is_keyframe(obs, prior)
         record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
                              len(self.keyframes) if is_kf else None, obs.track_ids.copy(), obs.uv.copy())
         self.frames.append(record)
         if not is_kf:
-            record.T_refined = self._resect(record, self._predict_pose(prior))
+            predicted = self._predict_pose(prior)
+            record.T_refined = self._resect(record, predicted) if resect else predicted
             return False
         kf = Keyframe(len(self.keyframes), obs.frame_seq, obs.t_ns, prior, self._predict_pose(prior),
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())

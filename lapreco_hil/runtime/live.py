@@ -62,7 +62,11 @@ class LiveRun:
         self.out_dir = out_dir
         self.recorder = recorder
         self.on_stage_error = on_stage_error
-        self.frontend = frontend or make_frontend(tracker, camera, config.tracker, device)
+        # a Warp front-end is built in the tracking thread, which owns its CUDA stream and graphs (a graph
+        # captured on one thread's stream cannot be launched from another's)
+        self.frontend = frontend
+        self._make_frontend = lambda: make_frontend(tracker, camera, config.tracker, device)
+        self.device = device
         self.progress = progress
         self.counters = _Counters()
         self.errors: dict[str, str] = {}
@@ -79,6 +83,8 @@ class LiveRun:
         self._latest = None  # (frame, refined pose) for the live view
         self._latest_lock = threading.Lock()
         self._pending: dict[int, object] = {}
+        self._first_arrival_ns = 0
+        self._last_done_ns = 0
         self._mesh = None
 
     # --- stage bodies --------------------------------------------------------------------------------------------
@@ -128,6 +134,17 @@ class LiveRun:
                 self._cond.notify_all()
 
     def _tracking(self) -> None:
+        if self.device and str(self.device).startswith("cuda"):
+            import warp as wp
+
+            with wp.ScopedDevice(self.device):
+                self._tracking_loop()
+        else:
+            self._tracking_loop()
+
+    def _tracking_loop(self) -> None:
+        if self.frontend is None:
+            self.frontend = self._make_frontend()
         while True:
             with self._cond:
                 while not self._capture_q and not (self._capture_done.is_set() or self.stop.is_set()):
@@ -177,13 +194,16 @@ class LiveRun:
                 self._pending.pop(msg[1], None)
                 self._free.append(msg[1])
                 continue
-            _, seq, done_ns, arrival_ns, T_refined, is_kf, skipped_ba = msg
+            _, seq, done_ns, arrival_ns, T_refined, is_kf, skipped_ba, skipped_resection = msg
             self._latency_ns.append(done_ns - arrival_ns)
+            self._first_arrival_ns = min(self._first_arrival_ns or arrival_ns, arrival_ns)
+            self._last_done_ns = done_ns
             self.counters.add("frames_processed")
             if is_kf:
                 self.counters.add("keyframes")
             with self.counters.lock:
                 self.counters.values["local_ba_skipped"] = skipped_ba
+                self.counters.values["resection_skipped"] = skipped_resection
             with self._latest_lock:
                 if self._latest is not None and self._latest[0].seq == seq:
                     self._latest = (self._latest[0], T_refined)
@@ -330,12 +350,15 @@ class LiveRun:
                        "dropped": frames_in - processed + c.get("dropped_source", 0),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0), "mapper_skipped": c.get("mapper_skipped", 0),
                        "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0)},
-            "throughput_fps": processed / wall if wall > 0 else 0.0,
+            # frames mapped per second while the source delivered (the final global BA is not in it)
+            "throughput_fps": processed / max((self._last_done_ns - self._first_arrival_ns) * 1e-9, 1e-9)
+            if processed > 1 else 0.0,
             "latency_ms": {**pct(lat_ms), "note": "frame in hand (capture thread) -> refined pose available"},
             "stage_ms": stage_ms,
             "queue_depth": {k: {"mean": float(np.mean(v)), "max": int(np.max(v))}
                             for k, v in self._depth_samples.items() if v},
-            "live": {"local_ba_skipped": c.get("local_ba_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),
+            "live": {"local_ba_skipped": c.get("local_ba_skipped", 0),
+                     "resection_skipped": c.get("resection_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),
                      "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
                      "stage_errors": dict(self.errors), "disabled_stages": sorted(self.disabled),
                      "interrupted": getattr(self, "interrupted", False),

@@ -28,7 +28,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
         mapper = Mapper(K, mapper_config)
-        skipped_ba = 0
+        skipped_ba = skipped_resection = 0
         while True:
             slot = ready_q.get()
             if slot is None:
@@ -40,20 +40,24 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             except NotImplementedError:  # macOS has no qsize; never skip there
                 backlog = 0
             run_ba = backlog <= backlog_skip_ba
-            is_kf = mapper.add(obs, prior, local_ba=run_ba)
+            resect = backlog == 0  # behind: a frame between keyframes takes its corrected prior for now
+            is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect)
             if is_kf and not run_ba:
                 skipped_ba += 1
+            if not is_kf and not resect:
+                skipped_resection += 1
             if is_kf:
                 ids = list(mapper.landmarks)
                 if ids:
                     snapshot.publish(np.array([mapper.landmarks[t] for t in ids]),
                                      np.array([mapper.landmark_colors[t] for t in ids], np.uint8))
             done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
-                        mapper.frames[-1].T_refined, bool(is_kf), skipped_ba))
+                        mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
         t0 = time.perf_counter()
         result = mapper.finish()
         result.stats["final_ba_wall_s"] = time.perf_counter() - t0
         result.stats["local_ba_skipped"] = skipped_ba
+        result.stats["resection_skipped"] = skipped_resection
         final_conn.send(("ok", result))
     except BaseException:  # reported to the main loop, never lost with the process
         final_conn.send(("error", traceback.format_exc()))

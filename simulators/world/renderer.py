@@ -264,6 +264,12 @@ class Renderer:
 
     def move_vertices(self, start: int, vertices: np.ndarray, normals: np.ndarray) -> None:
         """Replace vertices ``start:`` (a rigid part that moves, e.g. an instrument) and refit the BVH."""
+        from lapreco_hil.warp_device import device_lock
+
+        with device_lock(self.device):
+            self._move_vertices(start, vertices, normals)
+
+    def _move_vertices(self, start: int, vertices: np.ndarray, normals: np.ndarray) -> None:
         self._v_np[start:] = vertices
         self._n_np[start:] = normals
         self._points.assign(self._v_np)
@@ -272,6 +278,12 @@ class Renderer:
 
     def render(self, T_world_camera: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(BGR uint8 image, depth along the optical axis in metres, 0 where nothing was hit)."""
+        from lapreco_hil.warp_device import device_lock
+
+        with device_lock(self.device):
+            return self._render(T_world_camera, seed)
+
+    def _render(self, T_world_camera: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         cam, light = self.camera, self.lighting
         R = T_world_camera[:3, :3].astype(np.float32)
         t = T_world_camera[:3, 3].astype(np.float32)

@@ -14,6 +14,7 @@ import warp as wp
 from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...types import Frame, Observations
+from ...warp_device import device_lock
 from . import kernels as K
 
 MAX_CANDIDATES = 65536
@@ -259,6 +260,10 @@ class WarpFrontEnd:
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def process(self, frame: Frame) -> Observations:
+        with device_lock(self.device):
+            return self._process(frame)
+
+    def _process(self, frame: Frame) -> Observations:
         cfg = self.config
         self._marks = {}
         t0 = time.perf_counter()
