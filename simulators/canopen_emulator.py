@@ -46,6 +46,8 @@ class CANopenDriveChainEmulator:
         self.clock_ns = clock_ns
         self.faults = CANopenFaults()
         self.stats = {"syncs": 0, "tpdos": 0}
+        self.written: dict[int, set[int]] = {}  # node -> object indices the master wrote (safety tests read it)
+        self._updating = False
         self._lock = threading.Lock()
         self.network = canopen.Network()
         self.network.connect(interface="virtual", channel=channel)
@@ -61,6 +63,8 @@ class CANopenDriveChainEmulator:
         self.network.subscribe(0x80, self._on_sync)
 
     def _on_write(self, node_id: int, index: int) -> None:
+        if not self._updating:  # a write from the bus (SDO), not the drive updating its own values
+            self.written.setdefault(node_id, set()).add(index)
         if 0x1800 <= index <= 0x1A03:
             self._mapping_loaded[node_id] = False  # the master changed the PDO set-up: reload before sending
 
@@ -80,8 +84,12 @@ class CANopenDriveChainEmulator:
                 continue
             status = STATUS_OPERATION_ENABLED | (STATUS_FAULT_BIT if node_id in fault_bit else 0)
             position = int(override.get(node_id, counts[j]))
-            node.set_data(STATUSWORD, 0, status.to_bytes(2, "little"))
-            node.set_data(POSITION_ACTUAL, 0, position.to_bytes(4, "little", signed=True))
+            self._updating = True
+            try:
+                node.set_data(STATUSWORD, 0, status.to_bytes(2, "little"))
+                node.set_data(POSITION_ACTUAL, 0, position.to_bytes(4, "little", signed=True))
+            finally:
+                self._updating = False
             tpdo = node.tpdo[1]
             if not self._mapping_loaded[node_id]:
                 tpdo.read()

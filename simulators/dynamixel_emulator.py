@@ -72,6 +72,7 @@ class DynamixelChainEmulator:
         self.clock_ns = clock_ns
         self.faults = DynamixelFaults()
         self.stats = {"packets": 0, "bad_crc": 0, "replies": 0}
+        self.instructions: dict[int, int] = {}  # instruction code -> count received (safety tests read it)
         self._sdk = PacketHandler(2.0)  # its CRC and stuffing routines
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -181,6 +182,7 @@ class DynamixelChainEmulator:
 
     def _handle(self, master: int, packet: bytes) -> None:
         dxl_id, inst = packet[4], packet[7]
+        self.instructions[inst] = self.instructions.get(inst, 0) + 1
         params = self._unstuff(packet[8:-2])
         t_ns = self.clock_ns()
         if inst == INST_PING:

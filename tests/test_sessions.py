@@ -207,8 +207,9 @@ def test_unfinished_last_rows_are_ignored(recorded, tmp_path):
     assert len(s) == 30 and set(s.truncated) == {"frames.csv", "joints.csv"}
 
 
-def test_kill_9_during_recording_leaves_a_replayable_session(tmp_path, warp_cpu):
-    """A real recorder process killed with SIGKILL mid-run: every frame it listed is complete."""
+@pytest.mark.parametrize("kill_after_rows", [3, 9, 17])
+def test_kill_9_during_recording_leaves_a_replayable_session(kill_after_rows, tmp_path, warp_cpu):
+    """A real recorder process killed with SIGKILL at several moments: every frame it listed is complete."""
     out = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, "-m", "lapreco_hil.cli.main", "sim-record", *SIM, "--frames", "400",
                              "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -216,14 +217,14 @@ def test_kill_9_during_recording_leaves_a_replayable_session(tmp_path, warp_cpu)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             csv = out / "frames.csv"
-            if csv.is_file() and csv.read_text().count("\n") > 8:
+            if csv.is_file() and csv.read_text().count("\n") > kill_after_rows:
                 break
             time.sleep(0.05)
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
     s = Session(out)
-    assert not s.meta.complete and len(s) >= 8
+    assert not s.meta.complete and len(s) >= kill_after_rows
     for i in range(len(s)):
         assert s.frame(i).image.shape == (240, 320, 3)  # every listed frame decodes
     assert s.joint_samples[-1].t_ns >= s.frame_t_ns[-1] - 40_000_000

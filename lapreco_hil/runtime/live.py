@@ -84,6 +84,9 @@ class LiveRun:
         self._latest_lock = threading.Lock()
         self._pending: dict[int, object] = {}
         self._first_arrival_ns = 0
+        self._health_events: list[dict] = []
+        self._tracks_lost = False
+        self.degraded = False
         self._last_done_ns = 0
         self._mesh = None
 
@@ -172,6 +175,7 @@ class LiveRun:
                     continue
                 raise
             t2 = time.perf_counter()
+            self._tracks_lost = len(obs) == 0
             self._stage_s["pose"].append(t1 - t0)
             self._stage_s["frontend"].append(t2 - t1)
             with self._latest_lock:
@@ -243,6 +247,39 @@ class LiveRun:
             if view is not None:
                 view.close()
 
+    def _health(self) -> None:
+        """Every device's health, polled every 20 ms: each change of state is an event (time, device, state,
+        detail) in the report, and the run's own state is degraded while any device is not OK or the
+        front-end has lost every track (smoke, blood, a lens against tissue)."""
+        from ..drivers.health import HealthState
+
+        devices = {"grabber": self.grabber}
+        robot = getattr(self.poses, "robot", None)
+        if robot is not None:
+            devices["robot"] = robot
+        last: dict[str, HealthState] = {}
+        t0 = time.monotonic()
+        while not self._finished.wait(0.02):
+            now = time.monotonic() - t0
+            states = {}
+            for name, dev in devices.items():
+                h = dev.health
+                states[name] = h
+                if last.get(name) is not h.state:
+                    self._health_events.append({"t_s": round(now, 3), "t_monotonic": time.monotonic(),
+                                                "device": name, "state": h.state.value, "detail": h.detail})
+                    if h.state is not HealthState.OK:
+                        self.counters.add(f"health_{name}_{h.state.value}")
+                    last[name] = h.state
+            lost = self._tracks_lost
+            if lost != last.get("tracks"):
+                self._health_events.append({"t_s": round(now, 3), "t_monotonic": time.monotonic(), "device": "front-end",
+                                            "state": "no tracks" if lost else "tracking", "detail": ""})
+                if lost:
+                    self.counters.add("health_tracks_lost")
+                last["tracks"] = lost
+            self.degraded = lost or any(h.state is not HealthState.OK for h in states.values())
+
     def _record(self) -> None:
         while True:
             with self._cond:
@@ -274,7 +311,8 @@ class LiveRun:
         proc.start()
         threads = {name: threading.Thread(target=self._guard, args=(name, body), name=f"live {name}", daemon=True)
                    for name, body in (("capture", self._capture), ("tracking", self._tracking),
-                                      ("results", self._results), ("surface", self._surface))}
+                                      ("results", self._results), ("surface", self._surface),
+                                      ("health", self._health))}
         if self.recorder is not None:
             threads["record"] = threading.Thread(target=self._guard, args=("record", self._record), daemon=True)
         t_start = time.perf_counter()
@@ -315,7 +353,7 @@ class LiveRun:
             self._finished.set()
             with self._cond:
                 self._cond.notify_all()
-            for name in ("surface", "record"):
+            for name in ("surface", "record", "health"):
                 if name in threads:
                     threads[name].join(timeout=60.0)
             wall = time.perf_counter() - t_start
@@ -363,4 +401,6 @@ class LiveRun:
                      "stage_errors": dict(self.errors), "disabled_stages": sorted(self.disabled),
                      "interrupted": getattr(self, "interrupted", False),
                      "final_ba_s": result.stats.get("final_ba_wall_s")},
+            "health": {"events": self._health_events[:200], "event_count": len(self._health_events),
+                       "counts": {k[len("health_"):]: v for k, v in c.items() if k.startswith("health_")}},
         }

@@ -1,0 +1,120 @@
+"""Safety (the app never commands motion, opens no network listener) and fuzzing of the file parsers
+(session metadata, calibration YAML): random input gives the module's own clear error, nothing else."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.errors import CalibrationError, SessionError
+from lapreco_hil.registry import DeviceContext, open_robot
+from lapreco_hil.sessions.format import meta_from_json
+
+FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                          HealthCheck.function_scoped_fixture])
+
+
+def _q(t_ns):
+    return np.array([0.1, -0.2, 0.12, 0.3])
+
+
+def test_drivers_only_read_they_never_command_motion():
+    from dynamixel_sdk import PacketHandler  # noqa: F401  (the instructions below are the SDK's codes)
+
+    from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
+    from lapreco_hil.simulators.dynamixel_emulator import INST_PING, INST_SYNC_READ, DynamixelChainEmulator
+
+    with DynamixelChainEmulator([1, 2, 3, 4], JointMap.for_model("ecm"), _q) as emu:
+        with open_robot(f"serial://{emu.port}?ids=1,2,3,4&rate=200", DeviceContext()) as robot:
+            time.sleep(0.5)
+            assert robot.read()
+        assert set(emu.instructions) <= {INST_PING, INST_SYNC_READ}  # no Write, Reg Write, Sync Write, Action
+    with CANopenDriveChainEmulator("safety", [1, 2, 3, 4], JointMap.for_model("ecm", counts_per_rev=16384), _q) as e:
+        with open_robot("canopen://virtual/safety?nodes=1-4&rate=200", DeviceContext()) as robot:
+            time.sleep(0.5)
+            assert robot.read()
+        written = set().union(*e.written.values())
+        # only communication set-up (TPDO1 mapping, heartbeat time): never the controlword (0x6040), a target
+        # (0x607A position, 0x60FF velocity, 0x6071 torque) or the mode of operation (0x6060)
+        assert written <= {0x1800, 0x1A00, 0x1017}, sorted(hex(i) for i in written)
+
+
+def _listening_inodes() -> set[str]:
+    out = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6", "/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for ln in lines:
+            cols = ln.split()
+            if table.endswith(("tcp", "tcp6")) and cols[3] != "0A":  # TCP LISTEN
+                continue
+            out.add(cols[9])
+    return out
+
+
+def test_no_network_listener_is_opened_by_a_run(tmp_path, warp_cpu):
+    from lapreco_hil.cli.demo import run_demo
+
+    run_demo(scene="skull", frames=12, resolution=(256, 192), out=str(tmp_path), device=warp_cpu, tracker="opencv",
+             progress=False)
+    mine = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            mine.add(target[8:-1])
+    assert not (mine & _listening_inodes())
+
+
+@FUZZ
+@given(st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children,
+                                                                                        max_size=5), max_leaves=20))
+def test_random_session_metadata_gives_a_session_error(doc):
+    try:
+        meta_from_json(doc, "fuzz/session.json")
+    except SessionError as exc:
+        assert "fuzz/session.json" in str(exc)
+
+
+VALID = {"format": "lapreco-session", "version": 1, "units": {"length": "m", "angle": "rad", "time": "ns"},
+         "camera": {"width": 64, "height": 48, "K": [[50, 0, 32], [0, 50, 24], [0, 0, 1]], "dist": [0.1]},
+         "pose_source": "camera_poses"}
+
+
+@FUZZ
+@given(st.sampled_from(sorted(VALID)), st.none() | st.integers(-5, 5) | st.text(max_size=5) | st.floats()
+       | st.lists(st.integers(), max_size=3) | st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
+def test_mutated_session_metadata_is_read_or_refused_clearly(key, value):
+    doc = json.loads(json.dumps(VALID))
+    doc[key] = value
+    try:
+        meta = meta_from_json(doc, "fuzz/session.json")
+    except SessionError as exc:
+        assert "fuzz/session.json" in str(exc)
+    else:
+        assert meta.camera.width == 64
+
+
+@FUZZ
+@given(st.binary(max_size=300))
+def test_random_calibration_files_give_a_calibration_error(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("yaml") / "camera.yaml"
+    path.write_bytes(data)
+    for reader in (read_camera_yaml, read_handeye_yaml):
+        try:
+            reader(path)
+        except CalibrationError as exc:
+            assert "camera.yaml" in str(exc)
