@@ -124,6 +124,10 @@ class PoseAtTime:
     def __len__(self) -> int:
         return len(self._samples)
 
+    @property
+    def last_time_ns(self) -> int | None:
+        return self._times[-1] if self._times else None
+
     def joints_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, float]:
         """(q before, q after, fraction) bracketing kinematics time t_ns (clamped to the buffer's ends)."""
         if not self._samples:

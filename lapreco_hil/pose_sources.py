@@ -24,12 +24,22 @@ class RobotPoseSource:
                                description.T_world_base)
         self.pose_at = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
                                   offset_ns=offset_ns)
+        self.rejected = 0
 
     def poll(self) -> list:
-        """Take the robot's new samples; returns them (a live run records them)."""
+        """Take the robot's new samples (a reading with a NaN or infinite joint, or a time that does not move
+        forward, is refused and counted in ``rejected``); returns the accepted ones (a live run records them)."""
         samples = self.robot.read(timeout_s=0.0)
-        self.pose_at.extend(samples)
-        return samples
+        good = []
+        for s in samples:
+            last = self.pose_at.last_time_ns
+            if not np.all(np.isfinite(s.q)) or s.q.shape != (self.pose_at.kin.n_joints,) or \
+                    (last is not None and s.t_ns <= last):
+                self.rejected += 1
+                continue
+            self.pose_at.add(s)
+            good.append(s)
+        return good
 
     def prior_at(self, t_ns: int) -> PosePrior:
         return self.pose_at.prior_at(t_ns)

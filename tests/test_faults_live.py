@@ -89,3 +89,89 @@ def test_faults_are_reported_within_100_ms_and_the_run_recovers(tmp_path, warp_c
     counts = report["health"]["counts"]
     assert counts["robot_faulted"] >= 1 and counts["robot_stale"] >= 1 and counts["tracks_lost"] >= 1
     assert report["frames"]["processed"] > 50 and report["keyframes"] > 5
+
+
+class GlitchyRobot:
+    """Wraps a robot; while ``nan`` is set its readings carry a NaN joint."""
+
+    def __init__(self, inner):
+        self.inner, self.nan = inner, threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __enter__(self):
+        self.inner.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.close()
+
+    def read(self, timeout_s=None):
+        from lapreco_hil.types import JointSample
+
+        out = self.inner.read(timeout_s)
+        if self.nan.is_set():
+            out = [JointSample(np.where(np.arange(len(s.q)) == 1, np.nan, s.q), s.t_ns, s.seq) for s in out]
+        return out
+
+
+class StutteringGrabber(SmokeGrabber):
+    """Every 10th frame comes again with the previous frame's time (a duplicated or backwards stamp)."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.prev = None
+
+    def read(self, timeout_s=None):
+        f = self.inner.read(timeout_s)
+        if f is not None and self.prev is not None and f.seq % 10 == 0:
+            f = Frame(f.image, self.prev.t_ns - 1000, f.seq)
+        if f is not None:
+            self.prev = f
+        return f
+
+
+def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, warp_cpu):
+    ctx = DeviceContext(device=warp_cpu)
+    url = "sim://skull?width=256&height=192&speed=0.5"
+    inner = open_robot(url + "&link=canopen", ctx)
+    robot = GlitchyRobot(inner)
+    grabber = StutteringGrabber(open_grabber(url + "&frames=120", ctx))
+    marks = {}
+
+    def inject():
+        while inner.emulator is None:
+            time.sleep(0.01)
+        emu = inner.emulator
+        time.sleep(1.5)
+        marks["heartbeat"] = time.monotonic()
+        emu.stop_heartbeat(3)
+        time.sleep(0.6)
+        emu.resume_heartbeat(3)
+        time.sleep(0.5)
+        marks["emcy"] = time.monotonic()
+        emu.send_emcy(1, 0x3210, 0x04)  # over-voltage
+        time.sleep(0.4)
+        emu.reset_emcy(1)
+        time.sleep(0.4)
+        robot.nan.set()
+        time.sleep(0.5)
+        robot.nan.clear()
+
+    injector = threading.Thread(target=inject, daemon=True)
+    injector.start()
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
+                      progress=False)
+    injector.join(timeout=1)
+    events = report["health"]["events"]
+    # heartbeat lost after 1.5 x 100 ms, reported within 100 ms of that
+    assert _first(events, "robot", "faulted", marks["heartbeat"]) < 0.15 + 0.1
+    assert any("heartbeat" in e["detail"] for e in events)
+    assert _first(events, "robot", "faulted", marks["emcy"]) < 0.1
+    assert any("EMCY: 0x3210" in e["detail"] for e in events)
+    assert _first(events, "robot", "ok", marks["emcy"] + 0.4) is not None
+    assert report["robot_samples_rejected"] > 0  # the NaN readings were refused, not turned into poses
+    assert report["frames"]["bad_timestamps"] >= 5  # every 10th frame, refused and counted
+    assert report["frames"]["processed"] > 50
+    assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()

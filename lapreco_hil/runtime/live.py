@@ -109,7 +109,7 @@ class LiveRun:
                     self._cond.notify_all()
 
     def _capture(self) -> None:
-        last_seq = None
+        last_seq = last_t = None
         while not self.stop.is_set():
             try:
                 frame = self.grabber.read(timeout_s=0.5)
@@ -120,6 +120,11 @@ class LiveRun:
                 return
             arrival = time.monotonic_ns()
             self.counters.add("frames_in")
+            if last_t is not None and frame.t_ns <= last_t:
+                # a duplicated or backwards capture time would break pose interpolation and the map's order
+                self.counters.add("bad_timestamps")
+                continue
+            last_t = frame.t_ns
             if last_seq is not None and frame.seq > last_seq + 1:
                 self.counters.add("dropped_source", frame.seq - last_seq - 1)  # gone before we could read them
             last_seq = frame.seq
@@ -385,9 +390,11 @@ class LiveRun:
         return {
             "wall_s": wall,
             "frames": {"in": frames_in, "processed": processed,
-                       "dropped": frames_in - processed + c.get("dropped_source", 0),
+                       "dropped": frames_in - processed + c.get("dropped_source", 0) - c.get("bad_timestamps", 0),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0), "mapper_skipped": c.get("mapper_skipped", 0),
-                       "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0)},
+                       "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0),
+                       "bad_timestamps": c.get("bad_timestamps", 0)},
+            "robot_samples_rejected": getattr(self.poses, "rejected", 0),
             # frames mapped per second while the source delivered (the final global BA is not in it)
             "throughput_fps": processed / max((self._last_done_ns - self._first_arrival_ns) * 1e-9, 1e-9)
             if processed > 1 else 0.0,
