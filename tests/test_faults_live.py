@@ -175,3 +175,50 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
     assert report["frames"]["bad_timestamps"] >= 5  # every 10th frame, refused and counted
     assert report["frames"]["processed"] > 50
     assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
+
+
+def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
+    """The V4L2 grabber (over a scripted capture: no /dev/video here) is unplugged and plugged back in while
+    the live pipeline runs on it."""
+    from test_v4l2_grabber import FakeCamera
+
+    from lapreco_hil.camera import CameraModel
+
+    cam = FakeCamera(modes=((256, 192, 30.0, "YUYV"),), period_s=1 / 30)
+    rng = np.random.default_rng(0)
+    texture = rng.integers(0, 255, (192, 256, 3), dtype=np.uint8)
+    original_read = type(cam.factory("x")).read
+
+    def textured_read(self):
+        ok, img = original_read(self)
+        return (ok, np.roll(texture, self.n, axis=1)) if ok else (ok, img)
+
+    ctx = DeviceContext(device="cpu", v4l2_capture=cam.factory)
+    grabber = open_grabber("v4l2:///dev/video7?width=256&height=192&fps=30", ctx)
+    grabber.reconnect_interval_s = 0.05
+    robot = open_robot("sim://skull?width=256&height=192&speed=1.0", ctx)
+    camera = CameraModel(256, 192, 200.0, 200.0, 128.0, 96.0)
+    marks = {}
+
+    def inject():
+        time.sleep(1.5)
+        marks["unplug"] = time.monotonic()
+        cam.present = False
+        time.sleep(0.6)
+        cam.present = True
+        marks["replug"] = time.monotonic()
+
+    import unittest.mock as mock
+
+    with mock.patch.object(type(cam.factory("x")), "read", textured_read):
+        injector = threading.Thread(target=inject, daemon=True)
+        injector.start()
+        report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device="cpu",
+                          camera=camera, description=robot.description, seconds=4.0,
+                          progress=False)
+        injector.join(timeout=1)
+    events = report["health"]["events"]
+    assert _first(events, "grabber", "disconnected", marks["unplug"]) < 0.1
+    assert _first(events, "grabber", "ok", marks["replug"]) is not None
+    assert report["health"]["counts"]["grabber_disconnected"] >= 1
+    assert report["frames"]["in"] > 40  # frames kept coming after the re-plug
