@@ -19,12 +19,13 @@ from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
 Q0 = np.array([0.1, -0.2, 0.12, 0.3])
 AMPL = np.array([0.2, 0.1, 0.02, 0.3])
+OMEGA = 0.2  # rad/s: slow enough that the motion during one exchange stays below an encoder count
 _channels = itertools.count()
 
 
 def joints_at(t_ns: int) -> np.ndarray:
     """A slow, known joint trajectory on the monotonic clock."""
-    return Q0 + AMPL * np.sin(0.7 * t_ns * 1e-9)
+    return Q0 + AMPL * np.sin(OMEGA * t_ns * 1e-9)
 
 
 def wait_for(predicate, timeout_s: float = 2.0) -> float:
@@ -63,8 +64,9 @@ def can_robot():
 
 
 def tolerance(joint_map: JointMap) -> np.ndarray:
-    """One encoder count plus the motion during a request/reply exchange (< 5 ms on a loaded CI machine)."""
-    return joint_map.si_per_count + AMPL * 0.7 * 5e-3 + 1e-12
+    """One encoder count plus the motion during a request/reply exchange (< 20 ms even on a loaded 2-core
+    machine: the stamp is the exchange's midpoint, the emulator samples when the request arrives)."""
+    return joint_map.si_per_count + AMPL * OMEGA * 20e-3 + 1e-12
 
 
 def _check_round_trip(robot, joint_map: JointMap, seconds: float = 1.0) -> list:
