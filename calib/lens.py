@@ -41,8 +41,6 @@ class LensResult:
     per_view_rms_px: dict[str, float]
     rejected: dict[str, str]  # view -> why
     model: str
-    rvecs: list = field(default_factory=list)
-    tvecs: list = field(default_factory=list)
     detections: dict = field(default_factory=dict)  # view -> (image points, ids)
 
     def summary(self) -> dict:
@@ -115,7 +113,7 @@ def calibrate_lens(images: dict[str, np.ndarray], board: Board, model: str = "pa
         names.pop(worst)
     camera = CameraModel(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(d.tolist()))
     return LensResult(camera, rms, {n: float(e) for n, e in zip(names, per_view)}, rejected, model,
-                      list(rvecs), list(tvecs), {n: detections[n] for n in names})
+                      {n: detections[n] for n in names})
 
 
 def save_check_image(path: str | Path, result: LensResult, images: dict[str, np.ndarray]) -> None:

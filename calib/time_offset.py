@@ -10,7 +10,6 @@ pairs are resampled (bootstrap).
 
 from __future__ import annotations
 
-import bisect
 import logging
 from dataclasses import dataclass
 
@@ -19,7 +18,7 @@ import numpy as np
 from ..config import PipelineConfig
 from ..errors import CalibrationError
 from ..frontend import make_frontend
-from ..geometry import interpolate_pose, inv_T
+from ..geometry import SampledPoses, inv_T
 from ..kinematics import CameraKinematics
 from ..robot_models import urdf_path
 
@@ -57,24 +56,6 @@ def sampson_px(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, f: float) -> np.nd
     return f * np.sqrt(num / np.maximum(den, 1e-18))
 
 
-class _PosesAt:
-    """Camera poses from joint readings at any kinematics time (SE(3) interpolation between readings)."""
-
-    def __init__(self, kin: CameraKinematics, samples) -> None:
-        self.kin = kin
-        self.t = [s.t_ns for s in samples]
-        self.poses = [kin.camera_pose(s.q) for s in samples]
-
-    def __call__(self, t_ns: int) -> np.ndarray:
-        i = bisect.bisect_right(self.t, t_ns)
-        if i == 0:
-            return self.poses[0]
-        if i >= len(self.t):
-            return self.poses[-1]
-        s = (t_ns - self.t[i - 1]) / (self.t[i] - self.t[i - 1])
-        return interpolate_pose(self.poses[i - 1], self.poses[i], s)
-
-
 def track_session(session, config: PipelineConfig, device: str = "cpu", tracker: str = "opencv"):
     """Observations of every frame (undistorted pixels keyed by track id)."""
     frontend = make_frontend(tracker, session.meta.camera, config.tracker, device)
@@ -91,7 +72,9 @@ def estimate_time_offset(session, config: PipelineConfig | None = None, search_s
     config = config or PipelineConfig()
     robot = session.robot
     kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, robot.T_tip_camera, robot.T_world_base)
-    poses_at = _PosesAt(kin, session.joint_samples)
+    # camera poses at the readings, interpolated on SE(3) between them (as the pipeline's priors are)
+    poses_at = SampledPoses(np.array([j.t_ns for j in session.joint_samples], np.int64),
+                            np.array([kin.camera_pose(j.q) for j in session.joint_samples]))
     obs = track_session(session, config, device)
     K = session.meta.camera.K
     Kinv = np.linalg.inv(K)

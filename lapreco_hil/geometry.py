@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -75,6 +77,25 @@ def tum_values(T: np.ndarray) -> list[float]:
     return [*map(float, T[:3, 3]), *map(float, Rotation.from_matrix(T[:3, :3]).as_quat())]
 
 
+@dataclass(frozen=True)
+class SampledPoses:
+    """Poses T_world_camera known at times (a tracker, a robot's readings, ground truth): interpolated on
+    SE(3) in between, held at the ends. Call it with a time in ns."""
+
+    t_ns: np.ndarray  # (N,) int64, strictly increasing
+    poses: np.ndarray  # (N, 4, 4)
+
+    def __call__(self, t_ns: int) -> np.ndarray:
+        times = self.t_ns
+        i = int(np.searchsorted(times, t_ns, side="right"))
+        if i == 0:
+            return self.poses[0]
+        if i >= len(times):
+            return self.poses[-1]
+        s = (t_ns - times[i - 1]) / (times[i] - times[i - 1])
+        return interpolate_pose(self.poses[i - 1], self.poses[i], s)
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     """T_world_camera of an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``."""
     z = np.asarray(target, float) - np.asarray(eye, float)
@@ -87,6 +108,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "Rotation",
+    "SampledPoses",
     "inv_T",
     "interpolate_pose",
     "look_at",

@@ -17,6 +17,12 @@ from .geometry import interpolate_pose, make_T
 from .types import JointLimits, JointSample, PosePrior, RobotInfo
 
 
+def prismatic_joints(model: "pin.Model") -> np.ndarray:
+    """(nq,) bool: which joints of a Pinocchio model are prismatic (positions in metres, not radians)."""
+    return np.array([j.shortname().startswith("JointModelP") and "Planar" not in j.shortname()
+                     for j in model.joints[1:]])
+
+
 @dataclass(frozen=True)
 class RobotModelSpec:
     """Which URDF, which link holds the scope, and where the robot base sits in the world."""
@@ -142,6 +148,11 @@ class PoseAtTime:
             return s.q, s.q, 0.0
         a, b = self._samples[i - 1], self._samples[i]
         return a.q, b.q, (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
+
+    def q_at(self, t_ns: int) -> np.ndarray:
+        """Joint positions at kinematics time t_ns, linearly interpolated between the readings around it."""
+        qa, qb, s = self.joints_at(t_ns)
+        return qa + s * (qb - qa)
 
     def prior_at(self, t_ns: int) -> PosePrior:
         qa, qb, s = self.joints_at(t_ns + self.offset_ns)

@@ -100,6 +100,7 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
                           (config.surface.render_width, config.surface.render_height), camera.fx)
     output_s = time.perf_counter() - t1
 
+    metrics = dict(metrics)  # the caller's figures stay as they were
     stage_ms = dict(metrics.pop("stage_ms", {}))
     stage_ms["surface"] = {"mean": surface_s * 1e3}
     stage_ms["outputs"] = {"mean": output_s * 1e3}

@@ -58,10 +58,19 @@ def write_tum(path: Path, t_ns: np.ndarray, poses: np.ndarray) -> None:
             fh.write(to_tum(t * 1e-9, T) + "\n")
 
 
+def write_json(path: str | Path, doc: dict) -> None:
+    """JSON (numpy values included), written to a temporary file and renamed into place."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(doc, indent=2, default=_json_default), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write '{path}' ({exc.strerror}); choose another path") from None
+
+
 def write_report(path: Path, report: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=2, default=_json_default), encoding="utf-8")
-    os.replace(tmp, path)
+    write_json(path, report)
 
 
 def _json_default(o):

@@ -3,13 +3,11 @@ given directly (an external optical tracker, a calibrated stereo rig). Both answ
 
 from __future__ import annotations
 
-import bisect
-
 import numpy as np
 
 from .config import PriorConfig
 from .errors import ConfigError
-from .geometry import interpolate_pose
+from .geometry import SampledPoses
 from .kinematics import CameraKinematics, PoseAtTime
 from .robot_models import urdf_path
 from .types import PosePrior, RobotDescription
@@ -53,8 +51,7 @@ class GivenPoseSource:
                  offset_ns: int = 0) -> None:
         if len(t_ns) == 0:
             raise ConfigError("no camera poses given")
-        self.t_ns = [int(t) for t in t_ns]
-        self.poses = np.asarray(poses, float)
+        self.poses = SampledPoses(np.asarray(t_ns, np.int64), np.asarray(poses, float))
         self.offset_ns = offset_ns
         self.cov = np.diag([sigma_rotation_rad**2] * 3 + [sigma_translation_m**2] * 3)
 
@@ -62,13 +59,5 @@ class GivenPoseSource:
         return []
 
     def prior_at(self, t_ns: int) -> PosePrior:
-        t = t_ns + self.offset_ns
-        i = bisect.bisect_right(self.t_ns, t)
-        if i == 0:
-            T = self.poses[0]
-        elif i >= len(self.t_ns):
-            T = self.poses[-1]
-        else:
-            s = (t - self.t_ns[i - 1]) / (self.t_ns[i] - self.t_ns[i - 1])
-            T = interpolate_pose(self.poses[i - 1], self.poses[i], s)
+        T = self.poses(t_ns + self.offset_ns)
         return PosePrior(T_world_camera=T.copy(), cov=self.cov.copy(), t_ns=t_ns)

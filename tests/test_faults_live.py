@@ -15,11 +15,11 @@ from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.types import Frame
 
 
-class SmokeGrabber:
-    """Wraps a grabber; while ``smoke`` is set every frame is a flat grey (no texture to track)."""
+class Wrapped:
+    """A device with one behaviour changed; everything else is the wrapped device's."""
 
     def __init__(self, inner):
-        self.inner, self.smoke = inner, threading.Event()
+        self.inner = inner
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
@@ -30,6 +30,14 @@ class SmokeGrabber:
 
     def __exit__(self, *exc):
         self.inner.close()
+
+
+class SmokeGrabber(Wrapped):
+    """While ``smoke`` is set every frame is a flat grey (no texture to track)."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.smoke = threading.Event()
 
     def read(self, timeout_s=None):
         f = self.inner.read(timeout_s)
@@ -91,21 +99,12 @@ def test_faults_are_reported_within_100_ms_and_the_run_recovers(tmp_path, warp_c
     assert report["frames"]["processed"] > 50 and report["keyframes"] > 5
 
 
-class GlitchyRobot:
-    """Wraps a robot; while ``nan`` is set its readings carry a NaN joint."""
+class GlitchyRobot(Wrapped):
+    """While ``nan`` is set the robot's readings carry a NaN joint."""
 
     def __init__(self, inner):
-        self.inner, self.nan = inner, threading.Event()
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def __enter__(self):
-        self.inner.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.inner.close()
+        super().__init__(inner)
+        self.nan = threading.Event()
 
     def read(self, timeout_s=None):
         from lapreco_hil.types import JointSample
@@ -116,7 +115,7 @@ class GlitchyRobot:
         return out
 
 
-class StutteringGrabber(SmokeGrabber):
+class StutteringGrabber(Wrapped):
     """Every 10th frame comes again with the previous frame's time (a duplicated or backwards stamp)."""
 
     def __init__(self, inner):
@@ -180,14 +179,14 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
 def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     """The V4L2 grabber (over a scripted capture: no /dev/video here) is unplugged and plugged back in while
     the live pipeline runs on it."""
-    from test_v4l2_grabber import FakeCamera
+    from test_v4l2_grabber import FakeCamera, FakeCapture
 
     from lapreco_hil.camera import CameraModel
 
     cam = FakeCamera(modes=((256, 192, 30.0, "YUYV"),), period_s=1 / 30)
     rng = np.random.default_rng(0)
     texture = rng.integers(0, 255, (192, 256, 3), dtype=np.uint8)
-    original_read = type(cam.factory("x")).read
+    original_read = FakeCapture.read
 
     def textured_read(self):
         ok, img = original_read(self)
@@ -210,7 +209,7 @@ def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
 
     import unittest.mock as mock
 
-    with mock.patch.object(type(cam.factory("x")), "read", textured_read):
+    with mock.patch.object(FakeCapture, "read", textured_read):
         injector = threading.Thread(target=inject, daemon=True)
         injector.start()
         report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device="cpu",

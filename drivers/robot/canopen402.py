@@ -53,8 +53,7 @@ class CANopenRobot(PollingRobotDriver):
         self.heartbeat_ms = url.get("heartbeat_ms", 100, int)
         self.bitrate = url.get("bitrate", None, int)
         self.sync_timeout_s = url.get("sync_timeout_ms", 20.0, float) / 1e3
-        joint_map = JointMap.for_model(url.get("model", "ecm"), url.get("counts_per_rev", 4096 * 4, float),
-                                       url.get("lead_m", 0.002, float), url.get("map", None))
+        joint_map = JointMap.from_url(url, counts_per_rev=4 * 4096)  # quadrature: 4 counts per encoder line
         if len(self.node_ids) != len(joint_map.names):
             raise DeviceError(f"robot '{url.raw}': {len(self.node_ids)} nodes for {len(joint_map.names)} joints "
                               f"({', '.join(joint_map.names)})")

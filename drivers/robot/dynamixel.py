@@ -57,8 +57,7 @@ class DynamixelRobot(PollingRobotDriver):
         self.port_path = url.name
         self.baud = url.get("baud", 1_000_000, int)
         self.ids = parse_ids(url.get("ids", "1,2,3,4"))
-        joint_map = JointMap.for_model(url.get("model", "ecm"), url.get("counts_per_rev", 4096, float),
-                                       url.get("lead_m", 0.002, float), url.get("map", None))
+        joint_map = JointMap.from_url(url, counts_per_rev=4096)
         if len(self.ids) != len(joint_map.names):
             raise DeviceError(f"robot '{url.raw}': {len(self.ids)} servo IDs for {len(joint_map.names)} joints "
                               f"({', '.join(joint_map.names)})")

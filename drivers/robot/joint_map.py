@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import ConfigError
+from ...kinematics import prismatic_joints
 from ...robot_models import urdf_path
 
 
@@ -48,6 +49,12 @@ class JointMap:
                 for i in np.flatnonzero(bad)]
 
     @staticmethod
+    def from_url(url, counts_per_rev: float) -> "JointMap":
+        """The map a device URL asks for: ``model=`` (default ecm), ``counts_per_rev=``, ``lead_m=``, ``map=``."""
+        return JointMap.for_model(url.get("model", "ecm"), url.get("counts_per_rev", counts_per_rev, float),
+                                  url.get("lead_m", 0.002, float), url.get("map", None))
+
+    @staticmethod
     def for_model(model: str, counts_per_rev: float = 4096, lead_m: float = 0.002,
                   overrides: str | Path | None = None) -> "JointMap":
         import pinocchio as pin
@@ -58,8 +65,7 @@ class JointMap:
         except (RuntimeError, ValueError) as exc:
             raise ConfigError(f"{path}: cannot load URDF ({str(exc).splitlines()[0]})") from None
         names = tuple(m.names[1:])
-        prismatic = np.array([j.shortname().startswith("JointModelP") and "Planar" not in j.shortname()
-                              for j in m.joints[1:]])
+        prismatic = prismatic_joints(m)
         per_rev = np.full(len(names), float(counts_per_rev))
         sign = np.ones(len(names))
         offset = np.zeros(len(names))

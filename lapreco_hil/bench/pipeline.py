@@ -18,6 +18,7 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
     from ..cli.main import main as cli_main
     from ..cli.run import run_live
     from ..config import PipelineConfig
+    from ..errors import ReconstructionError
     from ..frontend import resolve_tracker
     from ..registry import DeviceContext, open_grabber, open_robot
 
@@ -32,8 +33,10 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
         ctx = DeviceContext(device=device)
         if source == "replay":
             session = Path(tmp) / "session"
-            cli_main(["sim-record", "--scene", scene, "--resolution", f"{w}x{h}", "--fps", str(fps), "--frames",
-                      str(frames), "--device", device, "--no-progress", "--out", str(session)])
+            status = cli_main(["sim-record", "--scene", scene, "--resolution", f"{w}x{h}", "--fps", str(fps),
+                               "--frames", str(frames), "--device", device, "--no-progress", "--out", str(session)])
+            if status != 0:
+                raise ReconstructionError(f"bench pipeline: recording the {scene} session failed (status {status})")
             url = f"replay://{session}?pace=realtime"
             robot, grabber = open_robot(url, ctx), open_grabber(url, ctx)
         else:

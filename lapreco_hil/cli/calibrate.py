@@ -13,6 +13,7 @@ import numpy as np
 from ..calib.boards import parse_board
 from ..calib.files import read_camera_yaml, write_camera_yaml, write_handeye_yaml
 from ..errors import CalibrationError
+from ..outputs import write_json
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ def add_parsers(sub, positive_int) -> None:
 
 def _write_json(path: str | None, doc: dict) -> None:
     if path:
-        Path(path).write_text(json.dumps(doc, indent=2, default=lambda o: np.asarray(o).tolist()))
+        write_json(path, doc)
 
 
 def cmd_lens(args) -> int:
@@ -76,7 +77,8 @@ def cmd_lens(args) -> int:
 
 def cmd_handeye(args) -> int:
     from ..calib.handeye import board_station, calibrate_hand_eye
-    from ..kinematics import CameraKinematics
+    from ..config import PriorConfig
+    from ..kinematics import CameraKinematics, PoseAtTime
     from ..robot_models import urdf_path
     from ..sessions import Session
 
@@ -88,11 +90,14 @@ def cmd_handeye(args) -> int:
     camera = read_camera_yaml(args.camera) if args.camera else session.meta.camera
     robot = session.robot
     kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, np.eye(4), robot.T_world_base)
-    joints = JointsAt(session.joint_samples)
+    prior = PriorConfig()
+    joints = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
+                        capacity=max(4096, len(session.joint_samples)))
+    joints.extend(session.joint_samples)
     stations = []
     for i in range(0, len(session), args.stride):
         frame = session.frame(i)
-        q = joints(frame.t_ns + session.meta.time_offset_ns)
+        q = joints.q_at(frame.t_ns + session.meta.time_offset_ns)
         st = board_station(f"frame {frame.seq}", frame.image, board, camera, kin.tip_pose(q))
         if st is not None:
             stations.append(st)
@@ -121,17 +126,6 @@ def cmd_handeye(args) -> int:
     return 0
 
 
-class JointsAt:
-    """Joint positions at a kinematics time, linearly interpolated between readings."""
-
-    def __init__(self, samples) -> None:
-        self.t = np.array([s.t_ns for s in samples], dtype=np.int64)
-        self.q = np.array([s.q for s in samples])
-
-    def __call__(self, t_ns: int) -> np.ndarray:
-        return np.array([np.interp(t_ns, self.t, self.q[:, j]) for j in range(self.q.shape[1])])
-
-
 def cmd_time_offset(args) -> int:
     from ..calib.time_offset import estimate_time_offset
     from ..sessions import Session
@@ -148,9 +142,7 @@ def cmd_time_offset(args) -> int:
         doc = json.loads(path.read_text())
         doc["time_offset_ns"] = est.offset_ns
         doc.setdefault("source", {})["time_offset_estimate"] = s
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(doc, indent=2))
-        tmp.replace(path)
+        write_json(path, doc)
         print(f"  applied: {path} time_offset_ns = {est.offset_ns}")
     _write_json(args.json, s)
     return 0

@@ -8,7 +8,7 @@ import logging
 import sys
 
 from .. import __version__
-from ..errors import ConfigError, LaprecoError, OutputError
+from ..errors import ConfigError, LaprecoError
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -214,15 +214,10 @@ def _cmd_bench_session(args) -> int:
 
 
 def _write_json(path: str | None, result: dict) -> None:
-    import json
+    if path:
+        from ..outputs import write_json
 
-    if not path:
-        return
-    try:
-        with open(path, "w", encoding="utf-8") as fh:
-            json.dump(result, fh, indent=2)
-    except OSError as exc:
-        raise OutputError(f"cannot write benchmark JSON '{path}' ({exc.strerror})") from None
+        write_json(path, result)
 
 
 def _cmd_bench_frontend(args) -> int:
@@ -287,13 +282,11 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from ..evaluation.compare import run_comparison
+    from ..evaluation.compare import format_markdown, run_comparison
     from ..warp_device import resolve_device
 
     result = run_comparison(args.session, args.out, device=resolve_device(args.device), config_path=args.config,
                             progress=not args.no_progress)
-    from ..evaluation.compare import format_markdown
-
     print(format_markdown(result))
     return 0
 

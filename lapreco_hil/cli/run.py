@@ -79,7 +79,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         fields["recorded_session"] = record
     return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
                          truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
-                         run_wall_s=metrics.pop("wall_s", 0.0))
+                         run_wall_s=metrics["wall_s"])
 
 
 def cmd_run(args) -> int:

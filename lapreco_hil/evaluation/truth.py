@@ -2,30 +2,11 @@
 
 from __future__ import annotations
 
-import bisect
 from dataclasses import dataclass
 
-import numpy as np
+from ..geometry import SampledPoses
 
-from ..geometry import interpolate_pose
-
-
-@dataclass(frozen=True)
-class SampledPoses:
-    """True T_world_camera at known times; interpolated on SE(3) in between, clamped at the ends."""
-
-    t_ns: np.ndarray  # (N,) int64, strictly increasing
-    poses: np.ndarray  # (N, 4, 4)
-
-    def __call__(self, t_ns: int) -> np.ndarray:
-        times = self.t_ns
-        i = bisect.bisect_right(times, t_ns)
-        if i == 0:
-            return self.poses[0]
-        if i >= len(times):
-            return self.poses[-1]
-        s = (t_ns - times[i - 1]) / (times[i] - times[i - 1])
-        return interpolate_pose(self.poses[i - 1], self.poses[i], s)
+__all__ = ["GroundTruth", "SampledPoses"]
 
 
 @dataclass(frozen=True)

@@ -76,13 +76,11 @@ class LiveRun:
         self._cond = threading.Condition()
         self._capture_q: collections.deque = collections.deque()
         self._record_q: collections.deque = collections.deque()
-        self._tracking_idle = threading.Event()
         self._latency_ns: list[int] = []
         self._stage_s: dict[str, list[float]] = collections.defaultdict(list)
         self._depth_samples: dict[str, list[int]] = collections.defaultdict(list)
         self._latest = None  # (frame, refined pose) for the live view
         self._latest_lock = threading.Lock()
-        self._pending: dict[int, object] = {}
         self._first_arrival_ns = 0
         self._health_events: list[dict] = []
         self._tracks_lost = False
@@ -156,12 +154,9 @@ class LiveRun:
         while True:
             with self._cond:
                 while not self._capture_q and not (self._capture_done.is_set() or self.stop.is_set()):
-                    self._tracking_idle.set()
                     self._cond.wait(0.1)
                 if not self._capture_q:
-                    self._tracking_idle.set()
                     return
-                self._tracking_idle.clear()
                 frame, arrival = self._capture_q.popleft()
             t0 = time.perf_counter()
             samples = self.poses.poll()
@@ -190,7 +185,6 @@ class LiveRun:
                 self.counters.add("mapper_skipped")  # the mapper is a whole ring behind: this frame is not mapped
                 continue
             self._ring.write(slot, obs, prior, arrival)
-            self._pending[slot] = frame.seq
             self._ready_q.put(slot)
             self.counters.add("frames_tracked")
 
@@ -200,7 +194,6 @@ class LiveRun:
             if msg is None:
                 return
             if msg[0] == "free":
-                self._pending.pop(msg[1], None)
                 self._free.append(msg[1])
                 continue
             _, seq, done_ns, arrival_ns, T_refined, is_kf, skipped_ba, skipped_resection = msg

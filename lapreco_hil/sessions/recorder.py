@@ -99,9 +99,10 @@ def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:
     """'length' for prismatic joints, 'angle' for the others, read from the URDF."""
     import pinocchio as pin
 
+    from ..kinematics import prismatic_joints
+
     model = pin.buildModelFromUrdf(str(urdf_path(description.urdf)))
-    units = tuple("length" if "Prismatic" in j.shortname() or j.shortname().startswith("JointModelP")
-                  else "angle" for j in model.joints[1:])
+    units = tuple("length" if p else "angle" for p in prismatic_joints(model))
     if len(units) != n:
         raise ConfigError(f"robot model '{description.urdf}' has {len(units)} joints, the robot reports {n}")
     return units

@@ -223,7 +223,6 @@ class Renderer:
         v = np.ascontiguousarray(vertices, np.float32)
         f = np.ascontiguousarray(faces, np.int32)
         normals = vertex_normals(v, f)
-        self._v_np, self._n_np = v.copy(), normals.copy()
         with wp.ScopedDevice(self.device):
             self._points = wp.array(v, dtype=wp.vec3)
             self._indices = wp.array(f.ravel(), dtype=int)
@@ -270,10 +269,9 @@ class Renderer:
             self._move_vertices(start, vertices, normals)
 
     def _move_vertices(self, start: int, vertices: np.ndarray, normals: np.ndarray) -> None:
-        self._v_np[start:] = vertices
-        self._n_np[start:] = normals
-        self._points.assign(self._v_np)
-        self._normals.assign(self._n_np)
+        # only the moving part goes to the device; the rest of the mesh stays where it is
+        self._points[start:].assign(np.ascontiguousarray(vertices, np.float32))
+        self._normals[start:].assign(np.ascontiguousarray(normals, np.float32))
         self._mesh.refit()
 
     def render(self, T_world_camera: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -143,40 +143,51 @@ def liver_scene(rng: np.random.Generator) -> Scene:
                  working_distance_m=0.10)
 
 
-def apple_scene(rng: np.random.Generator) -> Scene:
-    """A 76 mm apple on a drape, seen from 40 degrees above the table (the seed's first experiment)."""
-    radius = 0.038
-    nt, nphi = 96, 192
+def _lat_long(nt: int, nphi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(theta, phi) grids of a closed lat-long surface and its triangles (vertex index = i_theta * nphi + i_phi)."""
     theta = np.linspace(0.0, np.pi, nt)
     phi = np.linspace(0.0, 2 * np.pi, nphi, endpoint=False)
     T, P = np.meshgrid(theta, phi, indexing="ij")
+    idx = np.arange(nt * nphi).reshape(nt, nphi)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
+    faces = np.concatenate([np.column_stack([a, c, d]), np.column_stack([a, d, b])]).astype(np.int32)
+    return T, P, faces
+
+
+def _on_table(obj_v: np.ndarray, obj_f: np.ndarray, table_m: float, elevation_deg: float):
+    """An object standing on a flat table (z = 0), turned into the scene frame of a scope looking down at
+    ``elevation_deg``, with the ROI where the optical axis meets the object; (vertices, faces, materials)."""
+    table_v, table_f = _grid_sheet(table_m, 60, lambda x, y: np.zeros_like(x))
+    v, f, m = _merge([(obj_v, obj_f, 0), (table_v, table_f, 1)])
+    elev = np.deg2rad(elevation_deg)
+    z_s = np.array([0.0, -np.cos(elev), np.sin(elev)])
+    y_s = np.array([0.0, 0.0, 1.0]) - z_s * z_s[2]
+    y_s /= np.linalg.norm(y_s)
+    R = np.vstack([np.cross(y_s, z_s), y_s, z_s])
+    v = v @ R.T
+    roi = _surface_hit(v, f, np.array([0.0, (obj_v.mean(axis=0) @ R.T)[1], 1.0]), np.array([0.0, 0.0, -1.0]))
+    return v - roi, f, m
+
+
+def _drape(rng: np.random.Generator, colour) -> Material:
+    tex = np.ones((256, 256, 3), np.float32) * np.array(colour, np.float32)
+    tex *= (0.7 + 0.6 * value_noise((256, 256), rng, octaves=6, base_cells=16))[..., None]
+    return Material(tex, texel_size_m=0.00025, specular=0.05, shininess=10.0)
+
+
+def apple_scene(rng: np.random.Generator) -> Scene:
+    """A 76 mm apple on a drape, seen from 40 degrees above the table (the seed's first experiment)."""
+    radius = 0.038
+    T, P, apple_f = _lat_long(96, 192)
     # dimples at stem (theta=0) and calyx, slightly wider shoulders
     r = radius * (1.0 - 0.22 * np.exp(-(T**2) / 0.05) - 0.12 * np.exp(-((np.pi - T) ** 2) / 0.06)
                   + 0.04 * np.sin(T) * np.cos(T) + 0.01 * np.cos(5 * P) * np.sin(T))
     pts = np.stack([r * np.sin(T) * np.cos(P), r * np.sin(T) * np.sin(P), r * np.cos(T)], -1).reshape(-1, 3)
-    idx = np.arange(nt * nphi).reshape(nt, nphi)
-    nxt = np.roll(idx, -1, axis=1)
-    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
-    apple_f = np.concatenate([np.column_stack([a, c, d]), np.column_stack([a, d, b])]).astype(np.int32)
     apple_v = pts + np.array([0.0, 0.0, 0.95 * radius])  # resting on the table (z = 0)
-    table_v, table_f = _grid_sheet(0.4, 60, lambda x, y: np.zeros_like(x))
-    v, f, m = _merge([(apple_v, apple_f, 0), (table_v, table_f, 1)])
-    # table frame -> scene frame: the scope looks from 40 degrees elevation
-    elev = np.deg2rad(40.0)
-    z_s = np.array([0.0, -np.cos(elev), np.sin(elev)])
-    y_s = np.array([0.0, 0.0, 1.0]) - z_s * z_s[2]
-    y_s /= np.linalg.norm(y_s)
-    x_s = np.cross(y_s, z_s)
-    R = np.vstack([x_s, y_s, z_s])
-    v = v @ R.T
-    roi = _surface_hit(v, f, np.array([0.0, (apple_v.mean(axis=0) @ R.T)[1], 1.0]), np.array([0.0, 0.0, -1.0]))
-    v = v - roi
-    drape = np.ones((256, 256, 3), np.float32) * np.array([0.18, 0.40, 0.42], np.float32)
-    drape *= (0.7 + 0.6 * value_noise((256, 256), rng, octaves=6, base_cells=16))[..., None]
-    mats = (
-        Material(apple_texture(rng), texel_size_m=0.00010, specular=0.6, shininess=80.0),
-        Material(drape, texel_size_m=0.00025, specular=0.05, shininess=10.0),
-    )
+    v, f, m = _on_table(apple_v, apple_f, 0.4, 40.0)
+    drape = _drape(rng, (0.18, 0.40, 0.42))
+    mats = (Material(apple_texture(rng), texel_size_m=0.00010, specular=0.6, shininess=80.0), drape)
     return Scene("apple", "apple (76 mm) on a drape, 40 degrees from above", v, f, m, mats,
                  working_distance_m=0.09)
 
@@ -184,10 +195,7 @@ def apple_scene(rng: np.random.Generator) -> Scene:
 def uterus_scene(rng: np.random.Generator) -> Scene:
     """An ex-vivo uterus (about 80 x 55 x 40 mm, pear-shaped, wet and shiny) on a drape, as in the seed's second
     experiment, viewed from above at 45 degrees."""
-    nt, nphi = 80, 160
-    theta = np.linspace(0.0, np.pi, nt)
-    phi = np.linspace(0.0, 2 * np.pi, nphi, endpoint=False)
-    T_, P = np.meshgrid(theta, phi, indexing="ij")
+    T_, P, organ_f = _lat_long(80, 160)
     # long axis x: wider fundus (x > 0), narrowing to the cervix, flattened front to back
     along = np.cos(T_)
     radius = 0.026 * (1.0 + 0.25 * along) * (1.0 + 0.03 * np.sin(3 * P) * np.sin(T_))
@@ -195,26 +203,9 @@ def uterus_scene(rng: np.random.Generator) -> Scene:
     y = radius * np.sin(T_) * np.cos(P)
     z = 0.72 * radius * np.sin(T_) * np.sin(P)
     pts = np.stack([x, y, z], -1).reshape(-1, 3) + np.array([0.0, 0.0, 0.016])
-    idx = np.arange(nt * nphi).reshape(nt, nphi)
-    nxt = np.roll(idx, -1, axis=1)
-    a, b, c, d = idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel(), nxt[1:].ravel()
-    organ_f = np.concatenate([np.column_stack([a, c, d]), np.column_stack([a, d, b])]).astype(np.int32)
-    table_v, table_f = _grid_sheet(0.3, 60, lambda x_, y_: np.zeros_like(x_))
-    v, f, m = _merge([(pts, organ_f, 0), (table_v, table_f, 1)])
-    elev = np.deg2rad(45.0)
-    z_s = np.array([0.0, -np.cos(elev), np.sin(elev)])
-    y_s = np.array([0.0, 0.0, 1.0]) - z_s * z_s[2]
-    y_s /= np.linalg.norm(y_s)
-    R = np.vstack([np.cross(y_s, z_s), y_s, z_s])
-    v = v @ R.T
-    roi = _surface_hit(v, f, np.array([0.0, (pts.mean(axis=0) @ R.T)[1], 1.0]), np.array([0.0, 0.0, -1.0]))
-    v = v - roi
-    drape = np.ones((256, 256, 3), np.float32) * np.array([0.20, 0.35, 0.45], np.float32)
-    drape *= (0.7 + 0.6 * value_noise((256, 256), rng, octaves=6, base_cells=16))[..., None]
-    mats = (
-        Material(uterus_texture(rng), texel_size_m=0.00010, specular=0.7, shininess=90.0),
-        Material(drape, texel_size_m=0.00025, specular=0.05, shininess=10.0),
-    )
+    v, f, m = _on_table(pts, organ_f, 0.3, 45.0)
+    drape = _drape(rng, (0.20, 0.35, 0.45))
+    mats = (Material(uterus_texture(rng), texel_size_m=0.00010, specular=0.7, shininess=90.0), drape)
     return Scene("uterus", "ex-vivo uterus (80 mm, wet serosa) on a drape, 45 degrees from above", v, f, m, mats,
                  working_distance_m=0.09)
 
