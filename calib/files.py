@@ -34,7 +34,11 @@ def _mat(fs: cv2.FileStorage, key: str, path, shape=None) -> np.ndarray:
     node = fs.getNode(key)
     if node.empty():
         raise CalibrationError(f"{path}: missing '{key}'")
-    m = node.mat()
+    try:
+        m = node.mat()
+    except cv2.error as exc:  # a matrix node with missing or inconsistent rows/cols/dt/data
+        raise CalibrationError(f"{path}: '{key}' is not a valid matrix ({exc.err.strip()}); write it with "
+                               f"cv2.FileStorage") from None
     if m is None:
         raise CalibrationError(f"{path}: '{key}' is not a matrix (write it with cv2.FileStorage)")
     m = np.asarray(m, np.float64)

@@ -10,6 +10,7 @@ class HealthState(enum.Enum):
     DISCONNECTED = "disconnected"
     OK = "ok"
     STALE = "stale"  # connected, but no fresh data within the expected period
+    DEGRADED = "degraded"  # data flows, but readings are being lost (corrupt, late or missing replies)
     FAULTED = "faulted"
 
 

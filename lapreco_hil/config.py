@@ -7,6 +7,7 @@ an unknown key or a value of the wrong type is a :class:`ConfigError` naming the
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -90,6 +91,9 @@ class RuntimeConfig:
     surface_period_s: float = 2.0  # live mesh rebuild
     view_period_s: float = 0.0  # live textured view to PNG (0 = off)
     record_queue: int = 64
+    # the front-end reports a "partial view" while its tracks span less than this share of the view they
+    # normally span (an instrument or blood over part of the scope's view)
+    partial_view_below: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -121,20 +125,22 @@ def _build(cls, data: dict, where: str, source: str):
 def _coerce(value, hint, name: str, source: str):
     origin = typing.get_origin(hint)
     if origin is tuple:
-        if not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value):
-            raise ConfigError(f"{source}: '{name}' must be a list of numbers, got {value!r}")
+        if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                  and math.isfinite(v) and v >= 0 for v in value):
+            raise ConfigError(f"{source}: '{name}' must be a list of non-negative numbers, got {value!r}")
         return tuple(float(v) for v in value)
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{source}: '{name}' must be true or false, got {value!r}")
         return value
+    # every number in the configuration is a count, a size, a rate or a threshold: finite and >= 0
     if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{source}: '{name}' must be an integer, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ConfigError(f"{source}: '{name}' must be a non-negative integer, got {value!r}")
         return value
     if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{source}: '{name}' must be a number, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise ConfigError(f"{source}: '{name}' must be a finite non-negative number, got {value!r}")
         return float(value)
     if hint is str:
         if not isinstance(value, str):
@@ -156,6 +162,8 @@ def load_config(path: str | Path | None) -> PipelineConfig:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config file ({exc.strerror}); check the path") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); save the config as UTF-8") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -23,6 +23,40 @@ def prismatic_joints(model: "pin.Model") -> np.ndarray:
                      for j in model.joints[1:]])
 
 
+def load_urdf_model(urdf_file) -> "pin.Model":
+    """A Pinocchio model from a URDF file, checked first: readable UTF-8, well-formed XML with a <robot>
+    root, finite joint limits (lower <= upper) and finite placements. Anything else is one ConfigError
+    naming the file and the problem (Pinocchio's own parser is handed only well-formed text)."""
+    import xml.etree.ElementTree as ET
+
+    path = str(urdf_file)
+    try:
+        text = open(path, "rb").read().decode("utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read URDF ({exc.strerror}); check the path") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: URDF is not UTF-8 text (byte {exc.start}); fix or re-export the file") from None
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise ConfigError(f"{path}: URDF is not well-formed XML ({exc}); fix the file") from None
+    if root.tag != "robot":
+        raise ConfigError(f"{path}: URDF root element is <{root.tag}>, expected <robot>")
+    try:
+        model = pin.buildModelFromXML(text)
+    except (RuntimeError, ValueError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot load URDF ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    lower, upper = model.lowerPositionLimit, model.upperPositionLimit
+    for i, name in enumerate(model.names[1:]):
+        if i < len(lower) and not (np.isfinite(lower[i]) and np.isfinite(upper[i]) and lower[i] <= upper[i]):
+            raise ConfigError(f"{path}: joint '{name}' has limits [{lower[i]}, {upper[i]}]; give finite limits "
+                              f"with lower <= upper")
+    for name, placement in zip(model.names[1:], model.jointPlacements[1:]):
+        if not np.all(np.isfinite(placement.homogeneous)):
+            raise ConfigError(f"{path}: joint '{name}' has a non-finite origin; fix its <origin>")
+    return model
+
+
 @dataclass(frozen=True)
 class RobotModelSpec:
     """Which URDF, which link holds the scope, and where the robot base sits in the world."""
@@ -37,10 +71,7 @@ class CameraKinematics:
 
     def __init__(self, urdf_file: str, tip_frame: str, T_tip_camera: np.ndarray,
                  T_world_base: np.ndarray | None = None) -> None:
-        try:
-            self.model = pin.buildModelFromUrdf(str(urdf_file))
-        except (RuntimeError, ValueError) as exc:
-            raise ConfigError(f"{urdf_file}: cannot load URDF ({str(exc).splitlines()[0]})") from None
+        self.model = load_urdf_model(urdf_file)
         if not self.model.existFrame(tip_frame):
             names = [f.name for f in self.model.frames]
             raise ConfigError(f"{urdf_file}: no frame '{tip_frame}' (frames: {', '.join(names)})")

@@ -3,18 +3,29 @@ given directly (an external optical tracker, a calibrated stereo rig). Both answ
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from .config import PriorConfig
 from .errors import ConfigError
 from .geometry import SampledPoses
-from .kinematics import CameraKinematics, PoseAtTime
+from .drivers.health import Health, HealthState
+from .kinematics import CameraKinematics, PoseAtTime, prismatic_joints
 from .robot_models import urdf_path
 from .types import PosePrior, RobotDescription
 
 
 class RobotPoseSource:
-    """Joint samples from a RobotDriver -> FK of the camera at frame times, with the Jacobian covariance."""
+    """Joint samples from a RobotDriver -> FK of the camera at frame times, with the Jacobian covariance.
+
+    Whatever the robot delivers is checked before it becomes a pose: a reading with a NaN or infinite joint,
+    a joint beyond the URDF's limits (plus a margin for calibration slack), or a time that does not move
+    forward is refused and counted; ``health`` shows it as degraded while refusals keep coming."""
+
+    limit_margin_rad = 0.05
+    limit_margin_m = 0.005
+    degraded_for_s = 0.25
 
     def __init__(self, robot, description: RobotDescription, prior: PriorConfig, offset_ns: int = 0) -> None:
         self.robot = robot
@@ -22,22 +33,51 @@ class RobotPoseSource:
                                description.T_world_base)
         self.pose_at = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
                                   offset_ns=offset_ns)
+        margin = np.where(prismatic_joints(kin.model), self.limit_margin_m, self.limit_margin_rad)
+        self._lower, self._upper = kin.info.limits.lower - margin, kin.info.limits.upper + margin
+        self._names = kin.info.joint_names
         self.rejected = 0
+        self.rejected_by_cause: dict[str, int] = {}
+        self._last_refusal = ""
+        self._last_refusal_wall = 0.0
+
+    def _refusal(self, s) -> str | None:
+        if s.q.shape != (self.pose_at.kin.n_joints,):
+            return f"{s.q.shape[0] if s.q.ndim else 0} joints, the robot model has {self.pose_at.kin.n_joints}"
+        if not np.all(np.isfinite(s.q)):
+            return "non-finite joint value"
+        bad = np.flatnonzero((s.q < self._lower) | (s.q > self._upper))
+        if len(bad):
+            i = int(bad[0])
+            return f"joint '{self._names[i]}' = {s.q[i]:.4g} beyond its limits"
+        last = self.pose_at.last_time_ns
+        if last is not None and s.t_ns <= last:
+            return "time did not move forward"
+        return None
 
     def poll(self) -> list:
-        """Take the robot's new samples (a reading with a NaN or infinite joint, or a time that does not move
-        forward, is refused and counted in ``rejected``); returns the accepted ones (a live run records them)."""
+        """Take the robot's new samples, refusing (and counting) what cannot be a pose; returns the accepted
+        ones (a live run records them)."""
         samples = self.robot.read(timeout_s=0.0)
         good = []
         for s in samples:
-            last = self.pose_at.last_time_ns
-            if not np.all(np.isfinite(s.q)) or s.q.shape != (self.pose_at.kin.n_joints,) or \
-                    (last is not None and s.t_ns <= last):
+            reason = self._refusal(s)
+            if reason is not None:
                 self.rejected += 1
+                cause = reason.split(" = ")[0] if " = " in reason else reason
+                cause = "beyond limits" if "beyond its limits" in reason else cause
+                self.rejected_by_cause[cause] = self.rejected_by_cause.get(cause, 0) + 1
+                self._last_refusal, self._last_refusal_wall = reason, time.monotonic()
                 continue
             self.pose_at.add(s)
             good.append(s)
         return good
+
+    @property
+    def health(self) -> Health:
+        if time.monotonic() - self._last_refusal_wall < self.degraded_for_s:
+            return Health(HealthState.DEGRADED, f"{self.rejected} readings refused; last: {self._last_refusal}")
+        return Health(HealthState.OK)
 
     def prior_at(self, t_ns: int) -> PosePrior:
         return self.pose_at.prior_at(t_ns)

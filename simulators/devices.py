@@ -148,6 +148,11 @@ class SimRobot(RobotDriver):
             return self.driver.health
         return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=self.world.now_ns())
 
+    @property
+    def faults(self) -> dict[str, int]:
+        """What the real driver counted on the link (nothing without one)."""
+        return dict(self.driver.faults) if self.driver is not None else {}
+
 
 class SimGrabber(Grabber):
     """Renders what the true camera sees at the robot's true pose; as fast as possible or paced to fps."""

@@ -18,13 +18,16 @@ def test_config_defaults_and_overrides(tmp_path):
 
 @pytest.mark.parametrize("text,match", [
     ("[mapper]\nbogus = 1\n", "unknown key 'mapper.bogus'"),
-    ("[mapper]\nwindow_keyframes = 'many'\n", "'mapper.window_keyframes' must be an integer"),
+    ("[mapper]\nwindow_keyframes = 'many'\n", "'mapper.window_keyframes' must be a non-negative integer"),
+    ("[mapper]\nwindow_keyframes = -3\n", "'mapper.window_keyframes' must be a non-negative integer"),
+    ("[tracker]\nmax_lk_error = nan\n", "'tracker.max_lk_error' must be a finite non-negative number"),
+    ("[tracker]\nmax_features = 10\n\xff\n", "not UTF-8"),
     ("[mapper\n", "not valid TOML"),
     ("mapper = 3\n", "'mapper' must be a table"),
 ])
 def test_malformed_config_names_file_and_key(tmp_path, text, match):
     path = tmp_path / "bad.toml"
-    path.write_text(text)
+    path.write_bytes(text.encode("latin-1"))  # \xff: a byte that is not UTF-8
     with pytest.raises(ConfigError, match=match) as info:
         load_config(path)
     assert str(path) in str(info.value)

@@ -100,18 +100,23 @@ def test_faults_are_reported_within_100_ms_and_the_run_recovers(tmp_path, warp_c
 
 
 class GlitchyRobot(Wrapped):
-    """While ``nan`` is set the robot's readings carry a NaN joint."""
+    """While ``glitch`` is "nan" the robot's readings carry a NaN joint, while it is "limits" one joint reads
+    far beyond its limit; ``first_bad`` notes when each kind first reached the pipeline."""
 
     def __init__(self, inner):
         super().__init__(inner)
-        self.nan = threading.Event()
+        self.glitch = None
+        self.first_bad = {}
 
     def read(self, timeout_s=None):
         from lapreco_hil.types import JointSample
 
         out = self.inner.read(timeout_s)
-        if self.nan.is_set():
-            out = [JointSample(np.where(np.arange(len(s.q)) == 1, np.nan, s.q), s.t_ns, s.seq) for s in out]
+        glitch = self.glitch
+        if glitch and out:
+            bad = np.nan if glitch == "nan" else 3.0  # rad: the ECM pitch stops at 1.13
+            out = [JointSample(np.where(np.arange(len(s.q)) == 1, bad, s.q), s.t_ns, s.seq) for s in out]
+            self.first_bad.setdefault(glitch, time.monotonic())
         return out
 
 
@@ -136,7 +141,7 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
     url = "sim://skull?width=256&height=192&speed=0.5"
     inner = open_robot(url + "&link=canopen", ctx)
     robot = GlitchyRobot(inner)
-    grabber = StutteringGrabber(open_grabber(url + "&frames=120", ctx))
+    grabber = StutteringGrabber(open_grabber(url + "&frames=150", ctx))
     marks = {}
 
     def inject():
@@ -154,9 +159,12 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
         time.sleep(0.4)
         emu.reset_emcy(1)
         time.sleep(0.4)
-        robot.nan.set()
-        time.sleep(0.5)
-        robot.nan.clear()
+        for glitch in ("nan", "limits"):
+            robot.glitch = glitch
+            time.sleep(0.5)
+            robot.glitch = None
+            marks[f"{glitch}_clear"] = time.monotonic()
+            time.sleep(0.5)
 
     injector = threading.Thread(target=inject, daemon=True)
     injector.start()
@@ -170,7 +178,13 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
     assert _first(events, "robot", "faulted", marks["emcy"]) < 0.1
     assert any("EMCY: 0x3210" in e["detail"] for e in events)
     assert _first(events, "robot", "ok", marks["emcy"] + 0.4) is not None
-    assert report["robot_samples_rejected"] > 0  # the NaN readings were refused, not turned into poses
+    # the NaN and beyond-limit readings were refused, not turned into poses, and shown as they came
+    causes = report["robot_samples_rejected_by_cause"]
+    assert causes["non-finite joint value"] > 0 and causes["beyond limits"] > 0, causes
+    for glitch in ("nan", "limits"):
+        seen = _first(events, "robot readings", "degraded", robot.first_bad[glitch])
+        assert seen is not None and seen < 0.1, (glitch, seen)
+        assert _first(events, "robot readings", "ok", marks[f"{glitch}_clear"]) is not None
     assert report["frames"]["bad_timestamps"] >= 5  # every 10th frame, refused and counted
     assert report["frames"]["processed"] > 50
     assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
@@ -221,3 +235,129 @@ def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     assert _first(events, "grabber", "ok", marks["replug"]) is not None
     assert report["health"]["counts"]["grabber_disconnected"] >= 1
     assert report["frames"]["in"] > 40  # frames kept coming after the re-plug
+
+
+def _first_of(events, device, states, after):
+    times = [_first(events, device, s, after) for s in states]
+    times = [t for t in times if t is not None]
+    return min(times) if times else None
+
+
+def test_serial_link_faults_during_a_live_run(tmp_path, warp_cpu):
+    """The real Dynamixel driver on its pty emulator while the pipeline runs: corrupt replies (CRC errors),
+    garbage on the line, late and missing replies, the adapter unplugged and plugged back in, and a joint
+    reading beyond its limits. Each shows in the robot's health within 100 ms, clears by itself, and is
+    counted in the report; the run goes on mapping."""
+    ctx = DeviceContext(device=warp_cpu)
+    url = "sim://skull?width=256&height=192&speed=0.5"
+    robot = open_robot(url + "&link=serial", ctx)
+    grabber = open_grabber(url + "&frames=170", ctx)
+    marks, clears, lost = {}, {}, {}
+
+    def inject():
+        while robot.emulator is None:
+            time.sleep(0.01)
+        emu = robot.emulator
+        f = emu.faults
+        time.sleep(1.5)
+        steps = [
+            ("corrupt", lambda: setattr(f, "corrupt_replies", 10 ** 6), lambda: setattr(f, "corrupt_replies", 0)),
+            ("late", lambda: setattr(f, "reply_delay_s", 0.06), lambda: setattr(f, "reply_delay_s", 0.0)),
+            ("missing", lambda: setattr(f, "drop_replies", 10 ** 6), lambda: setattr(f, "drop_replies", 0)),
+            ("unplug", emu.disconnect, emu.reconnect),
+            ("limits", lambda: f.position_override.update({2: 10 ** 6}), f.position_override.clear),
+        ]
+        # garbage on the line before replies: the SDK skips to the next header, so readings go on
+        marks["garbage"] = time.monotonic()
+        before = dict(robot.driver.faults)
+        while time.monotonic() < marks["garbage"] + 0.4:
+            f.garbage_before_reply = 40
+            time.sleep(0.005)
+        clears["garbage"] = time.monotonic()
+        lost["garbage"] = sum(robot.driver.faults.values()) - sum(before.values())
+        time.sleep(0.8)
+        for name, start, stop in steps:
+            marks[name] = time.monotonic()
+            start()
+            time.sleep(0.4)
+            stop()
+            clears[name] = time.monotonic()
+            time.sleep(0.8)  # back to OK: the degraded window (0.25 s), a reconnect (0.5 s)
+
+    injector = threading.Thread(target=inject, daemon=True)
+    injector.start()
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
+                      progress=False)
+    injector.join(timeout=1)
+    assert set(marks) == {"corrupt", "garbage", "late", "missing", "unplug", "limits"}, "the run ended early"
+    events = report["health"]["events"]
+    lost_states = ("degraded", "stale")  # readings lost; no reading for 3 periods reads as stale
+    print("readings lost to garbage on the line:", lost["garbage"])
+    if lost["garbage"] == 0:  # the SDK found every reply behind the garbage: nothing to report, no state change
+        assert not [e for e in events if e["device"] == "robot" and marks["garbage"] <= e["t_monotonic"] <= clears["garbage"]]
+    else:
+        seen = _first_of(events, "robot", lost_states, marks["garbage"])
+        assert seen is not None and seen < 0.1
+    for name, states in (("corrupt", lost_states), ("late", lost_states),
+                         ("missing", lost_states), ("unplug", ("disconnected",)), ("limits", ("faulted",))):
+        seen = _first_of(events, "robot", states, marks[name])
+        assert seen is not None and seen < 0.1, (name, seen, [e for e in events if e["device"] == "robot"])
+        assert _first(events, "robot", "ok", clears[name]) is not None, f"robot did not recover after {name}"
+    faults = report["robot_faults"]
+    assert faults["protocol_errors"] > 0 and faults["timeouts"] > 0
+    assert faults["disconnects"] >= 1 and faults["reconnects"] >= 1 and faults["out_of_limits"] > 0
+    counts = report["health"]["counts"]
+    assert counts["robot_disconnected"] >= 1 and counts["robot_faulted"] >= 1
+    assert report["frames"]["processed"] > 100 and report["keyframes"] > 5
+    assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
+
+
+class InstrumentGrabber(Wrapped):
+    """While ``present`` is set a dark, untextured instrument shaft covers the left half of the view and
+    sways; ``first_seen`` is when the first such frame left the grabber."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.present = threading.Event()
+        self.first_seen = None
+
+    def read(self, timeout_s=None):
+        f = self.inner.read(timeout_s)
+        if f is None or not self.present.is_set():
+            return f
+        img = f.image.copy()
+        w = img.shape[1]
+        edge = int(w * (0.5 + 0.05 * np.sin(f.seq / 3.0)))
+        img[:, :edge] = 35
+        if self.first_seen is None:
+            self.first_seen = time.monotonic()
+        return Frame(img, f.t_ns, f.seq)
+
+
+def test_an_instrument_over_half_the_view_is_reported_and_tracking_recovers(tmp_path, warp_cpu):
+    ctx = DeviceContext(device=warp_cpu)
+    url = "sim://skull?width=256&height=192&speed=0.5"
+    robot = open_robot(url, ctx)
+    grabber = InstrumentGrabber(open_grabber(url + "&frames=130", ctx))
+    marks = {}
+
+    def inject():
+        time.sleep(3.0)
+        grabber.present.set()
+        time.sleep(2.0)
+        grabber.present.clear()
+        marks["clear"] = time.monotonic()
+
+    injector = threading.Thread(target=inject, daemon=True)
+    injector.start()
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
+                      progress=False)
+    injector.join(timeout=1)
+    events = report["health"]["events"]
+    front = [e for e in events if e["device"] == "front-end"]
+    assert not any(e["state"] == "partial view" and e["t_monotonic"] < grabber.first_seen for e in front), front
+    seen = _first(events, "front-end", "partial view", grabber.first_seen)
+    assert seen is not None and seen < 0.1, front
+    assert _first(events, "front-end", "tracking", marks["clear"]) is not None
+    assert report["health"]["counts"]["partial_view"] >= 1
+    assert report["frames"]["processed"] > 80 and report["inliers"] > 100

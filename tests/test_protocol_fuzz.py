@@ -9,7 +9,8 @@ import time
 
 import numpy as np
 from dynamixel_sdk import PacketHandler
-from hypothesis import HealthCheck, given, settings
+from fuzz_settings import EXAMPLES, FUZZ
+from hypothesis import given
 from hypothesis import strategies as st
 
 from lapreco_hil.drivers.robot.joint_map import JointMap
@@ -20,7 +21,6 @@ from lapreco_hil.simulators.dynamixel_emulator import status_packet
 
 SDK = PacketHandler(2.0)
 IDS = [1, 2, 3, 4]
-FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 class ScriptedPort:
@@ -154,7 +154,7 @@ def test_random_can_frames_on_pdo_and_emcy_ids_are_survived():
     with CANopenDriveChainEmulator(channel, IDS, jm, lambda t: np.array([0.1, -0.2, 0.12, 0.3])):
         robot = open_robot(f"canopen://virtual/{channel}?nodes=1-4&rate=100&heartbeat_ms=100", DeviceContext())
         with robot, can.Bus(interface="virtual", channel=channel) as noise:
-            for _ in range(400):
+            for _ in range(max(400, EXAMPLES)):
                 cob = int(rng.choice([0x181, 0x182, 0x81, 0x82, 0x701, 0x80]))
                 data = rng.integers(0, 256, int(rng.integers(0, 9)), dtype=np.uint8).tobytes()
                 noise.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))

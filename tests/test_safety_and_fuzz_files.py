@@ -9,17 +9,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from fuzz_settings import EXAMPLES, FUZZ, mutated
+from hypothesis import given
 from hypothesis import strategies as st
 
 from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
 from lapreco_hil.drivers.robot.joint_map import JointMap
-from lapreco_hil.errors import CalibrationError, SessionError
+from lapreco_hil.config import load_config
+from lapreco_hil.errors import CalibrationError, ConfigError, SessionError
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.robot_models import urdf_path
 from lapreco_hil.registry import DeviceContext, open_robot
 from lapreco_hil.sessions.format import meta_from_json
 
-FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow,
-                                                                          HealthCheck.function_scoped_fixture])
 
 
 def _q(t_ns):
@@ -118,3 +120,82 @@ def test_random_calibration_files_give_a_calibration_error(tmp_path_factory, dat
             reader(path)
         except CalibrationError as exc:
             assert "camera.yaml" in str(exc)
+
+
+_VALID_CAMERA_YAML = b"""%YAML:1.0
+---
+image_width: 640
+image_height: 480
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ -0.1, 0.01, 0., 0., 0. ]
+"""
+
+
+@FUZZ
+@given(mutated(_VALID_CAMERA_YAML))
+def test_mutated_calibration_files_are_read_or_refused_clearly(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("yaml") / "camera.yaml"
+    path.write_bytes(data)
+    try:
+        camera = read_camera_yaml(path)
+    except CalibrationError as exc:
+        assert "camera.yaml" in str(exc)
+    else:
+        assert camera.width > 0 and np.all(np.isfinite(camera.K))
+
+
+def test_the_valid_calibration_file_reads():  # the mutation source above is a file the reader accepts
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "camera.yaml"
+        path.write_bytes(_VALID_CAMERA_YAML)
+        assert read_camera_yaml(path).fx == 500.0
+
+
+_ECM_URDF = urdf_path("ecm").read_bytes()
+
+
+@FUZZ
+@given(mutated(_ECM_URDF))
+def test_mutated_urdf_loads_or_gives_one_clear_error(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("urdf") / "robot.urdf"
+    path.write_bytes(data)
+    try:
+        kin = CameraKinematics(str(path), "ecm_tip", np.eye(4))
+    except ConfigError as exc:
+        assert "robot.urdf" in str(exc) and "\n" not in str(exc)
+    else:
+        assert np.all(np.isfinite(kin.camera_pose(np.clip(np.zeros(kin.n_joints), kin.info.limits.lower,
+                                                            kin.info.limits.upper))))
+
+
+_CONFIG = b"""[tracker]
+max_features = 600
+drift_check = true
+[mapper]
+window_keyframes = 6
+[prior]
+joint_sigma = [0.003, 0.003, 0.0003, 0.003]
+[runtime]
+surface_period_s = 1.5
+"""
+
+
+@FUZZ
+@given(mutated(_CONFIG))
+def test_mutated_config_loads_or_gives_one_clear_error(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("cfg") / "pipeline.toml"
+    path.write_bytes(data)
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        assert "pipeline.toml" in str(exc) and "\n" not in str(exc)

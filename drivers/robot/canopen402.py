@@ -141,7 +141,7 @@ class CANopenRobot(PollingRobotDriver):
     def _on_tpdo(self, pdo_map) -> None:
         node_id = pdo_map.pdo_node.node.id
         if len(pdo_map.data) != 6:  # statusword (2) + position (4); anything else is a broken frame
-            self._note("protocol_errors", f"{self.device_name}: node {node_id} TPDO1 of {len(pdo_map.data)} bytes, "
+            self._note_lost("protocol_errors", f"{self.device_name}: node {node_id} TPDO1 of {len(pdo_map.data)} bytes, "
                                           f"expected 6")
             return
         values = {v.index: v.raw for v in pdo_map.map}

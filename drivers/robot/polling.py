@@ -30,6 +30,10 @@ log = logging.getLogger(__name__)
 class PollingRobotDriver(RobotDriver):
     reconnect_interval_s = 0.5
     stale_after_periods = 3.0
+    # readings lost to corrupt, late or missing replies mark the link degraded for this long after the last
+    # one (at least ``degraded_min_s``), so a burst of errors is visible even while good readings interleave
+    degraded_after_periods = 10.0
+    degraded_min_s = 0.25
     buffer_len = 4096
 
     def __init__(self, url, context, joint_map: JointMap, device_name: str) -> None:
@@ -52,6 +56,8 @@ class PollingRobotDriver(RobotDriver):
         self._device_faults: dict[str, str] = {}  # source -> message, while a device reports a fault
         self._last_fault = ""
         self._last_sample_wall = 0.0
+        self._last_error_wall = 0.0
+        self._last_error = ""
         self._last_t_ns = 0
         self._seq = 0
         self.faults: collections.Counter[str] = collections.Counter()
@@ -106,6 +112,12 @@ class PollingRobotDriver(RobotDriver):
         self._last_fault = message
         log.debug("%s: %s", self.device_name, message)
 
+    def _note_lost(self, kind: str, message: str) -> None:
+        """A reading lost on the link (counted, and the link shows as degraded for a while)."""
+        self._note(kind, message)
+        self._last_error = message
+        self._last_error_wall = time.monotonic()
+
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
         next_t = time.monotonic()
@@ -119,9 +131,9 @@ class PollingRobotDriver(RobotDriver):
                     counts, t_ns = self._poll()
                     self._accept(counts, t_ns)
                 except DeviceTimeoutError as exc:
-                    self._note("timeouts", str(exc))
+                    self._note_lost("timeouts", str(exc))
                 except ProtocolError as exc:
-                    self._note("protocol_errors", str(exc))
+                    self._note_lost("protocol_errors", str(exc))
                 except DeviceDisconnectedError as exc:
                     self._note("disconnects", str(exc))
                     log.warning("%s", exc)
@@ -225,4 +237,7 @@ class PollingRobotDriver(RobotDriver):
         if last == 0.0 or now - last > self.stale_after_periods / self.rate_hz:
             silent = "no reading yet" if last == 0.0 else f"no reading for {(now - last) * 1e3:.0f} ms"
             return Health(HealthState.STALE, f"{silent} ({self._last_fault or 'no fault seen'})", self._clock())
+        if now - self._last_error_wall < max(self.degraded_min_s, self.degraded_after_periods / self.rate_hz):
+            lost = self.faults["timeouts"] + self.faults["protocol_errors"]
+            return Health(HealthState.DEGRADED, f"{lost} readings lost so far; last: {self._last_error}", self._clock())
         return Health(HealthState.OK, "", self._clock())

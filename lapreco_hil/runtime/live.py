@@ -30,6 +30,7 @@ from ..camera import CameraModel
 from ..config import PipelineConfig
 from ..errors import DeviceTimeoutError, LaprecoError, ReconstructionError
 from ..frontend import make_frontend
+from .coverage import ViewCoverage
 from .mapper_process import drain, mapper_main
 from .shm import MapSnapshot, ObservationRing
 
@@ -84,6 +85,7 @@ class LiveRun:
         self._first_arrival_ns = 0
         self._health_events: list[dict] = []
         self._tracks_lost = False
+        self._coverage = ViewCoverage(camera, partial_below=config.runtime.partial_view_below)
         self.degraded = False
         self._last_done_ns = 0
         self._mesh = None
@@ -176,6 +178,7 @@ class LiveRun:
                 raise
             t2 = time.perf_counter()
             self._tracks_lost = len(obs) == 0
+            self._coverage.update(obs.uv)
             self._stage_s["pose"].append(t1 - t0)
             self._stage_s["frontend"].append(t2 - t1)
             with self._latest_lock:
@@ -255,6 +258,8 @@ class LiveRun:
         robot = getattr(self.poses, "robot", None)
         if robot is not None:
             devices["robot"] = robot
+        if hasattr(self.poses, "health"):
+            devices["robot readings"] = self.poses  # what the pose source refuses (NaN, beyond limits, time)
         last: dict[str, HealthState] = {}
         t0 = time.monotonic()
         while not self._finished.wait(0.02):
@@ -267,16 +272,20 @@ class LiveRun:
                     self._health_events.append({"t_s": round(now, 3), "t_monotonic": time.monotonic(),
                                                 "device": name, "state": h.state.value, "detail": h.detail})
                     if h.state is not HealthState.OK:
-                        self.counters.add(f"health_{name}_{h.state.value}")
+                        self.counters.add(f"health_{name.replace(' ', '_')}_{h.state.value}")
                     last[name] = h.state
-            lost = self._tracks_lost
-            if lost != last.get("tracks"):
+            lost, partial = self._tracks_lost, self._coverage.partial
+            tracking = "no tracks" if lost else "partial view" if partial else "tracking"
+            if tracking != last.get("tracks"):
+                detail = f"tracks cover {self._coverage.share:.0%} of the view" if partial else ""
                 self._health_events.append({"t_s": round(now, 3), "t_monotonic": time.monotonic(), "device": "front-end",
-                                            "state": "no tracks" if lost else "tracking", "detail": ""})
+                                            "state": tracking, "detail": detail})
                 if lost:
                     self.counters.add("health_tracks_lost")
-                last["tracks"] = lost
-            self.degraded = lost or any(h.state is not HealthState.OK for h in states.values())
+                elif partial:
+                    self.counters.add("health_partial_view")
+                last["tracks"] = tracking
+            self.degraded = tracking != "tracking" or any(h.state is not HealthState.OK for h in states.values())
 
     def _record(self) -> None:
         while True:
@@ -388,6 +397,9 @@ class LiveRun:
                        "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0),
                        "bad_timestamps": c.get("bad_timestamps", 0)},
             "robot_samples_rejected": getattr(self.poses, "rejected", 0),
+            "robot_samples_rejected_by_cause": dict(getattr(self.poses, "rejected_by_cause", {})),
+            # what the robot driver counted on its link (lost readings, reconnects, device faults)
+            "robot_faults": dict(getattr(getattr(self.poses, "robot", None), "faults", {}) or {}),
             # frames mapped per second while the source delivered (the final global BA is not in it)
             "throughput_fps": processed / max((self._last_done_ns - self._first_arrival_ns) * 1e-9, 1e-9)
             if processed > 1 else 0.0,
