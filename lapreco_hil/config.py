@@ -68,6 +68,10 @@ class MapperConfig:
     min_inlier_observations: int = 3
     min_inlier_fraction: float = 0.5
     final_global_ba: bool = True
+    # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
+    # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
+    active_keyframes: int = 400
+    retire_batch: int = 100
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,7 @@ class RuntimeConfig:
     max_tracks: int = 4096
     max_landmarks: int = 200_000
     surface_period_s: float = 2.0  # live mesh rebuild
+    surface_max_points: int = 15_000  # the live mesh is built on at most this many points, evenly thinned
     view_period_s: float = 0.0  # live textured view to PNG (0 = off)
     record_queue: int = 64
     # the front-end reports a "partial view" while its tracks span less than this share of the view they

@@ -168,6 +168,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench_p.add_argument("--tracker", default="auto", help="warp | opencv | auto")
     bench_p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_p.set_defaults(func=_cmd_bench_pipeline)
+    bench_k = bench_sub.add_parser("soak", help="the live runtime for a long time: memory growth, latency drift")
+    bench_k.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    bench_k.add_argument("--minutes", type=float, default=30.0, help="duration (default 30)")
+    bench_k.add_argument("--resolution", type=_resolution, default=(320, 240), help="WxH (default 320x240)")
+    bench_k.add_argument("--fps", type=float, default=10.0, help="frame rate (default 10)")
+    bench_k.add_argument("--features", type=_positive_int, default=400)
+    bench_k.add_argument("--scene", default="skull")
+    bench_k.add_argument("--tracker", default="auto", help="warp | opencv | auto")
+    bench_k.add_argument("--sample-s", type=float, default=10.0, help="seconds between samples")
+    bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file")
+    bench_k.set_defaults(func=_cmd_bench_soak)
     bench_r = bench_sub.add_parser("robot", help="robot drivers on their emulators: sample rate, jitter, latency")
     bench_r.add_argument("--link", nargs="+", choices=("serial", "canopen"), default=["serial", "canopen"])
     bench_r.add_argument("--rate", type=float, nargs="+", default=[100.0, 500.0])
@@ -190,6 +201,17 @@ def _cmd_bench_pipeline(args) -> int:
     gpu = device.startswith("cuda")
     result = run(device, args.resolution or ((1920, 1080) if gpu else (384, 288)), args.fps or (60.0 if gpu else 25.0),
                  args.seconds, args.features or (2000 if gpu else 800), args.source, args.tracker)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def _cmd_bench_soak(args) -> int:
+    from ..bench.soak import format_table, run
+    from ..warp_device import resolve_device
+
+    result = run(resolve_device(args.device), args.resolution, args.fps, args.minutes, args.features, args.scene,
+                 args.tracker, args.sample_s)
     print(format_table(result))
     _write_json(args.json, result)
     return 0

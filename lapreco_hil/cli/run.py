@@ -44,9 +44,10 @@ def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str 
 def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str = "auto", device: str = "auto",
              camera=None, description=None, record: str | None = None, seconds: float | None = None,
              progress: bool = True, total: int | None = None, report_fields: dict | None = None,
-             on_stage_error: str = "stop", write: bool = True) -> dict:
+             on_stage_error: str = "stop", write: bool = True, on_live=None) -> dict:
     """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers. ``write=False``
-    (benchmarks) returns the live metrics and map statistics without writing files or rendering."""
+    (benchmarks) returns the live metrics and map statistics without writing files or rendering;
+    ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler)."""
     from tqdm import tqdm
 
     from ..sessions.recorder import session_meta_for
@@ -68,6 +69,8 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         try:
             live = LiveRun(grabber, poses, camera, config, tracker=tracker, device=device, out_dir=out_dir,
                            recorder=recorder, on_stage_error=on_stage_error, progress=bar)
+            if on_live is not None:
+                on_live(live)
             result, metrics = live.run(seconds)
         finally:
             if recorder is not None:

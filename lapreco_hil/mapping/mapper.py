@@ -2,6 +2,11 @@
 robust bundle adjustment over a sliding window of keyframes with robot pose priors, and at the end a global
 pass that labels inliers.
 
+A live run can last as long as an operation, so the map in memory is bounded: past ``active_keyframes``
+the oldest keyframes are retired in batches. Their frames get their final poses then, their landmarks are
+labelled (inlier or not) and frozen into a flat archive, and their observations are let go; the final
+global pass covers the active keyframes. A sequence shorter than that (an evaluation, a demo) is untouched.
+
 Poses are T_world_camera; observations are undistorted pixels of the pinhole camera K.
 """
 
@@ -37,16 +42,44 @@ class Keyframe:
     refined: bool = False
 
 
-@dataclass
+@dataclass(slots=True)
 class FrameRecord:
     seq: int
     t_ns: int
     T_prior: np.ndarray
-    cov: np.ndarray
+    cov: np.ndarray | None
     keyframe: int | None
-    track_ids: np.ndarray
-    uv: np.ndarray
+    track_ids: np.ndarray | None  # None once the frame's pose is final (its keyframes were retired)
+    uv: np.ndarray | None
     T_refined: np.ndarray | None = None
+
+
+class LandmarkArchive:
+    """Landmarks of retired keyframes: final positions, colours and inlier labels in flat arrays."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._joined = None
+        self.observations = 0
+        self.inlier_observations = 0
+
+    def add(self, ids: np.ndarray, points: np.ndarray, colors: np.ndarray, inlier: np.ndarray) -> None:
+        if len(ids):
+            self._parts.append((ids, points, colors, inlier))
+            self._joined = None
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, points, colours, inlier) of every archived landmark, oldest first."""
+        if self._joined is None:
+            if self._parts:
+                self._joined = tuple(np.concatenate(a) for a in zip(*self._parts))
+                self._parts = [self._joined]
+            else:
+                self._joined = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, bool))
+        return self._joined
+
+    def __len__(self) -> int:
+        return len(self.arrays()[0])
 
 
 @dataclass
@@ -72,6 +105,11 @@ class Mapper:
         self.tracks: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(keyframe id, uv)]
         self.landmarks: dict[int, np.ndarray] = {}  # track id -> X
         self.landmark_colors: dict[int, np.ndarray] = {}
+        self.archive = LandmarkArchive()
+        self.first_active = 0  # keyframes before this one are retired
+        self._frames_final = 0  # frames before this index have their final pose
+        self.tracks_seen = 0
+        self._retired_tracks: set[int] = set()
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -100,12 +138,79 @@ class Mapper:
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
         self.keyframes.append(kf)
         for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
-            self.tracks.setdefault(tid, []).append((kf.id, uv))
+            if tid in self._retired_tracks:
+                continue  # a track that outlived the keyframes it was archived with: its landmark is final
+            seen = self.tracks.get(tid)
+            if seen is None:
+                self.tracks[tid] = seen = []
+                self.tracks_seen += 1
+            seen.append((kf.id, uv))
         self._triangulate_new(kf)
         if len(self.keyframes) >= 2 and local_ba:
             self._local_ba()
         record.T_refined = kf.T_world_camera
+        cfg = self.config
+        if cfg.active_keyframes and len(self.keyframes) - self.first_active > cfg.active_keyframes:
+            self._retire(self.first_active + max(1, min(cfg.retire_batch, cfg.active_keyframes // 2)))
         return True
+
+    # --- bounded memory ------------------------------------------------------------------------------------
+    def _retire(self, cutoff: int) -> None:
+        """Retire keyframes before ``cutoff``: final poses for the frames before it, landmarks seen only by
+        retired keyframes labelled and archived, their observations let go."""
+        t_cut = self.keyframes[cutoff].t_ns
+        kt, corr = self._corrections()
+        n = self._frames_final
+        while n < len(self.frames) and self.frames[n].t_ns < t_cut:
+            self._settle_frame(self.frames[n], kt, corr)
+            n += 1
+        self._frames_final = n
+        retired = [t for t, seen in self.tracks.items() if seen[-1][0] < cutoff]
+        with_point = [t for t in retired if t in self.landmarks]
+        if with_point:
+            obs = [(k, j, uv) for j, t in enumerate(with_point) for k, uv in self.tracks[t]]
+            kf_ids = sorted({k for k, _, _ in obs})
+            index = {k: i for i, k in enumerate(kf_ids)}
+            points = np.array([self.landmarks[t] for t in with_point])
+            obs_point = np.array([j for _, j, _ in obs], np.int64)
+            r = ba.residual_vectors(self.K, np.array([self.keyframes[k].T_world_camera for k in kf_ids]), points,
+                                    np.array([index[k] for k, _, _ in obs], np.int64), obs_point,
+                                    np.array([uv for _, _, uv in obs]))
+            sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else self.config.sigma_floor_px
+            good = np.linalg.norm(r, axis=1) <= self.final_schedule.inlier_threshold_px(sigma)
+            inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids))
+            self.archive.add(np.array(with_point, np.int64), points,
+                             np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
+            self.archive.observations += int(len(good))
+            self.archive.inlier_observations += int(good.sum())
+        self._retired_tracks.update(retired)
+        for t in retired:
+            del self.tracks[t]
+            self.landmarks.pop(t, None)
+            self.landmark_colors.pop(t, None)
+        empty = np.zeros(0, np.int64)
+        for kf in self.keyframes[self.first_active:cutoff]:
+            kf.track_ids, kf.uv, kf.colors = empty, np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
+        self.first_active = cutoff
+        log.debug("retired keyframes before %d: %d landmarks archived, %d active", cutoff, len(with_point),
+                  len(self.landmarks))
+
+    def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int) -> np.ndarray:
+        """A landmark is an inlier with enough inlier observations, making up enough of its observations."""
+        cfg = self.config
+        counts = np.bincount(obs_point[good], minlength=n_points)
+        totals = np.bincount(obs_point, minlength=n_points)
+        # a point cannot be seen more often than there are keyframes (a two-view stereo pair: 2)
+        min_obs = min(cfg.min_inlier_observations, n_views)
+        return (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The map as it stands, for the live surface: archived inliers, then every active landmark."""
+        _, apts, acols, ain = self.archive.arrays()
+        ids = list(self.landmarks)
+        pts = np.array([self.landmarks[t] for t in ids]).reshape(-1, 3)
+        cols = np.array([self.landmark_colors[t] for t in ids], np.uint8).reshape(-1, 3)
+        return np.concatenate([apts[ain], pts]), np.concatenate([acols[ain], cols])
 
     def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
         """The frame's pose refined against the current map (its prior where it sees too few landmarks)."""
@@ -160,7 +265,7 @@ class Mapper:
     # --- structure -----------------------------------------------------------------------------------------
     def _triangulate_new(self, kf: Keyframe) -> None:
         cfg = self.config
-        cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks[t]) >= 2]
+        cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks.get(t, ())) >= 2]
         if not cands:
             return
         kf_ids = sorted({k for t in cands for k, _ in self.tracks[t]})
@@ -191,7 +296,7 @@ class Mapper:
         if fixed_limit is not None:
             fixed = fixed[:fixed_limit]
         if edge_free:
-            free |= set(fixed)
+            free |= {k for k in fixed if k >= self.first_active}  # a retired keyframe stays as it was
         kf_ids = sorted(free) + sorted(set(fixed) - free)
         index = {k: i for i, k in enumerate(kf_ids)}
         obs = [o for o in obs if o[0] in index]
@@ -238,7 +343,8 @@ class Mapper:
     def finish(self) -> MapResult:
         cfg = self.config
         t0 = time.perf_counter()
-        built = self._problem(list(range(len(self.keyframes))), fixed_limit=None) if self.keyframes else None
+        active = list(range(self.first_active, len(self.keyframes)))
+        built = self._problem(active, fixed_limit=None) if active else None
         ids = np.array(sorted(self.landmarks), dtype=np.int64)
         inlier = np.zeros(len(ids), bool)
         n_obs = n_inlier_obs = 0
@@ -255,21 +361,23 @@ class Mapper:
                                         problem.obs_point, problem.obs_uv)
                 threshold = self.final_schedule.inlier_threshold_px(mad_sigma(r, cfg.sigma_floor_px))
                 good = np.linalg.norm(r, axis=1) <= threshold
-            n_pts = len(problem.point_ids)
-            counts = np.bincount(problem.obs_point[good], minlength=n_pts)
-            totals = np.bincount(problem.obs_point, minlength=n_pts)
-            # a point cannot be seen more often than there are keyframes (a two-view stereo pair: 2)
-            min_obs = min(cfg.min_inlier_observations, len(problem.pose_ids))
-            ok = (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
+            ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids))
             in_problem = dict(zip(problem.point_ids.tolist(), ok))
             inlier = np.array([in_problem.get(t, False) for t in ids.tolist()], bool)
             n_obs, n_inlier_obs = int(len(good)), int(good.sum())
         points = np.array([self.landmarks[t] for t in ids.tolist()]).reshape(-1, 3)
         colors = np.array([self.landmark_colors[t] for t in ids.tolist()], np.uint8).reshape(-1, 3)
+        aids, apts, acols, ain = self.archive.arrays()
+        ids, points = np.concatenate([aids, ids]), np.concatenate([apts, points])
+        colors, inlier = np.concatenate([acols, colors]), np.concatenate([ain, inlier])
+        n_obs += self.archive.observations
+        n_inlier_obs += self.archive.inlier_observations
         stats = {
             "keyframes": len(self.keyframes),
-            "tracks": len(self.tracks),
+            "retired_keyframes": self.first_active,
+            "tracks": self.tracks_seen,
             "landmarks": int(len(ids)),
+            "archived_landmarks": len(self.archive),
             "inliers": int(inlier.sum()),
             "outliers": int((~inlier).sum()),
             "local_ba_runs": len(self.ba_times) - (1 if built is not None and cfg.final_global_ba else 0),
@@ -286,14 +394,23 @@ class Mapper:
         pose-only refinement started from the keyframe corrections interpolated in time."""
         if not self.keyframes:
             return np.array([f.T_prior for f in self.frames])
+        kt, corr = self._corrections()
+        for f in self.frames[self._frames_final:]:
+            self._settle_frame(f, kt, corr)
+        self._frames_final = len(self.frames)
+        return np.array([f.T_refined for f in self.frames])
+
+    def _corrections(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Keyframe times and each keyframe's correction of its robot prior (T_refined @ T_prior^-1)."""
         kt = np.array([k.t_ns for k in self.keyframes])
-        corr = [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in self.keyframes]
-        out = []
-        for f in self.frames:
-            if f.keyframe is not None:
-                f.T_refined = self.keyframes[f.keyframe].T_world_camera
-                out.append(f.T_refined)
-                continue
+        return kt, [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in self.keyframes]
+
+    def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray]) -> None:
+        """A frame's final pose: a keyframe's own, else its prior with the keyframe corrections interpolated
+        in time, refined against the map; its observations are then let go."""
+        if f.keyframe is not None:
+            f.T_refined = self.keyframes[f.keyframe].T_world_camera
+        else:
             i = int(np.searchsorted(kt, f.t_ns))
             if i == 0:
                 C = corr[0]
@@ -303,5 +420,4 @@ class Mapper:
                 s = (f.t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
                 C = interpolate_pose(corr[i - 1], corr[i], s)
             f.T_refined = self._resect(f, C @ f.T_prior)
-            out.append(f.T_refined)
-        return np.array(out)
+        f.track_ids = f.uv = f.cov = None

@@ -216,7 +216,7 @@ class LiveRun:
                 self.progress.update(1)
 
     def _surface(self) -> None:
-        from ..surface.mesh import alpha_shape
+        from ..surface.mesh import alpha_shape, thin_points
         from .live_view import LiveView
 
         view = LiveView(self.camera, self.out_dir, self.rt.view_period_s) if self.rt.view_period_s > 0 and \
@@ -231,6 +231,7 @@ class LiveRun:
                     v, pts, cols = self._snapshot.read()
                     if v != version and len(pts) >= 4:
                         t0 = time.perf_counter()
+                        pts, cols = thin_points(pts, cols, self.rt.surface_max_points)
                         self._mesh = alpha_shape(pts, cols, self.config.surface.alpha_factor)
                         self._stage_s["surface"].append(time.perf_counter() - t0)
                         self.counters.add("surface_rebuilds")
@@ -300,6 +301,16 @@ class LiveRun:
             else:
                 self.recorder.add_joints(item)
 
+    def status(self) -> dict:
+        """A consistent-enough view of the run while it goes (for samplers; cheap, any thread)."""
+        c = self.counters.values
+        snapshot = getattr(self, "_snapshot", None)
+        return {"frames_in": c.get("frames_in", 0), "frames_processed": c.get("frames_processed", 0),
+                "keyframes": c.get("keyframes", 0), "latency_ns": self._latency_ns,
+                "mapper_pid": getattr(self, "mapper_pid", None), "degraded": self.degraded,
+                "finishing": self.stop.is_set(),  # capture has stopped; the final map is being made
+                "map_points": snapshot.size() if snapshot is not None else 0}
+
     # --- the main loop -----------------------------------------------------------------------------------------
     def run(self, seconds: float | None = None) -> tuple[object, dict]:
         ctx = mp.get_context("spawn")
@@ -316,6 +327,7 @@ class LiveRun:
                                  snap_lock, self.camera.K, self.config.mapper, rt.mapper_backlog_skip_ba,
                                  self._ready_q, self._done_q, send))
         proc.start()
+        self.mapper_pid = proc.pid
         threads = {name: threading.Thread(target=self._guard, args=(name, body), name=f"live {name}", daemon=True)
                    for name, body in (("capture", self._capture), ("tracking", self._tracking),
                                       ("results", self._results), ("surface", self._surface),

@@ -47,10 +47,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             if not is_kf and not resect:
                 skipped_resection += 1
             if is_kf:
-                ids = list(mapper.landmarks)
-                if ids:
-                    snapshot.publish(np.array([mapper.landmarks[t] for t in ids]),
-                                     np.array([mapper.landmark_colors[t] for t in ids], np.uint8))
+                points, colors = mapper.map_points()
+                if len(points):
+                    snapshot.publish(points, colors)
             done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
                         mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
         t0 = time.perf_counter()

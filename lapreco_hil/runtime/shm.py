@@ -86,11 +86,16 @@ class MapSnapshot:
 
     def publish(self, points: np.ndarray, colors: np.ndarray) -> None:
         n = min(len(points), self.max_points)
-        with self.lock:
-            self._points[:n] = points[:n]
-            self._colors[:n] = colors[:n]
+        with self.lock:  # over capacity, the newest points (the active map comes last) are kept
+            self._points[:n] = points[len(points) - n:]
+            self._colors[:n] = colors[len(colors) - n:]
             self._header[1] = n
             self._header[0] += 1
+
+    def size(self) -> int:
+        """Points in the snapshot now (0 once closed)."""
+        header = getattr(self, "_header", None)
+        return int(header[1]) if header is not None else 0
 
     def read(self) -> tuple[int, np.ndarray, np.ndarray]:
         with self.lock:
