@@ -90,6 +90,9 @@ class RuntimeConfig:
     # that arrive during one local BA (about a second at 60 fps), which the mapper then catches up on cheaply
     mapper_slots: int = 128
     mapper_backlog_skip_ba: int = 2  # local BA is deferred while more frames than this wait for the mapper
+    # local BA in a worker process of its own, on the newest window, while the mapper goes on mapping frames
+    # (false: the mapper runs it between frames, deferring it while frames wait)
+    ba_worker: bool = True
     max_tracks: int = 4096
     max_landmarks: int = 200_000
     surface_period_s: float = 2.0  # live mesh rebuild

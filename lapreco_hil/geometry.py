@@ -20,6 +20,16 @@ def inv_T(T: np.ndarray) -> np.ndarray:
     return make_T(R.T, -R.T @ T[:3, 3])
 
 
+def rigid(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform (rotation projected onto SO(3)): products of poses drift off it, and a
+    pose composed again and again (a correction carried from keyframe to keyframe) must not."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return make_T(R, T[:3, 3])
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply T to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]

@@ -6,6 +6,7 @@ stretch)."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import tempfile
@@ -31,9 +32,10 @@ def rss_mb(pid: int | str = "self") -> float | None:
 class Sampler:
     """Samples a LiveRun every ``period_s`` from its own thread."""
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, stream: str | None = None) -> None:
         self.period_s = period_s
         self.samples: list[dict] = []
+        self.stream = stream  # each sample is also appended here as a JSON line (kept if the run fails)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -58,6 +60,9 @@ class Sampler:
                 "latency_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
                 "degraded": status["degraded"], "phase": "final map" if status["finishing"] else "live",
             })
+            if self.stream:
+                with open(self.stream, "a", encoding="utf-8") as fh:
+                    fh.write(json.dumps(self.samples[-1]) + "\n")
 
     def stop(self) -> None:
         self._stop.set()
@@ -94,7 +99,7 @@ def summarize(samples: list[dict], warmup_s: float, stretch_s: float) -> dict:
 
 
 def run(device: str, resolution: tuple[int, int], fps: float, minutes: float, features: int, scene: str = "skull",
-        tracker: str = "auto", sample_s: float = 10.0) -> dict:
+        tracker: str = "auto", sample_s: float = 10.0, stream: str | None = None) -> dict:
     from ..cli.run import run_live
     from ..config import PipelineConfig
     from ..frontend import resolve_tracker
@@ -108,7 +113,7 @@ def run(device: str, resolution: tuple[int, int], fps: float, minutes: float, fe
     # an endless simulated world (its scan is periodic), rendered as the camera would deliver it
     url = f"sim://{scene}?width={w}&height={h}&fps={fps}&speed=1.0"
     robot, grabber = open_robot(url, ctx), open_grabber(url + "&pace=realtime", ctx)
-    sampler = Sampler(sample_s)
+    sampler = Sampler(sample_s, stream)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         try:

@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_k.add_argument("--scene", default="skull")
     bench_k.add_argument("--tracker", default="auto", help="warp | opencv | auto")
     bench_k.add_argument("--sample-s", type=float, default=10.0, help="seconds between samples")
-    bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file")
+    bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file; "
+                         "samples also go to JSON.samples.jsonl as they are taken")
     bench_k.set_defaults(func=_cmd_bench_soak)
     bench_r = bench_sub.add_parser("robot", help="robot drivers on their emulators: sample rate, jitter, latency")
     bench_r.add_argument("--link", nargs="+", choices=("serial", "canopen"), default=["serial", "canopen"])
@@ -211,7 +212,7 @@ def _cmd_bench_soak(args) -> int:
     from ..warp_device import resolve_device
 
     result = run(resolve_device(args.device), args.resolution, args.fps, args.minutes, args.features, args.scene,
-                 args.tracker, args.sample_s)
+                 args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None)
     print(format_table(result))
     _write_json(args.json, result)
     return 0

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import MapperConfig
-from ..geometry import interpolate_pose, inv_T, rotation_angle
+from ..geometry import interpolate_pose, inv_T, rigid, rotation_angle
 from ..types import Observations, PosePrior
 from . import bundle_adjustment as ba
 from .robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
@@ -96,6 +96,13 @@ class MapResult:
     stats: dict = field(default_factory=dict)
 
 
+def local_schedule(config: MapperConfig) -> RobustSchedule:
+    """The robust schedule of a local BA (the live BA worker solves with it too)."""
+    return RobustSchedule((RobustStage("cauchy", CAUCHY_K, config.local_cauchy_iterations),
+                           RobustStage("tukey", TUKEY_C, config.local_tukey_iterations)),
+                          sigma_floor_px=config.sigma_floor_px)
+
+
 class Mapper:
     def __init__(self, K: np.ndarray, config: MapperConfig) -> None:
         self.K = np.asarray(K, float)
@@ -108,14 +115,16 @@ class Mapper:
         self.archive = LandmarkArchive()
         self.first_active = 0  # keyframes before this one are retired
         self._frames_final = 0  # frames before this index have their final pose
+        self._emptied = 0  # keyframes before this index hold no observations any more
         self.tracks_seen = 0
         self._retired_tracks: set[int] = set()
+        # live: local BA is solved by a worker process while frames go on being mapped (local_ba_job)
+        self.defer_local_ba = False
+        self.local_ba_wanted = False
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
-        self.local_schedule = RobustSchedule(
-            (RobustStage("cauchy", CAUCHY_K, config.local_cauchy_iterations),
-             RobustStage("tukey", TUKEY_C, config.local_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
+        self.local_schedule = local_schedule(config)
         self.final_schedule = RobustSchedule(
             (RobustStage("cauchy", CAUCHY_K, config.final_cauchy_iterations),
              RobustStage("tukey", TUKEY_C, config.final_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
@@ -147,7 +156,10 @@ class Mapper:
             seen.append((kf.id, uv))
         self._triangulate_new(kf)
         if len(self.keyframes) >= 2 and local_ba:
-            self._local_ba()
+            if self.defer_local_ba:
+                self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
+            else:
+                self._local_ba()
         record.T_refined = kf.T_world_camera
         cfg = self.config
         if cfg.active_keyframes and len(self.keyframes) - self.first_active > cfg.active_keyframes:
@@ -188,9 +200,13 @@ class Mapper:
             del self.tracks[t]
             self.landmarks.pop(t, None)
             self.landmark_colors.pop(t, None)
+        # a retired keyframe's observations are let go once no local window can reach back to it (it still
+        # anchors, fixed, the windows just after its retirement)
         empty = np.zeros(0, np.int64)
-        for kf in self.keyframes[self.first_active:cutoff]:
+        reach = max(0, cutoff - 3 * self.config.window_keyframes)
+        for kf in self.keyframes[self._emptied:reach]:
             kf.track_ids, kf.uv, kf.colors = empty, np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
+        self._emptied = max(self._emptied, reach)
         self.first_active = cutoff
         log.debug("retired keyframes before %d: %d landmarks archived, %d active", cutoff, len(with_point),
                   len(self.landmarks))
@@ -229,7 +245,7 @@ class Mapper:
             return prior.T_world_camera.copy()
         last = self.keyframes[-1]
         correction = last.T_world_camera @ inv_T(last.prior.T_world_camera)
-        return correction @ prior.T_world_camera
+        return rigid(correction @ prior.T_world_camera)
 
     def _is_keyframe(self, obs: Observations, prior: PosePrior) -> bool:
         if not self.keyframes:
@@ -270,12 +286,13 @@ class Mapper:
             return
         kf_ids = sorted({k for t in cands for k, _ in self.tracks[t]})
         col = {k: i for i, k in enumerate(kf_ids)}
+        flat = [(n, col[k], p) for n, t in enumerate(cands) for k, p in self.tracks[t]]
+        rows = np.fromiter((f[0] for f in flat), np.int64, len(flat))
+        cols = np.fromiter((f[1] for f in flat), np.int64, len(flat))
         uv = np.zeros((len(cands), len(kf_ids), 2))
         seen = np.zeros((len(cands), len(kf_ids)), bool)
-        for n, t in enumerate(cands):
-            for k, p in self.tracks[t]:
-                uv[n, col[k]] = p
-                seen[n, col[k]] = True
+        uv[rows, cols] = np.array([f[2] for f in flat])
+        seen[rows, cols] = True
         poses = np.array([self.keyframes[k].T_world_camera for k in kf_ids])
         res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
         color_of = dict(zip(kf.track_ids.tolist(), kf.colors))
@@ -319,25 +336,68 @@ class Mapper:
 
     def _apply(self, problem: ba.BAProblem, result: ba.BAResult) -> None:
         for i, k in enumerate(problem.pose_ids.tolist()):
-            if not problem.fixed[i]:
+            if not problem.fixed[i] and k >= self.first_active:  # (a worker's result may outlive a keyframe)
                 self.keyframes[k].T_world_camera = result.poses[i]
                 self.keyframes[k].refined = True
         for j, t in enumerate(problem.point_ids.tolist()):
-            self.landmarks[t] = result.points[j]
+            if t in self.landmarks:
+                self.landmarks[t] = result.points[j]
         self.ba_times.append(result.seconds)
         self.ba_iterations.append(result.iterations)
         self.last_sigma_px = result.stats.get("sigma_px", self.last_sigma_px)
 
-    def _local_ba(self) -> None:
+    def _local_problem(self) -> ba.BAProblem | None:
+        """The newest ``window_keyframes`` keyframes and their landmarks, with every observation of those
+        landmarks in the ``2 x window`` keyframes before the window. Those co-visible older keyframes join as
+        free variables with their robot priors (a soft edge): holding them fixed would carry their errors
+        into every later window; only retired ones stay fixed. Built from the keyframes' own arrays (vectorised: at 2000 tracks a window
+        holds ~50k observations, built once a keyframe while frames wait)."""
         cfg = self.config
-        window = list(range(max(0, len(self.keyframes) - cfg.window_keyframes), len(self.keyframes)))
-        # co-visible older keyframes join as free variables with their robot priors (a soft edge): holding
-        # them fixed would carry their errors into every later window
-        built = self._problem(window, fixed_limit=2 * cfg.window_keyframes, edge_free=True)
-        if built is None:
-            return
-        problem, _ = built
-        self._apply(problem, ba.solve_robust(problem, self.local_schedule))
+        n = len(self.keyframes)
+        start = max(self.first_active, n - cfg.window_keyframes)
+        kfs = self.keyframes[max(0, n - 3 * cfg.window_keyframes):]
+        tids = np.concatenate([kf.track_ids for kf in kfs])
+        uvs = np.concatenate([kf.uv for kf in kfs])
+        kfi = np.repeat([kf.id for kf in kfs], [len(kf.track_ids) for kf in kfs])
+        landmarks = self.landmarks
+        point_ids = np.array([t for t in np.unique(tids[kfi >= start]).tolist() if t in landmarks], np.int64)
+        if not len(point_ids):
+            return None
+        sel = np.isin(tids, point_ids)
+        tids, uvs, kfi = tids[sel], uvs[sel], kfi[sel]
+        kf_ids = np.unique(kfi)
+        chosen = [self.keyframes[k] for k in kf_ids.tolist()]
+        return ba.BAProblem(
+            K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
+            fixed=kf_ids < self.first_active, prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
+            prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
+            points=np.array([landmarks[t] for t in point_ids.tolist()]),
+            obs_pose=np.searchsorted(kf_ids, kfi), obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs)
+
+    def _local_ba(self) -> None:
+        problem = self._local_problem()
+        if problem is not None:
+            self._apply(problem, ba.solve_robust(problem, self.local_schedule))
+
+    def local_ba_job(self) -> tuple[ba.BAProblem, dict] | None:
+        """The newest window's local BA for a worker to solve (``ba.solve_robust(problem, local_schedule)``),
+        and the ticket ``apply_local_ba`` needs; None when there is nothing to adjust."""
+        self.local_ba_wanted = False
+        problem = self._local_problem()
+        if problem is None:
+            return None
+        last = len(self.keyframes) - 1
+        return problem, {"last_kf": last, "T_last": self.keyframes[last].T_world_camera.copy()}
+
+    def apply_local_ba(self, problem: ba.BAProblem, result: ba.BAResult, ticket: dict) -> None:
+        """A worker's local BA, solved on the map as it was when the job left: its keyframes and landmarks
+        take the result (unless retired since), and keyframes added meanwhile move with the newest solved
+        one (they were predicted from its old correction)."""
+        self._apply(problem, result)
+        last = ticket["last_kf"]
+        shift = rigid(self.keyframes[last].T_world_camera @ inv_T(ticket["T_last"]))
+        for kf in self.keyframes[last + 1:]:
+            kf.T_world_camera = rigid(shift @ kf.T_world_camera)
 
     # --- end of sequence -----------------------------------------------------------------------------------
     def finish(self) -> MapResult:

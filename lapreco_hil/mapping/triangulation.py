@@ -29,7 +29,7 @@ def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K
     rows_x = (xn[..., None] * P[None, :, 2, :] - P[None, :, 0, :]) * w[..., None]
     rows_y = (yn[..., None] * P[None, :, 2, :] - P[None, :, 1, :]) * w[..., None]
     A = np.concatenate([rows_x, rows_y], axis=1)  # (N, 2M, 4)
-    _, _, vh = np.linalg.svd(A)
+    _, _, vh = np.linalg.svd(A, full_matrices=False)  # (the full U of every track would be (2M, 2M))
     Xh = vh[:, -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         X = Xh[:, :3] / Xh[:, 3:4]
@@ -44,12 +44,17 @@ def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K
     err = np.hypot(u - uv[..., 0], v - uv[..., 1])
     err = np.where(seen, err, 0.0)
     cheiral = np.all(~seen | (z > 1e-4), axis=1)
-    # parallax: the largest angle between rays from the observing camera centres
+    # parallax: the largest angle between rays from the observing camera centres, taken against the first
+    # and the last observing ray (a track's widest baseline has one of its ends there; checking every pair
+    # would cost N x M x M)
     rays = X[:, None, :] - T_world_cameras[None, :, :3, 3]
     rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
-    cosines = np.einsum("nai,nbi->nab", rays, rays)
-    both = seen[:, :, None] & seen[:, None, :]
-    min_cos = np.where(both, cosines, 1.0).min(axis=(1, 2))
+    rows = np.arange(N)
+    first, last = np.argmax(seen, axis=1), M - 1 - np.argmax(seen[:, ::-1], axis=1)
+    min_cos = np.ones(N)
+    for end in (first, last):
+        cosines = np.einsum("nmi,ni->nm", rays, rays[rows, end])
+        min_cos = np.minimum(min_cos, np.where(seen, cosines, 1.0).min(axis=1))
     parallax = np.degrees(np.arccos(np.clip(min_cos, -1.0, 1.0)))
     max_err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
     valid = finite & cheiral & (parallax >= min_parallax_deg) & (max_err <= max_error_px) & (seen.sum(1) >= 2)

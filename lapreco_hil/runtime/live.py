@@ -5,7 +5,8 @@ behind (DESIGN.md, the seed's Fig 1):
 - capture never blocks: it keeps the newest ``capture_queue`` frames; older ones are dropped and counted;
 - tracking takes every frame capture kept (LK needs consecutive frames) and writes its observations into a
   shared-memory slot for the mapper; with no free slot the frame is not mapped (counted);
-- the mapper process defers local BA while frames wait for it (BA then runs on the newest keyframes only);
+- the mapper process maps every frame it gets while a BA worker process solves the newest window of
+  keyframes, back to back (BA runs on the newest keyframes only; keyframes it skipped are counted);
 - the surface is rebuilt every ``surface_period_s`` from the mapper's latest landmarks, the live textured view
   rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture.
 
@@ -31,7 +32,8 @@ from ..config import PipelineConfig
 from ..errors import DeviceTimeoutError, LaprecoError, ReconstructionError
 from ..frontend import make_frontend
 from .coverage import ViewCoverage
-from .mapper_process import drain, mapper_main
+from ..mapping.mapper import local_schedule
+from .mapper_process import ba_worker_main, drain, mapper_main
 from .shm import MapSnapshot, ObservationRing
 
 log = logging.getLogger(__name__)
@@ -301,6 +303,23 @@ class LiveRun:
             else:
                 self.recorder.add_joints(item)
 
+    def _await_final_map(self, proc, ba_proc, recv, timeout_s: float = 3600.0):
+        """The mapper's final map (or its error), watching that it and its BA worker stay alive: a mapper
+        killed meanwhile (out of memory) is reported at once, not after the timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if recv.poll(0.5):
+                return recv.recv()
+            if not proc.is_alive() or (ba_proc is not None and not ba_proc.is_alive()):
+                if recv.poll(0.5):
+                    return recv.recv()
+                dead, code = ("mapper", proc.exitcode) if not proc.is_alive() else ("local BA worker", ba_proc.exitcode)
+                hint = " (killed: out of memory?)" if code == -9 else ""
+                self.errors["mapper"] = f"the {dead} process died while the final map was made (exit code {code}){hint}"
+                return None
+        self.errors["mapper"] = f"no final map from the mapper after {timeout_s:.0f} s"
+        return None
+
     def status(self) -> dict:
         """A consistent-enough view of the run while it goes (for samplers; cheap, any thread)."""
         c = self.counters.values
@@ -322,12 +341,19 @@ class LiveRun:
         self._ready_q, self._done_q = ctx.Queue(), ctx.Queue()
         recv, send = ctx.Pipe(duplex=False)
         self._finished = threading.Event()
+        ba_proc = ba_jobs = None
+        if rt.ba_worker:
+            ba_jobs, ba_results = ctx.Queue(), ctx.Queue()
+            ba_proc = ctx.Process(target=ba_worker_main, name="lapreco local BA", daemon=True,
+                                  args=(local_schedule(self.config.mapper), ba_jobs, ba_results))
+            ba_proc.start()
         proc = ctx.Process(target=mapper_main, name="lapreco mapper", daemon=True,
                            args=(self._ring.name, rt.mapper_slots, rt.max_tracks, self._snapshot.name, rt.max_landmarks,
                                  snap_lock, self.camera.K, self.config.mapper, rt.mapper_backlog_skip_ba,
-                                 self._ready_q, self._done_q, send))
+                                 self._ready_q, self._done_q, send, ba_jobs, ba_results if ba_jobs else None))
         proc.start()
         self.mapper_pid = proc.pid
+        self.ba_worker_pid = ba_proc.pid if ba_proc is not None else None
         threads = {name: threading.Thread(target=self._guard, args=(name, body), name=f"live {name}", daemon=True)
                    for name, body in (("capture", self._capture), ("tracking", self._tracking),
                                       ("results", self._results), ("surface", self._surface),
@@ -348,6 +374,11 @@ class LiveRun:
                     break
                 if not proc.is_alive():
                     self.errors["mapper"] = f"the mapper process exited (code {proc.exitcode})"
+                    if recv.poll(1.0):
+                        final = recv.recv()  # its last word: the error that ended it (reported below)
+                    break
+                if ba_proc is not None and not ba_proc.is_alive():
+                    self.errors["mapper"] = f"the local BA worker process exited (code {ba_proc.exitcode})"
                     break
                 if seconds is not None and time.perf_counter() - t_start >= seconds:
                     break
@@ -362,11 +393,15 @@ class LiveRun:
             threads["tracking"].join(timeout=30.0)
             if proc.is_alive():
                 self._ready_q.put(None)
-                if recv.poll(600):
-                    final = recv.recv()
+                final = self._await_final_map(proc, ba_proc, recv)
                 proc.join(timeout=10.0)
             if proc.is_alive():
                 proc.terminate()
+            if ba_proc is not None:
+                ba_jobs.put(None)
+                ba_proc.join(timeout=10.0)
+                if ba_proc.is_alive():
+                    ba_proc.terminate()
             self._done_q.put(None)
             threads["results"].join(timeout=10.0)
             self._finished.set()

@@ -1,7 +1,12 @@
-"""The mapper in its own process. GTSAM's optimiser holds the GIL for the whole solve (measured: a Python
-thread runs at a few per cent of its speed during one; docs/benchmarks.md), so a local BA in a thread would
-stall capture and tracking for its duration. Observations arrive through shared memory (ObservationRing),
-slot numbers and refined poses through queues; the final map goes back through a pipe."""
+"""The mapper in its own process, and its local BA in another. GTSAM's optimiser holds the GIL for the whole
+solve (measured: a Python thread runs at a few per cent of its speed during one; docs/benchmarks.md), so a
+local BA in a thread would stall whatever else runs in that process: capture and tracking in the main
+process, and the per-frame work (keyframe choice, triangulation, pose refinement) in the mapper. So frames
+are mapped as they come while the BA worker solves the newest window; when its result is back the mapper
+applies it and hands over the newest window again (BA runs on the newest keyframes only, as often as it can).
+
+Observations arrive through shared memory (ObservationRing), slot numbers and refined poses through queues;
+BA problems and results (numpy arrays) through the worker's queues; the final map goes back through a pipe."""
 
 from __future__ import annotations
 
@@ -15,9 +20,63 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+def ba_worker_main(schedule, jobs_q, results_q) -> None:
+    """Process body: solve each (job id, BAProblem) until a None arrives; errors go back, never lost."""
+    import signal
+
+    from ..mapping.bundle_adjustment import solve_robust
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    while True:
+        job = jobs_q.get()
+        if job is None:
+            return
+        job_id, problem = job
+        try:
+            results_q.put((job_id, "ok", solve_robust(problem, schedule)))
+        except Exception:
+            results_q.put((job_id, "error", traceback.format_exc()))
+
+
+class _BAClient:
+    """The mapper's side of the worker: one job in flight at a time."""
+
+    def __init__(self, jobs_q, results_q) -> None:
+        self.jobs_q, self.results_q = jobs_q, results_q
+        self.in_flight = None  # (job id, problem, ticket)
+        self._next_id = 0
+        self.runs = self.failed = 0
+
+    def submit(self, job) -> None:
+        problem, ticket = job
+        self.in_flight = (self._next_id, problem, ticket)
+        self.jobs_q.put((self._next_id, problem))
+        self._next_id += 1
+
+    def collect(self, mapper, timeout_s: float = 0.0) -> bool:
+        """Apply the finished job, if there is one (waiting up to ``timeout_s``); True when one was."""
+        if self.in_flight is None:
+            return False
+        try:
+            job_id, status, payload = self.results_q.get(timeout=timeout_s) if timeout_s else self.results_q.get_nowait()
+        except queue.Empty:
+            return False
+        _, problem, ticket = self.in_flight
+        self.in_flight = None
+        if status == "ok":
+            mapper.apply_local_ba(problem, payload, ticket)
+            self.runs += 1
+        else:  # a failed local BA loses one refinement, not the run: the next window covers it
+            self.failed += 1
+            log.error("local BA %d failed in the worker:\n%s", job_id, payload)
+        return True
+
+
 def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str, max_points: int, snap_lock,
-                K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn) -> None:
-    """Process body: take slots until a None arrives, then finish the map and send it (or the error)."""
+                K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn,
+                ba_jobs_q=None, ba_results_q=None) -> None:
+    """Process body: take slots until a None arrives, then finish the map and send it (or the error).
+    With BA queues, local BA goes to the worker; without, it runs here (deferred while frames wait)."""
     import signal
 
     from ..mapping.mapper import Mapper
@@ -28,9 +87,24 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
         mapper = Mapper(K, mapper_config)
+        worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
+        mapper.defer_local_ba = worker is not None
         skipped_ba = skipped_resection = 0
         while True:
-            slot = ready_q.get()
+            if worker is not None:
+                applied = worker.collect(mapper)
+                if worker.in_flight is None and mapper.local_ba_wanted:
+                    job = mapper.local_ba_job()
+                    if job is not None:
+                        worker.submit(job)
+                if applied:
+                    points, colors = mapper.map_points()
+                    if len(points):
+                        snapshot.publish(points, colors)
+            try:
+                slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
+            except queue.Empty:
+                continue
             if slot is None:
                 break
             obs, prior, arrival_ns = ring.read(slot)
@@ -39,24 +113,30 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 backlog = ready_q.qsize()
             except NotImplementedError:  # macOS has no qsize; never skip there
                 backlog = 0
-            run_ba = backlog <= backlog_skip_ba
+            run_ba = worker is not None or backlog <= backlog_skip_ba
             resect = backlog == 0  # behind: a frame between keyframes takes its corrected prior for now
+            in_flight = worker is not None and worker.in_flight is not None
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect)
-            if is_kf and not run_ba:
-                skipped_ba += 1
+            if is_kf and (not run_ba or in_flight):
+                skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
                 skipped_resection += 1
-            if is_kf:
+            if is_kf and worker is None:
                 points, colors = mapper.map_points()
                 if len(points):
                     snapshot.publish(points, colors)
             done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
                         mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
+        if worker is not None:
+            worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass
         t0 = time.perf_counter()
         result = mapper.finish()
         result.stats["final_ba_wall_s"] = time.perf_counter() - t0
         result.stats["local_ba_skipped"] = skipped_ba
         result.stats["resection_skipped"] = skipped_resection
+        if worker is not None:
+            result.stats["local_ba_worker_runs"] = worker.runs
+            result.stats["local_ba_worker_failed"] = worker.failed
         final_conn.send(("ok", result))
     except BaseException:  # reported to the main loop, never lost with the process
         final_conn.send(("error", traceback.format_exc()))
