@@ -114,9 +114,22 @@ def _points_first(pose_keys, point_keys) -> gtsam.Ordering:
     return ordering
 
 
-def _lm(graph, values, iterations: int, ordering: gtsam.Ordering | None = None):
+# Above this many poses the linear systems are solved by block-Jacobi preconditioned conjugate gradients.
+# A direct solve eliminates each landmark into a dense factor over all the poses that see it: long tracks
+# over hundreds of keyframes made the final pass of a 30-minute run take 24 GB (measured on 320 keyframes,
+# 2679 points, 112k observations: points-first 21.7 s / 3.1 GB, METIS 11.7 s / 0.9 GB, PCG 3.7 s / 0.33 GB,
+# final error within 0.02 %).
+ITERATIVE_ABOVE_POSES = 50
+
+
+def _lm(graph, values, iterations: int, ordering: gtsam.Ordering | None = None, iterative: bool = False):
     params = gtsam.LevenbergMarquardtParams()
-    if ordering is not None:
+    if iterative:
+        params.setLinearSolverType("ITERATIVE")
+        pcg = gtsam.PCGSolverParameters()
+        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+        params.setIterativeParams(pcg)
+    elif ordering is not None:
         params.setOrdering(ordering)
     params.setMaxIterations(iterations)
     params.setRelativeErrorTol(1e-5)
@@ -175,7 +188,8 @@ def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
         graph, pose_keys, point_keys, _ = _build(p, noise)
         values = _values(p, poses, points)
         error0 = graph.error(values)
-        result, its = _lm(graph, values, stage.iterations, _points_first(pose_keys, point_keys))
+        result, its = _lm(graph, values, stage.iterations, _points_first(pose_keys, point_keys),
+                          iterative=len(pose_keys) > ITERATIVE_ABOVE_POSES)
         poses, points = _unpack(result, pose_keys, point_keys, poses)
         final_error = float(graph.error(result))
         if n == 0:
