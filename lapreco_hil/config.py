@@ -71,6 +71,8 @@ class MapperConfig:
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
     active_keyframes: int = 400
+    # a frame's pose is refined against at most this many of its landmarks, evenly spread (0 = all)
+    resection_max_points: int = 400
     retire_batch: int = 100
 
 

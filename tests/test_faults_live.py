@@ -126,11 +126,14 @@ class StutteringGrabber(Wrapped):
     def __init__(self, inner):
         super().__init__(inner)
         self.prev = None
+        self.first_bad = None
 
     def read(self, timeout_s=None):
         f = self.inner.read(timeout_s)
         if f is not None and self.prev is not None and f.seq % 10 == 0:
             f = Frame(f.image, self.prev.t_ns - 1000, f.seq)
+            if self.first_bad is None:
+                self.first_bad = time.monotonic()
         if f is not None:
             self.prev = f
         return f
@@ -186,6 +189,9 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
         assert seen is not None and seen < 0.1, (glitch, seen)
         assert _first(events, "robot readings", "ok", marks[f"{glitch}_clear"]) is not None
     assert report["frames"]["bad_timestamps"] >= 5  # every 10th frame, refused and counted
+    seen = _first(events, "frame times", "refused", grabber.first_bad)
+    assert seen is not None and seen < 0.1
+    assert report["health"]["counts"]["frame_times_refused"] >= 3
     assert report["frames"]["processed"] > 50
     assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
 

@@ -121,6 +121,9 @@ class Mapper:
         # live: local BA is solved by a worker process while frames go on being mapped (local_ba_job)
         self.defer_local_ba = False
         self.local_ba_wanted = False
+        # live, frames settled at a retirement keep the interpolated keyframe correction without a fresh
+        # refinement (hundreds of them at once would stall the frames waiting; each was refined as it came)
+        self.resect_on_retire = True
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -174,7 +177,7 @@ class Mapper:
         kt, corr = self._corrections()
         n = self._frames_final
         while n < len(self.frames) and self.frames[n].t_ns < t_cut:
-            self._settle_frame(self.frames[n], kt, corr)
+            self._settle_frame(self.frames[n], kt, corr, resect=self.resect_on_retire)
             n += 1
         self._frames_final = n
         retired = [t for t, seen in self.tracks.items() if seen[-1][0] < cutoff]
@@ -233,6 +236,9 @@ class Mapper:
         known = [i for i, t in enumerate(record.track_ids.tolist()) if t in self.landmarks]
         if len(known) < 6:
             return T_init
+        cap = self.config.resection_max_points
+        if cap and len(known) > cap:  # a 6-DoF pose with a prior is settled long before 2000 points
+            known = known[:: -(-len(known) // cap)]
         pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known])
         sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
         T, _ = refine_pose(record.T_prior, record.cov, pts, record.uv[known], self.K, sigma, T_init=T_init)
@@ -461,13 +467,14 @@ class Mapper:
         return np.array([f.T_refined for f in self.frames])
 
     def _corrections(self) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Keyframe times and each keyframe's correction of its robot prior (T_refined @ T_prior^-1)."""
-        kt = np.array([k.t_ns for k in self.keyframes])
-        return kt, [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in self.keyframes]
+        """Times and corrections of the robot prior (T_refined @ T_prior^-1) of the keyframes an unsettled
+        frame can lie between (frames before the first active keyframe are settled already)."""
+        kfs = self.keyframes[max(0, self.first_active - 1):]
+        return np.array([k.t_ns for k in kfs]), [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in kfs]
 
-    def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray]) -> None:
+    def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray], resect: bool = True) -> None:
         """A frame's final pose: a keyframe's own, else its prior with the keyframe corrections interpolated
-        in time, refined against the map; its observations are then let go."""
+        in time, refined against the map (unless ``resect`` is off); its observations are then let go."""
         if f.keyframe is not None:
             f.T_refined = self.keyframes[f.keyframe].T_world_camera
         else:
@@ -479,5 +486,5 @@ class Mapper:
             else:
                 s = (f.t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
                 C = interpolate_pose(corr[i - 1], corr[i], s)
-            f.T_refined = self._resect(f, C @ f.T_prior)
+            f.T_refined = self._resect(f, C @ f.T_prior) if resect else C @ f.T_prior
         f.track_ids = f.uv = f.cov = None

@@ -87,6 +87,7 @@ class LiveRun:
         self._first_arrival_ns = 0
         self._health_events: list[dict] = []
         self._tracks_lost = False
+        self._bad_time_wall = 0.0  # when capture last refused a frame for its time stamp
         self._coverage = ViewCoverage(camera, partial_below=config.runtime.partial_view_below)
         self.degraded = False
         self._last_done_ns = 0
@@ -125,6 +126,7 @@ class LiveRun:
             if last_t is not None and frame.t_ns <= last_t:
                 # a duplicated or backwards capture time would break pose interpolation and the map's order
                 self.counters.add("bad_timestamps")
+                self._bad_time_wall = time.monotonic()
                 continue
             last_t = frame.t_ns
             if last_seq is not None and frame.seq > last_seq + 1:
@@ -288,7 +290,18 @@ class LiveRun:
                 elif partial:
                     self.counters.add("health_partial_view")
                 last["tracks"] = tracking
-            self.degraded = tracking != "tracking" or any(h.state is not HealthState.OK for h in states.values())
+            bad_times = time.monotonic() - self._bad_time_wall < 0.25
+            if bad_times != last.get("frame times", False):
+                n_bad = self.counters.values.get("bad_timestamps", 0)
+                self._health_events.append({"t_s": round(now, 3), "t_monotonic": time.monotonic(), "device": "frame times",
+                                            "state": "refused" if bad_times else "ok",
+                                            "detail": f"{n_bad} frames refused: duplicated or backwards time stamp"
+                                            if bad_times else ""})
+                if bad_times:
+                    self.counters.add("health_frame_times_refused")
+                last["frame times"] = bad_times
+            self.degraded = tracking != "tracking" or bad_times or \
+                any(h.state is not HealthState.OK for h in states.values())
 
     def _record(self) -> None:
         while True:

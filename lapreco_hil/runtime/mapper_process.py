@@ -19,6 +19,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+SNAPSHOT_PERIOD_S = 0.5  # the map for the live surface is published at most this often
+
 
 def ba_worker_main(schedule, jobs_q, results_q) -> None:
     """Process body: solve each (job id, BAProblem) until a None arrives; errors go back, never lost."""
@@ -89,18 +91,31 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper = Mapper(K, mapper_config)
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
         mapper.defer_local_ba = worker is not None
+        mapper.resect_on_retire = False
         skipped_ba = skipped_resection = 0
+        published = 0.0
+
+        def publish(changed: bool) -> float:
+            # the live surface rebuilds every couple of seconds: a snapshot twice a second is plenty, and
+            # gathering the map costs milliseconds that frames are waiting on
+            if not changed or time.monotonic() - published < SNAPSHOT_PERIOD_S:
+                return published
+            points, colors = mapper.map_points()
+            if len(points):
+                snapshot.publish(points, colors)
+            return time.monotonic()
+
+        changed = False
         while True:
             if worker is not None:
-                applied = worker.collect(mapper)
+                changed |= worker.collect(mapper)
                 if worker.in_flight is None and mapper.local_ba_wanted:
                     job = mapper.local_ba_job()
                     if job is not None:
                         worker.submit(job)
-                if applied:
-                    points, colors = mapper.map_points()
-                    if len(points):
-                        snapshot.publish(points, colors)
+            before = published
+            published = publish(changed)
+            changed = changed and published == before
             try:
                 slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
             except queue.Empty:
@@ -121,12 +136,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
                 skipped_resection += 1
-            if is_kf and worker is None:
-                points, colors = mapper.map_points()
-                if len(points):
-                    snapshot.publish(points, colors)
+            changed |= bool(is_kf)
             done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
                         mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
+        published = publish(changed)  # (a last snapshot if it is due)
         if worker is not None:
             worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass
         t0 = time.perf_counter()
