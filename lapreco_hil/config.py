@@ -93,8 +93,9 @@ class RuntimeConfig:
     mapper_slots: int = 128
     mapper_backlog_skip_ba: int = 2  # local BA is deferred while more frames than this wait for the mapper
     # local BA in a worker process of its own, on the newest window, while the mapper goes on mapping frames
-    # (false: the mapper runs it between frames, deferring it while frames wait)
-    ba_worker: bool = True
+    # ("on"), or run by the mapper between frames, deferred while frames wait ("off"). "auto": on with 4 or
+    # more CPU cores; on 2 cores a third busy process took the time tracking needs (25 -> 22 fps at 384x288)
+    ba_worker: str = "auto"
     max_tracks: int = 4096
     max_landmarks: int = 200_000
     surface_period_s: float = 2.0  # live mesh rebuild

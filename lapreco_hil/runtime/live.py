@@ -20,6 +20,7 @@ from __future__ import annotations
 import collections
 import logging
 import multiprocessing as mp
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -29,7 +30,7 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..config import PipelineConfig
-from ..errors import DeviceTimeoutError, LaprecoError, ReconstructionError
+from ..errors import ConfigError, DeviceTimeoutError, LaprecoError, ReconstructionError
 from ..frontend import make_frontend
 from .coverage import ViewCoverage
 from ..mapping.mapper import local_schedule
@@ -60,6 +61,8 @@ class LiveRun:
                  progress=None) -> None:
         if on_stage_error not in ("stop", "degrade"):
             raise ValueError("on_stage_error must be 'stop' or 'degrade'")
+        if config.runtime.ba_worker not in ("auto", "on", "off"):
+            raise ConfigError(f"[runtime] ba_worker = '{config.runtime.ba_worker}': use auto, on or off")
         self.grabber, self.poses, self.camera, self.config = grabber, poses, camera, config
         self.rt = config.runtime
         self.out_dir = out_dir
@@ -355,7 +358,7 @@ class LiveRun:
         recv, send = ctx.Pipe(duplex=False)
         self._finished = threading.Event()
         ba_proc = ba_jobs = None
-        if rt.ba_worker:
+        if rt.ba_worker == "on" or (rt.ba_worker == "auto" and (os.cpu_count() or 1) >= 4):
             ba_jobs, ba_results = ctx.Queue(), ctx.Queue()
             ba_proc = ctx.Process(target=ba_worker_main, name="lapreco local BA", daemon=True,
                                   args=(local_schedule(self.config.mapper), ba_jobs, ba_results))
