@@ -30,8 +30,16 @@ def _open(path: str | Path, mode: int) -> cv2.FileStorage:
     return fs
 
 
+def _node(fs: cv2.FileStorage, key: str, path) -> cv2.FileNode:
+    try:
+        return fs.getNode(key)
+    except cv2.error:  # the document's top level is not a map of keys (a list, a scalar, a broken header)
+        raise CalibrationError(f"{path}: not a map of calibration keys; write it with cv2.FileStorage or "
+                               f"'lapreco calibrate'") from None
+
+
 def _mat(fs: cv2.FileStorage, key: str, path, shape=None) -> np.ndarray:
-    node = fs.getNode(key)
+    node = _node(fs, key, path)
     if node.empty():
         raise CalibrationError(f"{path}: missing '{key}'")
     try:
@@ -50,7 +58,7 @@ def _mat(fs: cv2.FileStorage, key: str, path, shape=None) -> np.ndarray:
 
 
 def _int(fs: cv2.FileStorage, key: str, path) -> int:
-    node = fs.getNode(key)
+    node = _node(fs, key, path)
     if node.empty() or not node.isInt():
         raise CalibrationError(f"{path}: missing or non-integer '{key}'")
     return int(node.real())
@@ -62,7 +70,7 @@ def read_camera_yaml(path: str | Path) -> CameraModel:
         w, h = _int(fs, "image_width", path), _int(fs, "image_height", path)
         K = _mat(fs, "camera_matrix", path, (3, 3))
         dist = _mat(fs, "distortion_coefficients", path).ravel()
-        fov = fs.getNode("fov_radius_px")
+        fov = _node(fs, "fov_radius_px", path)
         fov_r = 0.0 if fov.empty() else float(fov.real())
     finally:
         fs.release()
@@ -94,7 +102,7 @@ def read_handeye_yaml(path: str | Path) -> dict:
         T = _mat(fs, "T_tip_camera", path, (4, 4))
         out = {"T_tip_camera": T}
         for key in ("robot_model", "tip_frame"):
-            node = fs.getNode(key)
+            node = _node(fs, key, path)
             out[key] = node.string() if not node.empty() and node.isString() else None
     finally:
         fs.release()

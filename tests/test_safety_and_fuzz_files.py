@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 from fuzz_settings import EXAMPLES, FUZZ, mutated
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
@@ -141,6 +141,8 @@ distortion_coefficients: !!opencv-matrix
 
 @FUZZ
 @given(mutated(_VALID_CAMERA_YAML))
+@example(_VALID_CAMERA_YAML.replace(b"---\nimage_width", b"-$-\n\x00mage_width"))  # found by the 100k run:
+# a broken document start leaves a top level that is not a map, and OpenCV asserts on getNode
 def test_mutated_calibration_files_are_read_or_refused_clearly(tmp_path_factory, data):
     path = tmp_path_factory.mktemp("yaml") / "camera.yaml"
     path.write_bytes(data)
