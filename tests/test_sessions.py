@@ -209,7 +209,11 @@ def test_unfinished_last_rows_are_ignored(recorded, tmp_path):
 
 @pytest.mark.parametrize("kill_after_rows", [3, 9, 17])
 def test_kill_9_during_recording_leaves_a_replayable_session(kill_after_rows, tmp_path, warp_cpu):
-    """A real recorder process killed with SIGKILL at several moments: every frame it listed is complete."""
+    """A real recorder process killed with SIGKILL at several moments (after N rows, plus a random delay so
+    the kill lands anywhere in the writer's cycle: encoding, renaming, appending): every frame it listed is
+    complete."""
+    delay_s = float(np.random.default_rng().uniform(0.0, 0.08))
+    print(f"kill {delay_s * 1e3:.0f} ms after row {kill_after_rows}")  # shown if the test fails
     out = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, "-m", "lapreco_hil.cli.main", "sim-record", *SIM, "--frames", "400",
                              "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -220,6 +224,7 @@ def test_kill_9_during_recording_leaves_a_replayable_session(kill_after_rows, tm
             if csv.is_file() and csv.read_text().count("\n") > kill_after_rows:
                 break
             time.sleep(0.05)
+        time.sleep(delay_s)
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
