@@ -41,18 +41,20 @@ class RobotPoseSource:
         self._last_refusal = ""
         self._last_refusal_wall = 0.0
 
-    def _refusal(self, s) -> str | None:
-        if s.q.shape != (self.pose_at.kin.n_joints,):
-            return f"{s.q.shape[0] if s.q.ndim else 0} joints, the robot model has {self.pose_at.kin.n_joints}"
+    def _refusal(self, s) -> tuple[str, str] | None:
+        """(cause, message) when the sample cannot be a pose, else None."""
+        n = self.pose_at.kin.n_joints
+        if s.q.shape != (n,):
+            return "joint count", f"{s.q.shape[0] if s.q.ndim else 0} joints, the robot model has {n}"
         if not np.all(np.isfinite(s.q)):
-            return "non-finite joint value"
+            return "non-finite joint value", "non-finite joint value"
         bad = np.flatnonzero((s.q < self._lower) | (s.q > self._upper))
         if len(bad):
             i = int(bad[0])
-            return f"joint '{self._names[i]}' = {s.q[i]:.4g} beyond its limits"
+            return "beyond limits", f"joint '{self._names[i]}' = {s.q[i]:.4g} beyond its limits"
         last = self.pose_at.last_time_ns
         if last is not None and s.t_ns <= last:
-            return "time did not move forward"
+            return "time did not move forward", "time did not move forward"
         return None
 
     def poll(self) -> list:
@@ -61,13 +63,12 @@ class RobotPoseSource:
         samples = self.robot.read(timeout_s=0.0)
         good = []
         for s in samples:
-            reason = self._refusal(s)
-            if reason is not None:
+            refusal = self._refusal(s)
+            if refusal is not None:
+                cause, message = refusal
                 self.rejected += 1
-                cause = reason.split(" = ")[0] if " = " in reason else reason
-                cause = "beyond limits" if "beyond its limits" in reason else cause
                 self.rejected_by_cause[cause] = self.rejected_by_cause.get(cause, 0) + 1
-                self._last_refusal, self._last_refusal_wall = reason, time.monotonic()
+                self._last_refusal, self._last_refusal_wall = message, time.monotonic()
                 continue
             self.pose_at.add(s)
             good.append(s)

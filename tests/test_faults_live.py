@@ -46,6 +46,15 @@ class SmokeGrabber(Wrapped):
         return f
 
 
+def _run_injecting(inject, robot, grabber, tmp_path, **kwargs) -> dict:
+    """A live run with ``inject`` running beside it in a thread; the run's report."""
+    injector = threading.Thread(target=inject, daemon=True)
+    injector.start()
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", progress=False, **kwargs)
+    injector.join(timeout=1)
+    return report
+
+
 def _first(events, device, state, after):
     for e in events:
         if e["device"] == device and e["state"] == state and e["t_monotonic"] >= after:
@@ -81,11 +90,7 @@ def test_faults_are_reported_within_100_ms_and_the_run_recovers(tmp_path, warp_c
         grabber.smoke.clear()
         marks["clear"] = time.monotonic()
 
-    injector = threading.Thread(target=inject, daemon=True)
-    injector.start()
-    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
-                      progress=False)
-    injector.join(timeout=1)
+    report = _run_injecting(inject, robot, grabber, tmp_path, device=warp_cpu)
     events = report["health"]["events"]
     assert _first(events, "robot", "faulted", marks["alert"]) < 0.1
     assert _first(events, "robot", "stale", marks["silent"]) < 0.1
@@ -169,11 +174,7 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
             marks[f"{glitch}_clear"] = time.monotonic()
             time.sleep(0.5)
 
-    injector = threading.Thread(target=inject, daemon=True)
-    injector.start()
-    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
-                      progress=False)
-    injector.join(timeout=1)
+    report = _run_injecting(inject, robot, grabber, tmp_path, device=warp_cpu)
     events = report["health"]["events"]
     # heartbeat lost after 1.5 x 100 ms, reported within 100 ms of that
     assert _first(events, "robot", "faulted", marks["heartbeat"]) < 0.15 + 0.1
@@ -230,12 +231,8 @@ def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     import unittest.mock as mock
 
     with mock.patch.object(FakeCapture, "read", textured_read):
-        injector = threading.Thread(target=inject, daemon=True)
-        injector.start()
-        report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device="cpu",
-                          camera=camera, description=robot.description, seconds=4.0,
-                          progress=False)
-        injector.join(timeout=1)
+        report = _run_injecting(inject, robot, grabber, tmp_path, device="cpu", camera=camera,
+                                description=robot.description, seconds=4.0)
     events = report["health"]["events"]
     assert _first(events, "grabber", "disconnected", marks["unplug"]) < 0.1
     assert _first(events, "grabber", "ok", marks["replug"]) is not None
@@ -290,11 +287,7 @@ def test_serial_link_faults_during_a_live_run(tmp_path, warp_cpu):
             clears[name] = time.monotonic()
             time.sleep(0.8)  # back to OK: the degraded window (0.25 s), a reconnect (0.5 s)
 
-    injector = threading.Thread(target=inject, daemon=True)
-    injector.start()
-    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
-                      progress=False)
-    injector.join(timeout=1)
+    report = _run_injecting(inject, robot, grabber, tmp_path, device=warp_cpu)
     assert set(marks) == {"corrupt", "garbage", "late", "missing", "unplug", "limits"}, "the run ended early"
     events = report["health"]["events"]
     lost_states = ("degraded", "stale")  # readings lost; no reading for 3 periods reads as stale
@@ -354,11 +347,7 @@ def test_an_instrument_over_half_the_view_is_reported_and_tracking_recovers(tmp_
         grabber.present.clear()
         marks["clear"] = time.monotonic()
 
-    injector = threading.Thread(target=inject, daemon=True)
-    injector.start()
-    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", device=warp_cpu,
-                      progress=False)
-    injector.join(timeout=1)
+    report = _run_injecting(inject, robot, grabber, tmp_path, device=warp_cpu)
     events = report["health"]["events"]
     front = [e for e in events if e["device"] == "front-end"]
     assert not any(e["state"] == "partial view" and e["t_monotonic"] < grabber.first_seen for e in front), front

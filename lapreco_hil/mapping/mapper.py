@@ -308,21 +308,17 @@ class Mapper:
             self.landmark_colors[t] = color_of[t]
 
     # --- bundle adjustment ---------------------------------------------------------------------------------
-    def _problem(self, free_kfs: list[int], fixed_limit: int | None,
-                 edge_free: bool = False) -> tuple[ba.BAProblem, list[int]] | None:
+    def _problem(self, free_kfs: list[int]) -> tuple[ba.BAProblem, list[int]] | None:
+        """The final pass's problem: ``free_kfs`` and every landmark they see, with all its observations
+        (keyframes outside ``free_kfs``, i.e. retired ones, held fixed)."""
         free = set(free_kfs)
         point_ids = sorted({t for k in free_kfs for t in self.keyframes[k].track_ids.tolist() if t in self.landmarks})
         if not point_ids:
             return None
         obs = [(k, t, uv) for t in point_ids for k, uv in self.tracks[t]]
-        fixed = sorted({k for k, _, _ in obs if k not in free}, reverse=True)
-        if fixed_limit is not None:
-            fixed = fixed[:fixed_limit]
-        if edge_free:
-            free |= {k for k in fixed if k >= self.first_active}  # a retired keyframe stays as it was
-        kf_ids = sorted(free) + sorted(set(fixed) - free)
+        fixed = {k for k, _, _ in obs if k not in free}
+        kf_ids = sorted(free) + sorted(fixed)
         index = {k: i for i, k in enumerate(kf_ids)}
-        obs = [o for o in obs if o[0] in index]
         pidx = {t: i for i, t in enumerate(point_ids)}
         kfs = [self.keyframes[k] for k in kf_ids]
         problem = ba.BAProblem(
@@ -410,7 +406,7 @@ class Mapper:
         cfg = self.config
         t0 = time.perf_counter()
         active = list(range(self.first_active, len(self.keyframes)))
-        built = self._problem(active, fixed_limit=None) if active else None
+        built = self._problem(active) if active else None
         ids = np.array(sorted(self.landmarks), dtype=np.int64)
         inlier = np.zeros(len(ids), bool)
         n_obs = n_inlier_obs = 0

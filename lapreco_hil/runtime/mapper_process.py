@@ -93,29 +93,26 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper.defer_local_ba = worker is not None
         mapper.resect_on_retire = False
         skipped_ba = skipped_resection = 0
-        published = 0.0
+        last_publish, map_changed = 0.0, False
 
-        def publish(changed: bool) -> float:
+        def publish_if_due() -> None:
             # the live surface rebuilds every couple of seconds: a snapshot twice a second is plenty, and
             # gathering the map costs milliseconds that frames are waiting on
-            if not changed or time.monotonic() - published < SNAPSHOT_PERIOD_S:
-                return published
-            points, colors = mapper.map_points()
-            if len(points):
-                snapshot.publish(points, colors)
-            return time.monotonic()
+            nonlocal last_publish, map_changed
+            if map_changed and time.monotonic() - last_publish >= SNAPSHOT_PERIOD_S:
+                points, colors = mapper.map_points()
+                if len(points):
+                    snapshot.publish(points, colors)
+                last_publish, map_changed = time.monotonic(), False
 
-        changed = False
         while True:
             if worker is not None:
-                changed |= worker.collect(mapper)
+                map_changed |= worker.collect(mapper)
                 if worker.in_flight is None and mapper.local_ba_wanted:
                     job = mapper.local_ba_job()
                     if job is not None:
                         worker.submit(job)
-            before = published
-            published = publish(changed)
-            changed = changed and published == before
+            publish_if_due()
             try:
                 slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
             except queue.Empty:
@@ -136,10 +133,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
                 skipped_resection += 1
-            changed |= bool(is_kf)
+            map_changed |= bool(is_kf)
             done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
                         mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
-        published = publish(changed)  # (a last snapshot if it is due)
+        publish_if_due()  # (a last snapshot if it is due)
         if worker is not None:
             worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass
         t0 = time.perf_counter()
