@@ -292,8 +292,9 @@ def test_serial_link_faults_during_a_live_run(tmp_path, warp_cpu):
     events = report["health"]["events"]
     lost_states = ("degraded", "stale")  # readings lost; no reading for 3 periods reads as stale
     print("readings lost to garbage on the line:", lost["garbage"])
-    if lost["garbage"] == 0:  # the SDK found every reply behind the garbage: nothing to report, no state change
-        assert not [e for e in events if e["device"] == "robot" and marks["garbage"] <= e["t_monotonic"] <= clears["garbage"]]
+    if lost["garbage"] == 0:  # the SDK found every reply behind the garbage: at most late (stale), never a fault
+        during = [e for e in events if e["device"] == "robot" and marks["garbage"] <= e["t_monotonic"] <= clears["garbage"]]
+        assert all(e["state"] in ("stale", "ok") for e in during), during
     else:
         seen = _first_of(events, "robot", lost_states, marks["garbage"])
         assert seen is not None and seen < 0.1
