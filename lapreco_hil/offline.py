@@ -71,7 +71,8 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     write_frame_timings(out_dir / "frame_timings.csv", run.map.frames, run.stage_s)
     metrics = {
         "frames": {"in": run.frames_in, "processed": run.frames_processed,
-                   "dropped": run.frames_in - run.frames_processed},
+                   "dropped": run.frames_in - run.frames_processed - run.frames_without_pose,
+                   "without_pose": run.frames_without_pose},
         "throughput_fps": run.frames_processed / run.wall_s,
         "latency_ms": {**_percentiles_ms(run.latency_s),
                        "note": "frame received -> pose and points updated (sequential runner)"},

@@ -29,6 +29,7 @@ class RunResult:
     stage_s: dict[str, list[float]]
     latency_s: list[float]
     last_frame_t_ns: int
+    frames_without_pose: int = 0  # frames before the robot's first reading: skipped, not mapped
 
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
@@ -38,7 +39,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     mapper = Mapper(camera.K, config.mapper)
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
-    frames_in = 0
+    frames_in = frames_without_pose = 0
     last_t = 0
     t_start = time.perf_counter()
     while True:
@@ -49,6 +50,9 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         t1 = time.perf_counter()
         frames_in += 1
         poses.poll()
+        if not poses.has_pose():
+            frames_without_pose += 1
+            continue
         prior = poses.prior_at(frame.t_ns)
         t2 = time.perf_counter()
         obs = frontend.process(frame)
@@ -65,7 +69,14 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
                                  refresh=False)
     if frames_in == 0:
         raise ReconstructionError("the grabber delivered no frames; check the grabber URL")
+    if frames_without_pose == frames_in:
+        raise ReconstructionError(f"none of the {frames_in} frames came after a robot reading: is the robot "
+                                  f"connected, and does its stream cover the video?")
+    if frames_without_pose:
+        log.warning("%d frames before the robot's first reading were skipped", frames_without_pose)
     t5 = time.perf_counter()
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]
-    return RunResult(result, frames_in, frames_in, time.perf_counter() - t_start, stages, latency, last_t)
+    processed = frames_in - frames_without_pose
+    return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency, last_t,
+                     frames_without_pose)

@@ -80,6 +80,11 @@ class RobotPoseSource:
             return Health(HealthState.DEGRADED, f"{self.rejected} readings refused; last: {self._last_refusal}")
         return Health(HealthState.OK)
 
+    def has_pose(self) -> bool:
+        """Whether a prior can be given yet: not before the robot's first accepted reading (a recording may
+        start its video before the joint stream)."""
+        return len(self.pose_at) > 0
+
     def prior_at(self, t_ns: int) -> PosePrior:
         return self.pose_at.prior_at(t_ns)
 
@@ -98,6 +103,9 @@ class GivenPoseSource:
 
     def poll(self) -> list:
         return []
+
+    def has_pose(self) -> bool:
+        return True
 
     def prior_at(self, t_ns: int) -> PosePrior:
         T = self.poses(t_ns + self.offset_ns)

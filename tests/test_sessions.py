@@ -263,3 +263,20 @@ def test_given_pose_source_interpolates_on_se3():
     assert pose_error(mid, make_T(rot_z(0.1), [0.005, 0, 0]))[1] < 1e-12
     assert np.array_equal(src.prior_at(50).T_world_camera, T0) and np.array_equal(src.prior_at(900).T_world_camera, T1)
     assert src.prior_at(150).cov[0, 0] == pytest.approx(1e-6)
+
+
+def test_frames_before_the_first_joint_reading_are_skipped_and_counted(recorded, tmp_path, warp_cpu):
+    """Video that starts before the robot's stream (another recorder, a slow link): those frames cannot have a
+    pose prior, so the replay skips and counts them and maps the rest, instead of failing."""
+    session = tmp_path / "late-joints"
+    shutil.copytree(recorded, session)
+    s = Session(session)
+    start = s.frame_t_ns[6] + 1  # the first reading comes just after frame 6
+    lines = (session / "joints.csv").read_text().splitlines(keepends=True)
+    kept = [ln for ln in lines[1:] if int(ln.split(",")[1]) >= start]
+    assert 0 < len(kept) < len(lines) - 1
+    (session / "joints.csv").write_text(lines[0] + "".join(kept))
+    r = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False)
+    # the replay clock hands on readings up to one frame period ahead, so frame 6 already has one
+    assert r["frames"]["without_pose"] == 6 and r["frames"]["processed"] == 24 and r["frames"]["dropped"] == 0
+    assert r["inliers"] > 50

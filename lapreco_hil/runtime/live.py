@@ -173,6 +173,9 @@ class LiveRun:
                 with self._cond:
                     self._record_q.append(("joints", samples))
                     self._cond.notify_all()
+            if not self.poses.has_pose():
+                self.counters.add("frames_without_pose")  # before the robot's first reading: not mapped
+                continue
             prior = self.poses.prior_at(frame.t_ns)
             t1 = time.perf_counter()
             try:
@@ -455,7 +458,9 @@ class LiveRun:
         return {
             "wall_s": wall,
             "frames": {"in": frames_in, "processed": processed,
-                       "dropped": frames_in - processed + c.get("dropped_source", 0) - c.get("bad_timestamps", 0),
+                       "dropped": frames_in - processed + c.get("dropped_source", 0) - c.get("bad_timestamps", 0)
+                       - c.get("frames_without_pose", 0),
+                       "without_pose": c.get("frames_without_pose", 0),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0), "mapper_skipped": c.get("mapper_skipped", 0),
                        "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0),
                        "bad_timestamps": c.get("bad_timestamps", 0)},
