@@ -11,8 +11,11 @@ import warp as wp
 
 PATCH = 13  # drift-check patch side (pixels)
 HIGHPASS_RANGE = 128.0 / 96.0  # what frontend.opencv.to_u8 keeps of the log high-pass
-LK_CACHE = 8  # window pixels a lane keeps in registers: 8 x 64 lanes covers windows up to 22 x 22
 HALF_PATCH = 6
+# new corners are chosen strongest first through a histogram of their scores (no sort): 32 bins per halving of
+# the response below the frame's best cover 16 halvings (a quality level down to 1.5e-5)
+SCORE_BINS_PER_OCTAVE = 32
+SCORE_BINS = 512
 
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 vec44 = wp.types.vector(length=44, dtype=wp.float32)  # upper triangle of an 8x8 normal matrix (36) + gradient (8)
@@ -43,41 +46,31 @@ def bilinear(img: wp.array(dtype=float), off: int, w: int, h: int, x: float, y: 
     return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
 
 
-@wp.func
-def _bgr(frame: wp.array3d(dtype=wp.uint8), x: int, y: int) -> wp.vec3:
-    xc = wp.clamp(x, 0, frame.shape[1] - 1)
-    yc = wp.clamp(y, 0, frame.shape[0] - 1)
-    return wp.vec3(float(frame[yc, xc, 0]), float(frame[yc, xc, 1]), float(frame[yc, xc, 2]))
-
-
-@wp.func
-def bilinear_bgr(frame: wp.array3d(dtype=wp.uint8), x: float, y: float) -> wp.vec3:
-    x0f = wp.floor(x)
-    y0f = wp.floor(y)
-    fx = x - x0f
-    fy = y - y0f
-    x0 = int(x0f)
-    y0 = int(y0f)
-    a = _bgr(frame, x0, y0)
-    b = _bgr(frame, x0 + 1, y0)
-    c = _bgr(frame, x0, y0 + 1)
-    d = _bgr(frame, x0 + 1, y0 + 1)
-    return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
-
-
 # --- image stages ------------------------------------------------------------------------------------------
+@wp.func
+def _grey(frame: wp.array2d(dtype=wp.uint8), x: int, y: int) -> float:
+    return float(frame[wp.clamp(y, 0, frame.shape[0] - 1), wp.clamp(x, 0, frame.shape[1] - 1)])
+
+
 @wp.kernel
-def undistort_gray(frame: wp.array3d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
+def undistort_gray(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
                    gray: wp.array2d(dtype=float)):
-    """One resampling pass: undistorted pixel <- bilinear sample of the distorted BGR frame at the
-    precomputed map, converted to grey (0-255). Outside the frame: 0, as cv2.remap's constant border."""
+    """One resampling pass: undistorted pixel <- bilinear sample of the distorted grey frame (0-255) at the
+    precomputed map. Outside the frame: 0, as cv2.remap's constant border."""
     y, x = wp.tid()
     m = remap[y, x]
     if m[0] < -1.0 or m[1] < -1.0 or m[0] > float(frame.shape[1]) or m[1] > float(frame.shape[0]):
         gray[y, x] = 0.0
         return
-    c = bilinear_bgr(frame, m[0], m[1])
-    gray[y, x] = 0.114 * c[0] + 0.587 * c[1] + 0.299 * c[2]
+    x0f = wp.floor(m[0])
+    y0f = wp.floor(m[1])
+    fx = m[0] - x0f
+    fy = m[1] - y0f
+    x0 = int(x0f)
+    y0 = int(y0f)
+    top = _grey(frame, x0, y0) * (1.0 - fx) + _grey(frame, x0 + 1, y0) * fx
+    bot = _grey(frame, x0, y0 + 1) * (1.0 - fx) + _grey(frame, x0 + 1, y0 + 1) * fx
+    gray[y, x] = top * (1.0 - fy) + bot * fy
 
 
 @wp.kernel
@@ -87,17 +80,26 @@ def log_image(gray: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
 
 
 @wp.kernel
-def blur_1d(src: wp.array2d(dtype=float), weights: wp.array(dtype=float), step_x: int, step_y: int,
-            dst: wp.array2d(dtype=float)):
-    """One pass of a separable filter along (step_x, step_y): run it along rows, then along columns."""
+def blur_1d(src: wp.array(dtype=float), w: int, h: int, weights: wp.array(dtype=float), step_x: int,
+            step_y: int, dst: wp.array(dtype=float)):
+    """One pass of a separable filter along (step_x, step_y) over a flat w x h image: run it along rows, then
+    along columns. Away from the border the taps walk a flat index with no clamping (the pass is bound by its
+    instruction count, not by memory)."""
     y, x = wp.tid()
     r = (weights.shape[0] - 1) // 2
     s = float(0.0)
-    for k in range(weights.shape[0]):
-        xx = wp.clamp(x + (k - r) * step_x, 0, src.shape[1] - 1)
-        yy = wp.clamp(y + (k - r) * step_y, 0, src.shape[0] - 1)
-        s += weights[k] * src[yy, xx]
-    dst[y, x] = s
+    if x - r * step_x >= 0 and x + r * step_x < w and y - r * step_y >= 0 and y + r * step_y < h:
+        stride = step_x + step_y * w
+        i = y * w + x - r * stride
+        for k in range(weights.shape[0]):
+            s += weights[k] * src[i]
+            i += stride
+    else:
+        for k in range(weights.shape[0]):
+            xx = wp.clamp(x + (k - r) * step_x, 0, w - 1)
+            yy = wp.clamp(y + (k - r) * step_y, 0, h - 1)
+            s += weights[k] * src[yy * w + xx]
+    dst[y * w + x] = s
 
 
 @wp.kernel
@@ -163,26 +165,44 @@ def _allowed(mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit
 
 
 @wp.kernel
-def min_eigenvalue(gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int, h: int, block: int,
-                   mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit_min: float,
-                   occ: wp.array2d(dtype=wp.int32), eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=float)):
-    """Smaller eigenvalue of the structure tensor summed over a block x block window (cornerMinEigenVal); the
-    maximum that the quality level is relative to is taken where corners may start, as OpenCV takes it
-    inside the mask."""
+def structure_rows(gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int, h: int, block: int,
+                   rows: wp.array(dtype=wp.vec3)):
+    """First, horizontal pass of the structure tensor's box sum: (gx^2, gx gy, gy^2) summed over block columns
+    (border replicated). Two separable passes read 3 block values per pixel where one 2D pass reads block^2."""
     y, x = wp.tid()
     r = block // 2
-    a = float(0.0)
-    b = float(0.0)
-    c = float(0.0)
-    for j in range(block):
-        for i in range(block):
-            xx = wp.clamp(x + i - r, 0, w - 1)
-            yy = wp.clamp(y + j - r, 0, h - 1)
-            u = gx[yy * w + xx]
-            v = gy[yy * w + xx]
-            a += u * u
-            b += u * v
-            c += v * v
+    base = y * w
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    if x - r >= 0 and x - r + block <= w:
+        i = base + x - r
+        for k in range(block):
+            u = gx[i + k]
+            v = gy[i + k]
+            acc += wp.vec3(u * u, u * v, v * v)
+    else:
+        for k in range(block):
+            i = base + wp.clamp(x + k - r, 0, w - 1)
+            u = gx[i]
+            v = gy[i]
+            acc += wp.vec3(u * u, u * v, v * v)
+    rows[base + x] = acc
+
+
+@wp.kernel
+def min_eigenvalue(rows: wp.array(dtype=wp.vec3), w: int, h: int, block: int,
+                   mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float), lit_min: float,
+                   occ: wp.array2d(dtype=wp.int32), eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=float)):
+    """Smaller eigenvalue of the structure tensor summed over a block x block window (cornerMinEigenVal), from
+    the row sums of ``structure_rows``; the maximum that the quality level is relative to is taken where
+    corners may start, as OpenCV takes it inside the mask."""
+    y, x = wp.tid()
+    r = block // 2
+    t = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(block):
+        t += rows[wp.clamp(y + k - r, 0, h - 1) * w + x]
+    a = t[0]
+    b = t[1]
+    c = t[2]
     half = 0.5 * (a + c)
     d = half - wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))
     eig[y, x] = d
@@ -240,107 +260,175 @@ def corner_candidates(eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=floa
 
 
 # --- pyramidal Lucas-Kanade, one block per feature -----------------------------------------------------------
-@wp.kernel
-def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
-             cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
-             hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
-             pts: wp.array(dtype=wp.vec2), count: int, out_pts: wp.array(dtype=wp.vec2),
-             status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
-    """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
-    Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them."""
-    f, lane = wp.tid()
-    nl = wp.block_dim()
-    n = win * win
-    r = float(win - 1) * 0.5
-    valid = f < count
-    p0 = wp.vec2(0.0, 0.0)
-    if valid:
-        p0 = pts[f]
-    g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
-    ok = int(1)
-    residual = float(0.0)
-    for li in range(levels):
-        lvl = levels - 1 - li
-        off = offs[lvl]
-        w = ws[lvl]
-        h = hs[lvl]
-        scale = 1.0 / float(1 << lvl)
-        p = p0 * scale
-        # spatial gradient matrix over the window in the previous image
-        acc = wp.vec3(0.0, 0.0, 0.0)
-        k = lane
-        while k < n:
-            x = p[0] + float(k % win) - r
-            y = p[1] + float(k // win) - r
-            ix = bilinear(prev_gx, off, w, h, x, y)
-            iy = bilinear(prev_gy, off, w, h, x, y)
-            acc += wp.vec3(ix * ix, ix * iy, iy * iy)
-            k += nl
-        G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
-        det = G[0] * G[2] - G[1] * G[1]
-        lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
-        if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
-            ok = 0
-        nu = wp.vec2(0.0, 0.0)
-        done = int(0)
-        if ok == 0:
-            done = 1
-        # with enough lanes (CUDA), each lane keeps its pixels of the previous window in registers, so the
-        # iterations sample only the current image; with one lane (the CPU device) it re-samples instead
-        cached = n <= LK_CACHE * nl
-        c_i = vec8()
-        c_x = vec8()
-        c_y = vec8()
-        if cached:
-            for j in range(LK_CACHE):
-                k = lane + j * nl
-                if k < n:
-                    x = p[0] + float(k % win) - r
-                    y = p[1] + float(k // win) - r
-                    c_i[j] = bilinear(prev, off, w, h, x, y)
-                    c_x[j] = bilinear(prev_gx, off, w, h, x, y)
-                    c_y[j] = bilinear(prev_gy, off, w, h, x, y)
-        for _it in range(iterations):
-            # every lane holds the same reduced values, so leaving the loop is uniform across the block
-            if done == 1:
-                break
-            bacc = wp.vec3(0.0, 0.0, 0.0)
+@wp.func
+def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, inside: bool, ix: int, iy: int, ax: float,
+               ay: float, col: int, row: int) -> float:
+    """Pixel (col, row) of a window whose top-left sample lies at (ix + ax, iy + ay). Every pixel of a
+    translated window shares the same sub-pixel fractions, so inside the image a sample is four loads and three
+    lerps; windows that touch the border take the clamped path."""
+    if inside:
+        i = off + (iy + row) * w + ix + col
+        top = img[i] + ax * (img[i + 1] - img[i])
+        bot = img[i + w] + ax * (img[i + w + 1] - img[i + w])
+        return top + ay * (bot - top)
+    return bilinear(img, off, w, h, float(ix + col) + ax, float(iy + row) + ay)
+
+
+@wp.func
+def _window_origin(x: float, y: float) -> wp.vec4:
+    """(floor x, floor y, fraction x, fraction y) of a window's top-left sample."""
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    return wp.vec4(fx, fy, x - fx, y - fy)
+
+
+@wp.func
+def _inside(o: wp.vec4, win: int, w: int, h: int) -> bool:
+    """Whether a window with origin o (``_window_origin``) and its bilinear neighbours lie inside the image.
+    Tested in floats: a diverging step can put the origin beyond the int range, where the integer test
+    would overflow and pass."""
+    return o[0] >= 0.0 and o[1] >= 0.0 and o[0] + float(win) <= float(w - 1) and o[1] + float(win) <= float(h - 1)
+
+
+def _make_lk_track(cache: int):
+    """The LK kernel for blocks whose lanes each cache ``cache`` window pixels in registers (the window must fit:
+    win * win <= cache * block_dim, else the lanes re-sample). Two shapes are built: 64 lanes x 8 and one warp
+    (32 lanes) x 16, whose tile sums need no shared memory across warps."""
+    cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
+
+    @wp.kernel(module="unique")
+    def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
+                 cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
+                 hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
+                 pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
+                 status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
+        """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
+        Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
+
+        The time goes into the iterations of the slowest features (30 per level at most, as OpenCV), so each
+        iteration is kept short: the window's sub-pixel fractions are computed once per iteration, not per pixel,
+        and each lane keeps its pixels of the previous window and their gradients in registers (with enough lanes,
+        i.e. on CUDA; with one lane, on the CPU device, it re-samples them instead)."""
+        f, lane = wp.tid()
+        if f >= count[0]:
+            return  # the launch covers every slot; the live count is on the device (the whole block leaves)
+        nl = wp.block_dim()
+        n = win * win
+        r = float(win - 1) * 0.5
+        inv_win = 1.0 / float(win)
+        valid = True
+        p0 = wp.vec2(0.0, 0.0)
+        if valid:
+            p0 = pts[f]
+        g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
+        ok = int(1)
+        residual = float(0.0)
+        cached = n <= cache * nl
+        for li in range(levels):
+            lvl = levels - 1 - li
+            off = offs[lvl]
+            w = ws[lvl]
+            h = hs[lvl]
+            scale = 1.0 / float(1 << lvl)
+            p = p0 * scale
+            o = _window_origin(p[0] - r, p[1] - r)
+            ix = int(o[0])
+            iy = int(o[1])
+            inside = _inside(o, win, w, h)
+            # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
+            acc = wp.vec3(0.0, 0.0, 0.0)
+            c_i = cache_vec()
+            c_x = cache_vec()
+            c_y = cache_vec()
             if cached:
-                for j in range(LK_CACHE):
+                for j in range(cache):
                     k = lane + j * nl
                     if k < n:
-                        x = p[0] + float(k % win) - r + g[0] + nu[0]
-                        y = p[1] + float(k // win) - r + g[1] + nu[1]
-                        diff = c_i[j] - bilinear(cur, off, w, h, x, y)
-                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+                        row = int((float(k) + 0.5) * inv_win)
+                        col = k - row * win
+                        vi = _window_px(prev, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                        vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                        vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                        c_i[j] = vi
+                        c_x[j] = vx
+                        c_y[j] = vy
+                        acc += wp.vec3(vx * vx, vx * vy, vy * vy)
             else:
                 k = lane
                 while k < n:
-                    x = p[0] + float(k % win) - r
-                    y = p[1] + float(k // win) - r
-                    diff = bilinear(prev, off, w, h, x, y) - bilinear(cur, off, w, h, x + g[0] + nu[0],
-                                                                      y + g[1] + nu[1])
-                    ix = bilinear(prev_gx, off, w, h, x, y)
-                    iy = bilinear(prev_gy, off, w, h, x, y)
-                    bacc += wp.vec3(diff * ix, diff * iy, wp.abs(diff))
+                    row = int((float(k) + 0.5) * inv_win)
+                    col = k - row * win
+                    vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                    vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
                     k += nl
-            b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
-            residual = b[2] / float(n)
-            step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
-            nu = nu + step
-            if wp.length(step) < eps:
+            G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+            det = G[0] * G[2] - G[1] * G[1]
+            lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
+            if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
+                ok = 0
+            nu = wp.vec2(0.0, 0.0)
+            last_step = wp.vec2(0.0, 0.0)
+            done = int(0)
+            if ok == 0:
                 done = 1
-        if lvl > 0:
-            g = (g + nu) * 2.0
-        else:
-            g = g + nu
-    if valid and lane == 0:
-        q = p0 + g
-        finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
-        inside = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
-        out_pts[f] = q
-        status[f] = wp.where(ok == 1 and inside, 1, 0)
-        error[f] = residual
+            for _it in range(iterations):
+                # every lane holds the same reduced values, so leaving the loop is uniform across the block
+                if done == 1:
+                    break
+                oq = _window_origin(p[0] - r + g[0] + nu[0], p[1] - r + g[1] + nu[1])
+                qx = int(oq[0])
+                qy = int(oq[1])
+                q_inside = _inside(oq, win, w, h)
+                bacc = wp.vec3(0.0, 0.0, 0.0)
+                if cached:
+                    for j in range(cache):
+                        k = lane + j * nl
+                        if k < n:
+                            row = int((float(k) + 0.5) * inv_win)
+                            col = k - row * win
+                            diff = c_i[j] - _window_px(cur, off, w, h, q_inside, qx, qy, oq[2], oq[3], col, row)
+                            bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+                else:
+                    k = lane
+                    while k < n:
+                        row = int((float(k) + 0.5) * inv_win)
+                        col = k - row * win
+                        diff = _window_px(prev, off, w, h, inside, ix, iy, o[2], o[3], col, row) - _window_px(
+                            cur, off, w, h, q_inside, qx, qy, oq[2], oq[3], col, row)
+                        vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                        vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
+                        bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
+                        k += nl
+                b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
+                residual = b[2] / float(n)
+                step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
+                nu = nu + step
+                if wp.length(step) < eps:
+                    done = 1
+                elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
+                    # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
+                    # as OpenCV's calcOpticalFlowPyrLK does, rather than bouncing until the iteration limit
+                    nu = nu - 0.5 * step
+                    done = 1
+                last_step = step
+            if lvl > 0:
+                g = (g + nu) * 2.0
+            else:
+                g = g + nu
+        if valid and lane == 0:
+            q = p0 + g
+            finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
+            in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+            out_pts[f] = q
+            status[f] = wp.where(ok == 1 and in_image, 1, 0)
+            error[f] = residual
+
+    return lk_track
+
+
+lk_track = _make_lk_track(8)
+lk_track_warp = _make_lk_track(16)
 
 
 # --- Zinsser drift check, one block per feature --------------------------------------------------------------
@@ -389,30 +477,38 @@ def _reference(patches: wp.array2d(dtype=float), f: int, k: int, valid: bool) ->
 
 
 @wp.kernel
-def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2), first: int,
+def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
+                   count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
                    patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22)):
-    """The first patch of each new track (slots first..), and an identity warp."""
+    """The first patch of each new track (slots count .. count + n_new - 1), and an identity warp."""
     t, k = wp.tid()
-    q = pts[first + t] + _patch_offset(k)
-    patches[first + t, k] = bilinear(img, 0, w, h, q[0], q[1])
+    if t >= n_new[0]:
+        return
+    s = count[0] + t
+    q = pts[s] + _patch_offset(k)
+    patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
     if k == 0:
-        A[first + t] = wp.identity(n=2, dtype=float)
+        A[s] = wp.identity(n=2, dtype=float)
 
 
 @wp.kernel
 def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
                 h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
                 pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
-                count: int, iterations: int, max_residual: float,
+                count: wp.array(dtype=wp.int32), iterations: int, max_residual: float,
                 max_stretch: float, max_correction: float, out_pts: wp.array(dtype=wp.vec2),
                 keep: wp.array(dtype=wp.int32), residual_out: wp.array(dtype=float)):
     """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
     tracker's position b; the fitted b is the drift-free position. Dropped: large normalised residual, too
     much stretch or a flip of A, a correction larger than max_correction, an absurd gain."""
     f, lane = wp.tid()
+    if f >= count[0]:
+        if lane == 0:
+            keep[f] = 0  # slots past the live tracks are not kept (the compaction scans every slot)
+        return
     nl = wp.block_dim()
     n = PATCH * PATCH
-    valid = f < count
+    valid = True
     b = wp.vec2(0.0, 0.0)
     Am = wp.identity(n=2, dtype=float)
     if valid:
@@ -517,10 +613,11 @@ def _in_view(mask: wp.array2d(dtype=wp.uint8), p: wp.vec2) -> bool:
 
 @wp.kernel
 def lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
-            count: int, out_pts: wp.array(dtype=wp.vec2), keep: wp.array(dtype=wp.int32)):
+            count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2), keep: wp.array(dtype=wp.int32)):
     """Without the drift check: keep what LK tracked into the field of view."""
     f = wp.tid()
-    if f >= count:
+    if f >= count[0]:
+        keep[f] = 0
         return
     out_pts[f] = pts[f]
     keep[f] = wp.where(status[f] == 1 and _in_view(mask, pts[f]), 1, 0)
@@ -529,8 +626,9 @@ def lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask
 @wp.kernel
 def scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
                    src_pts: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
-                   src_patches: wp.array2d(dtype=float), dst_pts: wp.array(dtype=wp.vec2),
-                   dst_A: wp.array(dtype=wp.mat22), dst_patches: wp.array2d(dtype=float)):
+                   src_patches: wp.array2d(dtype=float), src_ids: wp.array(dtype=wp.int32),
+                   dst_pts: wp.array(dtype=wp.vec2), dst_A: wp.array(dtype=wp.mat22),
+                   dst_patches: wp.array2d(dtype=float), dst_ids: wp.array(dtype=wp.int32)):
     """Compaction on the device: a kept track moves to its slot (exclusive prefix sum of the keep flags)."""
     t, k = wp.tid()
     if keep[t] == 0:
@@ -540,21 +638,18 @@ def scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32
     if k == 0:
         dst_pts[s] = src_pts[t]
         dst_A[s] = src_A[t]
+        dst_ids[s] = src_ids[t]
 
 
 @wp.kernel
-def gather_colors(frame: wp.array3d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
-                  pts: wp.array(dtype=wp.vec2), count: int, colors: wp.array(dtype=wp.vec3)):
-    """Colour under each track: its undistorted position mapped back into the distorted frame."""
-    t = wp.tid()
-    if t >= count:
-        return
-    p = pts[t]
-    x = wp.clamp(int(wp.round(p[0])), 0, remap.shape[1] - 1)
-    y = wp.clamp(int(wp.round(p[1])), 0, remap.shape[0] - 1)
-    m = remap[y, x]
-    c = bilinear_bgr(frame, m[0], m[1])
-    colors[t] = wp.vec3(c[2], c[1], c[0])  # RGB
+def count_kept(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+               redetect_below: int, detect: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32)):
+    """After the compaction: the live count, whether to look for new corners, and no new tracks yet."""
+    last = keep.shape[0] - 1
+    c = slot[last] + keep[last]
+    count[0] = c
+    detect[0] = wp.where(c < redetect_below, 1, 0)
+    n_new[0] = 0
 
 
 # --- corner selection on the device: strongest first, none closer than min_distance -----------------------
@@ -629,18 +724,63 @@ def selection_round(pos: wp.array(dtype=wp.vec2), score: wp.array(dtype=float), 
         state_out[i] = 1
 
 
+@wp.func
+def _score_bin(score: float, max_score: float) -> int:
+    """Histogram bin of a corner score: SCORE_BINS_PER_OCTAVE bins per halving below the frame's best."""
+    octaves = wp.log2(max_score / wp.max(score, 1.0e-30))
+    return wp.clamp(int(octaves * float(SCORE_BINS_PER_OCTAVE)), 0, SCORE_BINS - 1)
+
+
 @wp.kernel
-def selection_collect(score: wp.array(dtype=float), state: wp.array(dtype=wp.int32), keys: wp.array(dtype=float),
-                      values: wp.array(dtype=wp.int32), n_out: wp.array(dtype=wp.int32)):
+def score_histogram(score: wp.array(dtype=float), state: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float),
+                    hist: wp.array(dtype=wp.int32)):
+    """How many selected corners fall in each score bin (bin 0 = strongest)."""
     i = wp.tid()
     if state[i] == 1:
-        k = wp.atomic_add(n_out, 0, 1)
-        keys[k] = -score[i]
-        values[k] = i
+        wp.atomic_add(hist, _score_bin(score[i], max_eig[0]), 1)
 
 
 @wp.kernel
-def append_tracks(pos: wp.array(dtype=wp.vec2), order: wp.array(dtype=wp.int32), first: int,
-                  pts: wp.array(dtype=wp.vec2)):
-    t = wp.tid()
-    pts[first + t] = pos[order[t]]
+def score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), max_features: int,
+                    cut: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32)):
+    """One thread: the strongest selected corners that fill the free slots. Every corner in a bin above the cut
+    bin is taken; from the cut bin only as many as fit (cut[1]). n_new = how many are taken."""
+    want = max_features - count[0]
+    taken = int(0)
+    b = int(0)
+    while b < SCORE_BINS and taken + hist[b] <= want:
+        taken += hist[b]
+        b += 1
+    cut[0] = b
+    room = int(0)
+    if b < SCORE_BINS:
+        room = want - taken
+    cut[1] = room
+    n_new[0] = taken + room
+
+
+@wp.kernel
+def take_corners(pos: wp.array(dtype=wp.vec2), score: wp.array(dtype=float), state: wp.array(dtype=wp.int32),
+                 max_eig: wp.array(dtype=float), cut: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                 next_id: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), pts: wp.array(dtype=wp.vec2),
+                 ids: wp.array(dtype=wp.int32)):
+    """The chosen corners become tracks after the live ones (slots count .. count + n_new - 1)."""
+    i = wp.tid()
+    if state[i] != 1:
+        return
+    b = _score_bin(score[i], max_eig[0])
+    if b > cut[0]:
+        return
+    if b == cut[0]:
+        if wp.atomic_add(taken, 1, 1) >= cut[1]:
+            return
+    k = wp.atomic_add(taken, 0, 1)
+    pts[count[0] + k] = pos[i]
+    ids[count[0] + k] = next_id[0] + k
+
+
+@wp.kernel
+def commit_new_tracks(count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
+                      next_id: wp.array(dtype=wp.int32)):
+    count[0] = count[0] + n_new[0]
+    next_id[0] = next_id[0] + n_new[0]
