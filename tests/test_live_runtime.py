@@ -163,6 +163,14 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
     # (capture keeps the newest frames of this 250 frames/s source: each run maps what it can)
     assert stats["on"][1]["frames"]["processed"] > 10 and stats["off"][1]["frames"]["processed"] > 10
     assert on["inliers"] > 50 and off["inliers"] > 50
+    # the mapper process's own time, by kind of work: every mapped frame is timed once, as a frame or a keyframe
+    for mode, (result_stats, metrics) in stats.items():
+        clock = metrics["live"]["mapper_stages_ms"]
+        mapped = clock.get("add_frame", {}).get("count", 0) + clock["add_keyframe"]["count"]
+        assert mapped == metrics["frames"]["processed"], mode
+        assert clock["add_keyframe"]["count"] == result_stats["keyframes"], mode
+    assert stats["on"][1]["live"]["mapper_stages_ms"]["local_ba_solve_in_worker"]["count"] == on["local_ba_worker_runs"]
+    assert "local_ba_solve_in_worker" not in stats["off"][1]["live"]["mapper_stages_ms"]
     with pytest.raises(Exception, match="ba_worker"):
         LiveRun(None, None, None, replace(PipelineConfig(), runtime=replace(PipelineConfig().runtime,
                                                                             ba_worker="maybe")),

@@ -480,7 +480,9 @@ class LiveRun:
                      "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
                      "stage_errors": dict(self.errors), "disabled_stages": sorted(self.disabled),
                      "interrupted": getattr(self, "interrupted", False),
-                     "final_ba_s": result.stats.get("final_ba_wall_s")},
+                     "final_ba_s": result.stats.get("final_ba_wall_s"),
+                     # the mapper process's own time, by kind of work (the usual bottleneck)
+                     "mapper_stages_ms": result.stats.get("mapper_stages_ms", {})},
             "health": {"events": self._health_events[:200], "event_count": len(self._health_events),
                        "counts": {k[len("health_"):]: v for k, v in c.items() if k.startswith("health_")}},
         }

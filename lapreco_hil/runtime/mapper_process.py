@@ -34,10 +34,12 @@ def ba_worker_main(schedule, jobs_q, results_q) -> None:
         if job is None:
             return
         job_id, problem = job
+        t0 = time.perf_counter()
         try:
-            results_q.put((job_id, "ok", solve_robust(problem, schedule)))
+            solved = solve_robust(problem, schedule)
+            results_q.put((job_id, "ok", solved, time.perf_counter() - t0))
         except Exception:
-            results_q.put((job_id, "error", traceback.format_exc()))
+            results_q.put((job_id, "error", traceback.format_exc(), time.perf_counter() - t0))
 
 
 class _BAClient:
@@ -48,6 +50,7 @@ class _BAClient:
         self.in_flight = None  # (job id, problem, ticket)
         self._next_id = 0
         self.runs = self.failed = 0
+        self.solve_s: list[float] = []  # the worker's time per solve
 
     def submit(self, job) -> None:
         problem, ticket = job
@@ -60,9 +63,11 @@ class _BAClient:
         if self.in_flight is None:
             return False
         try:
-            job_id, status, payload = self.results_q.get(timeout=timeout_s) if timeout_s else self.results_q.get_nowait()
+            job_id, status, payload, solve_s = (self.results_q.get(timeout=timeout_s) if timeout_s
+                                                else self.results_q.get_nowait())
         except queue.Empty:
             return False
+        self.solve_s.append(solve_s)
         _, problem, ticket = self.in_flight
         self.in_flight = None
         if status == "ok":
@@ -94,29 +99,41 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper.resect_on_retire = False
         skipped_ba = skipped_resection = 0
         last_publish, map_changed = 0.0, False
+        clock = StageClock()
 
         def publish_if_due() -> None:
             # the live surface rebuilds every couple of seconds: a snapshot twice a second is plenty, and
             # gathering the map costs milliseconds that frames are waiting on
             nonlocal last_publish, map_changed
             if map_changed and time.monotonic() - last_publish >= SNAPSHOT_PERIOD_S:
+                t = time.perf_counter()
                 points, colors = mapper.map_points()
                 if len(points):
                     snapshot.publish(points, colors)
                 last_publish, map_changed = time.monotonic(), False
+                clock.add("publish_snapshot", time.perf_counter() - t)
 
         while True:
             if worker is not None:
-                map_changed |= worker.collect(mapper)
+                t = time.perf_counter()
+                applied = worker.collect(mapper)
+                if applied:
+                    clock.add("apply_local_ba", time.perf_counter() - t)
+                map_changed |= applied
                 if worker.in_flight is None and mapper.local_ba_wanted:
+                    t = time.perf_counter()
                     job = mapper.local_ba_job()
                     if job is not None:
                         worker.submit(job)
+                        clock.add("submit_local_ba", time.perf_counter() - t)
             publish_if_due()
+            t = time.perf_counter()
             try:
                 slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
             except queue.Empty:
+                clock.add("wait_for_frames", time.perf_counter() - t)
                 continue
+            clock.add("wait_for_frames", time.perf_counter() - t)
             if slot is None:
                 break
             obs, prior, arrival_ns = ring.read(slot)
@@ -128,7 +145,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             run_ba = worker is not None or backlog <= backlog_skip_ba
             resect = backlog == 0  # behind: a frame between keyframes takes its corrected prior for now
             in_flight = worker is not None and worker.in_flight is not None
+            t = time.perf_counter()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect)
+            clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
             if is_kf and (not run_ba or in_flight):
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
@@ -142,6 +161,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         t0 = time.perf_counter()
         result = mapper.finish()
         result.stats["final_ba_wall_s"] = time.perf_counter() - t0
+        if worker is not None:
+            for s_ in worker.solve_s:
+                clock.add("local_ba_solve_in_worker", s_)
+        result.stats["mapper_stages_ms"] = clock.summary()
         result.stats["local_ba_skipped"] = skipped_ba
         result.stats["resection_skipped"] = skipped_resection
         if worker is not None:
@@ -154,6 +177,28 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         ring.close()
         snapshot.close()
         final_conn.close()
+
+
+class StageClock:
+    """Where the mapper process's time goes, per kind of work (ms per call): the live report's answer to "which
+    part of the mapper is the bottleneck" (frames vs keyframes, BA results applied, snapshots, idle waits)."""
+
+    def __init__(self) -> None:
+        self.samples: dict[str, list[float]] = {}
+        self._t0 = time.perf_counter()
+
+    def add(self, name: str, seconds: float) -> None:
+        self.samples.setdefault(name, []).append(seconds * 1e3)
+
+    def summary(self) -> dict:
+        wall = (time.perf_counter() - self._t0) * 1e3
+        out = {}
+        for name, v in self.samples.items():
+            a = np.asarray(v)
+            out[name] = {"count": len(a), "mean": float(a.mean()), "p50": float(np.percentile(a, 50)),
+                         "p99": float(np.percentile(a, 99)), "max": float(a.max()),
+                         "share_of_wall": float(a.sum() / max(wall, 1e-9))}
+        return out
 
 
 def drain(q) -> list:
