@@ -158,7 +158,7 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
             result, metrics = live.run()
         stats[mode] = (result.stats, metrics)
     on, off = stats["on"][0], stats["off"][0]
-    assert on["local_ba_worker_runs"] >= 2 and on["local_ba_worker_failed"] == 0
+    assert on["local_ba_worker_runs"] >= 2 and on["local_ba_worker_failed"] == 0, on
     assert "local_ba_worker_runs" not in off
     # (capture keeps the newest frames of this 250 frames/s source: each run maps what it can)
     assert stats["on"][1]["frames"]["processed"] > 10 and stats["off"][1]["frames"]["processed"] > 10
@@ -167,8 +167,8 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
     for mode, (result_stats, metrics) in stats.items():
         clock = metrics["live"]["mapper_stages_ms"]
         mapped = clock.get("add_frame", {}).get("count", 0) + clock["add_keyframe"]["count"]
-        assert mapped == metrics["frames"]["processed"], mode
-        assert clock["add_keyframe"]["count"] == result_stats["keyframes"], mode
+        assert mapped == metrics["frames"]["processed"], (mode, clock, metrics["frames"])
+        assert clock["add_keyframe"]["count"] == result_stats["keyframes"], (mode, clock, result_stats)
     assert stats["on"][1]["live"]["mapper_stages_ms"]["local_ba_solve_in_worker"]["count"] == on["local_ba_worker_runs"]
     assert "local_ba_solve_in_worker" not in stats["off"][1]["live"]["mapper_stages_ms"]
     with pytest.raises(Exception, match="ba_worker"):

@@ -32,6 +32,21 @@ def test_triangulation_recovers_points_exactly(rng):
     np.testing.assert_allclose(res.points, pts, atol=1e-9)
 
 
+def test_triangulation_with_each_tracks_own_views(rng):
+    """The mapper triangulates each track from a few of its own views (N, V, 4, 4): every track here sees a
+    different random subset of 3 of the 8 cameras, and its point comes back exactly."""
+    pts, poses = scene(rng, n_points=200)
+    views = np.array([rng.choice(len(poses), 3, replace=False) for _ in pts])
+    own = poses[views]  # (N, 3, 4, 4)
+    uv = np.stack([project(T, p[None])[0] for Ts, p in zip(own, pts) for T in Ts]).reshape(len(pts), 3, 2)
+    seen = np.ones((len(pts), 3), bool)
+    seen[::4, 1] = False  # some tracks with only two views
+    res = triangulate(uv, seen, own, K, 0.5, 1.0)
+    wide = res.parallax_deg >= 0.5
+    assert wide.mean() > 0.8 and np.array_equal(res.valid, wide)
+    np.testing.assert_allclose(res.points, pts, atol=1e-9)
+
+
 def test_triangulation_rejects_low_parallax_and_points_behind(rng):
     pts, poses = scene(rng, n_points=20)
     uv = np.stack([project(T, pts) for T in poses[:2]], axis=1)

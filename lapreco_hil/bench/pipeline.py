@@ -1,9 +1,10 @@
 """``lapreco bench pipeline``: the full live runtime on a simulated source in real time, reporting sustained
 frame rate, drops and end-to-end latency percentiles.
 
-Source: on a GPU the simulated world renders each frame on the device as the camera would deliver it (paced
-to the frame rate, late frames lost as from a real grabber); on a CPU, where the ray caster itself would eat
-the cores the pipeline needs, a session is recorded first and replayed in real time from disk."""
+Source: a session recorded first (or one given with --session) and replayed in real time from disk, paced to
+its frame rate, late frames lost as from a real grabber. The simulated world rendered live (--source sim) is
+the other choice, but its ray caster shares the machine with the pipeline: at 1080p60 on the H100 machine it
+delivered 25 frames a second (docs/benchmarks.md)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from pathlib import Path
 
 
 def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, features: int, source: str = "auto",
-        tracker: str = "auto", scene: str = "skull") -> dict:
+        tracker: str = "auto", scene: str = "skull", session: str | None = None) -> dict:
     from ..cli.main import main as cli_main
     from ..cli.run import run_live
     from ..config import PipelineConfig
@@ -24,8 +25,8 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
 
     w, h = resolution
     tracker = resolve_tracker(tracker, device)
-    if source == "auto":
-        source = "sim" if device.startswith("cuda") else "replay"
+    if source == "auto" or session is not None:
+        source = "replay"
     config = PipelineConfig()
     # the final global BA after capture stops is not part of the live figures (and at 2000 tracks over
     # hundreds of keyframes it takes minutes): inliers are labelled from the residuals instead
@@ -34,7 +35,13 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
     frames = int(round(fps * seconds))
     with tempfile.TemporaryDirectory() as tmp:
         ctx = DeviceContext(device=device)
-        if source == "replay":
+        if session is not None:
+            url = f"replay://{session}?pace=realtime"
+            robot, grabber = open_robot(url, ctx), open_grabber(url, ctx)
+            w, h = grabber.camera.width, grabber.camera.height
+            fps = 1e9 / grabber.session.frame_period_ns
+            seconds = len(grabber) / fps
+        elif source == "replay":
             session = Path(tmp) / "session"
             status = cli_main(["sim-record", "--scene", scene, "--resolution", f"{w}x{h}", "--fps", str(fps),
                                "--frames", str(frames), "--device", device, "--no-progress", "--out", str(session)])

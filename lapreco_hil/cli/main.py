@@ -164,7 +164,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench_p.add_argument("--seconds", type=float, default=20.0, help="duration (default 20)")
     bench_p.add_argument("--features", type=_positive_int, default=None,
                          help="tracked features (default: 2000 on a GPU, 800 on a CPU)")
-    bench_p.add_argument("--source", choices=("auto", "sim", "replay"), default="auto")
+    bench_p.add_argument("--source", choices=("auto", "sim", "replay"), default="auto",
+                         help="replay (auto): a session recorded first, replayed in real time; sim: the simulated "
+                              "world rendered live (its ray caster shares the machine with the pipeline)")
+    bench_p.add_argument("--session", default=None,
+                         help="replay this recorded session in real time (resolution and fps are the session's)")
     bench_p.add_argument("--tracker", default="auto", help="warp | opencv | auto")
     bench_p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_p.set_defaults(func=_cmd_bench_pipeline)
@@ -201,7 +205,8 @@ def _cmd_bench_pipeline(args) -> int:
     device = resolve_device(args.device)
     gpu = device.startswith("cuda")
     result = run(device, args.resolution or ((1920, 1080) if gpu else (384, 288)), args.fps or (60.0 if gpu else 25.0),
-                 args.seconds, args.features or (2000 if gpu else 800), args.source, args.tracker)
+                 args.seconds, args.features or (2000 if gpu else 800), args.source, args.tracker,
+                 session=args.session)
     print(format_table(result))
     _write_json(args.json, result)
     return 0

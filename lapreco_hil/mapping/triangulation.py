@@ -19,15 +19,16 @@ class TriangulationResult:
 def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K: np.ndarray,
                 min_parallax_deg: float, max_error_px: float) -> TriangulationResult:
     """uv: (N, M, 2) undistorted pixels of N tracks in M views, ``seen`` (N, M) marks which exist;
-    T_world_cameras: (M, 4, 4)."""
+    T_world_cameras: (M, 4, 4) views shared by every track, or (N, M, 4, 4) each track's own views."""
     N, M = seen.shape
-    T_cw = np.linalg.inv(T_world_cameras)  # (M, 4, 4) world -> camera
-    P = T_cw[:, :3, :]  # normalised projection matrices
+    T_wc = T_world_cameras if T_world_cameras.ndim == 4 else T_world_cameras[None]  # (N or 1, M, 4, 4)
+    T_cw = np.linalg.inv(T_wc)  # world -> camera
+    P = T_cw[..., :3, :]  # normalised projection matrices
     xn = (uv[..., 0] - K[0, 2]) / K[0, 0]
     yn = (uv[..., 1] - K[1, 2]) / K[1, 1]
     w = seen.astype(float)
-    rows_x = (xn[..., None] * P[None, :, 2, :] - P[None, :, 0, :]) * w[..., None]
-    rows_y = (yn[..., None] * P[None, :, 2, :] - P[None, :, 1, :]) * w[..., None]
+    rows_x = (xn[..., None] * P[..., 2, :] - P[..., 0, :]) * w[..., None]
+    rows_y = (yn[..., None] * P[..., 2, :] - P[..., 1, :]) * w[..., None]
     A = np.concatenate([rows_x, rows_y], axis=1)  # (N, 2M, 4)
     _, _, vh = np.linalg.svd(A, full_matrices=False)  # (the full U of every track would be (2M, 2M))
     Xh = vh[:, -1, :]
@@ -36,7 +37,11 @@ def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K
     finite = np.all(np.isfinite(X), axis=1) & (np.abs(Xh[:, 3]) > 1e-12)
     X = np.where(finite[:, None], X, 0.0)
     # depth and reprojection in every view
-    Xc = np.einsum("mij,nj->nmi", T_cw[:, :3, :3], X) + T_cw[None, :, :3, 3]  # (N, M, 3)
+    R_cw = T_cw[..., :3, :3]
+    if len(T_cw) == N and T_world_cameras.ndim == 4:
+        Xc = np.einsum("nmij,nj->nmi", R_cw, X) + T_cw[..., :3, 3]  # (N, M, 3)
+    else:
+        Xc = np.einsum("mij,nj->nmi", R_cw[0], X) + T_cw[..., :3, 3]
     z = Xc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = K[0, 0] * Xc[..., 0] / z + K[0, 2]
@@ -47,7 +52,7 @@ def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K
     # parallax: the largest angle between rays from the observing camera centres, taken against the first
     # and the last observing ray (a track's widest baseline has one of its ends there; checking every pair
     # would cost N x M x M)
-    rays = X[:, None, :] - T_world_cameras[None, :, :3, 3]
+    rays = X[:, None, :] - T_wc[..., :3, 3]
     rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
     rows = np.arange(N)
     first, last = np.argmax(seen, axis=1), M - 1 - np.argmax(seen[:, ::-1], axis=1)

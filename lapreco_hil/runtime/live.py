@@ -351,6 +351,12 @@ class LiveRun:
 
     # --- the main loop -----------------------------------------------------------------------------------------
     def run(self, seconds: float | None = None) -> tuple[object, dict]:
+        if self.frontend is None:
+            # made (and, for the Warp one, compiled and captured) before capture starts, so the first
+            # seconds of a live source are not lost to it
+            self.frontend = self._make_frontend()
+            if hasattr(self.frontend, "warm_up"):
+                self.frontend.warm_up()
         ctx = mp.get_context("spawn")
         rt = self.rt
         self._ring = ObservationRing(rt.mapper_slots, rt.max_tracks)

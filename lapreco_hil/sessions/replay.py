@@ -7,8 +7,10 @@ live run would have had in hand), so replays are deterministic.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 from ..drivers.grabber.base import Grabber
 from ..drivers.health import Health, HealthState
@@ -39,6 +41,11 @@ def _shared(url: DeviceURL, context: DeviceContext) -> tuple[Session, _ReplayClo
     return session, clock
 
 
+# frames decoded ahead of the reader, in parallel (OpenCV's decoders release the GIL): one 1080p PNG takes
+# ~30 ms to decode, so a real-time replay at 60 fps needs several at once
+READ_AHEAD = 8
+
+
 class ReplayGrabber(Grabber):
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
         self.url = url
@@ -49,7 +56,9 @@ class ReplayGrabber(Grabber):
         self.realtime = pace == "realtime"
         self._i = 0
         self._open = False
-        self._wall0 = 0.0
+        self._wall0: float | None = None
+        self._ahead: dict[int, Future] = {}  # frame index -> its decoding
+        self._pool: ThreadPoolExecutor | None = None
 
     @property
     def camera(self):
@@ -64,12 +73,31 @@ class ReplayGrabber(Grabber):
 
     def open(self) -> None:
         self._open = True
-        self._wall0 = time.monotonic()
+        workers = max(1, min(READ_AHEAD, (os.cpu_count() or 2) // 2))
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="replay-decode")
+        self._wall0 = None  # a real-time replay starts playing at the first read, not at open
 
     def close(self) -> None:
         self._open = False
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        self._ahead.clear()
+
+    def _frame(self, i: int) -> Frame:
+        """Frame i, decoded ahead together with the next few (in order: a skipped frame's decoding is dropped)."""
+        if self._pool is None:
+            return self.session.frame(i)
+        for j in [j for j in self._ahead if j < i]:
+            self._ahead.pop(j).cancel()
+        for j in range(i, min(i + READ_AHEAD, len(self.session))):
+            if j not in self._ahead:
+                self._ahead[j] = self._pool.submit(self.session.frame, j)
+        return self._ahead.pop(i).result()
 
     def read(self, timeout_s: float | None = None) -> Frame | None:
+        if self._wall0 is None:
+            self._wall0 = time.monotonic()
         if self.realtime:
             # like a camera, a real-time replay does not wait for its reader: frames whose time has passed
             # (more than a frame period ago) are skipped, and the sequence numbers show the gap
@@ -79,7 +107,7 @@ class ReplayGrabber(Grabber):
                 self._i += 1
         if self._i >= len(self.session):
             return None
-        frame = self.session.frame(self._i)
+        frame = self._frame(self._i)
         if self.realtime:
             delay = self._wall0 + (frame.t_ns - int(self.session.frame_t_ns[0])) * 1e-9 - time.monotonic()
             if delay > 0:

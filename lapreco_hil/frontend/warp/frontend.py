@@ -269,6 +269,13 @@ class WarpFrontEnd:
         wp.copy(self._out_pts, self._pts[cur])
         wp.copy(self._out_ids, self._ids[cur])
 
+    def warm_up(self) -> None:
+        """Compile every kernel and capture both frame graphs on black frames (no corners, so no tracks are
+        left behind), so a live run's first frames do not wait tens of seconds for them."""
+        black = np.zeros((self.height, self.width, 3), np.uint8)
+        for k in range(4):  # both buffer parities, eager then captured
+            self.process(Frame(black, k, k))
+
     def process(self, frame: Frame) -> Observations:
         with device_lock(self.device):
             return self._process(frame)
