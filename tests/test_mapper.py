@@ -68,20 +68,30 @@ def test_long_runs_retire_old_keyframes_with_bounded_memory_and_the_same_map(rng
     X, frames = _scan(rng)
     cfg = dict(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
                keyframe_track_ratio=0.0, window_keyframes=6, final_cauchy_iterations=5, final_tukey_iterations=5)
-    results, peaks = {}, {}
-    for label, active in (("all", 0), ("bounded", 12)):
+    results, peaks, most_active = {}, {}, {}
+    for label, active in (("all", 0), ("bounded", 12), ("idle-time", 12)):
         m = Mapper(K, MapperConfig(**cfg, active_keyframes=active, retire_batch=6))
-        peak = 0
+        # live: retirement one keyframe at a time when the mapper is idle (here: after every frame)
+        m.defer_retirement = label == "idle-time"
+        peak = most = 0
         for o, prior, _ in frames:
             m.add(o, prior)
+            most = max(most, len(m.keyframes) - m.first_active)
+            while m.defer_retirement and m.maintain():
+                pass
             peak = max(peak, len(m.tracks))
-        peaks[label] = peak
+        peaks[label], most_active[label] = peak, most
         results[label] = (m, m.finish())
+    # retired in idle time, the map is at most one keyframe over its bound until the next idle moment
+    assert most_active["idle-time"] == 13 and most_active["bounded"] == 12
+    assert results["idle-time"][0].first_active > results["bounded"][0].first_active - 6
     m, r = results["bounded"]
     assert m.first_active > 0 and r.stats["archived_landmarks"] > 0  # keyframes were retired
     # what is held in memory stays bounded: active tracks and observations of unsettled frames only
     assert peaks["bounded"] < 0.6 * peaks["all"]
     assert all(f.uv is None for f in m.frames)  # every frame settled, its observations let go
+    assert peaks["idle-time"] < 0.6 * peaks["all"]
+    assert results["idle-time"][1].stats["inliers"] >= 0.9 * results["all"][1].stats["inliers"]
     errs = {}
     for label, (_, res) in results.items():
         pts, ids = res.points[res.inlier], res.landmark_ids[res.inlier]
@@ -92,8 +102,9 @@ def test_long_runs_retire_old_keyframes_with_bounded_memory_and_the_same_map(rng
     assert r.stats["inliers"] >= 0.9 * results["all"][1].stats["inliers"]
     # the price: retired keyframes miss the final global pass (here 0.72 vs 0.36 mm with a 12-keyframe active
     # map; the default keeps 400 keyframes active, so evaluation-length sequences never retire any)
-    assert errs["bounded"] < 2.5 * errs["all"] and errs["bounded"] < 1e-3  # under a millimetre
-    assert errs["bounded_pose"] < 3.0 * errs["all_pose"]
+    for label in ("bounded", "idle-time"):
+        assert errs[label] < 2.5 * errs["all"] and errs[label] < 1e-3, errs  # under a millimetre
+        assert errs[label + "_pose"] < 3.0 * errs["all_pose"], errs
     assert len(np.unique(r.landmark_ids)) == len(r.landmark_ids)  # no landmark both archived and active
 
 

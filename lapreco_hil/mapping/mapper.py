@@ -135,6 +135,10 @@ class Mapper:
         # live, frames settled at a retirement keep the interpolated keyframe correction without a fresh
         # refinement (hundreds of them at once would stall the frames waiting; each was refined as it came)
         self.resect_on_retire = True
+        # live: keyframes retire one at a time in the mapper's idle moments (maintain()), not a hundred at once
+        # in the middle of a frame (a 0.6 s stall at 1080p / 2000 tracks); ``add`` still retires a batch if the
+        # map gets a whole batch over its bound (no idle time for that long)
+        self.defer_retirement = False
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -176,8 +180,19 @@ class Mapper:
                 self._local_ba()
         record.T_refined = kf.T_world_camera
         cfg = self.config
-        if cfg.active_keyframes and len(self.keyframes) - self.first_active > cfg.active_keyframes:
-            self._retire(self.first_active + max(1, min(cfg.retire_batch, cfg.active_keyframes // 2)))
+        batch = max(1, min(cfg.retire_batch, cfg.active_keyframes // 2))
+        over = len(self.keyframes) - self.first_active - cfg.active_keyframes
+        if cfg.active_keyframes and over > (batch if self.defer_retirement else 0):
+            self._retire(self.first_active + batch)
+        return True
+
+    def maintain(self) -> bool:
+        """Idle-time work for a live mapper: retire the oldest keyframe if the map is over its bound. Returns
+        True when it did something (call again while it does and nothing else waits)."""
+        cfg = self.config
+        if not cfg.active_keyframes or len(self.keyframes) - self.first_active <= cfg.active_keyframes:
+            return False
+        self._retire(self.first_active + 1)
         return True
 
     # --- bounded memory ------------------------------------------------------------------------------------

@@ -97,6 +97,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
         mapper.defer_local_ba = worker is not None
         mapper.resect_on_retire = False
+        mapper.defer_retirement = True
         skipped_ba = skipped_resection = 0
         last_publish, map_changed = 0.0, False
         clock = StageClock()
@@ -127,13 +128,22 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                         worker.submit(job)
                         clock.add("submit_local_ba", time.perf_counter() - t)
             publish_if_due()
-            t = time.perf_counter()
             try:
-                slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
+                slot = ready_q.get_nowait()
             except queue.Empty:
+                # nothing waits: the moment for maintenance (retiring old keyframes one at a time)
+                t = time.perf_counter()
+                if mapper.maintain():
+                    clock.add("retire_keyframe", time.perf_counter() - t)
+                    map_changed = True
+                    continue
+                t = time.perf_counter()
+                try:
+                    slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
+                except queue.Empty:
+                    clock.add("wait_for_frames", time.perf_counter() - t)
+                    continue
                 clock.add("wait_for_frames", time.perf_counter() - t)
-                continue
-            clock.add("wait_for_frames", time.perf_counter() - t)
             if slot is None:
                 break
             obs, prior, arrival_ns = ring.read(slot)
