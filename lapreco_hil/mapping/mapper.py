@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 # views of a track used to triangulate it for the first time (bundle adjustment uses all of them)
 TRIANGULATION_VIEWS = 6
+# a track is triangulated once its end rays span this share of min_parallax_deg
+PARALLAX_PRECHECK = 0.8
 
 
 def _spread(seen: list, n: int) -> list:
@@ -314,6 +316,7 @@ class Mapper:
     def _triangulate_new(self, kf: Keyframe) -> None:
         cfg = self.config
         cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks.get(t, ())) >= 2]
+        cands = self._wide_enough(cands)
         if not cands:
             return
         # A track that has not yet had the parallax for a point is seen in every keyframe since it started: its
@@ -341,6 +344,30 @@ class Mapper:
             t = cands[n]
             self.landmarks[t] = res.points[n]
             self.landmark_colors[t] = color_of[t]
+
+    def _wide_enough(self, cands: list[int]) -> list[int]:
+        """The candidates whose first and last viewing rays already span (nearly) the parallax a new point
+        needs. Most tracks wait several keyframes for it; this costs a dot product each, triangulating them
+        cost most of a keyframe's time at 2000 tracks. (The margin covers the noise in the two rays.)"""
+        if not cands:
+            return cands
+        ends = [(s[0], s[-1]) for s in (self.tracks[t] for t in cands)]
+        k0 = np.array([a[0] for a, _ in ends])
+        k1 = np.array([b[0] for _, b in ends])
+        uv0 = np.array([a[1] for a, _ in ends])
+        uv1 = np.array([b[1] for _, b in ends])
+        kf_ids, which = np.unique(np.concatenate([k0, k1]), return_inverse=True)
+        R = np.array([self.keyframes[k].T_world_camera[:3, :3] for k in kf_ids.tolist()])[which]
+        Kinv = np.linalg.inv(self.K)
+
+        def world_rays(uv, R_):
+            r = np.einsum("nij,nj->ni", R_, np.column_stack([uv, np.ones(len(uv))]) @ Kinv.T)
+            return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+        n = len(cands)
+        cos = np.sum(world_rays(uv0, R[:n]) * world_rays(uv1, R[n:]), axis=1)
+        wide = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= PARALLAX_PRECHECK * self.config.min_parallax_deg
+        return [t for t, w in zip(cands, wide.tolist()) if w]
 
     # --- bundle adjustment ---------------------------------------------------------------------------------
     def _problem(self, free_kfs: list[int]) -> tuple[ba.BAProblem, list[int]] | None:
