@@ -123,6 +123,8 @@ class Mapper:
         self.keyframes: list[Keyframe] = []
         self.frames: list[FrameRecord] = []
         self.tracks: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(keyframe id, uv)]
+        # keyframe id -> the tracks last seen in it (a retirement finds its tracks without scanning them all)
+        self._last_seen_in: dict[int, set[int]] = {}
         self.landmarks: dict[int, np.ndarray] = {}  # track id -> X
         self.landmark_colors: dict[int, np.ndarray] = {}
         self.archive = LandmarkArchive()
@@ -173,7 +175,10 @@ class Mapper:
             if seen is None:
                 self.tracks[tid] = seen = []
                 self.tracks_seen += 1
+            else:
+                self._last_seen_in[seen[-1][0]].discard(tid)
             seen.append((kf.id, uv))
+            self._last_seen_in.setdefault(kf.id, set()).add(tid)
         self._triangulate_new(kf)
         if len(self.keyframes) >= 2 and local_ba:
             if self.defer_local_ba:
@@ -202,13 +207,14 @@ class Mapper:
         """Retire keyframes before ``cutoff``: final poses for the frames before it, landmarks seen only by
         retired keyframes labelled and archived, their observations let go."""
         t_cut = self.keyframes[cutoff].t_ns
-        kt, corr = self._corrections()
+        kt, corr = self._corrections(upto=cutoff)  # the frames settled here lie before keyframe ``cutoff``
         n = self._frames_final
         while n < len(self.frames) and self.frames[n].t_ns < t_cut:
             self._settle_frame(self.frames[n], kt, corr, resect=self.resect_on_retire)
             n += 1
         self._frames_final = n
-        retired = [t for t, seen in self.tracks.items() if seen[-1][0] < cutoff]
+        retired = [t for k in sorted(k for k in self._last_seen_in if k < cutoff)
+                   for t in sorted(self._last_seen_in.pop(k))]
         with_point = [t for t in retired if t in self.landmarks]
         if with_point:
             obs = [(k, j, uv) for j, t in enumerate(with_point) for k, uv in self.tracks[t]]
@@ -524,10 +530,11 @@ class Mapper:
         self._frames_final = len(self.frames)
         return np.array([f.T_refined for f in self.frames])
 
-    def _corrections(self) -> tuple[np.ndarray, list[np.ndarray]]:
+    def _corrections(self, upto: int | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
         """Times and corrections of the robot prior (T_refined @ T_prior^-1) of the keyframes an unsettled
-        frame can lie between (frames before the first active keyframe are settled already)."""
-        kfs = self.keyframes[max(0, self.first_active - 1):]
+        frame can lie between (frames before the first active keyframe are settled already), up to keyframe
+        ``upto`` (all by default)."""
+        kfs = self.keyframes[max(0, self.first_active - 1):None if upto is None else upto + 1]
         return np.array([k.t_ns for k in kfs]), [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in kfs]
 
     def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray], resect: bool = True) -> None:
