@@ -21,6 +21,7 @@ import collections
 import logging
 import multiprocessing as mp
 import os
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -39,6 +40,7 @@ from .shm import MapSnapshot, ObservationRing
 
 log = logging.getLogger(__name__)
 ESSENTIAL = ("capture", "tracking", "mapper")
+MAPPER_START_TIMEOUT_S = 120.0  # for the mapper process to be up before capture starts
 
 
 class StageError(LaprecoError):
@@ -209,6 +211,8 @@ class LiveRun:
             if msg[0] == "free":
                 self._free.append(msg[1])
                 continue
+            if msg[0] == "ready":  # (the mapper's start-up word, when run() stopped waiting for it)
+                continue
             _, seq, done_ns, arrival_ns, T_refined, is_kf, skipped_ba, skipped_resection = msg
             self._latency_ns.append(done_ns - arrival_ns)
             self._first_arrival_ns = min(self._first_arrival_ns or arrival_ns, arrival_ns)
@@ -377,6 +381,15 @@ class LiveRun:
                                  snap_lock, self.camera.K, self.config.mapper, rt.mapper_backlog_skip_ba,
                                  self._ready_q, self._done_q, send, ba_jobs, ba_results if ba_jobs else None))
         proc.start()
+        # Capture starts once the mapper process is up (spawned, its imports done): frames taken while it
+        # started would wait in the ring for a second or two and set the latency tail of the whole run.
+        deadline = time.monotonic() + MAPPER_START_TIMEOUT_S
+        while time.monotonic() < deadline and proc.is_alive():
+            try:
+                if self._done_q.get(timeout=0.5)[0] == "ready":
+                    break
+            except queue.Empty:
+                continue
         self.mapper_pid = proc.pid
         self.ba_worker_pid = ba_proc.pid if ba_proc is not None else None
         threads = {name: threading.Thread(target=self._guard, args=(name, body), name=f"live {name}", daemon=True)

@@ -98,6 +98,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper.defer_local_ba = worker is not None
         mapper.resect_on_retire = False
         mapper.defer_retirement = True
+        done_q.put(("ready",))  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
         last_publish, map_changed = 0.0, False
         clock = StageClock()
