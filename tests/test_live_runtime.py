@@ -106,17 +106,25 @@ def test_degrade_skips_failing_frames_and_counts_them(fast_session, tmp_path):
 
 def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_path):
     out, rec = tmp_path / "out", tmp_path / "rec"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "lapreco_hil.cli.main", "run", "--robot", "sim://skull?width=256&height=192",
-         "--grabber", "sim://skull?width=256&height=192", "--out", str(out), "--record", str(rec), "--device", "cpu",
-         "--tracker", "opencv", "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if (rec / "frames.csv").is_file() and (rec / "frames.csv").read_text().count("\n") > 15:
-            break
-        time.sleep(0.1)
-    proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=180)
+    # the run's output goes to files: a pipe nobody reads until the end fills up and blocks the run's logging
+    with open(tmp_path / "stdout.txt", "w") as so, open(tmp_path / "stderr.txt", "w") as se:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "lapreco_hil.cli.main", "run", "--robot", "sim://skull?width=256&height=192",
+             "--grabber", "sim://skull?width=256&height=192", "--out", str(out), "--record", str(rec), "--device",
+             "cpu", "--tracker", "opencv", "--no-progress"], stdout=so, stderr=se, text=True)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if (rec / "frames.csv").is_file() and (rec / "frames.csv").read_text().count("\n") > 15:
+                break
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=180)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise AssertionError("lapreco run did not end within 180 s of Ctrl-C; its stderr ends: "
+                                 + (tmp_path / "stderr.txt").read_text()[-3000:]) from None
+    stdout, stderr = (tmp_path / "stdout.txt").read_text(), (tmp_path / "stderr.txt").read_text()
     assert proc.returncode == 0, stderr
     report = json.loads((out / "report.json").read_text())
     assert report["live"]["interrupted"] is True and report["frames"]["processed"] > 10

@@ -383,13 +383,18 @@ class LiveRun:
         proc.start()
         # Capture starts once the mapper process is up (spawned, its imports done): frames taken while it
         # started would wait in the ring for a second or two and set the latency tail of the whole run.
+        self.interrupted = False
         deadline = time.monotonic() + MAPPER_START_TIMEOUT_S
-        while time.monotonic() < deadline and proc.is_alive():
-            try:
-                if self._done_q.get(timeout=0.5)[0] == "ready":
-                    break
-            except queue.Empty:
-                continue
+        try:
+            while time.monotonic() < deadline and proc.is_alive():
+                try:
+                    if self._done_q.get(timeout=0.5)[0] == "ready":
+                        break
+                except queue.Empty:
+                    continue
+        except KeyboardInterrupt:  # Ctrl-C while the mapper starts: end as from the main loop, cleanly
+            self.interrupted = True
+            self.stop.set()
         self.mapper_pid = proc.pid
         self.ba_worker_pid = ba_proc.pid if ba_proc is not None else None
         threads = {name: threading.Thread(target=self._guard, args=(name, body), name=f"live {name}", daemon=True)
@@ -402,7 +407,6 @@ class LiveRun:
         for th in threads.values():
             th.start()
         final = None
-        self.interrupted = False
         try:
             while True:
                 time.sleep(0.05)
