@@ -104,20 +104,24 @@ def test_degrade_skips_failing_frames_and_counts_them(fast_session, tmp_path):
     assert len(result.frames) == f["processed"] and metrics["live"]["stage_errors"] == {}
 
 
-def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_path):
+@pytest.mark.parametrize("stop", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_path, stop):
+    """Ctrl-C, or SIGTERM from a supervisor, ends the run cleanly. The run is started with SIGINT ignored, as a
+    non-interactive shell starts a background job: ``lapreco run`` must take Ctrl-C back all the same."""
     out, rec = tmp_path / "out", tmp_path / "rec"
     # the run's output goes to files: a pipe nobody reads until the end fills up and blocks the run's logging
     with open(tmp_path / "stdout.txt", "w") as so, open(tmp_path / "stderr.txt", "w") as se:
         proc = subprocess.Popen(
             [sys.executable, "-m", "lapreco_hil.cli.main", "run", "--robot", "sim://skull?width=256&height=192",
              "--grabber", "sim://skull?width=256&height=192", "--out", str(out), "--record", str(rec), "--device",
-             "cpu", "--tracker", "opencv", "--no-progress"], stdout=so, stderr=se, text=True)
+             "cpu", "--tracker", "opencv", "--no-progress"], stdout=so, stderr=se, text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             if (rec / "frames.csv").is_file() and (rec / "frames.csv").read_text().count("\n") > 15:
                 break
             time.sleep(0.1)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(getattr(signal, stop))
         try:
             proc.wait(timeout=180)
         except subprocess.TimeoutExpired:

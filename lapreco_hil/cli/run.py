@@ -85,7 +85,22 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
                          run_wall_s=metrics["wall_s"])
 
 
+def _stop_on_signals() -> None:
+    """Ctrl-C (SIGINT) and SIGTERM (a supervisor stopping the run) both end the run cleanly, as
+    KeyboardInterrupt: outputs written, devices closed, recording complete. Set explicitly because a process
+    started in the background by a non-interactive shell inherits SIGINT ignored, and Python then never
+    raises KeyboardInterrupt."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, stop)
+
+
 def cmd_run(args) -> int:
+    _stop_on_signals()
     from ..config import load_config
 
     config = load_config(args.config)
