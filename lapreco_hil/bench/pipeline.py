@@ -35,20 +35,20 @@ def run(device: str, resolution: tuple[int, int], fps: float, seconds: float, fe
     frames = int(round(fps * seconds))
     with tempfile.TemporaryDirectory() as tmp:
         ctx = DeviceContext(device=device)
-        if session is not None:
+        if source == "replay":
+            if session is None:
+                session = Path(tmp) / "session"
+                status = cli_main(["sim-record", "--scene", scene, "--resolution", f"{w}x{h}", "--fps", str(fps),
+                                   "--frames", str(frames), "--device", device, "--no-progress", "--out", str(session)])
+                if status != 0:
+                    raise ReconstructionError(f"bench pipeline: recording the {scene} session failed "
+                                              f"(status {status})")
             url = f"replay://{session}?pace=realtime"
             robot, grabber = open_robot(url, ctx), open_grabber(url, ctx)
+            # (a given session sets the figures' resolution, rate and length)
             w, h = grabber.camera.width, grabber.camera.height
             fps = 1e9 / grabber.session.frame_period_ns
             seconds = len(grabber) / fps
-        elif source == "replay":
-            session = Path(tmp) / "session"
-            status = cli_main(["sim-record", "--scene", scene, "--resolution", f"{w}x{h}", "--fps", str(fps),
-                               "--frames", str(frames), "--device", device, "--no-progress", "--out", str(session)])
-            if status != 0:
-                raise ReconstructionError(f"bench pipeline: recording the {scene} session failed (status {status})")
-            url = f"replay://{session}?pace=realtime"
-            robot, grabber = open_robot(url, ctx), open_grabber(url, ctx)
         else:
             url = f"sim://{scene}?width={w}&height={h}&fps={fps}&speed=1.0"
             robot, grabber = open_robot(url, ctx), open_grabber(url + f"&pace=realtime&frames={frames}", ctx)

@@ -160,9 +160,7 @@ class LiveRun:
             self._tracking_loop()
 
     def _tracking_loop(self) -> None:
-        if self.frontend is None:
-            self.frontend = self._make_frontend()
-        while True:
+        while True:  # (run() made the front-end before starting this thread)
             with self._cond:
                 while not self._capture_q and not (self._capture_done.is_set() or self.stop.is_set()):
                     self._cond.wait(0.1)

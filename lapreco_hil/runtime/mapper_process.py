@@ -142,9 +142,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 try:
                     slot = ready_q.get(timeout=0.005) if worker is not None and worker.in_flight else ready_q.get()
                 except queue.Empty:
-                    clock.add("wait_for_frames", time.perf_counter() - t)
                     continue
-                clock.add("wait_for_frames", time.perf_counter() - t)
+                finally:
+                    clock.add("wait_for_frames", time.perf_counter() - t)
             if slot is None:
                 break
             obs, prior, arrival_ns = ring.read(slot)

@@ -1,7 +1,7 @@
 """The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
 into observations. Track bookkeeping (live counts, ids, compaction, the choice of new corners) stays on the
-device, so on CUDA a frame is the upload, one graph replay and one read-back of the per-track results (positions,
-colours, ids) into pinned memory; images never come back.
+device, so on CUDA a frame is the upload, one graph replay and one read-back of the per-track results (positions
+and ids) into pinned memory; images never come back (colours are read on the host, from the frame in hand).
 """
 
 from __future__ import annotations
@@ -117,7 +117,6 @@ class WarpFrontEnd:
             self._out_ids = wp.zeros(n, dtype=wp.int32, pinned=pinned)
         self._staging_np = self._staging.numpy()
         self.use_graphs = True
-        self.lk_lanes = 64  # lanes per feature in LK: 64 (8 cached pixels each) or 32 (one warp, 16 each)
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
         self._graphs = [None, None]  # one CUDA graph per frame, per buffer parity
@@ -179,11 +178,10 @@ class WarpFrontEnd:
         cfg = self.config
         n = cfg.max_features
         prev, cur = 1 - self._cur, self._cur
-        kernel = K.lk_track_warp if self.lk_lanes == 32 else K.lk_track
-        wp.launch_tiled(kernel, dim=[n], inputs=[
+        wp.launch_tiled(K.lk_track, dim=[n], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
             self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev], self._lk_pts,
-            self._status, self._error], block_dim=self.lk_lanes, device=self.device)
+            self._status, self._error], block_dim=64, device=self.device)
         self._sync_for_profile("lk")
         if cfg.drift_check:
             wp.launch_tiled(K.drift_check, dim=[n], inputs=[

@@ -17,6 +17,7 @@ HALF_PATCH = 6
 SCORE_BINS_PER_OCTAVE = 32
 SCORE_BINS = 512
 
+LK_CACHE = 8  # window pixels a lane keeps in registers: 8 x 64 lanes covers windows up to 22 x 22
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 vec44 = wp.types.vector(length=44, dtype=wp.float32)  # upper triangle of an 8x8 normal matrix (36) + gradient (8)
 mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float32)
@@ -261,20 +262,6 @@ def corner_candidates(eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=floa
 
 # --- pyramidal Lucas-Kanade, one block per feature -----------------------------------------------------------
 @wp.func
-def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, inside: bool, ix: int, iy: int, ax: float,
-               ay: float, col: int, row: int) -> float:
-    """Pixel (col, row) of a window whose top-left sample lies at (ix + ax, iy + ay). Every pixel of a
-    translated window shares the same sub-pixel fractions, so inside the image a sample is four loads and three
-    lerps; windows that touch the border take the clamped path."""
-    if inside:
-        i = off + (iy + row) * w + ix + col
-        top = img[i] + ax * (img[i + 1] - img[i])
-        bot = img[i + w] + ax * (img[i + w + 1] - img[i + w])
-        return top + ay * (bot - top)
-    return bilinear(img, off, w, h, float(ix + col) + ax, float(iy + row) + ay)
-
-
-@wp.func
 def _window_origin(x: float, y: float) -> wp.vec4:
     """(floor x, floor y, fraction x, fraction y) of a window's top-left sample."""
     fx = wp.floor(x)
@@ -290,145 +277,134 @@ def _inside(o: wp.vec4, win: int, w: int, h: int) -> bool:
     return o[0] >= 0.0 and o[1] >= 0.0 and o[0] + float(win) <= float(w - 1) and o[1] + float(win) <= float(h - 1)
 
 
-def _make_lk_track(cache: int):
-    """The LK kernel for blocks whose lanes each cache ``cache`` window pixels in registers (the window must fit:
-    win * win <= cache * block_dim, else the lanes re-sample). Two shapes are built: 64 lanes x 8 and one warp
-    (32 lanes) x 16, whose tile sums need no shared memory across warps."""
-    cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
+@wp.func
+def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, inside: bool, k: int, win: int,
+               inv_win: float) -> float:
+    """Pixel k (row-major) of a win x win window with origin o (``_window_origin``). Every pixel of a translated
+    window shares the same sub-pixel fractions, so inside the image a sample is four loads and three lerps;
+    windows that touch the border (``inside`` false) take the clamped path."""
+    row = int((float(k) + 0.5) * inv_win)  # k // win without an integer division
+    col = k - row * win
+    ix = int(o[0])
+    iy = int(o[1])
+    if inside:
+        i = off + (iy + row) * w + ix + col
+        top = img[i] + o[2] * (img[i + 1] - img[i])
+        bot = img[i + w] + o[2] * (img[i + w + 1] - img[i + w])
+        return top + o[3] * (bot - top)
+    return bilinear(img, off, w, h, float(ix + col) + o[2], float(iy + row) + o[3])
 
-    @wp.kernel(module="unique")
-    def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
-                 cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
-                 hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
-                 pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
-                 status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
-        """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
-        Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
 
-        The time goes into the iterations of the slowest features (30 per level at most, as OpenCV), so each
-        iteration is kept short: the window's sub-pixel fractions are computed once per iteration, not per pixel,
-        and each lane keeps its pixels of the previous window and their gradients in registers (with enough lanes,
-        i.e. on CUDA; with one lane, on the CPU device, it re-samples them instead)."""
-        f, lane = wp.tid()
-        if f >= count[0]:
-            return  # the launch covers every slot; the live count is on the device (the whole block leaves)
-        nl = wp.block_dim()
-        n = win * win
-        r = float(win - 1) * 0.5
-        inv_win = 1.0 / float(win)
-        valid = True
-        p0 = wp.vec2(0.0, 0.0)
-        if valid:
-            p0 = pts[f]
-        g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
-        ok = int(1)
-        residual = float(0.0)
-        cached = n <= cache * nl
-        for li in range(levels):
-            lvl = levels - 1 - li
-            off = offs[lvl]
-            w = ws[lvl]
-            h = hs[lvl]
-            scale = 1.0 / float(1 << lvl)
-            p = p0 * scale
-            o = _window_origin(p[0] - r, p[1] - r)
-            ix = int(o[0])
-            iy = int(o[1])
-            inside = _inside(o, win, w, h)
-            # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
-            acc = wp.vec3(0.0, 0.0, 0.0)
-            c_i = cache_vec()
-            c_x = cache_vec()
-            c_y = cache_vec()
+@wp.kernel
+def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
+             cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
+             hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
+             pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
+             status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
+    """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
+    Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
+
+    The time goes into the iterations of the slowest features (30 per level at most, as OpenCV), so each
+    iteration is kept short: the window's sub-pixel fractions are computed once per iteration, not per pixel,
+    and each lane keeps its pixels of the previous window and their gradients in registers (with enough lanes,
+    i.e. on CUDA; with one lane, on the CPU device, it re-samples them instead)."""
+    f, lane = wp.tid()
+    if f >= count[0]:
+        return  # the launch covers every slot; the live count is on the device (the whole block leaves)
+    nl = wp.block_dim()
+    n = win * win
+    r = float(win - 1) * 0.5
+    inv_win = 1.0 / float(win)
+    p0 = pts[f]
+    g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
+    ok = int(1)
+    residual = float(0.0)
+    cached = n <= LK_CACHE * nl
+    for li in range(levels):
+        lvl = levels - 1 - li
+        off = offs[lvl]
+        w = ws[lvl]
+        h = hs[lvl]
+        p = p0 * (1.0 / float(1 << lvl))
+        o = _window_origin(p[0] - r, p[1] - r)
+        inside = _inside(o, win, w, h)
+        # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        c_i = vec8()
+        c_x = vec8()
+        c_y = vec8()
+        if cached:
+            for j in range(LK_CACHE):
+                k = lane + j * nl
+                if k < n:
+                    vx = _window_px(prev_gx, off, w, h, o, inside, k, win, inv_win)
+                    vy = _window_px(prev_gy, off, w, h, o, inside, k, win, inv_win)
+                    c_i[j] = _window_px(prev, off, w, h, o, inside, k, win, inv_win)
+                    c_x[j] = vx
+                    c_y[j] = vy
+                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+        else:
+            k = lane
+            while k < n:
+                vx = _window_px(prev_gx, off, w, h, o, inside, k, win, inv_win)
+                vy = _window_px(prev_gy, off, w, h, o, inside, k, win, inv_win)
+                acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+                k += nl
+        G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+        det = G[0] * G[2] - G[1] * G[1]
+        lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
+        if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
+            ok = 0
+        nu = wp.vec2(0.0, 0.0)
+        last_step = wp.vec2(0.0, 0.0)
+        done = int(0)
+        if ok == 0:
+            done = 1
+        for _it in range(iterations):
+            # every lane holds the same reduced values, so leaving the loop is uniform across the block
+            if done == 1:
+                break
+            oq = _window_origin(p[0] - r + g[0] + nu[0], p[1] - r + g[1] + nu[1])
+            q_inside = _inside(oq, win, w, h)
+            bacc = wp.vec3(0.0, 0.0, 0.0)
             if cached:
-                for j in range(cache):
+                for j in range(LK_CACHE):
                     k = lane + j * nl
                     if k < n:
-                        row = int((float(k) + 0.5) * inv_win)
-                        col = k - row * win
-                        vi = _window_px(prev, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                        vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                        vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                        c_i[j] = vi
-                        c_x[j] = vx
-                        c_y[j] = vy
-                        acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+                        diff = c_i[j] - _window_px(cur, off, w, h, oq, q_inside, k, win, inv_win)
+                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
             else:
                 k = lane
                 while k < n:
-                    row = int((float(k) + 0.5) * inv_win)
-                    col = k - row * win
-                    vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                    vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+                    diff = (_window_px(prev, off, w, h, o, inside, k, win, inv_win)
+                            - _window_px(cur, off, w, h, oq, q_inside, k, win, inv_win))
+                    vx = _window_px(prev_gx, off, w, h, o, inside, k, win, inv_win)
+                    vy = _window_px(prev_gy, off, w, h, o, inside, k, win, inv_win)
+                    bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
                     k += nl
-            G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
-            det = G[0] * G[2] - G[1] * G[1]
-            lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
-            if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
-                ok = 0
-            nu = wp.vec2(0.0, 0.0)
-            last_step = wp.vec2(0.0, 0.0)
-            done = int(0)
-            if ok == 0:
+            b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
+            residual = b[2] / float(n)
+            step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
+            nu = nu + step
+            if wp.length(step) < eps:
                 done = 1
-            for _it in range(iterations):
-                # every lane holds the same reduced values, so leaving the loop is uniform across the block
-                if done == 1:
-                    break
-                oq = _window_origin(p[0] - r + g[0] + nu[0], p[1] - r + g[1] + nu[1])
-                qx = int(oq[0])
-                qy = int(oq[1])
-                q_inside = _inside(oq, win, w, h)
-                bacc = wp.vec3(0.0, 0.0, 0.0)
-                if cached:
-                    for j in range(cache):
-                        k = lane + j * nl
-                        if k < n:
-                            row = int((float(k) + 0.5) * inv_win)
-                            col = k - row * win
-                            diff = c_i[j] - _window_px(cur, off, w, h, q_inside, qx, qy, oq[2], oq[3], col, row)
-                            bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
-                else:
-                    k = lane
-                    while k < n:
-                        row = int((float(k) + 0.5) * inv_win)
-                        col = k - row * win
-                        diff = _window_px(prev, off, w, h, inside, ix, iy, o[2], o[3], col, row) - _window_px(
-                            cur, off, w, h, q_inside, qx, qy, oq[2], oq[3], col, row)
-                        vx = _window_px(prev_gx, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                        vy = _window_px(prev_gy, off, w, h, inside, ix, iy, o[2], o[3], col, row)
-                        bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
-                        k += nl
-                b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
-                residual = b[2] / float(n)
-                step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
-                nu = nu + step
-                if wp.length(step) < eps:
-                    done = 1
-                elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
-                    # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
-                    # as OpenCV's calcOpticalFlowPyrLK does, rather than bouncing until the iteration limit
-                    nu = nu - 0.5 * step
-                    done = 1
-                last_step = step
-            if lvl > 0:
-                g = (g + nu) * 2.0
-            else:
-                g = g + nu
-        if valid and lane == 0:
-            q = p0 + g
-            finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
-            in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
-            out_pts[f] = q
-            status[f] = wp.where(ok == 1 and in_image, 1, 0)
-            error[f] = residual
-
-    return lk_track
-
-
-lk_track = _make_lk_track(8)
-lk_track_warp = _make_lk_track(16)
+            elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
+                # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
+                # as OpenCV's calcOpticalFlowPyrLK does, rather than bouncing until the iteration limit
+                nu = nu - 0.5 * step
+                done = 1
+            last_step = step
+        if lvl > 0:
+            g = (g + nu) * 2.0
+        else:
+            g = g + nu
+    if lane == 0:
+        q = p0 + g
+        finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
+        in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+        out_pts[f] = q
+        status[f] = wp.where(ok == 1 and in_image, 1, 0)
+        error[f] = residual
 
 
 # --- Zinsser drift check, one block per feature --------------------------------------------------------------
@@ -468,14 +444,6 @@ def _patch_offset(k: int) -> wp.vec2:
     return wp.vec2(float(k % PATCH - HALF_PATCH), float(k // PATCH - HALF_PATCH))
 
 
-@wp.func
-def _reference(patches: wp.array2d(dtype=float), f: int, k: int, valid: bool) -> float:
-    # lanes of a block past the last track still take part in the reductions, with zeros
-    if valid:
-        return patches[f, k]
-    return 0.0
-
-
 @wp.kernel
 def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
                    count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
@@ -508,18 +476,14 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
         return
     nl = wp.block_dim()
     n = PATCH * PATCH
-    valid = True
-    b = wp.vec2(0.0, 0.0)
-    Am = wp.identity(n=2, dtype=float)
-    if valid:
-        b = pts[f]
-        Am = A[f]
+    b = pts[f]
+    Am = A[f]
     b0 = b
     # gain and bias from the patch statistics
     st = wp.vec4(0.0, 0.0, 0.0, 0.0)
     k = lane
     while k < n:
-        ref = _reference(patches, f, k, valid)
+        ref = patches[f, k]
         q = b + Am * _patch_offset(k)
         j = bilinear(img, 0, w, h, q[0], q[1])
         st += wp.vec4(ref, ref * ref, j, j * j)
@@ -536,7 +500,7 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
         acc = vec44()
         k = lane
         while k < n:
-            ref = _reference(patches, f, k, valid)
+            ref = patches[f, k]
             o = _patch_offset(k)
             q = b + Am * o
             j = bilinear(img, 0, w, h, q[0], q[1])
@@ -571,13 +535,13 @@ def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.ar
     racc = float(0.0)
     k = lane
     while k < n:
-        ref = _reference(patches, f, k, valid)
+        ref = patches[f, k]
         q = b + Am * _patch_offset(k)
         r = bilinear(img, 0, w, h, q[0], q[1]) - alpha * ref - beta
         racc += r * r
         k += nl
     rss = wp.tile_sum(wp.tile(racc))[0]
-    if valid and lane == 0:
+    if lane == 0:
         res = wp.sqrt(rss / fn) / (wp.abs(alpha) * ref_std)
         # singular values of the 2x2 warp
         a11 = Am[0, 0]
