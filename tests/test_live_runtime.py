@@ -187,3 +187,32 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
         LiveRun(None, None, None, replace(PipelineConfig(), runtime=replace(PipelineConfig().runtime,
                                                                             ba_worker="maybe")),
                 tracker="opencv", device="cpu")
+
+
+def test_the_mapper_collects_garbage_only_when_idle():
+    """Automatic collection (full passes over the whole map, stalling the frames waiting) is off in the mapper
+    process; cycles are collected in its idle moments, once the period has passed, and the setting is put
+    back afterwards."""
+    import gc
+    import weakref
+
+    from lapreco_hil.runtime.mapper_process import IdleTimeGC
+
+    class Node:
+        pass
+
+    now = [0.0]
+    was = gc.isenabled()
+    with IdleTimeGC(period_s=1.0, clock=lambda: now[0]) as collector:
+        assert not gc.isenabled()
+        node = Node()
+        node.me = node  # a reference cycle: only the collector frees it
+        alive = weakref.ref(node)
+        del node
+        kept = [[] for _ in range(20_000)]  # enough new containers to set off automatic collections, were they on
+        now[0] = 0.5
+        assert not collector.collect_if_due() and alive() is not None  # not yet due
+        now[0] = 1.0
+        assert collector.collect_if_due() and alive() is None
+        assert collector.collected >= 1
+    assert gc.isenabled() == was and len(kept) == 20_000

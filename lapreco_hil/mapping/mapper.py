@@ -165,7 +165,14 @@ class Mapper:
             predicted = self._predict_pose(prior)
             record.T_refined = self._resect(record, predicted) if resect else predicted
             return False
-        kf = Keyframe(len(self.keyframes), obs.frame_seq, obs.t_ns, prior, self._predict_pose(prior),
+        # A keyframe starts from its prior with the last keyframe's correction: good when bundle adjustment
+        # has refined that keyframe. Live, with local BA solved a few hundred milliseconds late, it has not; the
+        # keyframe is then refined against the map first, as any frame is (from the prediction alone most of
+        # its new points failed the reprojection test, and were tried again at every keyframe).
+        predicted = self._predict_pose(prior)
+        stale = bool(self.keyframes) and not self.keyframes[-1].refined
+        kf = Keyframe(len(self.keyframes), obs.frame_seq, obs.t_ns, prior,
+                      self._resect(record, predicted) if resect and stale else predicted,
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
         self.keyframes.append(kf)
         for tid, uv in zip(kf.track_ids.tolist(), kf.uv):

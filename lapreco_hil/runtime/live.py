@@ -503,7 +503,9 @@ class LiveRun:
                      "interrupted": getattr(self, "interrupted", False),
                      "final_ba_s": result.stats.get("final_ba_wall_s"),
                      # the mapper process's own time, by kind of work (the usual bottleneck)
-                     "mapper_stages_ms": result.stats.get("mapper_stages_ms", {})},
+                     "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
+                     # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
+                     "mapper_garbage_collected": result.stats.get("garbage_collected")},
             "health": {"events": self._health_events[:200], "event_count": len(self._health_events),
                        "counts": {k[len("health_"):]: v for k, v in c.items() if k.startswith("health_")}},
         }

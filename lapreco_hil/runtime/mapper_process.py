@@ -10,6 +10,7 @@ BA problems and results (numpy arrays) through the worker's queues; the final ma
 
 from __future__ import annotations
 
+import gc
 import logging
 import queue
 import time
@@ -20,6 +21,45 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 SNAPSHOT_PERIOD_S = 0.5  # the map for the live surface is published at most this often
+YOUNG_GC_PERIOD_S = 1.0  # the mapper's idle-time garbage collection (IdleTimeGC)
+
+
+class IdleTimeGC:
+    """Garbage collection in the mapper's idle moments only. The mapper holds every active track's views, a
+    few hundred thousand small objects into a run, and CPython's automatic full collections walk them all:
+    28-113 ms pauses in a 15 s replay, growing with the map, each one stalling the frames waiting (measured;
+    docs/benchmarks.md). The mapper makes almost no reference cycles (under a thousand objects unreachable
+    after a whole session), so in its process automatic collection is off and the young generations, where
+    short-lived cycles are, are collected when no frame waits. Reference counting frees everything else as
+    before."""
+
+    def __init__(self, period_s: float = YOUNG_GC_PERIOD_S, clock=time.monotonic) -> None:
+        self.period_s, self.clock = period_s, clock
+        self._next = clock() + period_s
+        self._was_enabled = gc.isenabled()
+        self.collected = 0  # unreachable objects found by the idle-time collections
+
+    def start(self) -> "IdleTimeGC":
+        gc.disable()
+        return self
+
+    def stop(self) -> None:
+        if self._was_enabled:
+            gc.enable()
+
+    __enter__ = start
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def collect_if_due(self) -> bool:
+        """Collect the young generations if the period has passed; True when it did."""
+        now = self.clock()
+        if now < self._next:
+            return False
+        self.collected += gc.collect(1)
+        self._next = now + self.period_s
+        return True
 
 
 def ba_worker_main(schedule, jobs_q, results_q) -> None:
@@ -98,6 +138,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper.defer_local_ba = worker is not None
         mapper.resect_on_retire = False
         mapper.defer_retirement = True
+        collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(("ready",))  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
         last_publish, map_changed = 0.0, False
@@ -132,7 +173,12 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             try:
                 slot = ready_q.get_nowait()
             except queue.Empty:
-                # nothing waits: the moment for maintenance (retiring old keyframes one at a time)
+                # nothing waits: the moment for maintenance (garbage collection, retiring old keyframes one at
+                # a time)
+                t = time.perf_counter()
+                if collector.collect_if_due():
+                    clock.add("collect_garbage", time.perf_counter() - t)
+                    continue
                 t = time.perf_counter()
                 if mapper.maintain():
                     clock.add("retire_keyframe", time.perf_counter() - t)
@@ -176,6 +222,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             for s_ in worker.solve_s:
                 clock.add("local_ba_solve_in_worker", s_)
         result.stats["mapper_stages_ms"] = clock.summary()
+        result.stats["garbage_collected"] = collector.collected
         result.stats["local_ba_skipped"] = skipped_ba
         result.stats["resection_skipped"] = skipped_resection
         if worker is not None:
