@@ -15,6 +15,10 @@ class Frame:
     image: np.ndarray
     t_ns: int
     seq: int
+    # when it was captured on this host's monotonic clock (time.monotonic_ns), where the grabber knows: the
+    # V4L2 buffer time, a real-time replay's or simulation's due time. The live latency starts here, so time
+    # a frame spent queued in the grabber counts. (t_ns is the capture time on the session's clock.)
+    host_ns: int | None = None
 
 
 @dataclass(frozen=True)

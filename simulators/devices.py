@@ -207,7 +207,8 @@ class SimGrabber(Grabber):
         image, _ = self.world.render(t_ns, seq)
         self.world.advance_to(t_ns + int(self.world.settings.delivery_latency_s * 1e9))
         self._seq += 1
-        return Frame(image=image, t_ns=t_ns, seq=seq)
+        due_ns = int(self._wall0 * 1e9) + t_ns - T0_NS if self.realtime else None
+        return Frame(image=image, t_ns=t_ns, seq=seq, host_ns=due_ns)
 
     @property
     def health(self) -> Health:

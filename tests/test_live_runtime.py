@@ -104,6 +104,33 @@ def test_degrade_skips_failing_frames_and_counts_them(fast_session, tmp_path):
     assert len(result.frames) == f["processed"] and metrics["live"]["stage_errors"] == {}
 
 
+def test_latency_starts_at_the_grabbers_capture_stamp(fast_session, tmp_path):
+    """A frame that waited in the grabber (its host-clock capture stamp 300 ms before it was read) shows that
+    wait in the latency: the clock starts at capture, not when the capture thread got the frame."""
+    import dataclasses
+
+    from lapreco_hil.pose_sources import RobotPoseSource
+    from lapreco_hil.runtime.live import LiveRun
+
+    robot, grabber = _devices(fast_session, pace="afap")
+
+    class Queued:  # the replay, but every frame captured 300 ms before it is read
+        def __getattr__(self, name):
+            return getattr(grabber, name)
+
+        def read(self, timeout_s=None):
+            frame = grabber.read(timeout_s)
+            return None if frame is None or frame.seq >= 40 else \
+                dataclasses.replace(frame, host_ns=time.monotonic_ns() - 300_000_000)
+
+    with robot, grabber:
+        live = LiveRun(Queued(), RobotPoseSource(robot, robot.description, PipelineConfig().prior),
+                       grabber.camera, PipelineConfig(), tracker="opencv", device="cpu", out_dir=tmp_path)
+        _, metrics = live.run()
+    assert metrics["frames"]["processed"] >= 3
+    assert metrics["latency_ms"]["p50"] >= 300.0
+
+
 @pytest.mark.parametrize("stop", ["SIGINT", "SIGTERM"])
 def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_path, stop):
     """Ctrl-C, or SIGTERM from a supervisor, ends the run cleanly. The run is started with SIGINT ignored, as a

@@ -280,3 +280,33 @@ def test_frames_before_the_first_joint_reading_are_skipped_and_counted(recorded,
     # the replay clock hands on readings up to one frame period ahead, so frame 6 already has one
     assert r["frames"]["without_pose"] == 6 and r["frames"]["processed"] == 24 and r["frames"]["dropped"] == 0
     assert r["inliers"] > 50
+
+
+@pytest.mark.parametrize("queue", [1, 8])
+def test_real_time_replay_holds_queue_frames_for_a_late_reader(recorded, queue):
+    """A real-time replay is a grabber: it plays at the recorded rate (25 fps here) and holds the newest
+    ``queue`` frames. A reader 2.5 frame periods late loses frames with a one-frame queue and none with eight;
+    a frame it still gets carries its capture time on this host's clock, so the time it waited counts."""
+    from lapreco_hil.registry import DeviceContext, open_grabber
+
+    grabber = open_grabber(f"replay://{recorded}?pace=realtime&queue={queue}", DeviceContext(device="cpu"))
+    with grabber:
+        first = grabber.read()
+        time.sleep(0.1)
+        read_at = time.monotonic_ns()
+        second = grabber.read()
+    period = grabber.session.frame_period_ns
+    if queue == 1:
+        assert second.seq > first.seq + 1  # gone before it was read
+    else:
+        assert second.seq == first.seq + 1
+        assert second.host_ns - first.host_ns == second.t_ns - first.t_ns == period
+        assert read_at - second.host_ns > 0.05e9  # it waited in the grabber's queue
+
+
+def test_replay_queue_must_hold_a_frame(recorded):
+    from lapreco_hil.errors import ConfigError
+    from lapreco_hil.registry import DeviceContext, open_grabber
+
+    with pytest.raises(ConfigError, match="queue must be at least 1 frame, got 0"):
+        open_grabber(f"replay://{recorded}?pace=realtime&queue=0", DeviceContext(device="cpu"))

@@ -191,7 +191,7 @@ class V4L2Grabber(Grabber):
                 self._seq += gap - 1  # sequence numbers keep their meaning: one per frame period
         self._last_t_ns = t_ns
         self._last_arrival_ns = self._clock()
-        frame = Frame(image=image, t_ns=t_ns, seq=self._seq)
+        frame = Frame(image=image, t_ns=t_ns, seq=self._seq, host_ns=t_ns)  # (t_ns is on the monotonic clock)
         self._seq += 1
         self.stats["frames"] += 1
         try:

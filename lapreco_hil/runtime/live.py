@@ -126,7 +126,9 @@ class LiveRun:
                 continue
             if frame is None:
                 return
-            arrival = time.monotonic_ns()
+            # the latency starts at capture: the grabber's host-clock stamp where it has one (time spent
+            # queued in the grabber counts), else now
+            arrival = frame.host_ns if frame.host_ns is not None else time.monotonic_ns()
             self.counters.add("frames_in")
             if last_t is not None and frame.t_ns <= last_t:
                 # a duplicated or backwards capture time would break pose interpolation and the map's order
@@ -492,7 +494,7 @@ class LiveRun:
             # frames mapped per second while the source delivered (the final global BA is not in it)
             "throughput_fps": processed / max((self._last_done_ns - self._first_arrival_ns) * 1e-9, 1e-9)
             if processed > 1 else 0.0,
-            "latency_ms": {**pct(lat_ms), "note": "frame in hand (capture thread) -> refined pose available"},
+            "latency_ms": {**pct(lat_ms), "note": "capture (the grabber's host-clock stamp, else frame in hand) -> refined pose available"},
             "stage_ms": stage_ms,
             "queue_depth": {k: {"mean": float(np.mean(v)), "max": int(np.max(v))}
                             for k, v in self._depth_samples.items() if v},

@@ -1,4 +1,8 @@
-"""Sessions as devices: ``replay://<session folder>?pace=afap|realtime`` for a grabber and a robot.
+"""Sessions as devices: ``replay://<session folder>?pace=afap|realtime[&queue=N]`` for a grabber and a robot.
+
+A real-time replay plays the frames at their recorded rate and, like a frame grabber, holds at most ``queue``
+of them (default 4, as the V4L2 driver's): a reader more than that many frames behind loses the oldest,
+and the sequence numbers show the gap. ``pace=afap`` hands every frame on as fast as it is read.
 
 A grabber and a robot opened on the same session in one DeviceContext share one reader and one replay
 clock: each frame handed on releases the joint samples captured up to one frame period after it (what a
@@ -7,6 +11,7 @@ live run would have had in hand), so replays are deterministic.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -54,6 +59,9 @@ class ReplayGrabber(Grabber):
         if pace not in ("afap", "realtime"):
             raise ConfigError(f"device URL '{url.raw}': pace must be 'afap' or 'realtime', got '{pace}'")
         self.realtime = pace == "realtime"
+        self.queue_len = url.get("queue", 4, int)
+        if self.queue_len < 1:
+            raise ConfigError(f"device URL '{url.raw}': queue must be at least 1 frame, got {self.queue_len}")
         self._i = 0
         self._open = False
         self._wall0: float | None = None
@@ -99,19 +107,21 @@ class ReplayGrabber(Grabber):
         if self._wall0 is None:
             self._wall0 = time.monotonic()
         if self.realtime:
-            # like a camera, a real-time replay does not wait for its reader: frames whose time has passed
-            # (more than a frame period ago) are skipped, and the sequence numbers show the gap
+            # like a grabber, a real-time replay does not wait for its reader: it holds the last ``queue``
+            # frames; older ones are gone (skipped), and the sequence numbers show the gap
             t0 = int(self.session.frame_t_ns[0])
-            late_ns = int((time.monotonic() - self._wall0) * 1e9) - self.session.frame_period_ns
+            late_ns = int((time.monotonic() - self._wall0) * 1e9) - self.queue_len * self.session.frame_period_ns
             while self._i < len(self.session) and self.session.frame_t_ns[self._i] - t0 < late_ns:
                 self._i += 1
         if self._i >= len(self.session):
             return None
         frame = self._frame(self._i)
         if self.realtime:
-            delay = self._wall0 + (frame.t_ns - int(self.session.frame_t_ns[0])) * 1e-9 - time.monotonic()
+            due_ns = int(self._wall0 * 1e9) + frame.t_ns - int(self.session.frame_t_ns[0])
+            delay = due_ns * 1e-9 - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            frame = dataclasses.replace(frame, host_ns=due_ns)  # captured then, on this host's clock
         self.clock.advance_to(frame.t_ns + self.session.meta.time_offset_ns + self.session.frame_period_ns)
         self._i += 1
         return frame
