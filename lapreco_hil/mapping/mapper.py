@@ -143,6 +143,10 @@ class Mapper:
         # in the middle of a frame (a 0.6 s stall at 1080p / 2000 tracks); ``add`` still retires a batch if the
         # map gets a whole batch over its bound (no idle time for that long)
         self.defer_retirement = False
+        # live: a keyframe's new points are triangulated (and its local BA asked for) in the mapper's next idle
+        # moment, so its pose is published first and the frames behind it do not wait for its structure
+        self.defer_triangulation = False
+        self._untriangulated: list[tuple[int, bool]] = []  # (keyframe id, local BA wanted after it)
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -158,6 +162,8 @@ class Mapper:
         and ``resect=False`` (a non-keyframe takes its prior with the last keyframe's correction instead of a
         pose refinement; ``finish`` refines every frame anyway)."""
         is_kf = self._is_keyframe(obs, prior)
+        if is_kf:
+            self._triangulate_pending()  # (no idle moment since the last keyframe: its points come first)
         record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
                              len(self.keyframes) if is_kf else None, obs.track_ids.copy(), obs.uv.copy())
         self.frames.append(record)
@@ -186,13 +192,10 @@ class Mapper:
                 self._last_seen_in[seen[-1][0]].discard(tid)
             seen.append((kf.id, uv))
             self._last_seen_in.setdefault(kf.id, set()).add(tid)
-        self._triangulate_new(kf)
-        if len(self.keyframes) >= 2 and local_ba:
-            if self.defer_local_ba:
-                self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
-            else:
-                self._local_ba()
         record.T_refined = kf.T_world_camera
+        self._untriangulated.append((kf.id, local_ba))
+        if not self.defer_triangulation:
+            self._triangulate_pending()
         cfg = self.config
         batch = max(1, min(cfg.retire_batch, cfg.active_keyframes // 2))
         over = len(self.keyframes) - self.first_active - cfg.active_keyframes
@@ -200,19 +203,37 @@ class Mapper:
             self._retire(self.first_active + batch)
         return True
 
-    def maintain(self) -> bool:
-        """Idle-time work for a live mapper: retire the oldest keyframe if the map is over its bound. Returns
-        True when it did something (call again while it does and nothing else waits)."""
+    def _triangulate_pending(self) -> None:
+        while self._untriangulated:
+            self._structure(*self._untriangulated.pop(0))
+
+    def _structure(self, kf_id: int, local_ba: bool) -> None:
+        """A keyframe's new points, then its local BA (asked of the worker, or run here)."""
+        self._triangulate_new(self.keyframes[kf_id])
+        if len(self.keyframes) >= 2 and local_ba:
+            if self.defer_local_ba:
+                self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
+            else:
+                self._local_ba()
+
+    def maintain(self) -> str | None:
+        """Idle-time work for a live mapper, one piece per call: a keyframe's deferred triangulation (and
+        local BA), else retiring the oldest keyframe if the map is over its bound. Returns what it did
+        ("triangulate", "retire"), None when nothing was due (call again while it works and nothing waits)."""
+        if self._untriangulated:
+            self._structure(*self._untriangulated.pop(0))
+            return "triangulate"
         cfg = self.config
         if not cfg.active_keyframes or len(self.keyframes) - self.first_active <= cfg.active_keyframes:
-            return False
+            return None
         self._retire(self.first_active + 1)
-        return True
+        return "retire"
 
     # --- bounded memory ------------------------------------------------------------------------------------
     def _retire(self, cutoff: int) -> None:
         """Retire keyframes before ``cutoff``: final poses for the frames before it, landmarks seen only by
         retired keyframes labelled and archived, their observations let go."""
+        self._triangulate_pending()
         t_cut = self.keyframes[cutoff].t_ns
         kt, corr = self._corrections(upto=cutoff)  # the frames settled here lie before keyframe ``cutoff``
         n = self._frames_final
@@ -478,6 +499,7 @@ class Mapper:
 
     # --- end of sequence -----------------------------------------------------------------------------------
     def finish(self) -> MapResult:
+        self._triangulate_pending()
         cfg = self.config
         t0 = time.perf_counter()
         active = list(range(self.first_active, len(self.keyframes)))

@@ -4,6 +4,8 @@ local BA in a thread would stall whatever else runs in that process: capture and
 process, and the per-frame work (keyframe choice, triangulation, pose refinement) in the mapper. So frames
 are mapped as they come while the BA worker solves the newest window; when its result is back the mapper
 applies it and hands over the newest window again (BA runs on the newest keyframes only, as often as it can).
+A keyframe's pose is published as soon as it is resected; its new points (and the local BA that follows them)
+wait for the mapper's next idle moment, so the frames queued behind a keyframe do not wait for its structure.
 
 Observations arrive through shared memory (ObservationRing), slot numbers and refined poses through queues;
 BA problems and results (numpy arrays) through the worker's queues; the final map goes back through a pipe."""
@@ -138,6 +140,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         mapper.defer_local_ba = worker is not None
         mapper.resect_on_retire = False
         mapper.defer_retirement = True
+        mapper.defer_triangulation = True
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(("ready",))  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
@@ -173,15 +176,16 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             try:
                 slot = ready_q.get_nowait()
             except queue.Empty:
-                # nothing waits: the moment for maintenance (garbage collection, retiring old keyframes one at
-                # a time)
+                # nothing waits: the moment for maintenance (garbage collection, the last keyframe's new points,
+                # retiring old keyframes one at a time)
                 t = time.perf_counter()
                 if collector.collect_if_due():
                     clock.add("collect_garbage", time.perf_counter() - t)
                     continue
                 t = time.perf_counter()
-                if mapper.maintain():
-                    clock.add("retire_keyframe", time.perf_counter() - t)
+                work = mapper.maintain()
+                if work is not None:
+                    clock.add(f"{work}_keyframe", time.perf_counter() - t)
                     map_changed = True
                     continue
                 t = time.perf_counter()
