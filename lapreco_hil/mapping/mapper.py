@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 TRIANGULATION_VIEWS = 6
 # a track is triangulated once its end rays span this share of min_parallax_deg
 PARALLAX_PRECHECK = 0.8
+# live, a keyframe's new points are made in idle-time pieces of this many tracks (a frame that arrives waits
+# for one piece at most: a few milliseconds, not the ~25 ms of a whole keyframe at 2000 tracks)
+TRIANGULATION_PIECE = 250
 
 
 def _spread(seen: list, n: int) -> list:
@@ -146,7 +149,9 @@ class Mapper:
         # live: a keyframe's new points are triangulated (and its local BA asked for) in the mapper's next idle
         # moment, so its pose is published first and the frames behind it do not wait for its structure
         self.defer_triangulation = False
-        self._untriangulated: list[tuple[int, bool]] = []  # (keyframe id, local BA wanted after it)
+        # keyframes whose points are still to be made: [keyframe id, local BA wanted after it, the candidate
+        # tracks still to triangulate (None: not chosen yet)]
+        self._untriangulated: list[list] = []
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -193,7 +198,7 @@ class Mapper:
             seen.append((kf.id, uv))
             self._last_seen_in.setdefault(kf.id, set()).add(tid)
         record.T_refined = kf.T_world_camera
-        self._untriangulated.append((kf.id, local_ba))
+        self._untriangulated.append([kf.id, local_ba, None])
         if not self.defer_triangulation:
             self._triangulate_pending()
         cfg = self.config
@@ -205,11 +210,23 @@ class Mapper:
 
     def _triangulate_pending(self) -> None:
         while self._untriangulated:
-            self._structure(*self._untriangulated.pop(0))
+            self._structure_step(None)
 
-    def _structure(self, kf_id: int, local_ba: bool) -> None:
-        """A keyframe's new points, then its local BA (asked of the worker, or run here)."""
-        self._triangulate_new(self.keyframes[kf_id])
+    def _structure_step(self, limit: int | None) -> None:
+        """The oldest pending keyframe's new points, at most ``limit`` candidate tracks of them (None: all);
+        once they are all done, its local BA (asked of the worker, or run here)."""
+        pending = self._untriangulated[0]
+        kf_id, local_ba, cands = pending
+        if cands is None:
+            pending[2] = cands = self._triangulation_candidates(self.keyframes[kf_id])
+            if limit is not None:
+                return  # choosing them was this piece of work
+        n = len(cands) if limit is None else limit
+        self._triangulate_tracks(self.keyframes[kf_id], cands[:n])
+        del cands[:n]
+        if cands:
+            return
+        self._untriangulated.pop(0)
         if len(self.keyframes) >= 2 and local_ba:
             if self.defer_local_ba:
                 self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
@@ -217,11 +234,12 @@ class Mapper:
                 self._local_ba()
 
     def maintain(self) -> str | None:
-        """Idle-time work for a live mapper, one piece per call: a keyframe's deferred triangulation (and
-        local BA), else retiring the oldest keyframe if the map is over its bound. Returns what it did
-        ("triangulate", "retire"), None when nothing was due (call again while it works and nothing waits)."""
+        """Idle-time work for a live mapper, one short piece per call: a keyframe's deferred triangulation
+        (``TRIANGULATION_PIECE`` tracks at a time, then its local BA), else retiring the oldest keyframe if the
+        map is over its bound. Returns what it did ("triangulate", "retire"), None when nothing was due (call
+        again while it works and nothing waits)."""
         if self._untriangulated:
-            self._structure(*self._untriangulated.pop(0))
+            self._structure_step(TRIANGULATION_PIECE)
             return "triangulate"
         cfg = self.config
         if not cfg.active_keyframes or len(self.keyframes) - self.first_active <= cfg.active_keyframes:
@@ -347,10 +365,15 @@ class Mapper:
         return float(np.degrees(np.median(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))))
 
     # --- structure -----------------------------------------------------------------------------------------
-    def _triangulate_new(self, kf: Keyframe) -> None:
-        cfg = self.config
+    def _triangulation_candidates(self, kf: Keyframe) -> list[int]:
+        """The keyframe's tracks that have no point yet and whose views now span (nearly) enough parallax."""
         cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks.get(t, ())) >= 2]
-        cands = self._wide_enough(cands)
+        return self._wide_enough(cands)
+
+    def _triangulate_tracks(self, kf: Keyframe, cands: list[int]) -> None:
+        """New points for ``cands`` (tracks seen in ``kf``), from their views so far."""
+        cfg = self.config
+        cands = [t for t in cands if t in self.tracks and t not in self.landmarks]  # (retired or made since)
         if not cands:
             return
         # A track that has not yet had the parallax for a point is seen in every keyframe since it started: its

@@ -24,6 +24,10 @@ log = logging.getLogger(__name__)
 
 SNAPSHOT_PERIOD_S = 0.5  # the map for the live surface is published at most this often
 YOUNG_GC_PERIOD_S = 1.0  # the mapper's idle-time garbage collection (IdleTimeGC)
+# Frames first: a BA result is applied, the next BA job built and sent, the map snapshot gathered (each a few
+# to tens of milliseconds) when no frame waits, or after this long without such a moment (a long backlog)
+HOUSEKEEPING_MAX_DELAY_S = 0.25
+_IDLE = object()  # no frame waiting
 
 
 class IdleTimeGC:
@@ -159,7 +163,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 last_publish, map_changed = time.monotonic(), False
                 clock.add("publish_snapshot", time.perf_counter() - t)
 
-        while True:
+        last_housekeeping = time.monotonic()
+
+        def housekeeping() -> None:
+            nonlocal map_changed, last_housekeeping
             if worker is not None:
                 t = time.perf_counter()
                 applied = worker.collect(mapper)
@@ -173,9 +180,16 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                         worker.submit(job)
                         clock.add("submit_local_ba", time.perf_counter() - t)
             publish_if_due()
+            last_housekeeping = time.monotonic()
+
+        while True:
             try:
                 slot = ready_q.get_nowait()
             except queue.Empty:
+                slot = _IDLE
+            if slot is _IDLE or time.monotonic() - last_housekeeping >= HOUSEKEEPING_MAX_DELAY_S:
+                housekeeping()
+            if slot is _IDLE:
                 # nothing waits: the moment for maintenance (garbage collection, the last keyframe's new points,
                 # retiring old keyframes one at a time)
                 t = time.perf_counter()
