@@ -206,3 +206,18 @@ def test_deferred_triangulation_publishes_the_keyframe_first_and_builds_the_same
     a, b = maps[False], maps[True]
     assert np.array_equal(a.landmark_ids, b.landmark_ids)
     assert np.allclose(a.points, b.points, atol=1e-9) and np.allclose(a.frame_poses, b.frame_poses, atol=1e-9)
+
+
+def test_map_points_gathered_in_pieces_are_the_whole_map(rng):
+    """The live snapshot is gathered a piece per idle moment; unchanged meanwhile, it is the map in one go."""
+    _, frames = _scan(rng, n_frames=40)
+    m = Mapper(K, MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0,
+                               keyframe_parallax_deg=50.0, keyframe_track_ratio=0.0))
+    for o, prior, _ in frames:
+        m.add(o, prior)
+    assert len(m.landmarks) > 250
+    steps = list(m.map_points_in_pieces(100))
+    assert all(s is None for s in steps[:-1]) and len(steps) == -(-len(m.landmarks) // 100)
+    pts, cols = steps[-1]
+    whole_pts, whole_cols = m.map_points()
+    assert np.array_equal(pts, whole_pts) and np.array_equal(cols, whole_cols) and len(pts) == len(m.landmarks)
