@@ -305,10 +305,7 @@ class Mapper:
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The map as it stands, for the live surface: archived inliers, then every active landmark."""
-        for done in self.map_points_in_pieces(None):
-            if done is not None:
-                return done
-        raise AssertionError("unreachable")
+        return next(self.map_points_in_pieces(None))  # (in one piece, its only step is the map)
 
     def map_points_in_pieces(self, piece: int | None):
         """``map_points`` as a generator that gathers ``piece`` active landmarks per step (None: all at once),
