@@ -208,6 +208,10 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
         mapped = clock.get("add_frame", {}).get("count", 0) + clock["add_keyframe"]["count"]
         assert mapped == metrics["frames"]["processed"], (mode, clock, metrics["frames"])
         assert clock["add_keyframe"]["count"] == result_stats["keyframes"], (mode, clock, result_stats)
+        # a keyframe's points come after its pose, and when is timed too (up to two still pending at the end
+        # are made by the final pass)
+        points = clock["keyframe_points_after_capture"]
+        assert result_stats["keyframes"] - 2 <= points["count"] <= result_stats["keyframes"], (mode, clock)
     assert stats["on"][1]["live"]["mapper_stages_ms"]["local_ba_solve_in_worker"]["count"] == on["local_ba_worker_runs"]
     assert "local_ba_solve_in_worker" not in stats["off"][1]["live"]["mapper_stages_ms"]
     with pytest.raises(Exception, match="ba_worker"):

@@ -152,6 +152,7 @@ class Mapper:
         # keyframes whose points are still to be made: [keyframe id, local BA wanted after it, the candidate
         # tracks still to triangulate (None: not chosen yet)]
         self._untriangulated: list[list] = []
+        self.structured: list[int] = []  # keyframes whose deferred points are now made (the live mapper drains it)
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
@@ -227,6 +228,8 @@ class Mapper:
         if cands:
             return
         self._untriangulated.pop(0)
+        if self.defer_triangulation:
+            self.structured.append(kf_id)
         if len(self.keyframes) >= 2 and local_ba:
             if self.defer_local_ba:
                 self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)

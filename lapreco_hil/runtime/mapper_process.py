@@ -174,6 +174,17 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             clock.add("gather_snapshot", time.perf_counter() - t)
 
         last_housekeeping = time.monotonic()
+        keyframe_captured: dict[int, int] = {}  # keyframe id -> its frame's capture time, until its points exist
+
+        def points_done() -> None:
+            # a frame's latency ends with its pose; a keyframe's new points follow in idle moments: how long after
+            # its capture they exist is timed too
+            now = time.monotonic_ns()
+            for kf_id in mapper.structured:
+                captured = keyframe_captured.pop(kf_id, None)
+                if captured is not None:
+                    clock.add("keyframe_points_after_capture", (now - captured) * 1e-9)
+            mapper.structured.clear()
 
         def housekeeping() -> None:
             nonlocal map_changed, last_housekeeping
@@ -210,6 +221,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 work = mapper.maintain()
                 if work is not None:
                     clock.add(f"{work}_keyframe", time.perf_counter() - t)
+                    points_done()
                     map_changed = True
                     continue
                 t = time.perf_counter()
@@ -234,6 +246,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             t = time.perf_counter()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect)
             clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
+            if is_kf:
+                keyframe_captured[len(mapper.keyframes) - 1] = arrival_ns
+            points_done()
             if is_kf and (not run_ba or in_flight):
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
