@@ -6,9 +6,13 @@ behind (DESIGN.md, the seed's Fig 1):
 - tracking takes every frame capture kept (LK needs consecutive frames) and writes its observations into a
   shared-memory slot for the mapper; with no free slot the frame is not mapped (counted);
 - the mapper process maps every frame it gets while a BA worker process solves the newest window of
-  keyframes, back to back (BA runs on the newest keyframes only; keyframes it skipped are counted);
+  keyframes, back to back (BA runs on the newest keyframes only; keyframes it skipped are counted); frames
+  come first there: a keyframe's new points, BA jobs and results, the map snapshot and garbage collection
+  wait for moments when no frame waits, in short pieces (runtime/mapper_process.py);
 - the surface is rebuilt every ``surface_period_s`` from the mapper's latest landmarks, the live textured view
   rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture.
+
+Latency runs from a frame's capture (the grabber's host-clock stamp where it has one) to its refined pose.
 
 An exception in any stage is stored and raised on the main loop (or, for the optional stages under
 ``on_stage_error = "degrade"``, the stage is switched off and the run goes on); a mapper process that dies is
