@@ -59,6 +59,16 @@ class Keyframe:
 
 
 @dataclass(slots=True)
+class _PendingStructure:
+    """A keyframe whose new points are still to be made (and its local BA asked for after them)."""
+
+    kf_id: int
+    local_ba: bool
+    tracks: list[int] | None = None  # the candidate tracks still to triangulate (None: not chosen yet)
+    colors: dict[int, np.ndarray] | None = None  # their colours in the keyframe
+
+
+@dataclass(slots=True)
 class FrameRecord:
     seq: int
     t_ns: int
@@ -149,9 +159,7 @@ class Mapper:
         # live: a keyframe's new points are triangulated (and its local BA asked for) in the mapper's next idle
         # moment, so its pose is published first and the frames behind it do not wait for its structure
         self.defer_triangulation = False
-        # keyframes whose points are still to be made: [keyframe id, local BA wanted after it, the candidate
-        # tracks still to triangulate (None: not chosen yet)]
-        self._untriangulated: list[list] = []
+        self._untriangulated: list[_PendingStructure] = []  # oldest first
         self.structured: list[int] = []  # keyframes whose deferred points are now made (the live mapper drains it)
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
@@ -199,7 +207,7 @@ class Mapper:
             seen.append((kf.id, uv))
             self._last_seen_in.setdefault(kf.id, set()).add(tid)
         record.T_refined = kf.T_world_camera
-        self._untriangulated.append([kf.id, local_ba, None])
+        self._untriangulated.append(_PendingStructure(kf.id, local_ba))
         if not self.defer_triangulation:
             self._triangulate_pending()
         cfg = self.config
@@ -217,20 +225,21 @@ class Mapper:
         """The oldest pending keyframe's new points, at most ``limit`` candidate tracks of them (None: all);
         once they are all done, its local BA (asked of the worker, or run here)."""
         pending = self._untriangulated[0]
-        kf_id, local_ba, cands = pending
-        if cands is None:
-            pending[2] = cands = self._triangulation_candidates(self.keyframes[kf_id])
+        if pending.tracks is None:
+            kf = self.keyframes[pending.kf_id]
+            pending.tracks = self._triangulation_candidates(kf)
+            pending.colors = dict(zip(kf.track_ids.tolist(), kf.colors))
             if limit is not None:
                 return  # choosing them was this piece of work
-        n = len(cands) if limit is None else limit
-        self._triangulate_tracks(self.keyframes[kf_id], cands[:n])
-        del cands[:n]
-        if cands:
+        n = len(pending.tracks) if limit is None else limit
+        self._triangulate_tracks(pending.tracks[:n], pending.colors)
+        del pending.tracks[:n]
+        if pending.tracks:
             return
         self._untriangulated.pop(0)
         if self.defer_triangulation:
-            self.structured.append(kf_id)
-        if len(self.keyframes) >= 2 and local_ba:
+            self.structured.append(pending.kf_id)
+        if len(self.keyframes) >= 2 and pending.local_ba:
             if self.defer_local_ba:
                 self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
             else:
@@ -386,8 +395,8 @@ class Mapper:
         cands = [t for t in kf.track_ids.tolist() if t not in self.landmarks and len(self.tracks.get(t, ())) >= 2]
         return self._wide_enough(cands)
 
-    def _triangulate_tracks(self, kf: Keyframe, cands: list[int]) -> None:
-        """New points for ``cands`` (tracks seen in ``kf``), from their views so far."""
+    def _triangulate_tracks(self, cands: list[int], color_of: dict[int, np.ndarray]) -> None:
+        """New points for ``cands``, from their views so far, coloured by ``color_of``."""
         cfg = self.config
         cands = [t for t in cands if t in self.tracks and t not in self.landmarks]  # (retired or made since)
         if not cands:
@@ -412,7 +421,6 @@ class Mapper:
         kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
         res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
-        color_of = dict(zip(kf.track_ids.tolist(), kf.colors))
         for n in np.flatnonzero(res.valid):
             t = cands[n]
             self.landmarks[t] = res.points[n]
