@@ -1,7 +1,9 @@
 """The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
 into observations. Track bookkeeping (live counts, ids, compaction, the choice of new corners) stays on the
-device, so on CUDA a frame is the upload, one graph replay and one read-back of the per-track results (positions
-and ids) into pinned memory; images never come back (colours are read on the host, from the frame in hand).
+device, so on CUDA a frame is the grey conversion on the host, then one graph replay: the upload, the image
+stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
+tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours
+are read on the host from the frame in hand, at each track's position in the distorted frame.
 """
 
 from __future__ import annotations
@@ -21,10 +23,10 @@ from . import kernels as K
 
 log = logging.getLogger(__name__)
 
-MAX_CANDIDATES = 65536
 # rounds of the parallel greedy selection; a corner still undecided after them is dropped (rare: a chain of
-# ever stronger neighbours longer than this)
-SELECTION_ROUNDS = 6
+# ever stronger neighbours longer than this; on a 1080p frame, 8 rounds with a round's state read before its
+# updates left 0-12 of ~4000 undecided, and the in-place rounds settle faster than that)
+SELECTION_ROUNDS = 8
 # LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
 LK_MIN_EIG = 1.5e-6
@@ -51,12 +53,14 @@ class WarpFrontEnd:
             w, h = (w + 1) // 2, (h + 1) // 2
         self._lv = (offs, ws, hs)
         map_x, map_y = camera.undistort_maps()
-        self._map_x, self._map_y = map_x, map_y  # the host reads each track's colour through them
         fov = cv2.remap(camera.fov_mask(margin_px=config.fov_margin_px), map_x, map_y, cv2.INTER_NEAREST,
                         borderValue=0)
-        sigma = config.shading_sigma_px
-        radius = int(np.ceil(3 * sigma)) if sigma > 0 else 7
-        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / max(sigma, 1.0)) ** 2)
+        # the shading estimate (the log image blurred with sigma) is taken at half resolution, with sigma / 2
+        half_sigma = max(config.shading_sigma_px, 1.0) / 2.0
+        radius = int(np.ceil(3 * half_sigma))
+        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / half_sigma) ** 2)
+        self._half = ((W + 1) // 2, (H + 1) // 2)
+        hw, hh = self._half
         n = config.max_features
         with wp.ScopedDevice(self.device):
             self._remap = wp.array(np.stack([map_x, map_y], -1).astype(np.float32), dtype=wp.vec2)
@@ -66,36 +70,33 @@ class WarpFrontEnd:
             self._ws = wp.array(np.array(ws, np.int32), dtype=int)
             self._hs = wp.array(np.array(hs, np.int32), dtype=int)
             self._frame = wp.zeros((H, W), dtype=wp.uint8)  # the distorted frame's grey levels
-            self._gray = wp.zeros((H, W), dtype=float)
             self._log = wp.zeros((H, W), dtype=float)
-            self._tmp = wp.zeros((H, W), dtype=float)
-            self._lit = wp.zeros((H, W), dtype=float)
-            # flat views for the separable blur, which walks a flat index
-            self._log_flat, self._tmp_flat, self._lit_flat = (a.flatten() for a in (self._log, self._tmp, self._lit))
+            self._lit = wp.zeros((H, W), dtype=float)  # the shading level (blurred log), full resolution
+            self._half_log, self._half_tmp, self._half_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
             self._pyr = [wp.zeros(total, dtype=float) for _ in range(2)]  # current / previous, swapped
             self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._eig = wp.zeros((H, W), dtype=float)
             self._rows = wp.zeros(H * W, dtype=wp.vec3)  # the structure tensor's horizontal sums
             self._max_eig = wp.zeros(1, dtype=float)
-            self._occ = wp.zeros((H, W), dtype=wp.int32)
-            self._cand_pos = wp.zeros(MAX_CANDIDATES, dtype=wp.vec2)
-            self._cand_score = wp.zeros(MAX_CANDIDATES, dtype=float)
-            self._cand_count = wp.zeros(1, dtype=wp.int32)
+            self._occ = wp.zeros((H, W), dtype=wp.int32)  # occupied where it holds the detection's stamp
+            self._stamp = wp.zeros(1, dtype=wp.int32)
             self._pts = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]
             self._A = [wp.zeros(n, dtype=wp.mat22) for _ in range(2)]
             self._patches = [wp.zeros((n, K.PATCH * K.PATCH), dtype=float) for _ in range(2)]
             self._lk_pts = wp.zeros(n, dtype=wp.vec2)
             self._status = wp.zeros(n, dtype=wp.int32)
             self._error = wp.zeros(n, dtype=float)
+            self._lk_iterations = wp.zeros(n, dtype=wp.int32)
             self._keep = wp.zeros(n, dtype=wp.int32)
             self._residual = wp.zeros(n, dtype=float)
             self._slot = wp.zeros(n, dtype=wp.int32)
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
-            self._best = wp.zeros(self._grid[1] * self._grid[2], dtype=float)
-            self._winner = wp.zeros(self._grid[1] * self._grid[2], dtype=wp.int32)
-            self._state = [wp.zeros(MAX_CANDIDATES, dtype=wp.int32) for _ in range(2)]
+            n_cells = self._grid[1] * self._grid[2]
+            self._cell_key = wp.zeros(n_cells, dtype=wp.uint64)  # zero between detections (cell_init clears it)
+            self._cells = wp.zeros(n_cells, dtype=wp.vec3)  # each cell's strongest corner: (x, y, score)
+            self._cell_state = wp.zeros(n_cells, dtype=wp.int32)  # -1 out, 0 undecided, 1 selected
             self._hist = wp.zeros(K.SCORE_BINS, dtype=wp.int32)
             self._cut = wp.zeros(2, dtype=wp.int32)
             self._taken = wp.zeros(2, dtype=wp.int32)
@@ -111,12 +112,23 @@ class WarpFrontEnd:
             # staging buffer (one third of the bytes, then one DMA); the colours the map needs are read on the
             # host at the tracks, after the frame.
             self._staging = wp.zeros((H, W), dtype=wp.uint8, pinned=pinned)
-            # each frame's results come back in one go, into pinned buffers (copies inside the frame's graph)
-            self._out_counts = wp.zeros(2, dtype=wp.int32, pinned=pinned)
-            self._out_pts = wp.zeros(n, dtype=wp.vec2, pinned=pinned)
-            self._out_ids = wp.zeros(n, dtype=wp.int32, pinned=pinned)
+            # each frame's results come back into pinned buffers (two copies inside the frame's graph, see
+            # pack_results): the surviving tracks after tracking, all tracks after detection
+            self._out_kept, self._out_all = ((wp.zeros(n, dtype=wp.vec4, pinned=pinned),
+                                              wp.zeros(n + 2, dtype=wp.int32, pinned=pinned)) for _ in range(2))
+        with wp.ScopedDevice(self.device):
+            self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + 2, dtype=wp.int32))
+        # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
+        self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
+        self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self.use_graphs = True
+        self.lk_lanes, self.drift_lanes = K.LK_LANES, K.DRIFT_LANES
+        self.lk_iterations = 30  # per pyramid level, as OpenCV's default criteria
+        self.drift_iterations = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
+        # the corner response and selection run beside tracking, at high priority: theirs is a chain of short
+        # launches, which should not queue behind the blocks of LK and the drift check
+        self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
         self._graphs = [None, None]  # one CUDA graph per frame, per buffer parity
@@ -133,61 +145,67 @@ class WarpFrontEnd:
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def _upload(self, image: np.ndarray) -> None:
+    def _to_staging(self, image: np.ndarray) -> None:
+        """The frame's grey levels into the pinned staging buffer; its copy to the device is the first node of
+        the frame's graph."""
         if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
             raise ValueError(f"frame is {image.shape} {image.dtype}; the front-end was built for "
                              f"{self.height}x{self.width}x3 uint8")
         cv2.cvtColor(image, cv2.COLOR_BGR2GRAY, dst=self._staging_np)
+
+    def _upload(self, image: np.ndarray) -> None:
+        self._to_staging(image)
         wp.copy(self._frame, self._staging)
 
-    def _colors_at(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """RGB under each track: its undistorted position mapped back into the distorted frame, sampled
-        bilinearly (a 1 x N remap)."""
-        if len(uv) == 0:
+    def _colors_at(self, image: np.ndarray, src: np.ndarray) -> np.ndarray:
+        """RGB under each track: the distorted frame sampled bilinearly at the track's source position (computed
+        on the device from the undistortion map), border replicated; one 1 x N remap of (x, y) pairs."""
+        if len(src) == 0:
             return np.zeros((0, 3), np.uint8)
-        x = np.clip(np.round(uv[:, 0]).astype(int), 0, self.width - 1)
-        y = np.clip(np.round(uv[:, 1]).astype(int), 0, self.height - 1)
-        mx, my = self._map_x[y, x][None, :], self._map_y[y, x][None, :]
-        bgr = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        xy = np.ascontiguousarray(src, dtype=np.float32).reshape(1, -1, 2)
+        bgr = cv2.remap(image, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
         return np.ascontiguousarray(bgr[:, ::-1])
 
     def _prepare_kernels(self) -> None:
         """Undistort, remove shading, build the pyramid and its gradients into the current buffers."""
-        cfg = self.config
         H, W = self.height, self.width
-        self._launch(K.undistort_gray, (H, W), [self._frame, self._remap, self._gray])
-        self._launch(K.log_image, (H, W), [self._gray, self._log])
-        self._launch(K.blur_1d, (H, W), [self._log_flat, W, H, self._weights, 1, 0, self._tmp_flat])
-        self._launch(K.blur_1d, (H, W), [self._tmp_flat, W, H, self._weights, 0, 1, self._lit_flat])
+        hw, hh = self._half
+        self._launch(K.undistort_log, (H, W), [self._frame, self._remap, self._log])
+        self._launch(K.half_mean, (hh, hw), [self._log, self._half_log, hw])
+        self._launch(K.blur_1d, (hh, hw), [self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp])
+        self._launch(K.blur_1d, (hh, hw), [self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit])
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        if cfg.shading_sigma_px > 0:
-            self._launch(K.to_level0, (H, W), [self._log, self._lit, 1.0, 1, pyr])
-        else:
-            self._launch(K.to_level0, (H, W), [self._gray, self._lit, 1.0 / 255.0, 0, pyr])
+        subtract = 1 if self.config.shading_sigma_px > 0 else 0
+        self._launch(K.level0, (H, W), [self._log, self._half_lit, hw, hh, subtract, pyr, self._lit])
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
             self._launch(K.pyr_down, (hs[l], ws[l]), [pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l]])
-        for l in range(self.levels):
-            self._launch(K.sobel, (hs[l], ws[l]), [pyr, offs[l], ws[l], hs[l], gx, gy])
+        self._launch(K.sobel_levels, pyr.shape[0], [pyr, self._offs, self._ws, self._hs, self.levels, gx, gy])
 
     # --- tracking -----------------------------------------------------------------------------------------------
-    def _track_kernels(self) -> None:
-        """LK from the previous buffers' tracks, the drift check (or LK's own verdict) and the field-of-view test,
-        then compaction into the current buffers, all on the device. Launches cover every slot; kernels read the
-        live count from the device, so the shapes are fixed (a graph) and the host learns nothing until the end."""
+    def _lk_kernels(self) -> None:
+        """Pyramidal LK of the previous buffers' tracks into the current image. The launch covers every slot;
+        kernels read the live count from the device, so the shapes are fixed (a graph)."""
+        cfg = self.config
+        prev, cur = 1 - self._cur, self._cur
+        wp.launch_tiled(K.LK_KERNELS[self.lk_lanes], dim=[cfg.max_features], inputs=[
+            self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
+            self.levels, cfg.window_px, self.lk_iterations, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev],
+            self._lk_pts, self._status, self._error, self._lk_iterations], block_dim=self.lk_lanes, device=self.device)
+        self._sync_for_profile("lk")
+
+    def _keep_kernels(self) -> None:
+        """The drift check (or LK's own verdict) and the field-of-view test, then compaction of the surviving
+        tracks into the current buffers, all on the device: the host learns nothing until the end."""
         cfg = self.config
         n = cfg.max_features
         prev, cur = 1 - self._cur, self._cur
-        wp.launch_tiled(K.lk_track, dim=[n], inputs=[
-            self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, 30, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev], self._lk_pts,
-            self._status, self._error], block_dim=64, device=self.device)
-        self._sync_for_profile("lk")
         if cfg.drift_check:
-            wp.launch_tiled(K.drift_check, dim=[n], inputs=[
+            wp.launch_tiled(K.DRIFT_KERNELS[self.drift_lanes], dim=[n], inputs=[
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
-                self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], 6, cfg.drift_max_residual,
-                1.6, 3.0, self._pts[prev], self._keep, self._residual], block_dim=64, device=self.device)
+                self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], self.drift_iterations,
+                cfg.drift_max_residual, 1.6, 3.0, self._pts[prev], self._keep, self._residual],
+                block_dim=self.drift_lanes, device=self.device)
         else:
             self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._pts[prev],
                                         self._keep])
@@ -207,65 +225,101 @@ class WarpFrontEnd:
             self._marks[name] = time.perf_counter()
 
     # --- detection ----------------------------------------------------------------------------------------------
-    def _detect_kernels(self) -> None:
-        """Occupancy around live tracks, Shi-Tomasi response, local maxima, the greedy minimum-distance selection,
-        and the strongest of the selected corners into the free slots (a score histogram picks them, no sort);
-        their first patches for the drift check."""
+    def _response_kernels(self) -> None:
+        """The Shi-Tomasi response of the current frame (the structure tensor's smaller eigenvalue)."""
         cfg = self.config
         H, W = self.height, self.width
         cur = self._cur
-        count = self._count[cur]
-        self._occ.zero_()
-        r = int(np.ceil(cfg.min_distance_px))
-        self._launch(K.occupancy, (cfg.max_features, (2 * r + 1) ** 2),
-                     [self._pts[cur], count, float(cfg.min_distance_px), self._occ])
-        lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
-        self._max_eig.zero_()
         self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
-        self._launch(K.min_eigenvalue, (H, W), [self._rows, W, H, cfg.block_size, self._mask, self._lit, lit_min,
-                                                 self._occ, self._eig, self._max_eig])
-        self._cand_count.zero_()
-        self._launch(K.corner_candidates, (H, W), [
-            self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ,
-            cfg.block_size // 2 + 1, self._cand_pos, self._cand_score, self._cand_count])
+        self._launch(K.min_eigenvalue, (H, W), [self._rows, W, H, cfg.block_size, self._eig])
+
+    def _selection_kernels(self) -> None:
+        """Occupancy around the tracks LK followed, the best response where corners may start, local maxima
+        (each cell of side min_distance / sqrt(2) keeps its strongest) and the greedy minimum-distance selection,
+        then a histogram of the selected corners' scores. None of it needs the drift check's verdicts, so on
+        CUDA it runs beside the drift check."""
+        cfg = self.config
+        H, W = self.height, self.width
+        prev = 1 - self._cur
+        self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
+        r = int(np.ceil(cfg.min_distance_px))
+        self._launch(K.occupancy, (cfg.max_features, (2 * r + 1) ** 2), [
+            self._lk_pts, self._status, self._count[prev], float(cfg.min_distance_px), self._stamp, self._occ])
+        lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
+        wp.launch_tiled(K.allowed_max, dim=[H], inputs=[self._eig, self._mask, self._lit, lit_min, self._occ,
+                                                        self._stamp, self._max_eig], block_dim=256, device=self.device)
         cell, gw, gh = self._grid
-        self._best.fill_(-1.0e30)
-        self._winner.fill_(-1)
-        self._launch(K.cell_best, MAX_CANDIDATES, [self._cand_pos, self._cand_score, self._cand_count, cell, gw,
-                                                    self._best])
-        self._launch(K.cell_winner, MAX_CANDIDATES, [self._cand_pos, self._cand_score, self._cand_count, cell, gw,
-                                                      self._best, self._winner])
-        self._launch(K.selection_init, MAX_CANDIDATES, [self._cand_pos, self._cand_count, cell, gw, self._winner,
-                                                         self._state[0]])
-        for rnd in range(SELECTION_ROUNDS):
-            self._launch(K.selection_round, MAX_CANDIDATES, [
-                self._cand_pos, self._cand_score, self._cand_count, cell, gw, gh, self._winner,
-                float(cfg.min_distance_px), self._state[rnd % 2], self._state[(rnd + 1) % 2]])
-        selected = self._state[SELECTION_ROUNDS % 2]
-        self._hist.zero_()
-        self._taken.zero_()
-        self._launch(K.score_histogram, MAX_CANDIDATES, [self._cand_score, selected, self._max_eig, self._hist])
-        self._launch(K.score_threshold, 1, [self._hist, count, cfg.max_features, self._cut, self._n_new])
-        self._launch(K.take_corners, MAX_CANDIDATES, [self._cand_pos, self._cand_score, selected, self._max_eig,
-                                                       self._cut, count, self._next_id, self._taken, self._pts[cur],
-                                                       self._ids[cur]])
+        self._launch(K.corner_candidates, (H, W), [
+            self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ, self._stamp,
+            cfg.block_size // 2 + 1, cell, gw, self._cell_key])
+        self._launch(K.cell_init, max(gw * gh, K.SCORE_BINS), [self._cell_key, self._eig, self._cells,
+                                                               self._cell_state, self._hist])
+        for _ in range(SELECTION_ROUNDS):
+            self._launch(K.selection_round, gw * gh, [self._cells, gw, gh, float(cfg.min_distance_px),
+                                                      self._cell_state])
+        self._launch(K.score_histogram, gw * gh, [self._cells, self._cell_state, self._max_eig, self._hist])
+
+    def _detect_kernels(self, beside_tracking: bool) -> None:
+        """New tracks in the free slots: the strongest selected corners (a score histogram picks them, no sort)
+        and their first patches for the drift check. The response and the selection ran beside tracking on
+        CUDA; elsewhere they run here, only on frames that need new corners."""
+        cfg = self.config
+        cur = self._cur
+        count = self._count[cur]
+        if not beside_tracking:
+            self._response_kernels()
+            self._selection_kernels()
+        _, gw, gh = self._grid
+        self._launch(K.score_threshold, K.SCORE_BINS, [self._hist, count, cfg.max_features, self._cut, self._n_new,
+                                                        self._taken])
+        self._launch(K.take_corners, gw * gh, [self._cells, self._cell_state, self._max_eig, self._cut, count,
+                                                self._next_id, self._taken, self._pts[cur], self._ids[cur]])
         self._launch(K.sample_patches, (cfg.max_features, K.PATCH * K.PATCH), [
-            self._pyr[cur], W, H, self._pts[cur], count, self._n_new, self._patches[cur], self._A[cur]])
+            self._pyr[cur], self.width, self.height, self._pts[cur], count, self._n_new, self._patches[cur],
+            self._A[cur]])
         self._launch(K.commit_new_tracks, 1, [count, self._n_new, self._next_id])
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def _frame_kernels(self) -> None:
-        """Everything after the upload: image stages, tracking, detection when too few tracks are left (a
-        conditional node inside the graph), and the copies of the results into pinned host memory."""
+        """A frame after its grey conversion (one CUDA graph): the copy to the device, image stages, tracking,
+        the surviving tracks' results into pinned memory (then the ``tracked`` event: the host reads their colours
+        while the rest runs), new corners when too few tracks are left (a conditional node), and every track's
+        results into a second set of pinned buffers.
+
+        On CUDA the corner response runs on a second stream beside LK, and the corner selection beside the drift
+        check: neither needs the drift check's verdicts. They are wasted on frames that need no new corners, which
+        costs GPU time but no latency."""
         cur = self._cur
+        wp.copy(self._frame, self._staging)
+        self._sync_for_profile("upload")
         self._prepare_kernels()
         self._sync_for_profile("prepare")
-        self._track_kernels()
-        wp.capture_if(self._detect_flag, on_true=self._detect_kernels)
-        wp.copy(self._out_counts, self._count[cur], count=1)
-        wp.copy(self._out_counts, self._n_new, dest_offset=1, count=1)
-        wp.copy(self._out_pts, self._pts[cur])
-        wp.copy(self._out_ids, self._ids[cur])
+        side = self._side_stream if not self.profile else None
+        if side is not None:
+            main = wp.get_stream(self.device)
+            side.wait_stream(main)
+            with wp.ScopedStream(side, sync_enter=False):
+                self._response_kernels()
+        self._lk_kernels()
+        if side is not None:
+            side.wait_stream(main)
+            with wp.ScopedStream(side, sync_enter=False):
+                self._selection_kernels()
+        self._keep_kernels()
+        self._copy_results(self._out_kept)
+        if self._tracked is not None:
+            wp.record_event(self._tracked, external=True)  # a node the host can wait on, inside a graph
+        if side is not None:
+            main.wait_stream(side)
+        wp.capture_if(self._detect_flag, on_true=lambda: self._detect_kernels(beside_tracking=side is not None))
+        self._copy_results(self._out_all)
+
+    def _copy_results(self, out: tuple) -> None:
+        cur = self._cur
+        self._launch(K.pack_results, self.config.max_features, [self._pts[cur], self._ids[cur], self._count[cur],
+                                                                 self._n_new, self._remap, *self._packed])
+        for dst, src in zip(out, self._packed):
+            wp.copy(dst, src)
 
     def warm_up(self) -> None:
         """Compile every kernel and capture both frame graphs on black frames (no corners, so no tracks are
@@ -282,10 +336,9 @@ class WarpFrontEnd:
         self._marks = {}
         t0 = time.perf_counter()
         self._cur = cur = 1 - self._cur
-        self._upload(frame.image)
-        self._sync_for_profile("upload")
-        # On CUDA the frame is one graph replay per buffer parity, captured on the buffer's second use (once
-        # every kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
+        self._to_staging(frame.image)
+        # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
+        # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
         if self.device.is_cuda and self.use_graphs and not self.profile and self._runs[cur] >= 1:
             if self._graphs[cur] is None:
                 try:
@@ -295,19 +348,24 @@ class WarpFrontEnd:
                 except Exception as exc:  # e.g. a driver without conditional graph nodes (CUDA < 12.4)
                     log.warning("front-end: CUDA graph capture failed (%s); launching kernels one by one", exc)
                     self.use_graphs = False
-            if self._graphs[cur] is not None:
-                wp.capture_launch(self._graphs[cur])
-            else:
-                self._frame_kernels()
+        if self.use_graphs and not self.profile and self._graphs[cur] is not None:
+            wp.capture_launch(self._graphs[cur])
         else:
             self._frame_kernels()
         self._runs[cur] += 1
+        # the surviving tracks' colours are read while detection runs
+        if self._tracked is not None:
+            wp.synchronize_event(self._tracked)
+        per_track, counts_ids = self._kept_np
+        kept = int(counts_ids[0])
+        kept_colors = self._colors_at(frame.image, per_track[:kept, 2:])
         wp.synchronize_device(self.device)
-        n, n_new = (int(v) for v in self._out_counts.numpy())
+        per_track, counts_ids = self._all_np
+        n, n_new = int(counts_ids[0]), int(counts_ids[1])
         self._n_tracks = n
-        uv = self._out_pts.numpy()[:n].astype(np.float64)
-        ids = self._out_ids.numpy()[:n].astype(np.int64)
-        colors = self._colors_at(frame.image, uv)
+        uv = per_track[:n, :2].astype(np.float64)
+        ids = counts_ids[2:2 + n].astype(np.int64)
+        colors = np.concatenate([kept_colors, self._colors_at(frame.image, per_track[kept:n, 2:])])
         t_end = time.perf_counter()
         timings = {"total": t_end - t0}
         if self.profile:
