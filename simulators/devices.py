@@ -200,14 +200,15 @@ class SimGrabber(Grabber):
                     return None
         seq = self._seq
         t_ns = self.frame_time_ns(seq)
+        due_ns = None  # when the frame is captured on this host's monotonic clock (real time only)
         if self.realtime:
-            delay = self._wall0 + (t_ns - T0_NS) * 1e-9 - time.monotonic()
+            due_ns = int(self._wall0 * 1e9) + t_ns - T0_NS
+            delay = due_ns * 1e-9 - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
         image, _ = self.world.render(t_ns, seq)
         self.world.advance_to(t_ns + int(self.world.settings.delivery_latency_s * 1e9))
         self._seq += 1
-        due_ns = int(self._wall0 * 1e9) + t_ns - T0_NS if self.realtime else None
         return Frame(image=image, t_ns=t_ns, seq=seq, host_ns=due_ns)
 
     @property

@@ -30,6 +30,8 @@ SELECTION_ROUNDS = 8
 # LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
 LK_MIN_EIG = 1.5e-6
+LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
+DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 
 
 class WarpFrontEnd:
@@ -87,10 +89,11 @@ class WarpFrontEnd:
             self._lk_pts = wp.zeros(n, dtype=wp.vec2)
             self._status = wp.zeros(n, dtype=wp.int32)
             self._error = wp.zeros(n, dtype=float)
-            self._lk_iterations = wp.zeros(n, dtype=wp.int32)
             self._keep = wp.zeros(n, dtype=wp.int32)
             self._residual = wp.zeros(n, dtype=float)
             self._slot = wp.zeros(n, dtype=wp.int32)
+            # a frame's results, packed for their copies to the host (pack_results)
+            self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + 2, dtype=wp.int32))
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
             n_cells = self._grid[1] * self._grid[2]
@@ -116,16 +119,11 @@ class WarpFrontEnd:
             # pack_results): the surviving tracks after tracking, all tracks after detection
             self._out_kept, self._out_all = ((wp.zeros(n, dtype=wp.vec4, pinned=pinned),
                                               wp.zeros(n + 2, dtype=wp.int32, pinned=pinned)) for _ in range(2))
-        with wp.ScopedDevice(self.device):
-            self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + 2, dtype=wp.int32))
         # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
         self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self.use_graphs = True
-        self.lk_lanes, self.drift_lanes = K.LK_LANES, K.DRIFT_LANES
-        self.lk_iterations = 30  # per pyramid level, as OpenCV's default criteria
-        self.drift_iterations = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
         # the corner response and selection run beside tracking, at high priority: theirs is a chain of short
         # launches, which should not queue behind the blocks of LK and the drift check
         self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
@@ -188,10 +186,10 @@ class WarpFrontEnd:
         kernels read the live count from the device, so the shapes are fixed (a graph)."""
         cfg = self.config
         prev, cur = 1 - self._cur, self._cur
-        wp.launch_tiled(K.LK_KERNELS[self.lk_lanes], dim=[cfg.max_features], inputs=[
+        wp.launch_tiled(K.lk_track, dim=[cfg.max_features], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, self.lk_iterations, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev],
-            self._lk_pts, self._status, self._error, self._lk_iterations], block_dim=self.lk_lanes, device=self.device)
+            self.levels, cfg.window_px, LK_ITERATIONS, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev],
+            self._lk_pts, self._status, self._error], block_dim=K.LK_LANES, device=self.device)
         self._sync_for_profile("lk")
 
     def _keep_kernels(self) -> None:
@@ -201,11 +199,11 @@ class WarpFrontEnd:
         n = cfg.max_features
         prev, cur = 1 - self._cur, self._cur
         if cfg.drift_check:
-            wp.launch_tiled(K.DRIFT_KERNELS[self.drift_lanes], dim=[n], inputs=[
+            wp.launch_tiled(K.drift_check, dim=[n], inputs=[
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
-                self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], self.drift_iterations,
+                self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
                 cfg.drift_max_residual, 1.6, 3.0, self._pts[prev], self._keep, self._residual],
-                block_dim=self.drift_lanes, device=self.device)
+                block_dim=K.DRIFT_LANES, device=self.device)
         else:
             self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._pts[prev],
                                         self._keep])

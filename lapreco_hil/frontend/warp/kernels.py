@@ -364,8 +364,7 @@ def _make_lk_track(cache: int):
                  cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                  hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
                  pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
-                 status: wp.array(dtype=wp.int32), error: wp.array(dtype=float),
-                 iterations_out: wp.array(dtype=wp.int32)):
+                 status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
         """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
         Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
 
@@ -385,7 +384,6 @@ def _make_lk_track(cache: int):
         g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
         ok = int(1)
         residual = float(0.0)
-        used = int(0)  # iterations over all levels (the benchmark reports their spread)
         cached = n <= cache * nl
         for li in range(levels):
             lvl = levels - 1 - li
@@ -466,7 +464,6 @@ def _make_lk_track(cache: int):
                         bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
                         k += nl
                 b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
-                used += 1
                 residual = b[2] / float(n)
                 step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
                 nu = nu + step
@@ -489,13 +486,12 @@ def _make_lk_track(cache: int):
             out_pts[f] = q
             status[f] = wp.where(ok == 1 and in_image, 1, 0)
             error[f] = residual
-            iterations_out[f] = used
 
     return lk_track
 
 
-# one kernel per lane count: each lane caches enough pixels that the lanes cover windows up to 22 x 22
-LK_KERNELS = {lanes: _make_lk_track((22 * 22 + lanes - 1) // lanes) for lanes in (32, 64, 128, 256)}
+# each lane caches enough pixels that the lanes cover windows up to 22 x 22
+lk_track = _make_lk_track((22 * 22 + LK_LANES - 1) // LK_LANES)
 
 
 # --- Zinsser drift check, one block per feature --------------------------------------------------------------
@@ -692,7 +688,7 @@ def _make_drift_check(per_lane: int):
     return drift_check
 
 
-DRIFT_KERNELS = {lanes: _make_drift_check((PATCH * PATCH + lanes - 1) // lanes) for lanes in (32, 64, 128)}
+drift_check = _make_drift_check((PATCH * PATCH + DRIFT_LANES - 1) // DRIFT_LANES)
 
 
 # --- bookkeeping -------------------------------------------------------------------------------------------
