@@ -31,7 +31,9 @@ SELECTION_ROUNDS = 8
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
 LK_MIN_EIG = 1.5e-6
 LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
+LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
+COLOR_ROW = 64  # points per row of the colour remap
 
 
 class WarpFrontEnd:
@@ -157,11 +159,17 @@ class WarpFrontEnd:
 
     def _colors_at(self, image: np.ndarray, src: np.ndarray) -> np.ndarray:
         """RGB under each track: the distorted frame sampled bilinearly at the track's source position (computed
-        on the device from the undistortion map), border replicated; one 1 x N remap of (x, y) pairs."""
-        if len(src) == 0:
+        on the device from the undistortion map), border replicated; one remap of (x, y) pairs."""
+        n = len(src)
+        if n == 0:
             return np.zeros((0, 3), np.uint8)
-        xy = np.ascontiguousarray(src, dtype=np.float32).reshape(1, -1, 2)
-        bgr = cv2.remap(image, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        # OpenCV splits a remap between its threads by rows: 1 x N would run on one thread
+        rows = -(-n // COLOR_ROW)
+        xy = np.empty((rows * COLOR_ROW, 2), np.float32)
+        xy[:n] = src
+        xy[n:] = xy[n - 1]
+        bgr = cv2.remap(image, xy.reshape(rows, COLOR_ROW, 2), None, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
         return np.ascontiguousarray(bgr[:, ::-1])
 
     def _prepare_kernels(self) -> None:
@@ -188,7 +196,7 @@ class WarpFrontEnd:
         prev, cur = 1 - self._cur, self._cur
         wp.launch_tiled(K.lk_track, dim=[cfg.max_features], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, LK_ITERATIONS, 0.01, LK_MIN_EIG, self._pts[prev], self._count[prev],
+            self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG, self._pts[prev], self._count[prev],
             self._lk_pts, self._status, self._error], block_dim=K.LK_LANES, device=self.device)
         self._sync_for_profile("lk")
 
@@ -202,14 +210,13 @@ class WarpFrontEnd:
             wp.launch_tiled(K.drift_check, dim=[n], inputs=[
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
                 self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
-                cfg.drift_max_residual, 1.6, 3.0, self._pts[prev], self._keep, self._residual],
+                cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual],
                 block_dim=K.DRIFT_LANES, device=self.device)
         else:
-            self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._pts[prev],
-                                        self._keep])
+            self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._keep])
         wp.utils.array_scan(self._keep, self._slot, inclusive=False)
         self._launch(K.scatter_tracks, (n, K.PATCH * K.PATCH), [
-            self._keep, self._slot, self._pts[prev], self._A[prev], self._patches[prev], self._ids[prev],
+            self._keep, self._slot, self._lk_pts, self._A[prev], self._patches[prev], self._ids[prev],
             self._pts[cur], self._A[cur], self._patches[cur], self._ids[cur]])
         redetect_below = int(np.ceil(cfg.redetect_below * n))
         self._launch(K.count_kept, 1, [self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag,
@@ -223,29 +230,28 @@ class WarpFrontEnd:
             self._marks[name] = time.perf_counter()
 
     # --- detection ----------------------------------------------------------------------------------------------
-    def _response_kernels(self) -> None:
-        """The Shi-Tomasi response of the current frame (the structure tensor's smaller eigenvalue)."""
+    def _occupancy(self, buffer: int, which: int) -> None:
+        """Stamp the discs around the live tracks of a track buffer (``which``: see ``K.occupancy``)."""
+        r = int(np.ceil(self.config.min_distance_px))
+        self._launch(K.occupancy, (self.config.max_features, (2 * r + 1) ** 2), [
+            self._pts[buffer], self._count[buffer], float(self.config.min_distance_px), self._stamp, which, self._occ])
+
+    def _selection_kernels(self) -> None:
+        """Occupancy around the tracks as they were before this frame, the Shi-Tomasi response of the current
+        frame (the structure tensor's smaller eigenvalue) and its best value where corners may start, local
+        maxima (each cell of side min_distance / sqrt(2) keeps its strongest) and the greedy minimum-distance
+        selection. It needs nothing from tracking, so on CUDA it runs beside LK and the drift check; the corners
+        are checked again against where the tracks are now before they are counted and taken (``K._free_now``)."""
         cfg = self.config
         H, W = self.height, self.width
         cur = self._cur
-        self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
-        self._launch(K.min_eigenvalue, (H, W), [self._rows, W, H, cfg.block_size, self._eig])
-
-    def _selection_kernels(self) -> None:
-        """Occupancy around the tracks LK followed, the best response where corners may start, local maxima
-        (each cell of side min_distance / sqrt(2) keeps its strongest) and the greedy minimum-distance selection,
-        then a histogram of the selected corners' scores. None of it needs the drift check's verdicts, so on
-        CUDA it runs beside the drift check."""
-        cfg = self.config
-        H, W = self.height, self.width
-        prev = 1 - self._cur
         self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
-        r = int(np.ceil(cfg.min_distance_px))
-        self._launch(K.occupancy, (cfg.max_features, (2 * r + 1) ** 2), [
-            self._lk_pts, self._status, self._count[prev], float(cfg.min_distance_px), self._stamp, self._occ])
+        self._occupancy(1 - cur, 0)
         lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
-        wp.launch_tiled(K.allowed_max, dim=[H], inputs=[self._eig, self._mask, self._lit, lit_min, self._occ,
-                                                        self._stamp, self._max_eig], block_dim=256, device=self.device)
+        self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
+        wp.launch_tiled(K.min_eigenvalue, dim=[H], inputs=[
+            self._rows, W, H, cfg.block_size, self._mask, self._lit, lit_min, self._occ, self._stamp, self._eig,
+            self._max_eig], block_dim=256, device=self.device)
         cell, gw, gh = self._grid
         self._launch(K.corner_candidates, (H, W), [
             self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ, self._stamp,
@@ -255,27 +261,28 @@ class WarpFrontEnd:
         for _ in range(SELECTION_ROUNDS):
             self._launch(K.selection_round, gw * gh, [self._cells, gw, gh, float(cfg.min_distance_px),
                                                       self._cell_state])
-        self._launch(K.score_histogram, gw * gh, [self._cells, self._cell_state, self._max_eig, self._hist])
 
     def _detect_kernels(self, beside_tracking: bool) -> None:
         """New tracks in the free slots: the strongest selected corners (a score histogram picks them, no sort)
-        and their first patches for the drift check. The response and the selection ran beside tracking on
-        CUDA; elsewhere they run here, only on frames that need new corners."""
+        that no surviving track has come near, and their first patches for the drift check. The selection ran
+        beside tracking on CUDA; elsewhere it runs here, only on frames that need new corners."""
         cfg = self.config
         cur = self._cur
         count = self._count[cur]
         if not beside_tracking:
-            self._response_kernels()
             self._selection_kernels()
+        self._occupancy(cur, 1)
         _, gw, gh = self._grid
-        self._launch(K.score_threshold, K.SCORE_BINS, [self._hist, count, cfg.max_features, self._cut, self._n_new,
-                                                        self._taken])
-        self._launch(K.take_corners, gw * gh, [self._cells, self._cell_state, self._max_eig, self._cut, count,
-                                                self._next_id, self._taken, self._pts[cur], self._ids[cur]])
+        self._launch(K.score_histogram, gw * gh, [self._cells, self._cell_state, self._max_eig, self._occ, self._stamp,
+                                                  self._hist])
+        self._launch(K.score_threshold, K.SCORE_BINS, [self._hist, count, cfg.max_features, self._cut, self._taken])
+        self._launch(K.take_corners, gw * gh, [self._cells, self._cell_state, self._max_eig, self._cut, self._occ,
+                                                self._stamp, count, self._next_id, self._taken, self._pts[cur],
+                                                self._ids[cur]])
         self._launch(K.sample_patches, (cfg.max_features, K.PATCH * K.PATCH), [
-            self._pyr[cur], self.width, self.height, self._pts[cur], count, self._n_new, self._patches[cur],
+            self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken, self._patches[cur],
             self._A[cur]])
-        self._launch(K.commit_new_tracks, 1, [count, self._n_new, self._next_id])
+        self._launch(K.commit_new_tracks, 1, [self._taken, count, self._n_new, self._next_id])
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def _frame_kernels(self) -> None:
@@ -284,10 +291,8 @@ class WarpFrontEnd:
         while the rest runs), new corners when too few tracks are left (a conditional node), and every track's
         results into a second set of pinned buffers.
 
-        On CUDA the corner response runs on a second stream beside LK, and the corner selection beside the drift
-        check: neither needs the drift check's verdicts. They are wasted on frames that need no new corners, which
-        costs GPU time but no latency."""
-        cur = self._cur
+        On CUDA the corner response and selection run on a second stream beside tracking: they need nothing
+        from it. They are wasted on frames that need no new corners, which costs GPU time but no latency."""
         wp.copy(self._frame, self._staging)
         self._sync_for_profile("upload")
         self._prepare_kernels()
@@ -297,12 +302,8 @@ class WarpFrontEnd:
             main = wp.get_stream(self.device)
             side.wait_stream(main)
             with wp.ScopedStream(side, sync_enter=False):
-                self._response_kernels()
-        self._lk_kernels()
-        if side is not None:
-            side.wait_stream(main)
-            with wp.ScopedStream(side, sync_enter=False):
                 self._selection_kernels()
+        self._lk_kernels()
         self._keep_kernels()
         self._copy_results(self._out_kept)
         if self._tracked is not None:

@@ -31,6 +31,72 @@ vec44 = wp.types.vector(length=44, dtype=wp.float32)  # upper triangle of an 8x8
 mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float32)
 
 
+# --- block sums --------------------------------------------------------------------------------------------
+# LK and the drift check sum per-lane values over their block once per iteration, and every lane needs the sum.
+# wp.tile_sum followed by an extraction takes four barriers and a serial pass by one thread (its result lives in
+# lane 0 and is broadcast through shared memory). Here each warp reduces by butterfly shuffles, so every lane
+# ends with its warp's sum, and one barrier lets every lane add the warps' sums. Two shared buffers alternate
+# with the caller's count of block sums: a lane can only write a buffer again after the next barrier, which
+# every lane reaches only once it has read the previous sum. On the CPU a tiled launch has one lane per block,
+# whose value is the sum. Every lane of a block must make the same calls (uniform control flow).
+_BLOCK_SUM_SNIPPET = """
+#if defined(__CUDA_ARCH__)
+    static_assert(WP_TILE_BLOCK_DIM % 32 == 0, "block sums need whole warps");
+    constexpr int N = sizeof(v) / sizeof(float);
+    constexpr int WARPS = WP_TILE_BLOCK_DIM / 32;
+    __shared__ float partials[2][WARPS][N];
+    auto s = v;
+    float* c = reinterpret_cast<float*>(&s);
+    #pragma unroll
+    for (int i = 0; i < N; ++i) {
+        float x = c[i];
+        #pragma unroll
+        for (int o = 16; o > 0; o >>= 1)
+            x += __shfl_xor_sync(0xffffffffu, x, o);
+        c[i] = x;
+    }
+    if (WARPS == 1)
+        return s;
+    const int buf = parity & 1;
+    if ((threadIdx.x & 31) == 0) {
+        #pragma unroll
+        for (int i = 0; i < N; ++i)
+            partials[buf][threadIdx.x >> 5][i] = c[i];
+    }
+    __syncthreads();
+    #pragma unroll
+    for (int i = 0; i < N; ++i) {
+        float t = partials[buf][0][i];
+        #pragma unroll
+        for (int w = 1; w < WARPS; ++w)
+            t += partials[buf][w][i];
+        c[i] = t;
+    }
+    return s;
+#else
+    static_assert(WP_TILE_BLOCK_DIM == 1, "block sums on the CPU need one lane per block (enable_cpu_blocks off)");
+    return v;
+#endif
+"""
+
+
+@wp.func_native(_BLOCK_SUM_SNIPPET)
+def _block_sum1(v: float, parity: int) -> float: ...
+
+
+@wp.func_native(_BLOCK_SUM_SNIPPET)
+def _block_sum3(v: wp.vec3, parity: int) -> wp.vec3: ...
+
+
+@wp.func_native(_BLOCK_SUM_SNIPPET)
+def _block_sum4(v: wp.vec4, parity: int) -> wp.vec4: ...
+
+
+@wp.func_native(_BLOCK_SUM_SNIPPET)
+def _block_sum44(v: vec44, parity: int) -> vec44: ...
+
+
+
 # --- sampling ----------------------------------------------------------------------------------------------
 @wp.func
 def _px(img: wp.array(dtype=float), off: int, w: int, h: int, x: int, y: int) -> float:
@@ -222,34 +288,29 @@ def structure_rows(gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
 
 
 @wp.kernel
-def min_eigenvalue(rows: wp.array(dtype=wp.vec3), w: int, h: int, block: int, eig: wp.array2d(dtype=float)):
+def min_eigenvalue(rows: wp.array(dtype=wp.vec3), w: int, h: int, block: int, mask: wp.array2d(dtype=wp.uint8),
+                   lit: wp.array2d(dtype=float), lit_min: float, occ: wp.array2d(dtype=wp.int32),
+                   stamp: wp.array(dtype=wp.int32), eig: wp.array2d(dtype=float), max_eig: wp.array(dtype=float)):
     """Smaller eigenvalue of the structure tensor summed over a block x block window (cornerMinEigenVal), from
-    the row sums of ``structure_rows``. It needs no track positions, so it can run beside tracking."""
-    y, x = wp.tid()
-    r = block // 2
-    t = wp.vec3(0.0, 0.0, 0.0)
-    for k in range(block):
-        t += rows[wp.clamp(y + k - r, 0, h - 1) * w + x]
-    a = t[0]
-    b = t[1]
-    c = t[2]
-    half = 0.5 * (a + c)
-    eig[y, x] = half - wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))
-
-
-@wp.kernel
-def allowed_max(eig: wp.array2d(dtype=float), mask: wp.array2d(dtype=wp.uint8), lit: wp.array2d(dtype=float),
-                lit_min: float, occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32),
-                max_eig: wp.array(dtype=float)):
-    """The best response where corners may start (the quality level is relative to it), as OpenCV takes it
-    inside the mask. One block per row reduces its row, then one atomic per row."""
+    the row sums of ``structure_rows``, and the best of it where corners may start (the quality level is
+    relative to it, as OpenCV takes it inside the mask). One block per image row: its lanes stride the row,
+    then one block max and one atomic per row. The occupancy must be stamped before."""
     y, lane = wp.tid()
+    r = block // 2
+    s = stamp[0]
     best = float(0.0)
     x = lane
-    while x < eig.shape[1]:
-        d = eig[y, x]
-        if d > best and _allowed(mask, lit, lit_min, occ, stamp[0], x, y):
-            best = d
+    while x < w:
+        t = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(block):
+            t += rows[wp.clamp(y + k - r, 0, h - 1) * w + x]
+        a = t[0]
+        b = t[1]
+        c = t[2]
+        e = 0.5 * (a + c) - wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))
+        eig[y, x] = e
+        if e > best and _allowed(mask, lit, lit_min, occ, s, x, y):
+            best = e
         x += wp.block_dim()
     row_best = wp.tile_max(wp.tile(best))[0]
     if lane == 0:
@@ -258,20 +319,20 @@ def allowed_max(eig: wp.array2d(dtype=float), mask: wp.array2d(dtype=wp.uint8), 
 
 @wp.kernel
 def selection_begin(stamp: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float)):
-    """A new detection: a new occupancy stamp (the grid is never cleared: a pixel is occupied when it holds
-    this detection's stamp) and no best response yet."""
-    stamp[0] = stamp[0] + 1
+    """A new detection: two new occupancy stamps (the grid is never cleared: a pixel is occupied when it holds a
+    stamp of this detection), one for the selection and one for taking corners, and no best response yet."""
+    stamp[0] = stamp[0] + 2
     max_eig[0] = 0.0
 
 
 @wp.kernel
-def occupancy(positions: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-              radius: float, stamp: wp.array(dtype=wp.int32), occ: wp.array2d(dtype=wp.int32)):
-    """Mark the disc of radius min_distance around each track that LK followed (status 1) with this detection's
-    stamp: no new corner may start there. The track count is read on the device, so the launch has a fixed
-    shape and can live in a CUDA graph."""
+def occupancy(positions: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), radius: float,
+              stamp: wp.array(dtype=wp.int32), which: int, occ: wp.array2d(dtype=wp.int32)):
+    """Mark the disc of radius min_distance around each live track with this detection's stamp (plus
+    ``which``: 0 for the selection, 1 for taking corners): no new corner may start there. The track count is
+    read on the device, so the launch has a fixed shape and can live in a CUDA graph."""
     t, j = wp.tid()
-    if t >= count[0] or status[t] != 1:
+    if t >= count[0]:
         return
     r = int(wp.ceil(radius))
     side = 2 * r + 1
@@ -283,7 +344,7 @@ def occupancy(positions: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int3
     x = int(wp.round(p[0])) + dx
     y = int(wp.round(p[1])) + dy
     if x >= 0 and y >= 0 and x < occ.shape[1] and y < occ.shape[0]:
-        occ[y, x] = stamp[0]
+        occ[y, x] = stamp[0] + which
 
 
 @wp.func
@@ -383,7 +444,9 @@ def _make_lk_track(cache: int):
         p0 = pts[f]
         g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
         ok = int(1)
-        residual = float(0.0)
+        abs_sum = float(0.0)  # the last iteration's sum of absolute differences over the window
+        sums = int(0)  # block sums so far (their shared buffers alternate)
+        eps2 = eps * eps
         cached = n <= cache * nl
         for li in range(levels):
             lvl = levels - 1 - li
@@ -418,11 +481,13 @@ def _make_lk_track(cache: int):
                     vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
                     acc += wp.vec3(vx * vx, vx * vy, vy * vy)
                     k += nl
-            G = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+            G = _block_sum3(acc, sums)
+            sums += 1
             det = G[0] * G[2] - G[1] * G[1]
             lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
             if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
                 ok = 0
+            inv_det = 1.0 / wp.where(ok == 1, det, 1.0)
             nu = wp.vec2(0.0, 0.0)
             last_step = wp.vec2(0.0, 0.0)
             done = int(0)
@@ -433,6 +498,13 @@ def _make_lk_track(cache: int):
                 if done == 1:
                     break
                 oq = _window_origin(p[0] - r + g[0] + nu[0], p[1] - r + g[1] + nu[1])
+                if oq[0] < -float(win) or oq[1] < -float(win) or oq[0] >= float(w) or oq[1] >= float(h):
+                    # the window has left the level (OpenCV's test): its samples are the clamped border, so the
+                    # steps would not converge and the track would take every iteration of every level. The
+                    # track is lost if this happens on the finest level; on a coarser one it keeps its guess.
+                    if lvl == 0:
+                        ok = 0
+                    break
                 bacc = wp.vec3(0.0, 0.0, 0.0)
                 if cached and oq[0] >= 0.0 and oq[1] >= 0.0 and oq[0] + float(win) <= float(w - 1) and (
                         oq[1] + float(win) <= float(h - 1)):
@@ -463,11 +535,12 @@ def _make_lk_track(cache: int):
                         vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
                         bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
                         k += nl
-                b = wp.tile_sum(wp.tile(bacc, preserve_type=True))[0]
-                residual = b[2] / float(n)
-                step = wp.vec2((G[2] * b[0] - G[1] * b[1]) / det, (G[0] * b[1] - G[1] * b[0]) / det)
+                b = _block_sum3(bacc, sums)
+                sums += 1
+                abs_sum = b[2]
+                step = wp.vec2(G[2] * b[0] - G[1] * b[1], G[0] * b[1] - G[1] * b[0]) * inv_det
                 nu = nu + step
-                if wp.length(step) < eps:
+                if wp.dot(step, step) < eps2:
                     done = 1
                 elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
                     # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
@@ -485,7 +558,7 @@ def _make_lk_track(cache: int):
             in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
             out_pts[f] = q
             status[f] = wp.where(ok == 1 and in_image, 1, 0)
-            error[f] = residual
+            error[f] = abs_sum / float(n)
 
     return lk_track
 
@@ -555,11 +628,11 @@ def _patch_offset(k: int) -> wp.vec2:
 
 @wp.kernel
 def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
-                   count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
+                   count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
                    patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22)):
-    """The first patch of each new track (slots count .. count + n_new - 1), and an identity warp."""
+    """The first patch of each new track (slots count .. count + taken[0] - 1), and an identity warp."""
     t, k = wp.tid()
-    if t >= n_new[0]:
+    if t >= taken[0]:
         return
     s = count[0] + t
     q = pts[s] + _patch_offset(k)
@@ -577,10 +650,10 @@ def _make_drift_check(per_lane: int):
                     h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
                     pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
                     count: wp.array(dtype=wp.int32), iterations: int, max_residual: float,
-                    max_stretch: float, max_correction: float, out_pts: wp.array(dtype=wp.vec2),
-                    keep: wp.array(dtype=wp.int32), residual_out: wp.array(dtype=float)):
+                    max_stretch: float, max_correction: float, keep: wp.array(dtype=wp.int32),
+                    residual_out: wp.array(dtype=float)):
         """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
-        tracker's position b; the fitted b is the drift-free position. Dropped: large normalised residual, too
+        tracker's position b; the fitted b is the drift-free position and replaces b in ``pts``. Dropped: large normalised residual, too
         much stretch or a flip of A, a correction larger than max_correction, an absurd gain."""
         f, lane = wp.tid()
         if f >= count[0]:
@@ -605,7 +678,7 @@ def _make_drift_check(per_lane: int):
                 j = bilinear(img, 0, w, h, q[0], q[1])
                 st += valid * wp.vec4(ref, ref * ref, j, j * j)
             base += per_lane * nl
-        S = wp.tile_sum(wp.tile(st, preserve_type=True))[0]
+        S = _block_sum4(st, 0)
         fn = float(n)
         ref_mean = S[0] / fn
         ref_std = wp.sqrt(wp.max(S[1] / fn - ref_mean * ref_mean, 0.0)) + 1.0e-6
@@ -631,7 +704,7 @@ def _make_drift_check(per_lane: int):
                     row = vec8(u * o[0], u * o[1], v * o[0], v * o[1], u, v, -ref * valid, -valid)
                     acc = _normal_equations(row, r, acc)
                 base += per_lane * nl
-            tot = wp.tile_sum(wp.tile(acc, preserve_type=True))[0]
+            tot = _block_sum44(acc, _it + 1)
             H = mat88()
             gvec = vec8()
             for a in range(8):
@@ -663,7 +736,7 @@ def _make_drift_check(per_lane: int):
                 r = bilinear(img, 0, w, h, q[0], q[1]) - alpha * ref - beta
                 racc += wp.where(k < n, r * r, 0.0)
             base += per_lane * nl
-        rss = wp.tile_sum(wp.tile(racc))[0]
+        rss = _block_sum1(racc, 0)
         if lane == 0:
             res = wp.sqrt(rss / fn) / (wp.abs(alpha) * ref_std)
             # singular values of the 2x2 warp
@@ -680,7 +753,7 @@ def _make_drift_check(per_lane: int):
             good = res <= max_residual and smax <= max_stretch and smin >= 1.0 / max_stretch and det > 0.0
             good = good and moved <= max_correction and alpha > 0.2 and alpha < 5.0 and not wp.isnan(res)
             good = good and status[f] == 1 and _in_view(mask, b)
-            out_pts[f] = b
+            pts[f] = b
             A[f] = Am
             keep[f] = wp.where(good, 1, 0)
             residual_out[f] = res
@@ -705,13 +778,12 @@ def _in_view(mask: wp.array2d(dtype=wp.uint8), p: wp.vec2) -> bool:
 
 @wp.kernel
 def lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
-            count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2), keep: wp.array(dtype=wp.int32)):
+            count: wp.array(dtype=wp.int32), keep: wp.array(dtype=wp.int32)):
     """Without the drift check: keep what LK tracked into the field of view."""
     f = wp.tid()
     if f >= count[0]:
         keep[f] = 0
         return
-    out_pts[f] = pts[f]
     keep[f] = wp.where(status[f] == 1 and _in_view(mask, pts[f]), 1, 0)
 
 
@@ -813,21 +885,29 @@ def _score_bin(score: float, max_score: float) -> int:
     return wp.clamp(int(octaves * float(SCORE_BINS_PER_OCTAVE)), 0, SCORE_BINS - 1)
 
 
+@wp.func
+def _free_now(me: wp.vec3, occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32)) -> bool:
+    """Whether a selected corner is still away from every track where the tracks are now. The selection kept
+    its distance from where they were before the frame (it runs beside tracking on CUDA); a corner that a track
+    has come near since is not taken (the second occupancy stamp, around the tracks that survived the frame)."""
+    return occ[int(me[1]), int(me[0])] != stamp[0] + 1
+
+
 @wp.kernel
 def score_histogram(cells: wp.array(dtype=wp.vec3), state: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float),
-                    hist: wp.array(dtype=wp.int32)):
-    """How many selected corners fall in each score bin (bin 0 = strongest)."""
+                    occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32), hist: wp.array(dtype=wp.int32)):
+    """How many selected corners, still free of tracks, fall in each score bin (bin 0 = strongest)."""
     c = wp.tid()
-    if state[c] == 1:
+    if state[c] == 1 and _free_now(cells[c], occ, stamp):
         wp.atomic_add(hist, _score_bin(cells[c][2], max_eig[0]), 1)
 
 
 @wp.kernel
 def score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), max_features: int,
-                    cut: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32)):
+                    cut: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32)):
     """One thread per bin: the strongest selected corners that fill the free slots. Every corner in a bin above
-    the cut bin is taken; from the cut bin only as many as fit (cut[1]). n_new = how many are taken. Each bin
-    sums the bins before it (independent loads; a single thread walking the bins waited on one per bin)."""
+    the cut bin is offered; from the cut bin only as many as fit (cut[1]). Each bin sums the bins before it
+    (independent loads; a single thread walking the bins waited on one per bin)."""
     b = wp.tid()
     if b < 2:
         taken[b] = 0  # take_corners' counters
@@ -839,24 +919,24 @@ def score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int
         cut[0] = b
         cut[1] = want - start
     if b == SCORE_BINS - 1:
-        total = start + hist[b]
-        n_new[0] = wp.min(total, want)
-        if total <= want:  # every selected corner fits
+        if start + hist[b] <= want:  # every selected corner fits
             cut[0] = SCORE_BINS
             cut[1] = 0
 
 
 @wp.kernel
 def take_corners(cells: wp.array(dtype=wp.vec3), state: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float),
-                 cut: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), next_id: wp.array(dtype=wp.int32),
-                 taken: wp.array(dtype=wp.int32), pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32)):
-    """The chosen corners become tracks after the live ones (slots count .. count + n_new - 1)."""
+                 cut: wp.array(dtype=wp.int32), occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32),
+                 count: wp.array(dtype=wp.int32), next_id: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
+                 pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32)):
+    """The chosen corners (selected, free of tracks now, strong enough) become tracks after the live ones (slots
+    count .. count + taken[0] - 1)."""
     c = wp.tid()
     if state[c] != 1:
         return
     me = cells[c]
     b = _score_bin(me[2], max_eig[0])
-    if b > cut[0]:
+    if b > cut[0] or not _free_now(me, occ, stamp):
         return
     if b == cut[0]:
         if wp.atomic_add(taken, 1, 1) >= cut[1]:
@@ -896,7 +976,9 @@ def pack_results(pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32), co
 
 
 @wp.kernel
-def commit_new_tracks(count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
-                      next_id: wp.array(dtype=wp.int32)):
-    count[0] = count[0] + n_new[0]
-    next_id[0] = next_id[0] + n_new[0]
+def commit_new_tracks(taken: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                      n_new: wp.array(dtype=wp.int32), next_id: wp.array(dtype=wp.int32)):
+    n = taken[0]
+    count[0] = count[0] + n
+    next_id[0] = next_id[0] + n
+    n_new[0] = n
