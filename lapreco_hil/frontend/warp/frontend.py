@@ -87,6 +87,7 @@ class WarpFrontEnd:
             self._stamp = wp.zeros(1, dtype=wp.int32)
             self._pts = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]
             self._A = [wp.zeros(n, dtype=wp.mat22) for _ in range(2)]
+            self._steps = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]  # each track's motion in its last frame
             self._patches = [wp.zeros((n, K.PATCH * K.PATCH), dtype=float) for _ in range(2)]
             self._lk_pts = wp.zeros(n, dtype=wp.vec2)
             self._status = wp.zeros(n, dtype=wp.int32)
@@ -216,8 +217,8 @@ class WarpFrontEnd:
             self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._keep])
         wp.utils.array_scan(self._keep, self._slot, inclusive=False)
         self._launch(K.scatter_tracks, (n, K.PATCH * K.PATCH), [
-            self._keep, self._slot, self._lk_pts, self._A[prev], self._patches[prev], self._ids[prev],
-            self._pts[cur], self._A[cur], self._patches[cur], self._ids[cur]])
+            self._keep, self._slot, self._lk_pts, self._pts[prev], self._A[prev], self._patches[prev], self._ids[prev],
+            self._pts[cur], self._steps[cur], self._A[cur], self._patches[cur], self._ids[cur]])
         redetect_below = int(np.ceil(cfg.redetect_below * n))
         self._launch(K.count_kept, 1, [self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag,
                                        self._n_new])
@@ -230,14 +231,16 @@ class WarpFrontEnd:
             self._marks[name] = time.perf_counter()
 
     # --- detection ----------------------------------------------------------------------------------------------
-    def _occupancy(self, buffer: int, which: int) -> None:
-        """Stamp the discs around the live tracks of a track buffer (``which``: see ``K.occupancy``)."""
+    def _occupancy(self, buffer: int, ahead: float, which: int) -> None:
+        """Stamp the discs around the live tracks of a track buffer, each moved on by ``ahead`` times its last
+        step (``which``: see ``K.occupancy``)."""
         r = int(np.ceil(self.config.min_distance_px))
         self._launch(K.occupancy, (self.config.max_features, (2 * r + 1) ** 2), [
-            self._pts[buffer], self._count[buffer], float(self.config.min_distance_px), self._stamp, which, self._occ])
+            self._pts[buffer], self._steps[buffer], ahead, self._count[buffer], float(self.config.min_distance_px),
+            self._stamp, which, self._occ])
 
     def _selection_kernels(self) -> None:
-        """Occupancy around the tracks as they were before this frame, the Shi-Tomasi response of the current
+        """Occupancy around where the tracks are predicted in this frame, the Shi-Tomasi response of the current
         frame (the structure tensor's smaller eigenvalue) and its best value where corners may start, local
         maxima (each cell of side min_distance / sqrt(2) keeps its strongest) and the greedy minimum-distance
         selection. It needs nothing from tracking, so on CUDA it runs beside LK and the drift check; the corners
@@ -246,7 +249,10 @@ class WarpFrontEnd:
         H, W = self.height, self.width
         cur = self._cur
         self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
-        self._occupancy(1 - cur, 0)
+        # where the tracks will be, if each moves as it did in its last frame: it leaves less room between the
+        # discs the selection avoids and those the corners are checked against when taken (around the tracks'
+        # new positions) than the previous positions would
+        self._occupancy(1 - cur, 1.0, 0)
         lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
         self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
         wp.launch_tiled(K.min_eigenvalue, dim=[H], inputs=[
@@ -271,7 +277,7 @@ class WarpFrontEnd:
         count = self._count[cur]
         if not beside_tracking:
             self._selection_kernels()
-        self._occupancy(cur, 1)
+        self._occupancy(cur, 0.0, 1)
         _, gw, gh = self._grid
         self._launch(K.score_histogram, gw * gh, [self._cells, self._cell_state, self._max_eig, self._occ, self._stamp,
                                                   self._hist])
@@ -281,7 +287,7 @@ class WarpFrontEnd:
                                                 self._ids[cur]])
         self._launch(K.sample_patches, (cfg.max_features, K.PATCH * K.PATCH), [
             self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken, self._patches[cur],
-            self._A[cur]])
+            self._A[cur], self._steps[cur]])
         self._launch(K.commit_new_tracks, 1, [self._taken, count, self._n_new, self._next_id])
 
     # --- the frame ----------------------------------------------------------------------------------------------

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import warp as wp
 
+# nothing differentiates these kernels: no adjoints (they took as long to compile as the kernels themselves)
+wp.set_module_options({"enable_backward": False})
+
 PATCH = 13  # drift-check patch side (pixels)
 HIGHPASS_RANGE = 128.0 / 96.0  # what frontend.opencv.to_u8 keeps of the log high-pass
 HALF_PATCH = 6
@@ -326,11 +329,13 @@ def selection_begin(stamp: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=flo
 
 
 @wp.kernel
-def occupancy(positions: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), radius: float,
-              stamp: wp.array(dtype=wp.int32), which: int, occ: wp.array2d(dtype=wp.int32)):
-    """Mark the disc of radius min_distance around each live track with this detection's stamp (plus
-    ``which``: 0 for the selection, 1 for taking corners): no new corner may start there. The track count is
-    read on the device, so the launch has a fixed shape and can live in a CUDA graph."""
+def occupancy(positions: wp.array(dtype=wp.vec2), steps: wp.array(dtype=wp.vec2), ahead: float,
+              count: wp.array(dtype=wp.int32), radius: float, stamp: wp.array(dtype=wp.int32), which: int,
+              occ: wp.array2d(dtype=wp.int32)):
+    """Mark the disc of radius min_distance around each live track (at its position plus ``ahead`` times its
+    last step) with this detection's stamp (plus ``which``: 0 for the selection, 1 for taking corners): no new
+    corner may start there. The track count is read on the device, so the launch has a fixed shape and can
+    live in a CUDA graph."""
     t, j = wp.tid()
     if t >= count[0]:
         return
@@ -340,9 +345,9 @@ def occupancy(positions: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32
     dx = j % side - r
     if float(dx * dx + dy * dy) > radius * radius:
         return
-    p = positions[t]
-    x = int(wp.round(p[0])) + dx
-    y = int(wp.round(p[1])) + dy
+    p = positions[t] + ahead * steps[t]
+    x = int(wp.round(wp.clamp(p[0], -1.0e6, 1.0e6))) + dx
+    y = int(wp.round(wp.clamp(p[1], -1.0e6, 1.0e6))) + dy
     if x >= 0 and y >= 0 and x < occ.shape[1] and y < occ.shape[0]:
         occ[y, x] = stamp[0] + which
 
@@ -420,7 +425,7 @@ def _make_lk_track(cache: int):
     cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
     cache_ivec = wp.types.vector(length=cache, dtype=wp.int32)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
                  cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                  hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
@@ -629,8 +634,8 @@ def _patch_offset(k: int) -> wp.vec2:
 @wp.kernel
 def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
                    count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
-                   patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22)):
-    """The first patch of each new track (slots count .. count + taken[0] - 1), and an identity warp."""
+                   patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22), steps: wp.array(dtype=wp.vec2)):
+    """The first patch of each new track (slots count .. count + taken[0] - 1), an identity warp, no step."""
     t, k = wp.tid()
     if t >= taken[0]:
         return
@@ -639,13 +644,14 @@ def sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dty
     patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
     if k == 0:
         A[s] = wp.identity(n=2, dtype=float)
+        steps[s] = wp.vec2(0.0, 0.0)
 
 
 def _make_drift_check(per_lane: int):
     """The drift check for lanes that each take ``per_lane`` patch pixels per pass (unrolled, loads in
     flight together)."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
                     h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
                     pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
@@ -789,11 +795,13 @@ def lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask
 
 @wp.kernel
 def scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
-                   src_pts: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
+                   src_pts: wp.array(dtype=wp.vec2), before: wp.array(dtype=wp.vec2), src_A: wp.array(dtype=wp.mat22),
                    src_patches: wp.array2d(dtype=float), src_ids: wp.array(dtype=wp.int32),
-                   dst_pts: wp.array(dtype=wp.vec2), dst_A: wp.array(dtype=wp.mat22),
-                   dst_patches: wp.array2d(dtype=float), dst_ids: wp.array(dtype=wp.int32)):
-    """Compaction on the device: a kept track moves to its slot (exclusive prefix sum of the keep flags)."""
+                   dst_pts: wp.array(dtype=wp.vec2), dst_steps: wp.array(dtype=wp.vec2),
+                   dst_A: wp.array(dtype=wp.mat22), dst_patches: wp.array2d(dtype=float),
+                   dst_ids: wp.array(dtype=wp.int32)):
+    """Compaction on the device: a kept track moves to its slot (exclusive prefix sum of the keep flags), with
+    its step in this frame (from ``before``, its position in the previous frame)."""
     t, k = wp.tid()
     if keep[t] == 0:
         return
@@ -801,6 +809,7 @@ def scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32
     dst_patches[s, k] = src_patches[t, k]
     if k == 0:
         dst_pts[s] = src_pts[t]
+        dst_steps[s] = src_pts[t] - before[t]
         dst_A[s] = src_A[t]
         dst_ids[s] = src_ids[t]
 
@@ -912,9 +921,15 @@ def score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int
     if b < 2:
         taken[b] = 0  # take_corners' counters
     want = max_features - count[0]
+    # the bins before b, eight at a time: eight loads in flight per step, not one after another
     start = int(0)
-    for i in range(b):
-        start += hist[i]
+    i = int(0)
+    while i < b:
+        part = int(0)
+        for j in range(8):
+            part += wp.where(i + j < b, hist[wp.min(i + j, b)], 0)
+        start += part
+        i += 8
     if start <= want and start + hist[b] > want:  # the cumulative count passes the free slots in this bin
         cut[0] = b
         cut[1] = want - start
