@@ -99,7 +99,6 @@ def _block_sum4(v: wp.vec4, parity: int) -> wp.vec4: ...
 def _block_sum44(v: vec44, parity: int) -> vec44: ...
 
 
-
 # --- sampling ----------------------------------------------------------------------------------------------
 @wp.func
 def _px(img: wp.array(dtype=float), off: int, w: int, h: int, x: int, y: int) -> float:
@@ -659,8 +658,9 @@ def _make_drift_check(per_lane: int):
                     max_stretch: float, max_correction: float, keep: wp.array(dtype=wp.int32),
                     residual_out: wp.array(dtype=float)):
         """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
-        tracker's position b; the fitted b is the drift-free position and replaces b in ``pts``. Dropped: large normalised residual, too
-        much stretch or a flip of A, a correction larger than max_correction, an absurd gain."""
+        tracker's position b; the fitted b is the drift-free position and replaces b in ``pts``. Dropped: large
+        normalised residual, too much stretch or a flip of A, a correction larger than max_correction, an absurd
+        gain."""
         f, lane = wp.tid()
         if f >= count[0]:
             if lane == 0:
@@ -896,9 +896,10 @@ def _score_bin(score: float, max_score: float) -> int:
 
 @wp.func
 def _free_now(me: wp.vec3, occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32)) -> bool:
-    """Whether a selected corner is still away from every track where the tracks are now. The selection kept
-    its distance from where they were before the frame (it runs beside tracking on CUDA); a corner that a track
-    has come near since is not taken (the second occupancy stamp, around the tracks that survived the frame)."""
+    """Whether a selected corner is away from every track where the tracks are now. The selection kept its
+    distance from where they were predicted to be (it runs beside tracking on CUDA); a corner that a track has
+    come near all the same is not taken (the second occupancy stamp, around the tracks that survived the
+    frame)."""
     return occ[int(me[1]), int(me[0])] != stamp[0] + 1
 
 
