@@ -125,7 +125,9 @@ class WarpFrontEnd:
         # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
         self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
+        # events the host waits on: the surviving tracks' results are in, the frame's results are in
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
+        self._done = wp.Event(self.device) if self.device.is_cuda else None
         self.use_graphs = True
         # the corner response and selection run beside tracking, at high priority: theirs is a chain of short
         # launches, which should not queue behind the blocks of LK and the drift check
@@ -318,6 +320,8 @@ class WarpFrontEnd:
             main.wait_stream(side)
         wp.capture_if(self._detect_flag, on_true=lambda: self._detect_kernels(beside_tracking=side is not None))
         self._copy_results(self._out_all)
+        if self._done is not None:
+            wp.record_event(self._done, external=True)
 
     def _copy_results(self, out: tuple) -> None:
         cur = self._cur
@@ -358,18 +362,23 @@ class WarpFrontEnd:
         else:
             self._frame_kernels()
         self._runs[cur] += 1
-        # the surviving tracks' colours are read while detection runs
+        # the surviving tracks' results and colours are read while detection runs (new tracks only append)
         if self._tracked is not None:
             wp.synchronize_event(self._tracked)
         per_track, counts_ids = self._kept_np
         kept = int(counts_ids[0])
+        kept_uv = per_track[:kept, :2].astype(np.float64)
+        kept_ids = counts_ids[2:2 + kept].astype(np.int64)
         kept_colors = self._colors_at(frame.image, per_track[:kept, 2:])
-        wp.synchronize_device(self.device)
+        if self._done is not None:
+            wp.synchronize_event(self._done)  # an event on the frame's stream: cheaper than the whole device
+        else:
+            wp.synchronize_device(self.device)
         per_track, counts_ids = self._all_np
         n, n_new = int(counts_ids[0]), int(counts_ids[1])
         self._n_tracks = n
-        uv = per_track[:n, :2].astype(np.float64)
-        ids = counts_ids[2:2 + n].astype(np.int64)
+        uv = np.concatenate([kept_uv, per_track[kept:n, :2]])
+        ids = np.concatenate([kept_ids, counts_ids[2 + kept:2 + n]])
         colors = np.concatenate([kept_colors, self._colors_at(frame.image, per_track[kept:n, 2:])])
         t_end = time.perf_counter()
         timings = {"total": t_end - t0}
