@@ -272,6 +272,32 @@ def test_score_threshold_takes_the_strongest_that_fit(wp, live, expect):
     assert (c0, c1, offered) == expect
 
 
+@pytest.mark.parametrize("impl", ["warp", "opencv"])
+def test_lk_error_above_the_limit_loses_the_track(wp, rng, impl):
+    """Where the scene changes under a track (here the right half: a new texture), LK still converges
+    somewhere, but its window no longer matches: the mean absolute difference over the window is large, and
+    both trackers drop such tracks (TrackerConfig.max_lk_error, in the 8-bit units of the tracked image)."""
+    from lapreco_hil.frontend.opencv import OpenCVFrontEnd
+
+    cam = CameraModel(320, 240, 300.0, 300.0, 159.5, 119.5)
+    gray = texture_u8(rng)
+    other = texture_u8(np.random.default_rng(7))
+    changed, _ = warped(gray, 0.4, -0.3)
+    changed[:, 160:] = other[:, 160:]
+    kept_right = {}
+    for limit in (8.0, 1e9):
+        cfg = dict(max_features=200, drift_check=False, max_lk_error=limit)
+        fe = frontend(cam, **cfg) if impl == "warp" else OpenCVFrontEnd(cam, TrackerConfig(**{**PLAIN, **cfg}))
+        a = fe.process(Frame(bgr(gray), 0, 0))
+        b = fe.process(Frame(bgr(changed), 40_000_000, 1))
+        right = set(a.track_ids[a.uv[:, 0] > 175].tolist())
+        left = set(a.track_ids[a.uv[:, 0] < 145].tolist())
+        survivors = set(b.track_ids.tolist())
+        kept_right[limit] = len(right & survivors) / len(right)
+        assert len(left & survivors) / len(left) > 0.9  # unchanged texture: tracked on
+    assert kept_right[1e9] > 0.3 and kept_right[8.0] < 0.1, kept_right
+
+
 def test_tracks_carry_their_last_step_and_the_selection_avoids_where_they_go_next(wp, rng):
     """Compaction stores each track's motion in the frame; the selection's occupancy discs are drawn where the
     tracks will be if they keep moving so (position + step), so they leave little room between them and the

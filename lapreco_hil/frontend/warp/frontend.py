@@ -34,6 +34,9 @@ LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
 LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 COLOR_ROW = 64  # points per row of the colour remap
+# The OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it tracks:
+# frontend.opencv.to_u8 maps one unit of the log high-pass to 96, and plain intensity in [0, 1] spans 255.
+LK_ERROR_UNITS = {True: 96.0, False: 255.0}  # by whether the shading is removed
 
 
 class WarpFrontEnd:
@@ -199,7 +202,8 @@ class WarpFrontEnd:
         prev, cur = 1 - self._cur, self._cur
         wp.launch_tiled(K.lk_track, dim=[cfg.max_features], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG, self._pts[prev], self._count[prev],
+            self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+            cfg.max_lk_error / LK_ERROR_UNITS[cfg.shading_sigma_px > 0], self._pts[prev], self._count[prev],
             self._lk_pts, self._status, self._error], block_dim=K.LK_LANES, device=self.device)
         self._sync_for_profile("lk")
 
@@ -241,20 +245,23 @@ class WarpFrontEnd:
             self._pts[buffer], self._steps[buffer], ahead, self._count[buffer], float(self.config.min_distance_px),
             self._stamp, which, self._occ])
 
+    def _selection_start(self) -> None:
+        """A new detection's stamps, and the occupancy discs around where the tracks are predicted in this
+        frame: where each will be if it moves as in its last frame. That leaves less room between the discs
+        the selection avoids and those the corners are checked against when taken (around the tracks' new
+        positions, ``K._free_now``) than the previous positions would. It needs nothing from the frame, so on
+        CUDA it runs while the frame is uploaded."""
+        self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
+        self._occupancy(1 - self._cur, 1.0, 0)
+
     def _selection_kernels(self) -> None:
-        """Occupancy around where the tracks are predicted in this frame, the Shi-Tomasi response of the current
-        frame (the structure tensor's smaller eigenvalue) and its best value where corners may start, local
-        maxima (each cell of side min_distance / sqrt(2) keeps its strongest) and the greedy minimum-distance
-        selection. It needs nothing from tracking, so on CUDA it runs beside LK and the drift check; the corners
-        are checked again against where the tracks are now before they are counted and taken (``K._free_now``)."""
+        """The Shi-Tomasi response of the current frame (the structure tensor's smaller eigenvalue) and its best
+        value where corners may start, local maxima (each cell of side min_distance / sqrt(2) keeps its
+        strongest) and the greedy minimum-distance selection, away from the occupancy discs. It needs nothing
+        from tracking, so on CUDA it runs beside LK and the drift check."""
         cfg = self.config
         H, W = self.height, self.width
         cur = self._cur
-        self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
-        # where the tracks will be, if each moves as it did in its last frame: it leaves less room between the
-        # discs the selection avoids and those the corners are checked against when taken (around the tracks'
-        # new positions) than the previous positions would
-        self._occupancy(1 - cur, 1.0, 0)
         lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
         self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
         wp.launch_tiled(K.min_eigenvalue, dim=[H], inputs=[
@@ -278,6 +285,7 @@ class WarpFrontEnd:
         cur = self._cur
         count = self._count[cur]
         if not beside_tracking:
+            self._selection_start()
             self._selection_kernels()
         self._occupancy(cur, 0.0, 1)
         _, gw, gh = self._grid
@@ -299,15 +307,20 @@ class WarpFrontEnd:
         while the rest runs), new corners when too few tracks are left (a conditional node), and every track's
         results into a second set of pinned buffers.
 
-        On CUDA the corner response and selection run on a second stream beside tracking: they need nothing
-        from it. They are wasted on frames that need no new corners, which costs GPU time but no latency."""
+        On CUDA the corner selection runs on a second stream: its occupancy discs during the upload, the
+        response and the greedy selection beside tracking (they need nothing from it). It is wasted on frames
+        that need no new corners, which costs GPU time but no latency."""
+        side = self._side_stream if not self.profile else None
+        if side is not None:
+            main = wp.get_stream(self.device)
+            side.wait_stream(main)
+            with wp.ScopedStream(side, sync_enter=False):
+                self._selection_start()
         wp.copy(self._frame, self._staging)
         self._sync_for_profile("upload")
         self._prepare_kernels()
         self._sync_for_profile("prepare")
-        side = self._side_stream if not self.profile else None
         if side is not None:
-            main = wp.get_stream(self.device)
             side.wait_stream(main)
             with wp.ScopedStream(side, sync_enter=False):
                 self._selection_kernels()

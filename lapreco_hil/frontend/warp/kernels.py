@@ -428,7 +428,8 @@ def _make_lk_track(cache: int):
     def lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
                  cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                  hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
-                 pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
+                 max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
+                 out_pts: wp.array(dtype=wp.vec2),
                  status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
         """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
         Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
@@ -560,9 +561,12 @@ def _make_lk_track(cache: int):
             q = p0 + g
             finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
             in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+            err = abs_sum / float(n)
             out_pts[f] = q
-            status[f] = wp.where(ok == 1 and in_image, 1, 0)
-            error[f] = abs_sum / float(n)
+            # lost: too little texture, the window left the image, or the window's mean absolute difference
+            # above max_error (as the OpenCV baseline filters calcOpticalFlowPyrLK's error)
+            status[f] = wp.where(ok == 1 and in_image and err < max_error, 1, 0)
+            error[f] = err
 
     return lk_track
 
