@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
-# nothing differentiates these kernels: no adjoints (they took as long to compile as the kernels themselves)
+# nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
 
 PATCH = 13  # drift-check patch side (pixels)
