@@ -926,15 +926,9 @@ def score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int
     if b < 2:
         taken[b] = 0  # take_corners' counters
     want = max_features - count[0]
-    # the bins before b, eight at a time: eight loads in flight per step, not one after another
     start = int(0)
-    i = int(0)
-    while i < b:
-        part = int(0)
-        for j in range(8):
-            part += wp.where(i + j < b, hist[wp.min(i + j, b)], 0)
-        start += part
-        i += 8
+    for i in range(b):
+        start += hist[i]
     if start <= want and start + hist[b] > want:  # the cumulative count passes the free slots in this bin
         cut[0] = b
         cut[1] = want - start
