@@ -22,8 +22,12 @@ def remove_shading(gray: np.ndarray, sigma_px: float) -> np.ndarray:
     return log - cv2.GaussianBlur(log, (0, 0), sigma_px)
 
 
+# 8-bit levels per unit of the log high-pass when the baseline tracks it as an 8-bit image
+HIGHPASS_GAIN = 96.0
+
+
 def to_u8(high: np.ndarray) -> np.ndarray:
-    return np.clip(high * 96.0 + 128.0, 0, 255).astype(np.uint8)
+    return np.clip(high * HIGHPASS_GAIN + 128.0, 0, 255).astype(np.uint8)
 
 
 class OpenCVFrontEnd:

@@ -19,6 +19,7 @@ from ...camera import CameraModel
 from ...config import TrackerConfig
 from ...types import Frame, Observations
 from ...warp_device import device_lock
+from ..opencv import HIGHPASS_GAIN
 from . import kernels as K
 
 log = logging.getLogger(__name__)
@@ -34,9 +35,6 @@ LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
 LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 COLOR_ROW = 64  # points per row of the colour remap
-# The OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it tracks:
-# frontend.opencv.to_u8 maps one unit of the log high-pass to 96, and plain intensity in [0, 1] spans 255.
-LK_ERROR_UNITS = {True: 96.0, False: 255.0}  # by whether the shading is removed
 
 
 class WarpFrontEnd:
@@ -142,6 +140,9 @@ class WarpFrontEnd:
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
         self._lit_min = float(np.log1p(config.min_brightness))
+        # the OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it
+        # tracks: HIGHPASS_GAIN per unit of the log high-pass, or 255 for plain intensity in [0, 1]
+        self._lk_error_units = HIGHPASS_GAIN if config.shading_sigma_px > 0 else 255.0
 
     @property
     def n_tracks(self) -> int:
@@ -204,7 +205,7 @@ class WarpFrontEnd:
         wp.launch_tiled(K.lk_track, dim=[cfg.max_features], inputs=[
             self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
             self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
-            cfg.max_lk_error / LK_ERROR_UNITS[cfg.shading_sigma_px > 0], self._pts[prev], self._count[prev],
+            cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
             self._lk_pts, self._status, self._error], block_dim=K.LK_LANES, device=self.device)
         self._sync_for_profile("lk")
 

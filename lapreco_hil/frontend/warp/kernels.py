@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..opencv import HIGHPASS_GAIN
+
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
 
 PATCH = 13  # drift-check patch side (pixels)
-HIGHPASS_RANGE = 128.0 / 96.0  # what frontend.opencv.to_u8 keeps of the log high-pass
+HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN  # what frontend.opencv.to_u8 keeps of the log high-pass
 HALF_PATCH = 6
 # new corners are chosen strongest first through a histogram of their scores (no sort): 32 bins per halving of
 # the response below the frame's best cover 16 halvings (a quality level down to 1.5e-5)
