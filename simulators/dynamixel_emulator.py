@@ -43,7 +43,7 @@ def status_packet(sdk, dxl_id: int, error: int, params: bytes) -> bytearray:
     """A Protocol 2.0 status packet, stuffed and with its CRC (``sdk``: a Protocol2PacketHandler)."""
     length = len(params) + 4  # instruction + error + params + CRC
     packet = list(HEADER) + [dxl_id, length & 0xFF, length >> 8, INST_STATUS, error] + list(params) + [0, 0]
-    sdk.addStuffing(packet)  # updates the length field too
+    packet = sdk.addStuffing(packet)  # a new list when it stuffed (and the length field updated)
     total = 7 + (packet[5] | (packet[6] << 8))
     crc = sdk.updateCRC(0, packet, total - 2)
     packet[total - 2], packet[total - 1] = crc & 0xFF, crc >> 8
