@@ -6,7 +6,7 @@ from __future__ import annotations
 import abc
 from collections import Counter
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
 
 from .health import Health
 
@@ -73,3 +73,10 @@ class FiniteSource(Protocol):
 
     def __len__(self) -> int:
         ...
+
+
+@runtime_checkable
+class RecordedSource(Protocol):
+    """A source that plays a recorded session (``replay://``): the session itself is at hand."""
+
+    session: Any

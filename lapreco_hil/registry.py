@@ -114,18 +114,15 @@ class URLConfig:
         return list(dict.fromkeys(ordered))
 
     @classmethod
-    def from_url(cls, url: DeviceURL, **overrides: Any):
-        """The config the URL's query asks for (fields not in the query keep their defaults; ``overrides``
-        replace defaults, never what the URL says)."""
+    def from_url(cls, url: DeviceURL):
+        """The config the URL's query asks for (fields not in the query keep their defaults)."""
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = [k for k in url.query if k not in fields]
         if unknown:
             raise url.error(f"unknown parameter '{unknown[0]}' (known: {', '.join(cls.known_parameters())})")
         hints = typing.get_type_hints(cls)
-        values = dict(overrides)
-        for key, text in url.query.items():
-            values[key] = _parse_field(url, fields[key], _base_type(hints[key]), text)
-        return cls(**values)
+        return cls(**{key: _parse_field(url, fields[key], _base_type(hints[key]), text)
+                      for key, text in url.query.items()})
 
 
 def _parse_field(url: DeviceURL, f: dataclasses.Field, kind, text: str) -> Any:
@@ -273,10 +270,9 @@ def discover_all() -> list:
     for target in dict.fromkeys([*ROBOT_BACKENDS.values(), *GRABBER_BACKENDS.values()]):
         try:
             cls = _import(target)
-        except ImportError as exc:
-            out.append(Discovery(target.split(":")[1], (), f"back-end unavailable ({exc})"))
-            continue
-        found = cls.discover()
+            found = cls.discover()
+        except (ImportError, OSError) as exc:  # a missing library or an unreadable OS listing: said, not raised
+            found = Discovery(target.split(":")[1], (), f"cannot look ({exc})")
         if found is not None and found not in out:
             out.append(found)
     return out

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 import numpy as np
 import pytest
 
-from lapreco_hil.drivers.device import Discovery, FiniteSource
+from lapreco_hil.drivers.device import Discovery, FiniteSource, RecordedSource
 from lapreco_hil.drivers.grabber.base import Grabber
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
@@ -191,6 +191,16 @@ def test_a_sim_grabber_with_a_real_robot_stamps_on_the_host_clock_and_the_record
     assert np.all(inner >= t_joints[0]) and np.all(inner <= t_joints[-1] + 50_000_000)
     gaps = np.array([np.min(np.abs(t_joints - t)) for t in inner])
     assert np.all(gaps < 50_000_000), gaps
+    # and it replays: the replayed robot hands out the readings up to each replayed frame
+    context = DeviceContext(device=warp_cpu)
+    url = f"replay://{tmp_path / 's'}"
+    replay_grabber, replay_robot = open_grabber(url, context), open_robot(url, context)
+    assert isinstance(replay_grabber, FiniteSource) and isinstance(replay_grabber, RecordedSource)
+    assert len(replay_grabber) == stats.frames and not isinstance(robot, RecordedSource)
+    with replay_grabber, replay_robot:
+        while replay_grabber.read() is not None:
+            replay_robot.read()
+    assert replay_robot.readings_delivered == stats.joint_samples
 
 
 def test_all_simulated_devices_stay_on_simulated_time(warp_cpu):
