@@ -184,7 +184,7 @@ class CANopenRobot(PollingRobotDriver):
             self.set_device_fault(f"node {node_id} EMCY", None)
             log.info("%s: node %d error reset", self.device_name, node_id)
         else:
-            self._faults["emcy"] += 1
+            self.count_fault("emcy")
             self.set_device_fault(f"node {node_id} EMCY", f"0x{emcy.code:04X} {emcy.get_desc()} "
                                                           f"(error register 0x{emcy.register:02X})")
             log.warning("%s: node %d EMCY 0x%04X %s", self.device_name, node_id, emcy.code, emcy.get_desc())
@@ -200,7 +200,7 @@ class CANopenRobot(PollingRobotDriver):
             silent = now - self._heartbeat_wall.get(node_id, now)
             if silent > limit:
                 if f"node {node_id} heartbeat" not in self._device_faults:
-                    self._faults["heartbeat_lost"] += 1
+                    self.count_fault("heartbeat_lost")
                 self.set_device_fault(f"node {node_id} heartbeat", f"no heartbeat for {silent * 1e3:.0f} ms "
                                                                    f"(producer time {self.heartbeat_ms} ms)")
             else:

@@ -104,12 +104,18 @@ class PollingRobotDriver(RobotDriver):
         self._last_t_ns = 0
         self._seq = 0
         self._faults: collections.Counter[str] = collections.Counter()
+        self._faults_lock = threading.Lock()  # counted from the reader thread and python-can's notifier
 
     @property
     def faults(self) -> collections.Counter[str]:
         """Counts per fault kind: timeouts, protocol_errors, disconnects, reconnects, out_of_limits,
         non_increasing_stamps, and the back-end's own (emcy, heartbeat_lost)."""
-        return collections.Counter(self._faults)
+        with self._faults_lock:
+            return collections.Counter(self._faults)
+
+    def count_fault(self, kind: str) -> None:
+        with self._faults_lock:
+            self._faults[kind] += 1
 
     # --- what a back-end implements -------------------------------------------------------------------------
     @abc.abstractmethod
@@ -157,7 +163,7 @@ class PollingRobotDriver(RobotDriver):
                 self._last_fault = message
 
     def _note(self, kind: str, message: str) -> None:
-        self._faults[kind] += 1
+        self.count_fault(kind)
         self._last_fault = message
         log.debug("%s: %s", self.device_name, message)
 
@@ -211,7 +217,7 @@ class PollingRobotDriver(RobotDriver):
             self._last_fault = str(exc)
             return
         self._connected = True
-        self._faults["reconnects"] += 1
+        self.count_fault("reconnects")
         log.warning("%s reconnected", self.device_name)
 
     def _accept(self, counts: np.ndarray, t_ns: int) -> None:
@@ -304,6 +310,7 @@ class PollingRobotDriver(RobotDriver):
             silent = "no reading yet" if last == 0.0 else f"no reading for {(now - last) * 1e3:.0f} ms"
             return Health(HealthState.STALE, f"{silent} ({self._last_fault or 'no fault seen'})", self._clock())
         if now - self._last_error_wall < max(self.degraded_min_s, self.degraded_after_periods / self.rate_hz):
-            lost = self._faults["timeouts"] + self._faults["protocol_errors"]
+            counts = self.faults
+            lost = counts["timeouts"] + counts["protocol_errors"]
             return Health(HealthState.DEGRADED, f"{lost} readings lost so far; last: {self._last_error}", self._clock())
         return Health(HealthState.OK, "", self._clock())
