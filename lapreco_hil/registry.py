@@ -266,13 +266,14 @@ def discover_all() -> list:
     back-end imported only now; a back-end that cannot be imported says so instead of raising."""
     from .drivers.device import Discovery
 
-    out: list = []
+    real, simulated = [], []
     for target in dict.fromkeys([*ROBOT_BACKENDS.values(), *GRABBER_BACKENDS.values()]):
         try:
             cls = _import(target)
-            found = cls.discover()
+            found, kind = cls.discover(), cls.clock_domain
         except (ImportError, OSError) as exc:  # a missing library or an unreadable OS listing: said, not raised
-            found = Discovery(target.split(":")[1], (), f"cannot look ({exc})")
+            found, kind = Discovery(target.split(":")[1], (), f"cannot look ({exc})"), HOST
+        out = real if kind == HOST else simulated  # hardware first
         if found is not None and found not in out:
             out.append(found)
-    return out
+    return real + simulated
