@@ -253,3 +253,21 @@ def test_a_back_end_that_cannot_be_imported_is_said_not_raised(monkeypatch):
     bogus = next(d for d in found if d.title == "Bogus")
     assert bogus.found == () and "cannot look (No module named 'lapreco_hil.no_such_module')" in bogus.note
     assert found.index(bogus) < next(i for i, d in enumerate(found) if d.title.startswith("simulated"))
+
+
+@pytest.mark.parametrize("link", ["direct", "serial"])
+def test_a_sim_robot_in_a_run_with_a_real_grabber_stamps_on_the_host_clock(link, warp_cpu):
+    context = DeviceContext(device=warp_cpu)
+    open_grabber("v4l2:///dev/video7", context)  # a real device in the run (never opened here)
+    robot = open_robot(f"sim://apple?{SMALL}&speed=1.0&link={link}", context)
+    with robot:
+        robot.read(timeout_s=0.5)
+        time.sleep(0.3)
+        samples = robot.read(timeout_s=0.5)
+        now = time.monotonic_ns()
+    timeline = robot._timeline
+    assert len(samples) >= 10 and abs(samples[-1].t_ns - now) < 200_000_000  # host time, not simulated
+    world = robot.world
+    for s in samples:  # the pose at a host stamp is the simulated arm's at the matching simulated time
+        q_motor = world.arm.motor_joints(world.seconds(timeline.to_sim(s.t_ns)))
+        assert np.all(np.abs(s.q - q_motor) < 2e-3), (s.q, q_motor)
