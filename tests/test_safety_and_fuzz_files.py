@@ -14,7 +14,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
-from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
 from lapreco_hil.config import load_config
 from lapreco_hil.errors import CalibrationError, ConfigError, SessionError
 from lapreco_hil.kinematics import CameraKinematics
@@ -34,12 +34,12 @@ def test_drivers_only_read_they_never_command_motion():
     from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
     from lapreco_hil.simulators.dynamixel_emulator import INST_PING, INST_SYNC_READ, DynamixelChainEmulator
 
-    with DynamixelChainEmulator([1, 2, 3, 4], JointMap.for_model("ecm"), _q) as emu:
+    with DynamixelChainEmulator([1, 2, 3, 4], dynamixel_joint_map("ecm"), _q) as emu:
         with open_robot(f"serial://{emu.port}?ids=1,2,3,4&rate=200", DeviceContext()) as robot:
             time.sleep(0.5)
             assert robot.read()
         assert set(emu.instructions) <= {INST_PING, INST_SYNC_READ}  # no Write, Reg Write, Sync Write, Action
-    with CANopenDriveChainEmulator("safety", [1, 2, 3, 4], JointMap.for_model("ecm", counts_per_rev=16384), _q) as e:
+    with CANopenDriveChainEmulator("safety", [1, 2, 3, 4], cia402_joint_map("ecm"), _q) as e:
         with open_robot("canopen://virtual/safety?nodes=1-4&rate=200", DeviceContext()) as robot:
             time.sleep(0.5)
             assert robot.read()
