@@ -25,8 +25,7 @@ from . import corners, drift_check, lk, pyramid, tracks
 log = logging.getLogger(__name__)
 
 # rounds of the parallel greedy selection; a corner still undecided after them is dropped (a chain of ever
-# stronger neighbours longer than this). On 1080p frames with ~3600 selected corners, 6 rounds left 20-90
-# undecided and 8 rounds 0-12.
+# stronger neighbours longer than this): 8 leave next to none undecided (docs/benchmarks.md)
 SELECTION_ROUNDS = 8
 # LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
@@ -167,8 +166,7 @@ class WarpFrontEnd:
         n = len(src)
         if n == 0:
             return np.zeros((0, 3), np.uint8)
-        # in rows of COLOR_ROW points: measured on the H100 lease's host, 2000 points took 10 us so against
-        # 18-35 us as one long row
+        # in rows of COLOR_ROW points: cv2.remap is faster on short rows than on one long one
         rows = -(-n // COLOR_ROW)
         xy = np.empty((rows * COLOR_ROW, 2), np.float32)
         xy[:n] = src
