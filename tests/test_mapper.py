@@ -218,3 +218,38 @@ def test_map_points_gathered_in_pieces_are_the_whole_map(rng):
     pts, cols = steps[-1]
     whole_pts, whole_cols = m.map_points()
     assert np.array_equal(pts, whole_pts) and np.array_equal(cols, whole_cols) and len(pts) == len(m.landmarks)
+
+
+def test_one_problem_builder_gives_the_local_window_and_the_final_pass(rng):
+    """Local BA and the final pass are built by one builder from a scope. The window adjusts the newest
+    keyframes' landmarks with their observations within reach; the final pass takes every observation of the
+    active keyframes' landmarks, those in retired keyframes whose arrays were let go included (held fixed)."""
+    from lapreco_hil.mapping.mapper import ProblemScope
+
+    _, frames = _scan(rng, n_frames=100)
+    cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
+                       keyframe_track_ratio=0.0, window_keyframes=4, active_keyframes=12, retire_batch=6,
+                       local_cauchy_iterations=2, local_tukey_iterations=2)
+    m = Mapper(K, cfg)
+    for o, prior, _ in frames:
+        m.add(o, prior)
+    n, fa, w = len(m.keyframes), m.first_active, cfg.window_keyframes
+    assert m.retirement.emptied > 0  # some retired keyframes hold no observations any more
+
+    local = m._problem(m._local_scope())
+    obs_kf = local.pose_ids[local.obs_pose]
+    assert obs_kf.min() >= n - 3 * w  # nothing beyond the window's reach
+    newest = np.concatenate([kf.track_ids for kf in m.keyframes[n - w:]])
+    assert np.isin(local.point_ids, newest).all() and all(t in m.landmarks for t in local.point_ids.tolist())
+    assert np.array_equal(local.fixed, local.pose_ids < fa)
+    assert len(local.obs_pose) == sum(int(np.isin(kf.track_ids, local.point_ids).sum())
+                                      for kf in m.keyframes[n - 3 * w:])
+    uv = local.obs_uv[0]
+    kf = m.keyframes[int(obs_kf[0])]
+    assert np.array_equal(kf.uv[kf.track_ids == local.point_ids[local.obs_point[0]]][0], uv)
+
+    final = m._problem(ProblemScope(points_from=fa, views_from=fa, every_view=True))
+    assert set(range(fa, n)) <= set(final.pose_ids.tolist())  # every active keyframe, free
+    assert np.array_equal(final.fixed, final.pose_ids < fa) and final.fixed.any()
+    assert len(final.obs_pose) == sum(len(m.tracks[t]) for t in final.point_ids.tolist())
+    assert (final.pose_ids[final.obs_pose] < m.retirement.emptied).any()  # views kept only by the tracks
