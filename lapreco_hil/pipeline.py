@@ -15,7 +15,7 @@ from .camera import CameraModel
 from .config import PipelineConfig
 from .errors import ReconstructionError
 from .frontend import make_frontend
-from .mapping.mapper import Mapper, MapResult
+from .mapping.mapper import Mapper, MapperSchedule, MapResult
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
                  progress=None, device: str | None = None) -> RunResult:
     """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources)."""
     frontend = make_frontend(tracker, camera, config.tracker, device)
-    mapper = Mapper(camera.K, config.mapper)
+    mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline())
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0

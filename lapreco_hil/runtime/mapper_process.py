@@ -133,19 +133,15 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     With BA queues, local BA goes to the worker; without, it runs here (deferred while frames wait)."""
     import signal
 
-    from ..mapping.mapper import Mapper
+    from ..mapping.mapper import Mapper, MapperSchedule
     from .shm import MapSnapshot, ObservationRing
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle: it ends the run cleanly
     ring = ObservationRing(ring_slots, max_tracks, name=ring_name)
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
-        mapper = Mapper(K, mapper_config)
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
-        mapper.defer_local_ba = worker is not None
-        mapper.resect_on_retire = False
-        mapper.defer_retirement = True
-        mapper.defer_triangulation = True
+        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None))
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(("ready",))  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
