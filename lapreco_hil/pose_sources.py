@@ -32,12 +32,15 @@ _CAUSE_TEXT = {BEFORE_FIRST: "before the first {what}", AFTER_LAST: "after the l
 
 
 class FramesWithoutPose:
-    """Frames that got no pose, counted by cause (geometry.NO_POSE_CAUSES) with the span of their times."""
+    """Frames that got no pose, counted by cause (geometry.NO_POSE_CAUSES) with the span of their times.
+
+    A live stream cannot tell at a frame whether its readings have ended or only paused: such a frame is
+    counted after the last reading, and moved to the gap count when later readings show it was inside one."""
 
     def __init__(self, what: str) -> None:
         self.what = what  # "joint reading", "camera pose"
-        self.counts: collections.Counter[str] = collections.Counter()
-        self.spans: dict[str, tuple[int, int]] = {}
+        self.times: dict[str, list[int]] = {c: [] for c in NO_POSE_CAUSES}
+        self.unsettled: list[int] = []  # counted after the last reading; no newer reading seen since
         self.first_frame_ns: int | None = None
 
     def seen(self, t_ns: int) -> None:
@@ -45,21 +48,34 @@ class FramesWithoutPose:
             self.first_frame_ns = t_ns
 
     def add(self, cause: str, t_ns: int) -> None:
-        self.counts[cause] += 1
-        lo, hi = self.spans.get(cause, (t_ns, t_ns))
-        self.spans[cause] = (min(lo, t_ns), max(hi, t_ns))
+        self.times[cause].append(t_ns)
+        if cause == AFTER_LAST:
+            self.unsettled.append(t_ns)
+
+    def resolve_after_last(self, cause_now) -> None:
+        """Re-judge the frames counted after the last reading once newer readings came (``cause_now(t)``):
+        those now inside a gap move to the gap count; the others stay (their reading came too late)."""
+        still, moved = [], []
+        for t in self.unsettled:
+            cause = cause_now(t)
+            (still if cause == AFTER_LAST else moved if cause == IN_GAP else []).append(t)
+        self.unsettled = still
+        if moved:
+            gone = set(moved)
+            self.times[AFTER_LAST] = [t for t in self.times[AFTER_LAST] if t not in gone]
+            self.times[IN_GAP] = sorted(self.times[IN_GAP] + moved)
 
     def as_dict(self) -> dict[str, int]:
-        return {c: self.counts.get(c, 0) for c in NO_POSE_CAUSES}
+        return {c: len(self.times[c]) for c in NO_POSE_CAUSES}
 
     def warn(self, gap_ns: float) -> None:
         """One warning per cause: how many frames, and where in the video (seconds from its first frame)."""
         t0 = self.first_frame_ns or 0
         gap = f"{gap_ns * 1e-6:.0f} ms" if np.isfinite(gap_ns) else "a few sample periods"
         for cause in NO_POSE_CAUSES:
-            n = self.counts.get(cause, 0)
-            if n:
-                lo, hi = self.spans[cause]
+            times = self.times[cause]
+            if times:
+                n, lo, hi = len(times), min(times), max(times)
                 log.warning("%d frames %s were skipped, not mapped (frames at %.3f..%.3f s of the video): no %s "
                             "brackets them, and a pose is never held or extrapolated", n,
                             _CAUSE_TEXT[cause].format(what=self.what, gap=gap), (lo - t0) * 1e-9, (hi - t0) * 1e-9,
@@ -156,6 +172,8 @@ class RobotPoseSource:
             good.append(s)
         if good:
             self._stalled = False
+            if self.without_pose.unsettled:
+                self.without_pose.resolve_after_last(self.pose_at.no_pose_cause)
         return good
 
     def poll(self) -> list:
