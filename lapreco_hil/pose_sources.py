@@ -108,9 +108,10 @@ class RobotPoseSource:
     forward is refused, counted and warned about on the console (rate limited); ``health`` shows it as
     degraded while refusals keep coming.
 
-    A frame newer than the newest reading waits up to ``reading_wait_s`` for the reading after it (a live
-    robot's next sample is due within a period); when none comes the frame has no pose, and later frames do
-    not wait again until the robot delivers (a stream that ended costs one wait, not one per frame)."""
+    A frame newer than the newest reading, by no more than the gap limit, waits up to ``reading_wait_s``
+    for the reading after it (a live robot's next sample is due within a period); when none comes the frame
+    has no pose, and later frames do not wait again until the robot delivers (a stream that ended costs one
+    wait, not one per frame)."""
 
     limit_margin_rad = 0.05
     limit_margin_m = 0.005
@@ -209,8 +210,10 @@ class RobotPoseSource:
             return len(self.pose_at) > 0
         self.without_pose.seen(t_ns)
         cause = self.pose_at.no_pose_cause(t_ns)
-        if cause == AFTER_LAST:
-            self._wait_for_reading_after(t_ns + self.pose_at.offset_ns)
+        t_kin = t_ns + self.pose_at.offset_ns
+        # only a reading due within the gap limit can still bracket the frame: further out, none is awaited
+        if cause == AFTER_LAST and t_kin - self.pose_at.last_time_ns <= self.pose_at.max_gap_ns:
+            self._wait_for_reading_after(t_kin)
             cause = self.pose_at.no_pose_cause(t_ns)
         if cause is not None:
             self.without_pose.add(cause, t_ns)

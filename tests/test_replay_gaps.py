@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from pathlib import Path
 
 import cv2
@@ -268,3 +269,19 @@ def test_a_frame_newer_than_the_newest_reading_waits_for_it_once(caplog):
     reads = robot.reads
     assert not src.has_pose(30) and robot.reads == reads  # no second wait
     assert src.without_pose.as_dict() == {BEFORE_FIRST: 0, AFTER_LAST: 2, IN_GAP: 0}
+
+
+def test_a_frame_far_beyond_the_newest_reading_does_not_wait():
+    """No reading can bracket a frame further past the newest one than the gap limit (it would span a gap):
+    such a frame is not kept waiting (a robot on another clock must not slow every frame down)."""
+    from lapreco_hil.types import JointSample
+
+    q = np.array([0.0, 0.0, 0.1, 0.0])
+    robot = _ListRobot([[JointSample(q, 0, 0), JointSample(q, 10, 1)]])
+    src = _robot_source(robot)
+    src.poll()
+    reads = robot.reads
+    t0 = time.monotonic()
+    assert not src.has_pose(41)  # 31 ns past the newest reading; the limit is 3 x 10
+    assert robot.reads == reads and time.monotonic() - t0 < 0.01
+    assert src.without_pose.as_dict()[AFTER_LAST] == 1
