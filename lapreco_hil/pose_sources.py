@@ -10,7 +10,6 @@ cause (``without_pose``) and ``warn_without_pose()`` logs one warning per cause 
 
 from __future__ import annotations
 
-import collections
 import logging
 import time
 
@@ -187,7 +186,7 @@ class RobotPoseSource:
         if self._stalled:
             return
         deadline = time.monotonic() + self.reading_wait_s
-        while (self.pose_at.last_time_ns or t_kin_ns - 1) < t_kin_ns:
+        while self.pose_at.last_time_ns < t_kin_ns:  # (called after the first reading: there is a last one)
             left = deadline - time.monotonic()
             if left <= 0:
                 self._stalled = True

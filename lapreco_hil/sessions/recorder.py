@@ -45,6 +45,7 @@ class DeviceWatch:
         self.writer, self.devices = writer, devices  # name -> device (a grabber, a robot driver)
         self._warn = collections.defaultdict(lambda: RateLimitedWarning(log, warn_every_s))
         self._state = {name: None for name in devices}
+        self._started: set[str] = set()  # devices seen in a state other than "no reading yet" (stale)
         self._faults: dict[str, dict] = {name: {} for name in devices}
         self.last_problem: dict[str, str] = {}  # name -> the detail of its last fault, else its last other problem
         self.last_fault: dict[str, str] = {}  # name -> the detail of its last FAULTED state
@@ -53,9 +54,12 @@ class DeviceWatch:
         for name, dev in self.devices.items():
             health = getattr(dev, "health", None)
             if health is not None and health.state != self._state[name]:
-                first = self._state[name] is None
+                # a device that has not delivered yet (stale, then OK) is starting, not changing
+                starting = name not in self._started and health.state in (HealthState.OK, HealthState.STALE)
                 self._state[name] = health.state
-                if not (first and health.state is HealthState.OK):  # an OK start is no event
+                if health.state is not HealthState.STALE:
+                    self._started.add(name)
+                if not starting:
                     self._event(t_ns, name, f"health:{health.state.value}", health.detail)
             if health is not None and health.state is not HealthState.OK and health.detail:
                 # a device's own fault (limits, EMCY) says more than a late reply: it is kept over them
