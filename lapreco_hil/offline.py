@@ -72,7 +72,8 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     metrics = {
         "frames": {"in": run.frames_in, "processed": run.frames_processed,
                    "dropped": run.frames_in - run.frames_processed - run.frames_without_pose,
-                   "without_pose": run.frames_without_pose},
+                   "without_pose": run.frames_without_pose,
+                   "without_pose_by_cause": run.without_pose_by_cause},
         "throughput_fps": run.frames_processed / run.wall_s,
         "latency_ms": {**_percentiles_ms(run.latency_s),
                        "note": "frame received -> pose and points updated (sequential runner)"},

@@ -29,7 +29,8 @@ class RunResult:
     stage_s: dict[str, list[float]]
     latency_s: list[float]
     last_frame_t_ns: int
-    frames_without_pose: int = 0  # frames before the robot's first reading: skipped, not mapped
+    frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
+    without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
 
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
@@ -50,7 +51,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         t1 = time.perf_counter()
         frames_in += 1
         poses.poll()
-        if not poses.has_pose():
+        if not poses.has_pose(frame.t_ns):
             frames_without_pose += 1
             continue
         prior = poses.prior_at(frame.t_ns)
@@ -69,14 +70,16 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
                                  refresh=False)
     if frames_in == 0:
         raise ReconstructionError("the grabber delivered no frames; check the grabber URL")
-    if frames_without_pose == frames_in:
-        raise ReconstructionError(f"none of the {frames_in} frames came after a robot reading: is the robot "
-                                  f"connected, and does its stream cover the video?")
+    by_cause = getattr(poses, "without_pose", None)
+    by_cause = by_cause.as_dict() if by_cause is not None else None
     if frames_without_pose:
-        log.warning("%d frames before the robot's first reading were skipped", frames_without_pose)
+        poses.warn_without_pose()
+    if frames_without_pose == frames_in:
+        raise ReconstructionError(f"none of the {frames_in} frames has a pose ({by_cause}): is the robot "
+                                  f"connected, and does its stream cover the video?")
     t5 = time.perf_counter()
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]
     processed = frames_in - frames_without_pose
     return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency, last_t,
-                     frames_without_pose)
+                     frames_without_pose, by_cause)

@@ -197,6 +197,21 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
     assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
 
 
+class HostClockRobot(Wrapped):
+    """The simulated robot (its clock flowing at real speed) with its readings on the host's monotonic clock,
+    the one V4L2 buffers carry: a frame has a pose only where frames and readings share a clock."""
+
+    offset_ns = None
+
+    def read(self, timeout_s=None):
+        from lapreco_hil.types import JointSample
+
+        out = self.inner.read(timeout_s)
+        if out and self.offset_ns is None:
+            self.offset_ns = time.monotonic_ns() - out[-1].t_ns
+        return [JointSample(s.q, s.t_ns + self.offset_ns, s.seq) for s in out]
+
+
 def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     """The V4L2 grabber (over a scripted capture: no /dev/video here) is unplugged and plugged back in while
     the live pipeline runs on it."""
@@ -216,7 +231,7 @@ def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     ctx = DeviceContext(device="cpu", v4l2_capture=cam.factory)
     grabber = open_grabber("v4l2:///dev/video7?width=256&height=192&fps=30", ctx)
     grabber.reconnect_interval_s = 0.05
-    robot = open_robot("sim://skull?width=256&height=192&speed=1.0", ctx)
+    robot = HostClockRobot(open_robot("sim://skull?width=256&height=192&speed=1.0", ctx))
     camera = CameraModel(256, 192, 200.0, 200.0, 128.0, 96.0)
     marks = {}
 

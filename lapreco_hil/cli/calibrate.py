@@ -96,6 +96,8 @@ def cmd_handeye(args) -> int:
     joints.extend(session.joint_samples)
     stations = []
     for i in range(0, len(session), args.stride):
+        if joints.no_pose_cause(int(session.frame_t_ns[i]) + session.meta.time_offset_ns) is not None:
+            continue  # no joint readings around this frame: its tip pose is unknown
         frame = session.frame(i)
         q = joints.q_at(frame.t_ns + session.meta.time_offset_ns)
         st = board_station(f"frame {frame.seq}", frame.image, board, camera, kin.tip_pose(q))

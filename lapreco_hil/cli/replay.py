@@ -52,7 +52,9 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
                                 offset_ns=offset_ns)
     fields = {"command": "replay", "session": str(session), "pose_source": meta.pose_source,
               "time_offset_ms": offset_ns * 1e-6, "camera_file": camera_file, "hand_eye_file": hand_eye_file,
-              "session_complete": meta.complete, "pace": "realtime" if realtime else "afap"}
+              "session_complete": meta.complete, "pace": "realtime" if realtime else "afap",
+              # tables shorter than session.json's counts (Session.shortfall): {table: {recorded, found}}
+              "session_shortfall": grabber.session.shortfall}
     with grabber:
         if robot is not None:
             robot.open()

@@ -179,8 +179,8 @@ class LiveRun:
                 with self._cond:
                     self._record_q.append(("joints", samples))
                     self._cond.notify_all()
-            if not self.poses.has_pose():
-                self.counters.add("frames_without_pose")  # before the robot's first reading: not mapped
+            if not self.poses.has_pose(frame.t_ns):
+                self.counters.add("frames_without_pose")  # no pose brackets it (counted by cause there): not mapped
                 continue
             prior = self.poses.prior_at(frame.t_ns)
             t1 = time.perf_counter()
@@ -469,6 +469,8 @@ class LiveRun:
         if final is None:
             raise StageError("live run stopped: the mapper process did not return its map")
         result = final[1]
+        if self.counters.values.get("frames_without_pose") and hasattr(self.poses, "warn_without_pose"):
+            self.poses.warn_without_pose()
         if not result.frames:
             raise ReconstructionError("the live run mapped no frames; check the grabber and the robot")
         return result, self._metrics(wall, result)
@@ -488,6 +490,8 @@ class LiveRun:
                        "dropped": frames_in - processed + c.get("dropped_source", 0) - c.get("bad_timestamps", 0)
                        - c.get("frames_without_pose", 0),
                        "without_pose": c.get("frames_without_pose", 0),
+                       "without_pose_by_cause": (self.poses.without_pose.as_dict()
+                                                 if hasattr(self.poses, "without_pose") else None),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0), "mapper_skipped": c.get("mapper_skipped", 0),
                        "tracking_errors": c.get("tracking_errors", 0), "dropped_record": c.get("dropped_record", 0),
                        "bad_timestamps": c.get("bad_timestamps", 0)},
