@@ -20,7 +20,7 @@ from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.registry import DeviceContext, DeviceURL
-from lapreco_hil.evaluation.truth import GroundTruth
+from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.types import Frame, JointSample, RobotDescription
 
 from .world import SimSettings, SimWorld

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from lapreco_hil.cli.demo import run_demo
+from lapreco_hil.app.demo import run_demo
 
 
 @pytest.fixture(scope="module")

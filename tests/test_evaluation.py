@@ -46,7 +46,7 @@ def test_a_corrupted_reconstruction_reports_a_large_error(skull):
 
 
 def test_evaluate_command_and_its_errors(skull, tmp_path, capsys, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     truth = tmp_path / "truth.ply"
     skull.save(str(truth))
