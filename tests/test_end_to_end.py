@@ -78,8 +78,9 @@ def test_outputs_contract(demo):
 
 @pytest.mark.slow
 def test_warp_tracker_without_drift_check_runs_through_the_pipeline(tmp_path, warp_cpu):
+    # one frame at a time (the live runtime may drop frames on a loaded machine), so the figures are exact
     report = run_demo(scene="apple", frames=24, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
-                      tracker="warp", progress=False, drift_check=False)
+                      tracker="warp", progress=False, drift_check=False, runtime="sequential")
     # what the run achieved, not what it was asked: every frame mapped, a map on the true surface (measured:
     # 213 inliers, median 1.8 mm) and refined poses closer to the truth than the robot's forward kinematics
     assert report["frames"]["processed"] == report["frames"]["in"] == 24
