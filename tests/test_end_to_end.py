@@ -181,3 +181,31 @@ def test_the_offscreen_probe_sees_a_missing_egl_vendor(monkeypatch):
     env.pop("DISPLAY", None)
     hidden = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert hidden.returncode == 0 and "no EGL device" in hidden.stdout
+
+
+def test_a_live_run_without_a_renderer_switches_its_live_view_off(small_skull_session, tmp_path, monkeypatch,
+                                                                   caplog):
+    from dataclasses import replace
+
+    import lapreco_hil.outputs
+    import lapreco_hil.surface.render
+    from lapreco_hil.app.run import run_live
+    from lapreco_hil.config import PipelineConfig
+    from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+
+    for module in (lapreco_hil.outputs, lapreco_hil.surface.render):
+        monkeypatch.setattr(module, "offscreen_unavailable", lambda: "no EGL device and no OSMesa")
+    config = PipelineConfig()
+    config = replace(config, runtime=replace(config.runtime, view_period_s=0.2))
+    url = f"replay://{small_skull_session}"
+    ctx = DeviceContext(device="cpu")
+    with caplog.at_level(logging.WARNING):
+        report = run_live(open_robot(url, ctx), open_grabber(url, ctx), config, str(tmp_path / "out"),
+                          tracker="opencv", device="cpu", progress=False)
+    assert report["frames"]["in"] == 12 and report["frames"]["processed"] > 0 and report["picture"] is None
+    assert not (tmp_path / "out" / "live").exists()
+    for name in ("points.ply", "mesh.ply", "trajectory.tum", "report.json"):
+        assert (tmp_path / "out" / name).stat().st_size > 0, name
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 2 and warnings[0].startswith("live view off: no EGL device") and \
+        warnings[1].startswith("reconstruction.png not written"), warnings

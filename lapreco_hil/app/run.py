@@ -4,6 +4,7 @@ on simulated devices."""
 
 from __future__ import annotations
 
+import logging
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -18,6 +19,8 @@ from ..registry import DeviceContext, open_grabber, open_robot
 from ..runtime.live import LiveRun
 from ..types import RobotDescription
 from ..warp_device import resolve_device
+
+log = logging.getLogger(__name__)
 
 
 def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
@@ -54,6 +57,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     from ..robot_models import urdf_path
 
     check_output_dir(out)
+    config = _live_view_if_renderable(config)
     device = resolve_device(device)
     tracker = resolve_tracker(tracker, device)
     if camera is None or description is None:
@@ -83,6 +87,19 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
                          truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
                          run_wall_s=metrics["wall_s"])
+
+
+def _live_view_if_renderable(config: PipelineConfig) -> PipelineConfig:
+    """The live view renders with VTK, which crashes the process where it has no renderer: off, with a warning."""
+    if config.runtime.view_period_s <= 0:
+        return config
+    from ..surface.render import ENABLE_RENDERING, offscreen_unavailable
+
+    why = offscreen_unavailable()
+    if why is None:
+        return config
+    log.warning("live view off: %s; to enable rendering, %s", why, ENABLE_RENDERING)
+    return replace(config, runtime=replace(config.runtime, view_period_s=0.0))
 
 
 def stop_on_signals() -> None:
