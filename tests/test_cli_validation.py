@@ -129,3 +129,24 @@ def test_the_installed_command_prints_no_traceback():
     assert proc.returncode == 2
     assert proc.stderr.splitlines() == ["lapreco: error: --fps: 0 is out of range: must be > 0"]
     assert proc.stdout == ""
+
+
+NOISY = ("import cv2; cv2.VideoCapture('/dev/video99', cv2.CAP_V4L2)\n"
+         "from vtkmodules.vtkCommonCore import vtkOutputWindow\n"
+         "vtkOutputWindow.GetInstance().DisplayErrorText('vtk says boom')\n")
+
+
+@pytest.mark.parametrize("routed", [False, True])
+def test_opencv_and_vtk_console_output_goes_to_the_log(routed):
+    """OpenCV's WARN lines and VTK's output window reach the console only through logging (INFO, shown with
+    -v); without the routing both print straight to stderr."""
+    setup = ("import logging; logging.basicConfig(level=logging.INFO, format='%(name)s: %(message)s')\n"
+             "from lapreco_hil.app.noise import route_third_party_output; route_third_party_output()\n"
+             if routed else "")
+    proc = subprocess.run([sys.executable, "-c", setup + NOISY], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    if routed:
+        assert "WARN" not in proc.stderr and "VIDEOIO" not in proc.stderr
+        assert proc.stderr.strip().splitlines() == ["lapreco_hil.vtk: VTK error: vtk says boom"]
+    else:
+        assert "VIDEOIO" in proc.stderr and "vtk says boom" in proc.stderr
