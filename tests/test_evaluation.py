@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-import pyvista as pv
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.cli.main import main

@@ -7,7 +7,6 @@ stretch)."""
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path
