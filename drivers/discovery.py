@@ -3,13 +3,24 @@ interfaces, V4L2 video devices, simulated scenes); see ``Device.discover``."""
 
 from __future__ import annotations
 
+from .. import registry
 from .device import Discovery
 
 
 def discover() -> list[Discovery]:
-    from ..registry import discover_all
-
-    return discover_all()
+    """What every registered back-end finds on this machine (``Discovery`` per back-end that looks), each
+    back-end imported only now; a back-end that cannot be imported says so instead of raising."""
+    real, simulated = [], []
+    for target in dict.fromkeys([*registry.ROBOT_BACKENDS.values(), *registry.GRABBER_BACKENDS.values()]):
+        try:
+            cls = registry.import_backend(target)
+            found, kind = cls.discover(), cls.clock_domain
+        except (ImportError, OSError) as exc:  # a missing library or an unreadable OS listing: said, not raised
+            found, kind = Discovery(target.split(":")[1], (), f"cannot look ({exc})"), registry.HOST
+        out = real if kind == registry.HOST else simulated  # hardware first
+        if found is not None and found not in out:
+            out.append(found)
+    return real + simulated
 
 
 def format_devices(found: list[Discovery]) -> str:

@@ -28,7 +28,6 @@ class RunResult:
     wall_s: float
     stage_s: dict[str, list[float]]
     latency_s: list[float]
-    last_frame_t_ns: int
     frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
     without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
 
@@ -41,7 +40,6 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0
-    last_t = 0
     t_start = time.perf_counter()
     while True:
         t0 = time.perf_counter()
@@ -63,7 +61,6 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)
         latency.append(t4 - t1)  # frame in hand -> pose/points available
-        last_t = frame.t_ns
         if progress is not None:
             progress.update(1)
             progress.set_postfix(tracks=len(obs), keyframes=len(mapper.keyframes), points=len(mapper.landmarks),
@@ -81,5 +78,5 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]
     processed = frames_in - frames_without_pose
-    return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency, last_t,
+    return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency,
                      frames_without_pose, by_cause)

@@ -235,10 +235,10 @@ def _load(backends, kind: str, url: str):
     except KeyError:
         raise ConfigError(f"{kind} URL '{url}': unknown scheme '{parsed.scheme}' "
                           f"(known: {', '.join(sorted(backends))})") from None
-    return _import(target), parsed
+    return import_backend(target), parsed
 
 
-def _import(target: str):
+def import_backend(target: str):
     module_name, cls_name = target.split(":")
     return getattr(importlib.import_module(module_name), cls_name)
 
@@ -260,20 +260,3 @@ def open_grabber(url: str, context: DeviceContext):
     cls, parsed = _load(GRABBER_BACKENDS, "grabber", url)
     return _make(cls, parsed, context)
 
-
-def discover_all() -> list:
-    """What every registered back-end finds on this machine (``Discovery`` per back-end that looks), each
-    back-end imported only now; a back-end that cannot be imported says so instead of raising."""
-    from .drivers.device import Discovery
-
-    real, simulated = [], []
-    for target in dict.fromkeys([*ROBOT_BACKENDS.values(), *GRABBER_BACKENDS.values()]):
-        try:
-            cls = _import(target)
-            found, kind = cls.discover(), cls.clock_domain
-        except (ImportError, OSError) as exc:  # a missing library or an unreadable OS listing: said, not raised
-            found, kind = Discovery(target.split(":")[1], (), f"cannot look ({exc})"), HOST
-        out = real if kind == HOST else simulated  # hardware first
-        if found is not None and found not in out:
-            out.append(found)
-    return real + simulated

@@ -25,8 +25,8 @@ from lapreco_hil.drivers.grabber.base import Grabber
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.errors import ConfigError
+from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.registry import HOST, DeviceContext, DeviceURL, URLConfig, parse_bool, url_param
-from lapreco_hil.evaluation.truth import GroundTruth
 from lapreco_hil.types import Frame, JointSample, RobotDescription
 
 from .world import SCENES, SimSettings, SimWorld

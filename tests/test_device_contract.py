@@ -246,10 +246,11 @@ def test_a_back_end_that_cannot_be_imported_is_said_not_raised(monkeypatch):
     from types import MappingProxyType
 
     from lapreco_hil import registry
+    from lapreco_hil.drivers.discovery import discover
 
     monkeypatch.setattr(registry, "ROBOT_BACKENDS", MappingProxyType({**registry.ROBOT_BACKENDS,
                                                                       "bogus": "lapreco_hil.no_such_module:Bogus"}))
-    found = registry.discover_all()
+    found = discover()
     bogus = next(d for d in found if d.title == "Bogus")
     assert bogus.found == () and "cannot look (No module named 'lapreco_hil.no_such_module')" in bogus.note
     assert found.index(bogus) < next(i for i, d in enumerate(found) if d.title.startswith("simulated"))

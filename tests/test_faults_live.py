@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from lapreco_hil.cli.run import run_live
+from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.types import Frame

@@ -14,7 +14,7 @@ import time
 import pytest
 
 from lapreco_hil.cli.main import main
-from lapreco_hil.cli.run import run_live
+from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.runtime.live import StageError
@@ -165,7 +165,7 @@ def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_pa
 
 
 def test_live_view_renders_the_frame_projected_on_the_mesh(tmp_path, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     report = run_demo(scene="skull", frames=40, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
                       tracker="opencv", progress=False, view_every=0.3)

@@ -67,7 +67,7 @@ def write_joint_session(folder: Path, warp_device: str, joint_spans=None, n_fram
 
 
 def _replay(session: Path, out: Path, warp_cpu: str) -> dict:
-    from lapreco_hil.cli.replay import run_replay
+    from lapreco_hil.app.replay import run_replay
 
     return run_replay(str(session), str(out), tracker="opencv", device=warp_cpu, progress=False)
 

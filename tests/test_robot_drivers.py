@@ -275,7 +275,7 @@ def test_canopen_missing_node_and_interface_are_clear_errors():
 
 @pytest.mark.parametrize("link", ["serial", "canopen"])
 def test_demo_runs_through_the_real_driver(link, tmp_path, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     r = run_demo(scene="skull", frames=24, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
                  tracker="opencv", progress=False, robot_link=link, sim_speed=0.25)

@@ -65,7 +65,7 @@ def _listening_inodes() -> set[str]:
 
 
 def test_no_network_listener_is_opened_by_a_run(tmp_path, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     run_demo(scene="skull", frames=12, resolution=(256, 192), out=str(tmp_path), device=warp_cpu, tracker="opencv",
              progress=False)

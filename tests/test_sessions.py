@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from lapreco_hil.cli.main import main
-from lapreco_hil.cli.replay import run_replay
+from lapreco_hil.app.replay import run_replay
 from lapreco_hil.errors import SessionError
 from lapreco_hil.geometry import make_T, pose_error, tum_values
 from lapreco_hil.sessions import Session

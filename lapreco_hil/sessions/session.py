@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from ..errors import SessionError
-from ..evaluation.truth import GroundTruth, SampledPoses
+from ..geometry import SampledPoses
+from ..ground_truth import GroundTruth
 from ..types import Frame, JointSample, RobotDescription
 from . import format as fmt
 
