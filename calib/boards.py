@@ -73,7 +73,7 @@ class Board:
                     return None
                 corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1),
                                            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
-            return corners.reshape(-1, 2).astype(np.float64), np.arange(self.cols * self.rows)
+            return self._canonical_order(corners.reshape(-1, 2).astype(np.float64)), np.arange(self.cols * self.rows)
         if self.kind in ("circles", "acircles"):
             return self._detect_circles(gray)
         _, detector = self._charuco()
@@ -98,12 +98,12 @@ class Board:
         return self._detect_partial_grid(detector.detect(gray))
 
     def _canonical_order(self, pts: np.ndarray) -> np.ndarray:
-        """A symmetric grid looks the same turned by 180 degrees; take the labelling whose first row runs left
-        to right in the image (two cameras of one rig then agree)."""
-        grid = pts.reshape(self.rows, self.cols, 2)
-        if grid[0, -1, 0] - grid[0, 0, 0] < 0:
-            grid = grid[::-1, ::-1]
-        return grid.reshape(-1, 2)
+        """A chessboard's inner corners or a symmetric grid look the same turned by 180 degrees (the detectors
+        may start at either end); take the labelling that starts nearer the image's top-left (x + y smaller
+        at the first point than at the last), so that two cameras of one rig agree."""
+        if pts[0].sum() > pts[-1].sum():
+            return pts[::-1].copy()
+        return pts
 
     def _detect_partial_grid(self, keypoints) -> tuple[np.ndarray, np.ndarray] | None:
         if len(keypoints) < 12:
