@@ -117,9 +117,17 @@ def _pad(d) -> np.ndarray:
 
 
 def _calibrate(obj, img, size, model: str):
+    """OpenCV's calibration; the richer models start from the standard model's solution (from OpenCV's own
+    start, a rational fit can stall far from the optimum on a strongly distorted lens)."""
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    rms, K, d, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(obj, img, size, None, None,
-                                                                               flags=MODELS[model], criteria=crit)
+    flags, K0, d0 = MODELS[model], None, None
+    if model != "standard":
+        _, K0, d5, *_ = cv2.calibrateCamera(obj, img, size, None, None, criteria=crit)
+        d0 = np.zeros(12 if flags & cv2.CALIB_THIN_PRISM_MODEL else 8)
+        d0[:5] = np.ravel(d5)[:5]
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    rms, K, d, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(obj, img, size, K0, d0,
+                                                                               flags=flags, criteria=crit)
     return float(rms), K, _pad(d), np.asarray(std_in).ravel(), np.asarray(per_view).ravel()
 
 
