@@ -124,7 +124,7 @@ def test_warnings_name_the_empty_parts_of_the_image():
     truth = CameraModel(640, 480, 520.0, 521.0, 330.0, 236.0, (-0.30, 0.12, 0.0, 0.0, 0.0))
     board, views = _synthetic_views(truth, 8, 0.2, seed=5, spread=0.0, distance=(0.6, 0.8))  # mid-image
     result = calibrate_detections(views, (640, 480), board, model="standard")
-    coverage = " ".join(w for w in result.warnings if "no corners" in w)
+    coverage = " ".join(w for w in result.warnings if "few or no corners" in w)
     assert "top-left" in coverage and "bottom-right" in coverage and "centre" not in coverage
     assert result.coverage["centre"] > 0 and result.coverage["top-left"] == 0
 
@@ -188,7 +188,9 @@ def test_stereo_on_the_viking_laparoscope():
     dots = np.load(VIKING / "dots.npz")
     det = {side: {i: (dots[f"{side}{i}_points"].astype(np.float64), dots[f"{side}{i}_ids"].astype(np.int64))
                   for i in range(10)} for side in ("left", "right")}
-    lens = {side: calibrate_detections(det[side], (1920, 1080), board) for side in det}
+    # (each lens with the standard model, which --model auto picks here too: docs/calibration.md; auto on
+    # 2 x 10 views of ~340 dots takes a minute on 2 cores)
+    lens = {side: calibrate_detections(det[side], (1920, 1080), board, "standard") for side in det}
     for side in lens:  # each lens against the owner's calibration
         K, _ = _owner_camera(VIKING, f"calib.{side}")
         cam = lens[side].camera

@@ -82,8 +82,6 @@ def _print_lens(prefix: str, result) -> None:
         print(f"{prefix}rejected {name}: {why}")
     sd = result.std
     print(f"{prefix}std: fx {sd['fx']:.2f} fy {sd['fy']:.2f} cx {sd['cx']:.2f} cy {sd['cy']:.2f} px")
-    for w in result.warnings:
-        print(f"{prefix}warning: {w}")
 
 
 def cmd_lens(args) -> int:
