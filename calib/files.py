@@ -149,7 +149,7 @@ def write_camera_info_yaml(path: str | Path, camera: CameraModel, camera_name: s
 
 
 def _ros_node_matrix(fs, key: str, path) -> np.ndarray:
-    node = fs.getNode(key)
+    node = _node(fs, key, path)
     if node.empty() or not node.isMap():
         raise CalibrationError(f"{path}: missing '{key}' (a map of rows, cols, data)")
     rows, cols, data = node.getNode("rows"), node.getNode("cols"), node.getNode("data")
@@ -174,7 +174,8 @@ def read_camera_info_yaml(path: str | Path) -> CameraModel:
     try:
         w, h = _int(fs, "image_width", path), _int(fs, "image_height", path)
         K = _ros_node_matrix(fs, "camera_matrix", path)
-        model = fs.getNode("distortion_model").string() if fs.getNode("distortion_model").isString() else ""
+        model_node = _node(fs, "distortion_model", path)
+        model = model_node.string() if model_node.isString() else ""
         d = _ros_node_matrix(fs, "distortion_coefficients", path).ravel()
     finally:
         fs.release()
