@@ -105,19 +105,42 @@ def test_model_choice_picks_standard_for_a_standard_lens():
     assert abs(result.camera.cx - truth.cx) < 3 and abs(result.camera.cy - truth.cy) < 3
 
 
-@pytest.mark.xfail(strict=True, reason="unfinished: on these synthetic views the rational model, fitted to 13 of "
-                   "14 views, extrapolates badly to the held-out one (held out: standard 0.314, rational 0.99, "
-                   "full 0.76 px); a set of views reaching the image corners is still to be made")
+def _wide_views(camera: CameraModel, n: int, noise_px: float, seed: int):
+    """A large board (14x10 corners, 20 mm) seen close by a wide lens, in part: the corners the camera sees
+    (inside the image, rays under 70 degrees), so that they reach the image's edges and corners."""
+    board = parse_board("chessboard:14x10:0.02")
+    obj = board.object_points
+    centre = obj.mean(axis=0)
+    rng = np.random.default_rng(seed)
+    views = {}
+    while len(views) < n:
+        rvec = rng.normal(0, 0.4, 3)
+        R = cv2.Rodrigues(rvec)[0]
+        t = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.1, 0.1), rng.uniform(0.12, 0.3)]) - R @ centre
+        pc = obj @ R.T + t
+        if (pc[:, 2] <= 0.02).any():
+            continue
+        uv = cv2.projectPoints(obj, rvec, t, camera.K, camera.dist_array)[0].reshape(-1, 2)
+        angle = np.degrees(np.arctan2(np.linalg.norm(pc[:, :2], axis=1), pc[:, 2]))
+        seen = (uv[:, 0] > 2) & (uv[:, 0] < camera.width - 2) & (uv[:, 1] > 2) & (uv[:, 1] < camera.height - 2) \
+            & (angle < 70)
+        if seen.sum() < 30:
+            continue
+        ids = np.flatnonzero(seen)
+        views[f"v{len(views)}"] = (uv[ids] + rng.normal(0, noise_px, (len(ids), 2)), ids)
+    return board, views
+
+
 def test_model_choice_picks_rational_for_a_strong_rational_lens():
-    # a wide lens whose radial profile a 5-coefficient model cannot follow
-    truth = CameraModel(640, 480, 330.0, 330.0, 322.0, 238.0,
-                        (0.8, -0.15, 0.0, 0.0, 0.02, 1.4, 0.15, 0.01))
-    board, views = _synthetic_views(truth, 14, 0.2, seed=4)
+    # a wide lens whose radial profile (a ratio of polynomials) a 5-coefficient polynomial cannot follow
+    truth = CameraModel(640, 480, 330.0, 330.0, 322.0, 238.0, (1.2, 0.3, 0.0, 0.0, 0.0, 1.6, 0.8, 0.05))
+    board, views = _wide_views(truth, 16, 0.2, seed=4)
     result = calibrate_detections(views, (640, 480), board)
     scores = {s.model: s.held_out_rms_px for s in result.scores}
-    print(scores)
+    print(scores)  # measured: standard 2.76, rational 0.334, full 0.364 px
     assert result.model == "rational"
-    assert scores["standard"] > 1.05 * scores["rational"]
+    assert scores["standard"] > 2 * scores["rational"]
+    assert abs(result.camera.fx - truth.fx) < 2 and abs(result.camera.cx - truth.cx) < 2
 
 
 def test_warnings_name_the_empty_parts_of_the_image():
