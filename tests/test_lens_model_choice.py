@@ -251,3 +251,17 @@ def test_stereo_cli_on_the_opencv_sample_pairs(tmp_path, capsys):
     assert main(["calibrate", "stereo", "--left", *left, "--right", *right[:5], "--board", "chessboard:9x6:0.025",
                  "--out", str(out)]) == 2
     assert "give them in pairs" in capsys.readouterr().err
+
+
+def test_asymmetric_circle_grid_is_detected_in_opencvs_layout():
+    board = parse_board("acircles:4x11:0.02")
+    px_per_m = 2000.0  # 40 px between the dots of a row
+    image = np.full((600, 560), 255, np.uint8)
+    for x, y, _ in board.object_points:
+        cv2.circle(image, (int(round(100 + x * px_per_m)), int(round(80 + y * px_per_m))), 9, 0, -1, cv2.LINE_AA)
+    pts, ids = board.detect(image)
+    assert len(ids) == 44
+    # the labels follow the board's geometry: one similarity maps the object points onto the detections
+    A, _ = cv2.estimateAffinePartial2D(board.object_points[ids][:, :2].astype(np.float32), pts.astype(np.float32))
+    proj = board.object_points[ids][:, :2] @ A[:, :2].T + A[:, 2]
+    assert np.abs(proj - pts).max() < 0.5 and abs(np.hypot(*A[:, 0]) - px_per_m) < 10
