@@ -146,9 +146,9 @@ class Board:
         return pts[order], ids[order].astype(np.int64)
 
     def _anchor(self, ij: np.ndarray, large_ij: np.ndarray) -> np.ndarray | None:
-        """The shift from lattice labels to board labels. With fiducials: the shift that puts the most seen
-        fiducials on the board's (ties between the two 180-degree readings of a symmetric layout are broken
-        towards the smaller shift, alike in both cameras); without: labels from the smallest seen."""
+        """The shift from lattice labels to board labels. With fiducials: the one shift that puts the most seen
+        fiducials on their places, no small dot on one, and every dot on the board (None when two shifts do
+        equally well: the view is not used); without fiducials: labels from the smallest seen (relative)."""
         lo, hi = ij.min(axis=0), ij.max(axis=0)
         if (hi - lo + 1 > [self.cols, self.rows]).any():
             return None
@@ -157,14 +157,18 @@ class Board:
         if len(large_ij) == 0:
             return None
         layout = set(self.large_dots)
-        best, best_score = None, 0
+        best, best_score, tied = None, 0, False
         for dx in range(-lo[0], self.cols - hi[0]):
             for dy in range(-lo[1], self.rows - hi[1]):
                 hits = sum((i + dx, j + dy) in layout for i, j in large_ij.tolist())
-                clash = any((i + dx, j + dy) in layout for i, j in ij.tolist())  # a small dot on a fiducial
-                if not clash and hits > best_score:
+                if hits < best_score or hits == 0:
+                    continue
+                if any((i + dx, j + dy) in layout for i, j in ij.tolist()):  # a small dot on a fiducial's place
+                    continue
+                tied = hits == best_score
+                if hits > best_score:
                     best, best_score = np.array([dx, dy]), hits
-        return best
+        return None if tied else best
 
 
 def blob_detector(height: int, width: int) -> cv2.SimpleBlobDetector:

@@ -51,8 +51,11 @@ def common_points(board: Board, det0, det1) -> tuple[np.ndarray, np.ndarray, np.
 
     A whole chessboard or symmetric dot grid reads alike turned by 180 degrees; the two cameras of a rig see
     the board turned alike, so camera 1's labelling is turned when its first-to-last point runs against
-    camera 0's."""
+    camera 0's. A dot grid without fiducials seen in part is labelled relative to what each camera saw: such
+    pairs are not used."""
     n = board.cols * board.rows
+    if board.kind == "circles" and not board.large_dots and min(len(det0[1]), len(det1[1])) < n:
+        return None  # a dot grid seen in part without fiducials has relative labels: the cameras cannot agree
     if board.kind in ("chessboard", "circles") and len(det0[1]) == len(det1[1]) == n:
         a, b = det0[0][-1] - det0[0][0], det1[0][-1] - det1[0][0]
         if float(np.dot(a, b)) < 0:
