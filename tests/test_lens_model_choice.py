@@ -265,3 +265,24 @@ def test_asymmetric_circle_grid_is_detected_in_opencvs_layout():
     A, _ = cv2.estimateAffinePartial2D(board.object_points[ids][:, :2].astype(np.float32), pts.astype(np.float32))
     proj = board.object_points[ids][:, :2] @ A[:, :2].T + A[:, 2]
     assert np.abs(proj - pts).max() < 0.5 and abs(np.hypot(*A[:, 0]) - px_per_m) < 10
+
+
+def test_lens_cli_writes_opencv_and_ros_files_and_the_model_choice(tmp_path, capsys):
+    import json
+
+    images = sorted(glob.glob(str(OPENCV / "left*.jpg")))
+    out, ros, report = tmp_path / "camera.yaml", tmp_path / "camera_info.yaml", tmp_path / "lens.json"
+    assert main(["calibrate", "lens", *images, "--board", "chessboard:9x6:0.025", "--out", str(out),
+                 "--ros-out", str(ros), "--camera-name", "left", "--json", str(report)]) == 0
+    printed = capsys.readouterr().out
+    assert "model standard" in printed and "<- chosen" in printed and "held out" in printed
+    doc = json.loads(report.read_text())
+    assert [m["model"] for m in doc["model_choice"]] == ["standard", "rational", "full", "fisheye"]
+    assert doc["model"] == "standard" and doc["std"]["cx"] < 1.0  # measured 0.58 px
+    assert read_camera_yaml(ros) == read_camera_yaml(out)
+    assert (tmp_path / "camera.coverage.png").is_file() and (tmp_path / "camera.check.png").is_file()
+    # a model ROS cannot hold is refused before anything is written
+    other = tmp_path / "paper.yaml"
+    assert main(["calibrate", "lens", *images, "--board", "chessboard:9x6:0.025", "--model", "paper",
+                 "--out", str(other), "--ros-out", str(tmp_path / "paper_info.yaml")]) == 2
+    assert "no thin-prism model" in capsys.readouterr().err and not other.exists()
