@@ -80,7 +80,7 @@ def _is_ros_yaml(path: Path) -> bool:
         data = path.read_bytes()
     except OSError as exc:
         raise CalibrationError(f"{path}: cannot read ({exc.strerror})") from None
-    return not data.lstrip().startswith((b"%YAML", b"<?xml")) and b"camera_matrix" in data
+    return not data.lstrip().startswith((b"%YAML", b"<?xml", b"{")) and b"camera_matrix" in data  # not OpenCV YAML, XML, JSON
 
 
 def read_camera_yaml(path: str | Path) -> CameraModel:
