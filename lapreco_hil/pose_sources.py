@@ -75,6 +75,11 @@ class RobotPoseSource:
         return good
 
     @property
+    def last_refusal(self) -> str:
+        """Why the newest refused reading was refused, with its value ("" before any refusal)."""
+        return self._last_refusal
+
+    @property
     def health(self) -> Health:
         if time.monotonic() - self._last_refusal_wall < self.degraded_for_s:
             return Health(HealthState.DEGRADED, f"{self.rejected} readings refused; last: {self._last_refusal}")

@@ -4,6 +4,7 @@ on simulated devices."""
 
 from __future__ import annotations
 
+import logging
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -101,6 +102,8 @@ def _stop_on_signals() -> None:
 
 def cmd_run(args) -> int:
     _stop_on_signals()
+    # each change of a device's health is news on the console, its recovery ("robot: ok again", INFO) too
+    logging.getLogger("lapreco_hil.runtime.health").setLevel(logging.INFO)
     from ..config import load_config
 
     config = load_config(args.config)
