@@ -134,11 +134,11 @@ class MapperProcesses:
 
     def stop(self) -> None:
         """Both processes ended (asked, then terminated); called after ``finish`` or on a dead mapper."""
-        if self.mapper is not None:
+        if self.mapper is not None and self.mapper.pid is not None:  # (started)
             self.mapper.join(timeout=10.0)
             if self.mapper.is_alive():
                 self.mapper.terminate()
-        if self.ba_worker is not None:
+        if self.ba_worker is not None and self.ba_worker.pid is not None:
             self.ba_jobs.put(EndOfJobs())
             self.ba_worker.join(timeout=10.0)
             if self.ba_worker.is_alive():

@@ -55,7 +55,12 @@ class Supervisor:
     def start_processes(self) -> None:
         """The mapper (and BA worker) up before capture starts: frames taken while it started would wait in the
         ring for a second or two and set the latency tail of the whole run."""
-        self.processes.start()
+        try:
+            self.processes.start()
+        except BaseException:  # (shared memory full, a process that cannot start): nothing left behind
+            self.processes.stop()
+            self.processes.close()
+            raise
         try:
             self.processes.wait_ready(MAPPER_START_TIMEOUT_S)
         except KeyboardInterrupt:  # Ctrl-C while the mapper starts: end as from the main loop, cleanly
