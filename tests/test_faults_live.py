@@ -353,7 +353,7 @@ def test_an_instrument_over_half_the_view_is_reported_and_tracking_recovers(tmp_
     ctx = DeviceContext(device=warp_cpu)
     url = "sim://skull?width=256&height=192&speed=0.5"
     robot = open_robot(url, ctx)
-    grabber = InstrumentGrabber(open_grabber(url + "&frames=130", ctx), start=60, end=100)
+    grabber = InstrumentGrabber(open_grabber(url + "&frames=130", ctx), start=38, end=63)
     report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", progress=False,
                       device=warp_cpu)
     events = report["health"]["events"]
