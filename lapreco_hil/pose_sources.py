@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
+from types import MappingProxyType
 
 import numpy as np
 
@@ -197,6 +199,11 @@ class RobotPoseSource:
                 time.sleep(min(left, 0.002))  # (a reader that returns at once, without waiting)
 
     @property
+    def last_refusal(self) -> str:
+        """Why the newest refused reading was refused, with its value ("" before any refusal)."""
+        return self._last_refusal
+
+    @property
     def health(self) -> Health:
         if time.monotonic() - self._last_refusal_wall < self.degraded_for_s:
             return Health(HealthState.DEGRADED, f"{self.rejected} readings refused; last: {self._last_refusal}")
@@ -231,6 +238,12 @@ class GivenPoseSource:
     """Camera poses T_world_camera known at times (an optical tracker): interpolated on SE(3) at frame
     times, with a fixed diagonal covariance. A frame outside the poses' span, or in a gap longer than
     ``max_gap_periods`` median periods, has no pose (counted in ``without_pose``)."""
+
+    # what a robot pose source also answers (the live run's report reads both kinds alike): no robot, no refusals
+    robot = None
+    rejected = 0
+    rejected_by_cause: Mapping[str, int] = MappingProxyType({})
+    last_refusal = ""
 
     def __init__(self, t_ns: np.ndarray, poses: np.ndarray, sigma_rotation_rad: float, sigma_translation_m: float,
                  offset_ns: int = 0, max_gap_periods: float = MAX_GAP_PERIODS) -> None:

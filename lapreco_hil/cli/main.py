@@ -358,6 +358,8 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    # each change of a device's health is news on the console, its recovery ("robot: ok again", INFO) too
+    logging.getLogger("lapreco_hil.runtime.health").setLevel(logging.INFO)
     from ..app.noise import route_third_party_output
 
     route_third_party_output()

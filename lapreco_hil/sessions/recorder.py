@@ -52,7 +52,7 @@ class DeviceWatch:
 
     def check(self, t_ns: int) -> None:
         for name, dev in self.devices.items():
-            health = getattr(dev, "health", None)
+            health = dev.health
             if health is not None and health.state != self._state[name]:
                 # a device that has not delivered yet (stale, then OK) is starting, not changing
                 starting = name not in self._started and health.state in (HealthState.OK, HealthState.STALE)
@@ -67,7 +67,7 @@ class DeviceWatch:
                     self.last_problem[name] = health.detail
                 if health.state is HealthState.FAULTED:
                     self.last_fault[name] = health.detail
-            faults = dict(getattr(dev, "faults", None) or {})
+            faults = dict(dev.faults)
             for kind, count in faults.items():
                 new = count - self._faults[name].get(kind, 0)
                 if new > 0:
@@ -135,9 +135,9 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
             stats.stopped_by = "interrupted"
         if last_t is not None:
             watch.check(last_t)
-        stats.robot_faults = {k: int(v) for k, v in dict(getattr(robot, "faults", None) or {}).items() if v}
-        # readings the driver handed on (RobotDriver's counter; None where the driver does not count them)
-        delivered = getattr(robot, "readings_delivered", None)
+        stats.robot_faults = {k: int(v) for k, v in dict(robot.faults).items() if v}
+        # readings the driver handed on (RobotDriver counts them)
+        delivered = robot.readings_delivered
         writer.set_health({"robot_faults": stats.robot_faults, "robot_readings_delivered": delivered,
                            "joint_samples_not_recorded": stats.skipped_joint_samples,
                            "last_robot_problem": watch.last_problem.get(robot_name, ""),
@@ -183,7 +183,7 @@ def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDesc
     return SessionMeta(camera=camera, pose_source="joints", robot=description,
                        joint_names=tuple(robot.info.joint_names),
                        joint_units=_joint_units(description, len(robot.info.joint_names)),
-                       nominal_fps=getattr(grabber, "nominal_fps", None), source=source or {})
+                       nominal_fps=grabber.nominal_fps, source=source or {})
 
 
 def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:
