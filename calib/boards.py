@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import CalibrationError
+from lapreco_hil.errors import CalibrationError
 
 PRESETS = {"viking": "circles:25x18:0.005:8,5+16,5+8,12+16,12"}
 KINDS = ("chessboard", "charuco", "circles", "acircles")

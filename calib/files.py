@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import N_DIST, CameraModel
-from ..errors import CalibrationError
+from lapreco_hil.camera import N_DIST, CameraModel
+from lapreco_hil.errors import CalibrationError
 
 
 def _open(path: str | Path, mode: int) -> cv2.FileStorage:

@@ -35,9 +35,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import N_DIST, CameraModel
-from ..errors import CalibrationError
-from .boards import Board
+from lapreco_hil.camera import N_DIST, CameraModel
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.calib.boards import Board
 
 log = logging.getLogger(__name__)
 

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..camera import CameraModel
-from ..errors import CalibrationError
-from .boards import Board
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.calib.boards import Board
 
 log = logging.getLogger(__name__)
 

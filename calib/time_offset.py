@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import PipelineConfig
-from ..errors import CalibrationError
-from ..frontend import make_frontend
-from ..geometry import SampledPoses, inv_T
-from ..kinematics import CameraKinematics
-from ..robot_models import urdf_path
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.frontend import make_frontend
+from lapreco_hil.geometry import SampledPoses, inv_T
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.robot_models import urdf_path
 
 log = logging.getLogger(__name__)
 

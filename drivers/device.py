@@ -8,10 +8,10 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
 
-from .health import Health
+from lapreco_hil.drivers.health import Health
 
 if TYPE_CHECKING:
-    from ..registry import DeviceURL
+    from lapreco_hil.registry import DeviceURL
 
 
 @dataclass(frozen=True)

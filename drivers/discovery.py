@@ -3,8 +3,8 @@ interfaces, V4L2 video devices, simulated scenes); see ``Device.discover``."""
 
 from __future__ import annotations
 
-from .. import registry
-from .device import Discovery
+from lapreco_hil import registry
+from lapreco_hil.drivers.device import Discovery
 
 
 def discover() -> list[Discovery]:

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from .robot.polling import PollingRobotDriver, RawReading
-from ..registry import DeviceContext, open_robot
-from ..types import JointSample
+from lapreco_hil.drivers.robot.polling import PollingRobotDriver, RawReading
+from lapreco_hil.registry import DeviceContext, open_robot
+from lapreco_hil.types import JointSample
 
 
 def probe_robot(url: str, context: DeviceContext, seconds: float) -> str:

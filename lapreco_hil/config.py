@@ -15,7 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import ConfigError
+from lapreco_hil.errors import ConfigError
 
 
 @dataclass(frozen=True)

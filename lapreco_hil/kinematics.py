@@ -12,9 +12,9 @@ import collections
 import numpy as np
 import pinocchio as pin
 
-from .errors import ConfigError, LaprecoError
-from .geometry import AFTER_LAST, BEFORE_FIRST, MAX_GAP_PERIODS, interpolate_pose, make_T, no_pose_cause
-from .types import JointLimits, JointSample, PosePrior, RobotInfo
+from lapreco_hil.errors import ConfigError, LaprecoError
+from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, MAX_GAP_PERIODS, interpolate_pose, make_T, no_pose_cause
+from lapreco_hil.types import JointLimits, JointSample, PosePrior, RobotInfo
 
 
 def prismatic_joints(model: "pin.Model") -> np.ndarray:

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import CameraModel
-from .config import PipelineConfig
-from .ground_truth import GroundTruth
-from .outputs import write_outputs
-from .pipeline import run_sequence
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.outputs import write_outputs
+from lapreco_hil.pipeline import run_sequence
 
 
 def write_frame_timings(path: Path, frames, stage_s: dict) -> None:

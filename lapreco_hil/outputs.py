@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from .camera import CameraModel
-from .config import PipelineConfig
-from .errors import OutputError
-from .evaluation.accuracy import accuracy_report
-from .geometry import to_tum
-from .ground_truth import GroundTruth
-from .surface.mesh import alpha_shape
-from .surface.render import ENABLE_RENDERING, offscreen_unavailable, render_reconstruction
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import OutputError
+from lapreco_hil.evaluation.accuracy import accuracy_report
+from lapreco_hil.geometry import to_tum
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.surface.mesh import alpha_shape
+from lapreco_hil.surface.render import ENABLE_RENDERING, offscreen_unavailable, render_reconstruction
 
 log = logging.getLogger(__name__)
 

@@ -11,11 +11,11 @@ import logging
 import time
 from dataclasses import dataclass
 
-from .camera import CameraModel
-from .config import PipelineConfig
-from .errors import ReconstructionError
-from .frontend import make_frontend
-from .mapping.mapper import Mapper, MapperSchedule, MapResult
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ReconstructionError
+from lapreco_hil.frontend import make_frontend
+from lapreco_hil.mapping.mapper import Mapper, MapperSchedule, MapResult
 
 log = logging.getLogger(__name__)
 

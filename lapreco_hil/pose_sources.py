@@ -17,14 +17,14 @@ from types import MappingProxyType
 
 import numpy as np
 
-from .config import PriorConfig
-from .errors import ConfigError
-from .geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS, NO_POSE_CAUSES, SampledPoses, \
+from lapreco_hil.config import PriorConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS, NO_POSE_CAUSES, SampledPoses, \
     max_gap_ns, no_pose_cause
-from .drivers.health import Health, HealthState
-from .kinematics import CameraKinematics, NoPoseError, PoseAtTime, prismatic_joints
-from .robot_models import urdf_path
-from .types import PosePrior, RobotDescription
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.kinematics import CameraKinematics, NoPoseError, PoseAtTime, prismatic_joints
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import PosePrior, RobotDescription
 
 log = logging.getLogger(__name__)
 

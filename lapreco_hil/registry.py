@@ -26,7 +26,7 @@ from types import MappingProxyType, UnionType
 from typing import Any, Callable
 from urllib.parse import parse_qs, urlsplit
 
-from .errors import ConfigError
+from lapreco_hil.errors import ConfigError
 
 ROBOT_BACKENDS = MappingProxyType({
     "sim": "lapreco_hil.simulators.devices:SimRobot",

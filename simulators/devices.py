@@ -29,8 +29,8 @@ from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.registry import HOST, DeviceContext, DeviceURL, URLConfig, parse_bool, url_param
 from lapreco_hil.types import Frame, JointSample, RobotDescription
 
-from .world import SCENES, SimSettings, SimWorld
-from .world.world import T0_NS
+from lapreco_hil.simulators.world import SCENES, SimSettings, SimWorld
+from lapreco_hil.simulators.world.world import T0_NS
 
 _FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}  # URL parameter -> SimSettings field
 LINKS = ("direct", "serial", "canopen")
@@ -176,13 +176,13 @@ class SimRobot(RobotDriver):
 
         context = DeviceContext(**{**self._context.options, "clock_ns": clock})
         if self.link == "serial":
-            from .dynamixel_emulator import DynamixelChainEmulator
+            from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
             joint_map = dynamixel_joint_map(world.robot_model)
             self.emulator = DynamixelChainEmulator(ids, joint_map, joints_at, clock)
             url = f"serial://{self.emulator.port}?baud=1000000&ids={','.join(map(str, ids))}&rate={rate}"
         else:
-            from .canopen_emulator import CANopenDriveChainEmulator
+            from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
 
             joint_map = cia402_joint_map(world.robot_model)
             channel = f"lapreco-sim-{id(self)}"

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import abc
 
-from ...camera import CameraModel
-from ...types import Frame
-from ..device import Device
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.types import Frame
+from lapreco_hil.drivers.device import Device
 
 
 class Grabber(Device):

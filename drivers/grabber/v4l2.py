@@ -18,12 +18,12 @@ import queue
 import threading
 from dataclasses import dataclass
 
-from ..device import Discovery, FoundDevice
-from ..health import Health, HealthState
-from .base import Grabber
-from ...errors import DeviceError, DeviceNotFoundError, DeviceTimeoutError
-from ...registry import URLConfig, url_param
-from ...types import Frame
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.grabber.base import Grabber
+from lapreco_hil.errors import DeviceError, DeviceNotFoundError, DeviceTimeoutError
+from lapreco_hil.registry import URLConfig, url_param
+from lapreco_hil.types import Frame
 
 log = logging.getLogger(__name__)
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import abc
 
-from ...types import JointSample, RobotDescription, RobotInfo
-from ..device import Device
+from lapreco_hil.types import JointSample, RobotDescription, RobotInfo
+from lapreco_hil.drivers.device import Device
 
 
 class RobotDriver(Device):

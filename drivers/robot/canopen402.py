@@ -23,12 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..device import Discovery, FoundDevice
-from .cia402 import POSITION_ACTUAL, PRODUCER_HEARTBEAT, STATUS_FAULT_BIT, STATUSWORD, cia402_object_dictionary
-from .joint_map import cia402_joint_map
-from .polling import PolledRobotConfig, PollingRobotDriver
-from ...errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError
-from ...registry import id_list_parser, url_param
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.robot.cia402 import (POSITION_ACTUAL, PRODUCER_HEARTBEAT, STATUS_FAULT_BIT, STATUSWORD,
+                                              cia402_object_dictionary)
+from lapreco_hil.drivers.robot.joint_map import cia402_joint_map
+from lapreco_hil.drivers.robot.polling import PolledRobotConfig, PollingRobotDriver
+from lapreco_hil.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError
+from lapreco_hil.registry import id_list_parser, url_param
 
 log = logging.getLogger(__name__)
 

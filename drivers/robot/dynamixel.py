@@ -18,12 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..device import Discovery, FoundDevice
-from .joint_map import DYNAMIXEL_TICKS_PER_REV, dynamixel_joint_map
-from .polling import PolledRobotConfig, PollingRobotDriver
-from ...errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.robot.joint_map import DYNAMIXEL_TICKS_PER_REV, dynamixel_joint_map
+from lapreco_hil.drivers.robot.polling import PolledRobotConfig, PollingRobotDriver
+from lapreco_hil.errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
                        ProtocolError)
-from ...registry import id_list_parser, url_param
+from lapreco_hil.registry import id_list_parser, url_param
 
 log = logging.getLogger(__name__)
 

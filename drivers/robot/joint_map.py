@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError
-from ...kinematics import prismatic_joints
-from ...robot_models import urdf_path
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.kinematics import prismatic_joints
+from lapreco_hil.robot_models import urdf_path
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..health import Health, HealthState
-from .base import RobotDriver
-from .joint_map import JointMap
-from ...errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, ProtocolError
-from ...registry import URLConfig, url_param
-from ...types import JointLimits, JointSample, RobotInfo
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.robot.base import RobotDriver
+from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, ProtocolError
+from lapreco_hil.registry import URLConfig, url_param
+from lapreco_hil.types import JointLimits, JointSample, RobotInfo
 
 log = logging.getLogger(__name__)
 

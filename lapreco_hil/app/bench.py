@@ -11,12 +11,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from ..config import PipelineConfig
-from ..frontend import resolve_tracker
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..warp_device import resolve_device
-from .record import sim_record
-from .run import run_live
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.warp_device import resolve_device
+from lapreco_hil.app.record import sim_record
+from lapreco_hil.app.run import run_live
 
 
 def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = None, fps: float | None = None,
@@ -25,7 +25,7 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
     """The live runtime in real time. Defaults: 1920x1080 at 60 fps with 2000 features on a GPU, 384x288 at
     25 fps with 800 on a CPU. Source 'replay' (and 'auto'): a session recorded first (or ``session``), replayed
     in real time; 'sim': the simulated world rendered live."""
-    from ..bench.pipeline import bench_config
+    from lapreco_hil.bench.pipeline import bench_config
 
     device = resolve_device(device)
     gpu = device.startswith("cuda")
@@ -68,7 +68,7 @@ def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), f
                sample_s: float = 10.0, stream: str | None = None) -> dict:
     """The live runtime on the endless simulated world for ``minutes``, sampled every ``sample_s``; each sample
     is also appended to ``stream`` (JSON lines) as it is taken."""
-    from ..bench.soak import Sampler, summarize
+    from lapreco_hil.bench.soak import Sampler, summarize
 
     device = resolve_device(device)
     w, h = resolution
@@ -102,27 +102,27 @@ def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), f
 
 def bench_frontend(device: str = "auto", resolutions=((1920, 1080),), features=(2000,), frames: int = 40) -> dict:
     """The Warp front-end against the OpenCV baseline, per stage."""
-    from ..bench.frontend import run
+    from lapreco_hil.bench.frontend import run
 
     return run(resolve_device(device), list(resolutions), list(features), frames=frames)
 
 
 def bench_ba(repeats: int = 3) -> dict:
     """One local BA window: 10 keyframes x 2000 points, 5% outliers."""
-    from ..bench.ba import run
+    from lapreco_hil.bench.ba import run
 
     return run(repeats=repeats)
 
 
 def bench_robot(links=("serial", "canopen"), rates=(100.0, 500.0), seconds: float = 5.0) -> dict:
     """The robot drivers on their emulators: sample rate, jitter, latency."""
-    from ..bench.robot import run
+    from lapreco_hil.bench.robot import run
 
     return run(list(links), list(rates), seconds)
 
 
 def bench_session(resolutions=((640, 480), (1920, 1080)), frames: int = 60) -> dict:
     """Session write (crash-safe) and read throughput."""
-    from ..bench.session import run
+    from lapreco_hil.bench.session import run
 
     return run(list(resolutions), frames=frames)

@@ -7,12 +7,12 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calib.boards import parse_board
-from ..calib.files import write_camera_info_yaml, write_camera_yaml, write_stereo_yaml
-from ..calib.lens import (LensResult, calibrate_detections, calibrate_lens, detect_views, load_images,
+from lapreco_hil.calib.boards import parse_board
+from lapreco_hil.calib.files import write_camera_info_yaml, write_camera_yaml, write_stereo_yaml
+from lapreco_hil.calib.lens import (LensResult, calibrate_detections, calibrate_lens, detect_views, load_images,
                           save_check_image, save_coverage_image)
-from ..calib.stereo import StereoResult, calibrate_stereo
-from ..errors import CalibrationError
+from lapreco_hil.calib.stereo import StereoResult, calibrate_stereo
+from lapreco_hil.errors import CalibrationError
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ def run_lens_calibration(image_paths: list[str], board_spec: str, out: str, mode
         if s.held_out_rms_px is not None:
             extra[f"held_out_rms_px_{s.model}"] = s.held_out_rms_px
     if ros_out:  # before writing anything: a model ROS cannot hold is refused up front
-        from ..calib.files import ros_distortion
+        from lapreco_hil.calib.files import ros_distortion
 
         ros_distortion(result.camera)
     write_camera_yaml(out, result.camera, extra)

@@ -10,12 +10,12 @@ import logging
 
 import numpy as np
 
-from ..evaluation.compare import (VARIANTS, SEED_FIGURES, format_markdown, frame_timings, plot_tracking_times,
+from lapreco_hil.evaluation.compare import (VARIANTS, SEED_FIGURES, format_markdown, frame_timings, plot_tracking_times,
                                   read_points_ply, read_tum, variant_name)
-from ..evaluation.icp import evaluate_points
-from ..outputs import prepare_output_dir
-from ..sessions import Session
-from .replay import run_replay
+from lapreco_hil.evaluation.icp import evaluate_points
+from lapreco_hil.outputs import prepare_output_dir
+from lapreco_hil.sessions import Session
+from lapreco_hil.app.replay import run_replay
 
 log = logging.getLogger(__name__)
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..config import load_config
-from ..frontend import resolve_tracker
-from ..offline import reconstruct
-from ..outputs import check_output_dir, prepare_output_dir
-from ..pose_sources import RobotPoseSource
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..warp_device import resolve_device
-from .record import sim_url
-from .run import run_live
+from lapreco_hil.config import load_config
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.offline import reconstruct
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir
+from lapreco_hil.pose_sources import RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.warp_device import resolve_device
+from lapreco_hil.app.record import sim_url
+from lapreco_hil.app.run import run_live
 
 
 def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps: float = 25.0,

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..evaluation.compare import read_points_ply, read_tum
-from ..evaluation.icp import evaluate_points
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.evaluation.compare import read_points_ply, read_tum
+from lapreco_hil.evaluation.icp import evaluate_points
 
 
 def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0) -> dict:

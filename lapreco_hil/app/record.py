@@ -3,10 +3,10 @@ ground truth)."""
 
 from __future__ import annotations
 
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..sessions.recorder import RecordStats, record
-from ..warp_device import resolve_device
-from .run import rig_from
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.sessions.recorder import RecordStats, record
+from lapreco_hil.warp_device import resolve_device
+from lapreco_hil.app.run import rig_from
 
 
 def record_session(robot_url: str, grabber_url: str, out: str, *, seconds: float | None = None,

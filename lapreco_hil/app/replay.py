@@ -5,15 +5,15 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from ..calib.files import read_camera_yaml, read_handeye_yaml
-from ..config import load_config
-from ..errors import CalibrationError
-from ..frontend import resolve_tracker
-from ..offline import reconstruct
-from ..outputs import check_output_dir, prepare_output_dir
-from ..pose_sources import GivenPoseSource, RobotPoseSource
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..warp_device import resolve_device
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.config import load_config
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.offline import reconstruct
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir
+from lapreco_hil.pose_sources import GivenPoseSource, RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.warp_device import resolve_device
 
 
 def run_replay(session: str, out: str, tracker: str = "auto", device: str = "auto", config_path: str | None = None,

@@ -9,16 +9,16 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from ..calib.files import read_camera_yaml, read_handeye_yaml
-from ..config import PipelineConfig
-from ..errors import ConfigError
-from ..frontend import resolve_tracker
-from ..outputs import check_output_dir, prepare_output_dir, write_outputs
-from ..pose_sources import RobotPoseSource
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..runtime.live import LiveRun
-from ..types import RobotDescription
-from ..warp_device import resolve_device
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir, write_outputs
+from lapreco_hil.pose_sources import RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.runtime.live import LiveRun
+from lapreco_hil.types import RobotDescription
+from lapreco_hil.warp_device import resolve_device
 
 log = logging.getLogger(__name__)
 
@@ -52,9 +52,9 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler)."""
     from tqdm import tqdm
 
-    from ..sessions.recorder import session_meta_for
-    from ..sessions.writer import SessionWriter
-    from ..robot_models import urdf_path
+    from lapreco_hil.sessions.recorder import session_meta_for
+    from lapreco_hil.sessions.writer import SessionWriter
+    from lapreco_hil.robot_models import urdf_path
 
     check_output_dir(out)
     config = _live_view_if_renderable(config)
@@ -93,7 +93,7 @@ def _live_view_if_renderable(config: PipelineConfig) -> PipelineConfig:
     """The live view renders with VTK, which crashes the process where it has no renderer: off, with a warning."""
     if config.runtime.view_period_s <= 0:
         return config
-    from ..surface.render import ENABLE_RENDERING, offscreen_unavailable
+    from lapreco_hil.surface.render import ENABLE_RENDERING, offscreen_unavailable
 
     why = offscreen_unavailable()
     if why is None:
@@ -121,7 +121,7 @@ def run(robot_url: str, grabber_url: str, out: str, *, config_path: str | None =
         camera_file: str | None = None, robot_model: str | None = None, tip_frame: str | None = None,
         hand_eye_file: str | None = None, progress: bool = True) -> dict:
     """``lapreco run``: devices by URL, the rig from files or the devices, live until the end; the report."""
-    from ..config import load_config
+    from lapreco_hil.config import load_config
 
     config = load_config(config_path)
     if view_every:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..config import PipelineConfig
+from lapreco_hil.config import PipelineConfig
 
 
 def bench_config(features: int) -> PipelineConfig:

@@ -35,10 +35,10 @@ def _measure(robot, seconds: float) -> dict:
 
 
 def run(links=("serial", "canopen"), rates=(100.0, 500.0), seconds: float = 5.0) -> dict:
-    from ..drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
-    from ..registry import DeviceContext, open_robot
-    from ..simulators.canopen_emulator import CANopenDriveChainEmulator
-    from ..simulators.dynamixel_emulator import DynamixelChainEmulator
+    from lapreco_hil.drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
+    from lapreco_hil.registry import DeviceContext, open_robot
+    from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
+    from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
     rows = []
     for link in links:

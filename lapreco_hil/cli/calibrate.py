@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calib.boards import parse_board
-from ..calib.files import read_camera_yaml, write_handeye_yaml
-from ..errors import CalibrationError
-from ..outputs import write_json
+from lapreco_hil.calib.boards import parse_board
+from lapreco_hil.calib.files import read_camera_yaml, write_handeye_yaml
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.outputs import write_json
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ def _print_lens(prefix: str, result) -> None:
 
 
 def cmd_lens(args) -> int:
-    from ..app.calibrate import run_lens_calibration
+    from lapreco_hil.app.calibrate import run_lens_calibration
 
     run = run_lens_calibration(args.images, args.board, args.out, args.model, args.ros_out, args.camera_name)
     result = run.result
@@ -100,7 +100,7 @@ def cmd_lens(args) -> int:
 
 
 def cmd_stereo(args) -> int:
-    from ..app.calibrate import run_stereo_calibration
+    from lapreco_hil.app.calibrate import run_stereo_calibration
 
     run = run_stereo_calibration(args.left, args.right, args.board, args.out, args.model, args.refine_intrinsics)
     for tag, lens in (("camera 0", run.lens0), ("camera 1", run.lens1)):
@@ -115,11 +115,11 @@ def cmd_stereo(args) -> int:
 
 
 def cmd_handeye(args) -> int:
-    from ..calib.handeye import board_station, calibrate_hand_eye
-    from ..config import PriorConfig
-    from ..kinematics import CameraKinematics, PoseAtTime
-    from ..robot_models import urdf_path
-    from ..sessions import Session
+    from lapreco_hil.calib.handeye import board_station, calibrate_hand_eye
+    from lapreco_hil.config import PriorConfig
+    from lapreco_hil.kinematics import CameraKinematics, PoseAtTime
+    from lapreco_hil.robot_models import urdf_path
+    from lapreco_hil.sessions import Session
 
     session = Session(args.session)
     if session.meta.pose_source != "joints":
@@ -168,9 +168,9 @@ def cmd_handeye(args) -> int:
 
 
 def cmd_time_offset(args) -> int:
-    from ..calib.time_offset import estimate_time_offset
-    from ..sessions import Session
-    from ..sessions.format import META_FILE
+    from lapreco_hil.calib.time_offset import estimate_time_offset
+    from lapreco_hil.sessions import Session
+    from lapreco_hil.sessions.format import META_FILE
 
     session = Session(args.session)
     est = estimate_time_offset(session, search_s=args.search_ms / 1e3)

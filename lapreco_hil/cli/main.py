@@ -6,9 +6,9 @@ from __future__ import annotations
 import logging
 import sys
 
-from .. import __version__
-from ..errors import LaprecoError
-from .args import ArgumentParser, finite, non_negative, positive, positive_int, resolution, seed
+from lapreco_hil import __version__
+from lapreco_hil.errors import LaprecoError
+from lapreco_hil.cli.args import ArgumentParser, finite, non_negative, positive, positive_int, resolution, seed
 
 _positive_int = positive_int  # the calibration parsers take it as an argument
 
@@ -122,8 +122,8 @@ def build_parser() -> ArgumentParser:
     cmp_.add_argument("--no-progress", action="store_true", help="no progress bar")
     cmp_.set_defaults(func=_cmd_compare)
 
-    from .calibrate import add_parsers as add_calibrate_parsers
-    from .run import add_parser as add_run_parser
+    from lapreco_hil.cli.calibrate import add_parsers as add_calibrate_parsers
+    from lapreco_hil.cli.run import add_parser as add_run_parser
 
     add_run_parser(sub)
     add_calibrate_parsers(sub, _positive_int)
@@ -185,14 +185,14 @@ def build_parser() -> ArgumentParser:
 
 def _write_json(path: str | None, result: dict) -> None:
     if path:
-        from ..outputs import write_json
+        from lapreco_hil.outputs import write_json
 
         write_json(path, result)
 
 
 def _cmd_bench_pipeline(args) -> int:
-    from ..app.bench import bench_pipeline
-    from ..bench.pipeline import format_table
+    from lapreco_hil.app.bench import bench_pipeline
+    from lapreco_hil.bench.pipeline import format_table
 
     result = bench_pipeline(args.device, args.resolution, args.fps, args.seconds, args.features, args.source,
                             args.tracker, session=args.session)
@@ -202,8 +202,8 @@ def _cmd_bench_pipeline(args) -> int:
 
 
 def _cmd_bench_soak(args) -> int:
-    from ..app.bench import bench_soak
-    from ..bench.soak import format_table
+    from lapreco_hil.app.bench import bench_soak
+    from lapreco_hil.bench.soak import format_table
 
     result = bench_soak(args.device, args.resolution, args.fps, args.minutes, args.features, args.scene,
                         args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None)
@@ -213,8 +213,8 @@ def _cmd_bench_soak(args) -> int:
 
 
 def _cmd_bench_robot(args) -> int:
-    from ..app.bench import bench_robot
-    from ..bench.robot import format_table
+    from lapreco_hil.app.bench import bench_robot
+    from lapreco_hil.bench.robot import format_table
 
     result = bench_robot(args.link, args.rate, args.seconds)
     print(format_table(result))
@@ -223,8 +223,8 @@ def _cmd_bench_robot(args) -> int:
 
 
 def _cmd_bench_session(args) -> int:
-    from ..app.bench import bench_session
-    from ..bench.session import format_table
+    from lapreco_hil.app.bench import bench_session
+    from lapreco_hil.bench.session import format_table
 
     result = bench_session(args.resolution, frames=args.frames)
     print(format_table(result))
@@ -233,8 +233,8 @@ def _cmd_bench_session(args) -> int:
 
 
 def _cmd_bench_frontend(args) -> int:
-    from ..app.bench import bench_frontend
-    from ..bench.frontend import format_table
+    from lapreco_hil.app.bench import bench_frontend
+    from lapreco_hil.bench.frontend import format_table
 
     result = bench_frontend(args.device, args.resolution, args.features, frames=args.frames)
     print(format_table(result))
@@ -243,8 +243,8 @@ def _cmd_bench_frontend(args) -> int:
 
 
 def _cmd_bench_ba(args) -> int:
-    from ..app.bench import bench_ba
-    from ..bench.ba import format_table
+    from lapreco_hil.app.bench import bench_ba
+    from lapreco_hil.bench.ba import format_table
 
     result = bench_ba(repeats=args.repeats)
     print(format_table(result))
@@ -253,7 +253,7 @@ def _cmd_bench_ba(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from ..app.evaluate import evaluate
+    from lapreco_hil.app.evaluate import evaluate
 
     result = evaluate(args.outdir, args.truth, args.coverage_mm)
     icp = result["icp"]
@@ -267,9 +267,9 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from ..app.compare import run_comparison
-    from ..evaluation.compare import format_markdown
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.compare import run_comparison
+    from lapreco_hil.evaluation.compare import format_markdown
+    from lapreco_hil.warp_device import resolve_device
 
     result = run_comparison(args.session, args.out, device=resolve_device(args.device), config_path=args.config,
                             progress=not args.no_progress)
@@ -278,14 +278,14 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_devices(args) -> int:
-    from ..app.devices import list_devices, probe
+    from lapreco_hil.app.devices import list_devices, probe
 
     print(probe(args.probe, args.seconds, args.device) if args.probe else list_devices())
     return 0
 
 
 def _cmd_record(args) -> int:
-    from ..app.record import record_session
+    from lapreco_hil.app.record import record_session
 
     stats = record_session(args.robot, args.grabber, args.out, seconds=args.seconds, frames=args.frames,
                            camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
@@ -301,7 +301,7 @@ def _print_record(out: str, stats) -> None:
 
 
 def _cmd_sim_record(args) -> int:
-    from ..app.record import sim_record
+    from lapreco_hil.app.record import sim_record
 
     stats = sim_record(args.scene, args.out, frames=args.frames, resolution=args.resolution, fps=args.fps,
                        seed=args.seed, device=args.device, robot_link=args.robot_link, sim_speed=args.sim_speed,
@@ -312,7 +312,7 @@ def _cmd_sim_record(args) -> int:
 
 
 def _cmd_replay(args) -> int:
-    from ..app.replay import run_replay
+    from lapreco_hil.app.replay import run_replay
 
     report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
                         config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
@@ -323,7 +323,7 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from ..app.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
@@ -360,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     # each change of a device's health is news on the console, its recovery ("robot: ok again", INFO) too
     logging.getLogger("lapreco_hil.runtime.health").setLevel(logging.INFO)
-    from ..app.noise import route_third_party_output
+    from lapreco_hil.app.noise import route_third_party_output
 
     route_third_party_output()
     try:

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from .args import non_negative, positive
+from lapreco_hil.cli.args import non_negative, positive
 
 
 def cmd_run(args) -> int:
-    from ..app.run import run, stop_on_signals
+    from lapreco_hil.app.run import run, stop_on_signals
 
     stop_on_signals()
     report = run(args.robot, args.grabber, args.out, config_path=args.config, record=args.record,

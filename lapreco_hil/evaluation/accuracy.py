@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 
-from ..geometry import pose_error
-from ..ground_truth import GroundTruth
+from lapreco_hil.geometry import pose_error
+from lapreco_hil.ground_truth import GroundTruth
 
 
 def surface_distances(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:

@@ -42,7 +42,7 @@ def read_points_ply(path: Path) -> np.ndarray:
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from ..geometry import pose_from_tum
+    from lapreco_hil.geometry import pose_from_tum
 
     rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
     t = np.array([float(r[0]) for r in rows])

@@ -14,8 +14,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from ..geometry import make_T
-from .robust import RobustSchedule, mad_sigma
+from lapreco_hil.geometry import make_T
+from lapreco_hil.mapping.robust import RobustSchedule, mad_sigma
 
 
 @dataclass

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import MapperConfig
-from ..geometry import rotation_angle
-from ..types import Observations, PosePrior
+from lapreco_hil.config import MapperConfig
+from lapreco_hil.geometry import rotation_angle
+from lapreco_hil.types import Observations, PosePrior
 
 
 @dataclass

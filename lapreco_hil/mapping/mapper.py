@@ -18,16 +18,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import MapperConfig
-from ..geometry import inv_T, rigid
-from ..types import Observations, PosePrior
-from . import bundle_adjustment as ba
-from .archive import LandmarkArchive
-from .keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
-from .resection import refine_pose
-from .retirement import Retirement, correction_at
-from .robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
-from .triangulation import triangulate
+from lapreco_hil.config import MapperConfig
+from lapreco_hil.geometry import inv_T, rigid
+from lapreco_hil.types import Observations, PosePrior
+from lapreco_hil.mapping import bundle_adjustment as ba
+from lapreco_hil.mapping.archive import LandmarkArchive
+from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
+from lapreco_hil.mapping.resection import refine_pose
+from lapreco_hil.mapping.retirement import Retirement, correction_at
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import Rotation, make_T
-from .robust import RobustSchedule, irls_weight, mad_sigma
+from lapreco_hil.geometry import Rotation, make_T
+from lapreco_hil.mapping.robust import RobustSchedule, irls_weight, mad_sigma
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import MapperConfig
-from ..geometry import interpolate_pose, inv_T
-from .keyframes import FrameRecord, Keyframe
+from lapreco_hil.config import MapperConfig
+from lapreco_hil.geometry import interpolate_pose, inv_T
+from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe
 
 
 class Retirement:

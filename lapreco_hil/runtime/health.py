@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Mapping, Union
 
-from ..drivers.health import Health, HealthState
+from lapreco_hil.drivers.health import Health, HealthState
 
 log = logging.getLogger(__name__)
 

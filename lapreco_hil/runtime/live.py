@@ -25,17 +25,17 @@ import logging
 import os
 from pathlib import Path
 
-from ..camera import CameraModel
-from ..config import PipelineConfig
-from ..errors import ConfigError, LaprecoError, ReconstructionError
-from ..frontend import make_frontend
-from .coverage import ViewCoverage
-from .health import HealthMonitor
-from .messages import MapperFailed
-from .metrics import LiveMetrics
-from .processes import MapperProcesses
-from .stages import Capture, LatestView, Record, Results, StageLinks, Surface, Tracking
-from .supervisor import Supervisor
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ConfigError, LaprecoError, ReconstructionError
+from lapreco_hil.frontend import make_frontend
+from lapreco_hil.runtime.coverage import ViewCoverage
+from lapreco_hil.runtime.health import HealthMonitor
+from lapreco_hil.runtime.messages import MapperFailed
+from lapreco_hil.runtime.metrics import LiveMetrics
+from lapreco_hil.runtime.processes import MapperProcesses
+from lapreco_hil.runtime.stages import Capture, LatestView, Record, Results, StageLinks, Surface, Tracking
+from lapreco_hil.runtime.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 FEW_FRAMES = 3  # a run that maps fewer frames than this says why

@@ -26,8 +26,8 @@ import traceback
 
 import numpy as np
 
-from .messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose, MapperFailed, MapperReady,
-                       SlotFree)
+from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
+                                          MapperFailed, MapperReady, SlotFree)
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ def die_with_parent(parent_pid: int) -> None:
 def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int) -> None:
     """Process body: solve each BAJob until EndOfJobs arrives; errors go back, never lost."""
     die_with_parent(parent_pid)
-    from ..mapping.bundle_adjustment import solve_robust
+    from lapreco_hil.mapping.bundle_adjustment import solve_robust
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     while True:
@@ -167,8 +167,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     MapperFailed). With BA queues, local BA goes to the worker; without, it runs here (deferred while frames
     wait)."""
     die_with_parent(parent_pid)
-    from ..mapping.mapper import Mapper, MapperSchedule
-    from .shm import MapSnapshot, ObservationRing
+    from lapreco_hil.mapping.mapper import Mapper, MapperSchedule
+    from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle: it ends the run cleanly
     ring = ObservationRing(ring_slots, max_tracks, name=ring_name)

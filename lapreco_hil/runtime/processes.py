@@ -14,10 +14,11 @@ import queue
 import threading
 import time
 
-from ..mapping.mapper import local_schedule
-from .mapper_process import ba_worker_main, drain, mapper_main
-from .messages import EndOfFrames, EndOfJobs, EndOfResults, FinalMap, MapperFailed, MapperReady, SlotReady
-from .shm import MapSnapshot, ObservationRing, unlink_leftovers
+from lapreco_hil.mapping.mapper import local_schedule
+from lapreco_hil.runtime.mapper_process import ba_worker_main, drain, mapper_main
+from lapreco_hil.runtime.messages import (EndOfFrames, EndOfJobs, EndOfResults, FinalMap, MapperFailed, MapperReady,
+                                          SlotReady)
+from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing, unlink_leftovers
 
 log = logging.getLogger(__name__)
 

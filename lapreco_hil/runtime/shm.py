@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..types import Observations, PosePrior
+from lapreco_hil.types import Observations, PosePrior
 
 log = logging.getLogger(__name__)
 PREFIX = "lapreco_"

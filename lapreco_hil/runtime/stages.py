@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import DeviceTimeoutError
-from .health import Condition
-from .messages import EndOfResults, FramePose, MapperReady, SlotFree
-from .metrics import LiveMetrics
+from lapreco_hil.errors import DeviceTimeoutError
+from lapreco_hil.runtime.health import Condition
+from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree
+from lapreco_hil.runtime.metrics import LiveMetrics
 
 log = logging.getLogger(__name__)
 BAD_TIME_SHOWN_S = 0.25  # frame times read as "refused" this long after the last refused frame
@@ -225,8 +225,8 @@ class Surface:
         self.mesh = None
 
     def run(self) -> None:
-        from ..surface.mesh import alpha_shape, thin_points
-        from .live_view import LiveView
+        from lapreco_hil.surface.mesh import alpha_shape, thin_points
+        from lapreco_hil.runtime.live_view import LiveView
 
         rt, m = self.config.runtime, self.metrics
         view = LiveView(self.camera, self.out_dir, rt.view_period_s) if rt.view_period_s > 0 and \

@@ -15,9 +15,9 @@ import logging
 import threading
 import time
 
-from .metrics import LiveMetrics
-from .processes import MapperProcesses
-from .stages import StageLinks
+from lapreco_hil.runtime.metrics import LiveMetrics
+from lapreco_hil.runtime.processes import MapperProcesses
+from lapreco_hil.runtime.stages import StageLinks
 
 log = logging.getLogger(__name__)
 ESSENTIAL = ("capture", "tracking", "mapper")

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import N_DIST, CameraModel
-from ..errors import SessionError
-from ..types import RobotDescription
+from lapreco_hil.camera import N_DIST, CameraModel
+from lapreco_hil.errors import SessionError
+from lapreco_hil.types import RobotDescription
 
 FORMAT = "lapreco-session"
 VERSION = 1
@@ -311,7 +311,7 @@ def check_increasing(path: Path, t_ns: np.ndarray, what: str = "t_ns") -> None:
 
 def read_pose_table(path: Path, length_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """(t_ns (N,), T_world_camera (N, 4, 4)) from a table with POSE_COLUMNS; translations to metres."""
-    from ..geometry import pose_from_tum
+    from lapreco_hil.geometry import pose_from_tum
 
     rows, _ = read_rows(path, POSE_COLUMNS)
     t = np.array([parse_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)], dtype=np.int64)

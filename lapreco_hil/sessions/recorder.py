@@ -8,13 +8,13 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-from ..camera import CameraModel
-from ..errors import ConfigError, DeviceError
-from ..robot_models import urdf_path
-from ..types import RobotDescription
-from ..drivers.health import HealthState
-from .format import EVENTS_FILE, SessionMeta
-from .writer import SessionWriter
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.errors import ConfigError, DeviceError
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import RobotDescription
+from lapreco_hil.drivers.health import HealthState
+from lapreco_hil.sessions.format import EVENTS_FILE, SessionMeta
+from lapreco_hil.sessions.writer import SessionWriter
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ class DeviceWatch:
     warning (at most one per device and kind of event every ``warn_every_s``)."""
 
     def __init__(self, writer: SessionWriter, devices: dict, warn_every_s: float = 1.0) -> None:
-        from ..pose_sources import RateLimitedWarning
+        from lapreco_hil.pose_sources import RateLimitedWarning
 
         self.writer, self.devices = writer, devices  # name -> device (a grabber, a robot driver)
         self._warn = collections.defaultdict(lambda: RateLimitedWarning(log, warn_every_s))
@@ -190,7 +190,7 @@ def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:
     """'length' for prismatic joints, 'angle' for the others, read from the URDF."""
     import pinocchio as pin
 
-    from ..kinematics import prismatic_joints
+    from lapreco_hil.kinematics import prismatic_joints
 
     model = pin.buildModelFromUrdf(str(urdf_path(description.urdf)))
     units = tuple("length" if p else "angle" for p in prismatic_joints(model))

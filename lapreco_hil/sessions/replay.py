@@ -18,15 +18,15 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from ..drivers.grabber.base import Grabber
-from ..drivers.health import Health, HealthState
-from ..drivers.robot.base import RobotDriver
-from ..errors import ConfigError, SessionError
-from ..kinematics import CameraKinematics
-from ..registry import RECORDED, DeviceContext, DeviceURL, URLConfig, url_param
-from ..robot_models import urdf_path
-from ..types import Frame, JointLimits, JointSample, RobotInfo
-from .session import Session
+from lapreco_hil.drivers.grabber.base import Grabber
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.robot.base import RobotDriver
+from lapreco_hil.errors import ConfigError, SessionError
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.registry import RECORDED, DeviceContext, DeviceURL, URLConfig, url_param
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import Frame, JointLimits, JointSample, RobotInfo
+from lapreco_hil.sessions.session import Session
 
 
 @dataclass(frozen=True)

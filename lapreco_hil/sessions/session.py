@@ -8,11 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import SessionError
-from ..geometry import SampledPoses
-from ..ground_truth import GroundTruth
-from ..types import Frame, JointSample, RobotDescription
-from . import format as fmt
+from lapreco_hil.errors import SessionError
+from lapreco_hil.geometry import SampledPoses
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.types import Frame, JointSample, RobotDescription
+from lapreco_hil.sessions import format as fmt
 
 log = logging.getLogger(__name__)
 

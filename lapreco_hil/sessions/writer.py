@@ -25,10 +25,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import OutputError, SessionError
-from ..geometry import tum_values
-from ..types import Frame, JointSample
-from . import format as fmt
+from lapreco_hil.errors import OutputError, SessionError
+from lapreco_hil.geometry import tum_values
+from lapreco_hil.types import Frame, JointSample
+from lapreco_hil.sessions import format as fmt
 
 
 def _write_json_atomic(path: Path, doc: dict) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from ..geometry import transform_points
+from lapreco_hil.geometry import transform_points
 
 
 # how to get a renderer on a headless machine (README, "Headless rendering")

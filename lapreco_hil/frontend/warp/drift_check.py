@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .block_sum import block_sum1, block_sum4, block_sum44, vec44
-from .sampling import bilinear, in_view
+from lapreco_hil.frontend.warp.block_sum import block_sum1, block_sum4, block_sum44, vec44
+from lapreco_hil.frontend.warp.sampling import bilinear, in_view
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})

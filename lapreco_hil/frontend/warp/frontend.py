@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import warp as wp
 
-from ...camera import CameraModel
-from ...config import TrackerConfig
-from ...types import Frame, Observations
-from ...warp_device import device_lock
-from ..opencv import HIGHPASS_GAIN
-from . import corners, drift_check, lk, pyramid, tracks
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import TrackerConfig
+from lapreco_hil.types import Frame, Observations
+from lapreco_hil.warp_device import device_lock
+from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.warp import corners, drift_check, lk, pyramid, tracks
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ COLOR_ROW = 64  # points per row of the colour remap
 
 class WarpFrontEnd:
     def __init__(self, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> None:
-        from ...warp_device import init_warp
+        from lapreco_hil.warp_device import init_warp
 
         init_warp()
         self.camera = camera

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .block_sum import block_sum3
+from lapreco_hil.frontend.warp.block_sum import block_sum3
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..opencv import HIGHPASS_GAIN
-from .sampling import bilinear, clamped_px
+from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.warp.sampling import bilinear, clamped_px
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})

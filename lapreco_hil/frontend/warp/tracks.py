@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .sampling import in_view
+from lapreco_hil.frontend.warp.sampling import in_view
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
