@@ -4,15 +4,12 @@ session's own ``time_offset_ns``."""
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
-import numpy as np
 
 from ..calib.boards import parse_board
-from ..calib.files import read_camera_yaml, write_camera_yaml, write_handeye_yaml
-from ..errors import CalibrationError
+from ..calib.files import write_camera_yaml
 from ..outputs import write_json
 
 log = logging.getLogger(__name__)
@@ -45,6 +42,7 @@ def add_parsers(sub, positive_int) -> None:
     to.add_argument("session", help="a session with joint readings over a textured scene, the camera moving")
     to.add_argument("--search-ms", type=float, default=1000.0, help="search +- this many ms (default 1000)")
     to.add_argument("--apply", action="store_true", help="write the estimate into the session's time_offset_ns")
+    to.add_argument("--hand-eye", default=None, help="hand-eye (OpenCV YAML) in place of the session's own")
     to.add_argument("--json", default=None, help="also write the report as JSON")
     to.set_defaults(func=cmd_time_offset)
 
@@ -76,73 +74,33 @@ def cmd_lens(args) -> int:
 
 
 def cmd_handeye(args) -> int:
-    from ..calib.handeye import board_station, calibrate_hand_eye
-    from ..config import PriorConfig
-    from ..kinematics import CameraKinematics, PoseAtTime
-    from ..robot_models import urdf_path
-    from ..sessions import Session
+    from ..app.handeye import calibrate_hand_eye_session
 
-    session = Session(args.session)
-    if session.meta.pose_source != "joints":
-        raise CalibrationError(f"session '{args.session}' has camera poses, not joint readings; hand-eye "
-                               f"calibration needs the robot's kinematics")
-    board = parse_board(args.board)
-    camera = read_camera_yaml(args.camera) if args.camera else session.meta.camera
-    robot = session.robot
-    kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, np.eye(4), robot.T_world_base)
-    prior = PriorConfig()
-    joints = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
-                        capacity=max(4096, len(session.joint_samples)))
-    joints.extend(session.joint_samples)
-    stations = []
-    for i in range(0, len(session), args.stride):
-        frame = session.frame(i)
-        q = joints.q_at(frame.t_ns + session.meta.time_offset_ns)
-        st = board_station(f"frame {frame.seq}", frame.image, board, camera, kin.tip_pose(q))
-        if st is not None:
-            stations.append(st)
-    if len(stations) < 3:
-        raise CalibrationError(f"session '{args.session}': the board ({args.board}) was found in {len(stations)} "
-                               f"stations; at least 3 are needed")
-    result = calibrate_hand_eye(stations, camera)
-    X = result["T_tip_camera"]
-    write_handeye_yaml(args.out, X, tip_frame=robot.tip_frame,
-                       extra={"stations": len(stations),
-                              "rotation_rms_deg": result["refined"]["rotation_rms_deg"],
-                              "translation_rms_mm": result["refined"]["translation_rms_mm"]})
+    result = calibrate_hand_eye_session(args.session, args.board, args.out, camera_file=args.camera,
+                                        stride=args.stride, json_file=args.json)
     for name, m in result["methods"].items():
         print(f"  {name:<11} station consistency: rotation {m['rotation_rms_deg']:.3f} deg, "
               f"translation {m['translation_rms_mm']:.3f} mm")
     for name, why in result["failed_methods"].items():
         print(f"  {name:<11} failed: {why}")
-    ref = result["refined"]
+    ref, agree = result["refined"], result["agreement"]
     print(f"  refined     station consistency: rotation {ref['rotation_rms_deg']:.3f} deg, translation "
-          f"{ref['translation_rms_mm']:.3f} mm; reprojection median "
-          f"{np.median(list(ref['reprojection_rms_px'].values())):.3f} px")
+          f"{ref['translation_rms_mm']:.3f} mm; reprojection RMS {ref['reprojection_rms_px']:.3f} px")
+    print(f"  methods agree within {agree['rotation_deg']:.3f} deg / {agree['translation_mm']:.3f} mm")
     for w in result["warnings"]:
         print(f"  warning: {w}")
-    print(f"lapreco calibrate handeye: {len(stations)} stations; T_tip_camera written to {args.out}")
-    _write_json(args.json, result)
+    print(f"lapreco calibrate handeye: {result['stations']} stations; T_tip_camera written to {args.out}")
     return 0
 
 
 def cmd_time_offset(args) -> int:
-    from ..calib.time_offset import estimate_time_offset
-    from ..sessions import Session
-    from ..sessions.format import META_FILE
+    from ..app.handeye import estimate_session_time_offset
 
-    session = Session(args.session)
-    est = estimate_time_offset(session, search_s=args.search_ms / 1e3)
-    s = est.summary()
+    s = estimate_session_time_offset(args.session, args.search_ms, apply=args.apply, hand_eye_file=args.hand_eye,
+                                     json_file=args.json)
     print(f"lapreco calibrate time-offset: kinematics time = video time + {s['offset_ms']:.1f} ms "
           f"(+- {s['sigma_ms']:.1f} ms, {s['pairs']} frame pairs; median Sampson distance "
           f"{s['median_sampson_px_at_zero']:.3f} px at 0 -> {s['median_sampson_px_at_offset']:.3f} px)")
     if args.apply:
-        path = session.folder / META_FILE
-        doc = json.loads(path.read_text())
-        doc["time_offset_ns"] = est.offset_ns
-        doc.setdefault("source", {})["time_offset_estimate"] = s
-        write_json(path, doc)
-        print(f"  applied: {path} time_offset_ns = {est.offset_ns}")
-    _write_json(args.json, s)
+        print(f"  applied: {s['applied_to']} time_offset_ns = {round(s['offset_ms'] * 1e6)}")
     return 0

@@ -1,0 +1,1 @@
+"""The application layer: what the lapreco commands do, callable without the CLI."""
