@@ -80,6 +80,9 @@ AXIS_MIN_ANGLE_DEG = 1.0
 # the methods' solutions should agree to about the noise; beyond these the data do not pin X down
 MAX_METHOD_SPREAD_DEG = 0.5
 MAX_METHOD_SPREAD_MM = 1.0
+# a method this many times further from the consensus than the median method (and beyond the limits above)
+# has broken down on these data rather than disagreeing within the noise
+OUTLIER_FACTOR = 5.0
 
 
 def motion_warnings(stations: list[Station], min_rotation_deg: float = MIN_ROTATION_DEG) -> list[str]:
@@ -327,8 +330,9 @@ def pose_difference(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
 
 
 def method_agreement(methods: dict[str, dict]) -> dict:
-    """How far the methods' solutions lie from their consensus (chordal mean rotation, median translation):
-    the largest and per method, in deg and mm."""
+    """How far the methods' solutions lie from their consensus (chordal mean rotation, median translation),
+    in deg and mm, per method and at most. A method far outside the others' spread (Andreff's linear
+    translation is the usual one) is named an outlier and left out of the largest."""
     Xs = np.array([m["T_tip_camera"] for m in methods.values()])
     U, _, Vt = np.linalg.svd(Xs[:, :3, :3].sum(axis=0))
     R_mean = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
@@ -336,8 +340,14 @@ def method_agreement(methods: dict[str, dict]) -> dict:
     per = {name: {"rotation_deg": float(np.degrees(rotation_angle(R_mean.T @ X[:3, :3]))),
                   "translation_mm": float(np.linalg.norm(X[:3, 3] - t_med) * 1e3)}
            for name, X in zip(methods, Xs)}
-    return {"rotation_deg": max(p["rotation_deg"] for p in per.values()),
-            "translation_mm": max(p["translation_mm"] for p in per.values()), "per_method": per}
+    med_rot = float(np.median([p["rotation_deg"] for p in per.values()]))
+    med_trans = float(np.median([p["translation_mm"] for p in per.values()]))
+    outliers = [name for name, p in per.items() if len(per) >= 3 and
+                ((p["rotation_deg"] > OUTLIER_FACTOR * med_rot and p["rotation_deg"] > MAX_METHOD_SPREAD_DEG) or
+                 (p["translation_mm"] > OUTLIER_FACTOR * med_trans and p["translation_mm"] > MAX_METHOD_SPREAD_MM))]
+    kept = [p for name, p in per.items() if name not in outliers]
+    return {"rotation_deg": max(p["rotation_deg"] for p in kept),
+            "translation_mm": max(p["translation_mm"] for p in kept), "per_method": per, "outliers": outliers}
 
 
 def calibrate_hand_eye(stations: list[Station], camera: CameraModel, tip_pose=None, joint_sigma=None,
@@ -360,6 +370,10 @@ def calibrate_hand_eye(stations: list[Station], camera: CameraModel, tip_pose=No
     for name, why in failed.items():
         warnings.append(f"method {name} failed: {why}")
     agreement = method_agreement(methods)
+    for name in agreement["outliers"]:
+        p = agreement["per_method"][name]
+        warnings.append(f"method {name} is far from the others ({p['rotation_deg']:.2f} deg / "
+                        f"{p['translation_mm']:.1f} mm): left out of the agreement")
     if agreement["rotation_deg"] > MAX_METHOD_SPREAD_DEG or agreement["translation_mm"] > MAX_METHOD_SPREAD_MM:
         warnings.append(f"the methods disagree by up to {agreement['rotation_deg']:.2f} deg / "
                         f"{agreement['translation_mm']:.2f} mm (want <= {MAX_METHOD_SPREAD_DEG} deg / "

@@ -145,7 +145,8 @@ def test_hand_eye_methods_and_refinement_against_truth():
     # the joint robust refinement is at least as good as the best closed-form method
     assert refined[0] <= best_rot * 1.05 and refined[1] <= best_trans * 1.05
     assert refined[0] < 0.2 and refined[1] < 0.5
-    assert result["warnings"] == []
+    # the only warning: Andreff's translation broke down on these data, left out of the methods' agreement
+    assert [w.split(" is far")[0] for w in result["warnings"]] == ["method andreff"]
 
 
 def test_hand_eye_warns_about_degenerate_motion():

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from lapreco_hil.calib.time_offset import JointTrack, TimeOffsetMonitor, estimate_from_tracks, track_session
 from lapreco_hil.cli.main import main
@@ -111,3 +112,83 @@ def test_offset_monitor_refuses_to_judge_a_still_camera():
     assert reading.offset_ns is None and not reading.drifted and reading.motion_px_s < 1.0
     with pytest.raises(CalibrationError, match="window_s"):
         TimeOffsetMonitor(window_s=-1)
+
+
+# --- hand-eye ------------------------------------------------------------------------------------------------
+
+def test_a_failed_opencv_method_is_named_and_kept_off_the_console(capfd):
+    from test_calibration import CAM, synthetic_stations
+
+    from lapreco_hil.calib.handeye import calibrate_hand_eye
+
+    rng = np.random.default_rng(3)
+    stations = synthetic_stations(12, rng)
+    for s in stations:  # hardly any rotation between stations: Tsai's solver gives up
+        rv = Rotation.from_matrix(s.T_base_tip[:3, :3]).as_rotvec()
+        s.T_base_tip[:3, :3] = Rotation.from_rotvec(rv * 0.02).as_matrix()
+    result = calibrate_hand_eye(stations, CAM)
+    captured = capfd.readouterr()
+    assert "failed" not in captured.err and "calibrateHandEye" not in captured.err
+    assert "tsai" in result["failed_methods"] and "tsai" not in result["methods"]
+    assert any("method tsai failed" in w for w in result["warnings"])
+    assert any("too little rotation" in w for w in result["warnings"])
+
+
+def test_methods_agreement_and_residual_are_reported():
+    from test_calibration import CAM, synthetic_stations
+
+    from lapreco_hil.calib.handeye import calibrate_hand_eye
+
+    result = calibrate_hand_eye(synthetic_stations(30, np.random.default_rng(5)), CAM)
+    agree = result["agreement"]
+    assert set(agree["per_method"]) == set(result["methods"])
+    # Andreff's linear translation breaks down on these data (33 mm off): named, and left out of the spread
+    assert agree["outliers"] == ["andreff"] and agree["per_method"]["andreff"]["translation_mm"] > 10
+    assert 0 < agree["rotation_deg"] < 0.5 and 0 < agree["translation_mm"] < 1.0
+    assert 0.1 < result["refined"]["reprojection_rms_px"] < 1.0  # the 0.3 px corner noise, robustly fitted
+    assert result["warnings"] == ["method andreff is far from the others (0.01 deg / 32.9 mm): left out of the "
+                                  "agreement"]
+
+
+def test_bring_up_record_without_hand_eye_then_calibrate(tmp_path, warp_cpu):
+    """A new rig: a calibration session (no T_tip_camera) -> calibrate handeye -> handeye.yaml; anything that
+    needs camera poses without a hand-eye says the two commands."""
+    from types import SimpleNamespace
+
+    from lapreco_hil.app.handeye import (calibrate_hand_eye_session, hand_eye_missing_message, recording_rig,
+                                         require_hand_eye)
+    from lapreco_hil.calib.files import read_handeye_yaml
+    from lapreco_hil.calib.handeye import pose_difference
+    from lapreco_hil.errors import ConfigError
+    from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+    from lapreco_hil.sessions import Session
+    from lapreco_hil.sessions.recorder import record
+    from lapreco_hil.simulators.world.world import thirty_degree_optics
+
+    context = DeviceContext(device=warp_cpu)
+    url = "sim://board?width=480&height=360"
+    robot, grabber = open_robot(url, context), open_grabber(url + "&frames=60", context)
+    # a real robot knows no hand-eye: the simulated one's description, stripped of it
+    bare = SimpleNamespace(url=robot.url, description=None)
+    camera, description, calibration_only = recording_rig(bare, grabber, robot_model="ecm", tip_frame="ecm_tip")
+    assert calibration_only and description.T_tip_camera is None
+    with pytest.raises(ConfigError, match="lapreco record .* --robot-model ecm --tip-frame ecm_tip .*"
+                                          "lapreco calibrate handeye"):
+        require_hand_eye(bare, grabber, description)
+    with robot, grabber:
+        record(grabber, robot, str(tmp_path / "cal"), max_frames=60, camera=camera, description=description,
+               progress=False)
+    meta = json.loads((tmp_path / "cal" / "session.json").read_text())
+    assert "T_tip_camera" not in meta["robot"]  # the format allows it: a calibration session
+    assert Session(tmp_path / "cal").robot.T_tip_camera is None
+    out = tmp_path / "handeye.yaml"
+    result = calibrate_hand_eye_session(str(tmp_path / "cal"), "charuco:10x7:0.004:0.003:DICT_5X5_100", str(out),
+                                        stride=3)
+    rot_deg, trans_mm = pose_difference(read_handeye_yaml(out)["T_tip_camera"], thirty_degree_optics())
+    print(result["warnings"], rot_deg, trans_mm)
+    # 2.4 s of the scan (under 10 deg of rotation): measured 1.2 deg / 3.1 mm (docs/calibration-handeye.md)
+    assert rot_deg < 2.0 and trans_mm < 5.0
+    assert read_handeye_yaml(out)["tip_frame"] == "ecm_tip"
+    msg = hand_eye_missing_message("serial:///dev/ttyUSB0?ids=1,2,3,4", "v4l2:///dev/video0", "ecm", "ecm_tip")
+    assert "lapreco record --robot 'serial:///dev/ttyUSB0?ids=1,2,3,4' --grabber 'v4l2:///dev/video0'" in msg
+    assert "lapreco calibrate handeye handeye-session --board" in msg and "--hand-eye handeye.yaml" in msg
