@@ -48,6 +48,7 @@ class Station:
     uv: np.ndarray  # (M, 2) undistorted pixels (pinhole K)
     q: np.ndarray | None = None  # the joint reading T_base_tip came from (for the refinement in joint space)
     side: np.ndarray | None = None  # per joint, the side its backlash is on (-1..1, from the direction of motion)
+    t_s: float | None = None  # when (for the joints' wander, correlated in time between stations)
 
 
 def board_station(name: str, image: np.ndarray, board: Board, camera: CameraModel,
@@ -73,6 +74,9 @@ def board_station(name: str, image: np.ndarray, board: Board, camera: CameraMode
 #   stacked unit axes (0: all parallel, 1: two equally used directions);
 # - a handful of stations gives the closed-form methods too little redundancy to expose a bad station.
 MIN_ROTATION_DEG = 10.0
+# how long the joints' elastic wander lasts (the refinement's prior links the joint errors of stations closer
+# in time than this; the simulated ECM's is 0.15 s, a real arm's cable stretch and gear elasticity alike)
+WANDER_TIME_S = 0.15
 MIN_AXIS_SPREAD = 0.3
 MIN_STATIONS = 10
 # rotations between stations below this angle have no meaningful axis (noise) and are left out of the spread
@@ -283,9 +287,20 @@ def _joint_station_factor(K, station: Station, index: int, tip_pose, noise) -> g
     return gtsam.CustomFactor(noise, [Q(index), X(0), B(0), L(0)], error)
 
 
+def _wander_factor(prev, this, a: float, noise) -> gtsam.CustomFactor:
+    def error(factor, values, H):
+        if H is not None:
+            n = len(values.atVector(this))
+            H[0] = -a * np.eye(n)
+            H[1] = np.eye(n)
+        return values.atVector(this) - a * values.atVector(prev)
+
+    return gtsam.CustomFactor(noise, [prev, this], error)
+
+
 def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: CameraModel, tip_pose,
-                          joint_sigma, sigma_px: float = 0.5, huber_k: float = 1.345
-                          ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                          joint_sigma, sigma_px: float = 0.5, huber_k: float = 1.345,
+                          wander_time_s: float = WANDER_TIME_S) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """(X, B, per-station reprojection RMS in px): X, the board pose and every station's joint error dq
     (prior: the robot's joint sigma) from the board corners' reprojections under Huber's loss. A joint error
     moves the tip the way the arm can move (a rotation about the remote centre carries its translation
@@ -302,9 +317,15 @@ def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: Camer
     # the backlash, one per joint for the whole session, loosely held to zero (a few times the joint sigma)
     values.insert(L(0), np.zeros(len(sigma)))
     graph.add(gtsam.PriorFactorVector(L(0), np.zeros(len(sigma)), gtsam.noiseModel.Diagonal.Sigmas(3 * sigma)))
+    timed = all(st.t_s is not None for st in stations) and wander_time_s > 0
     for i, s in enumerate(stations):
         values.insert(Q(i), np.zeros(len(sigma)))
-        graph.add(gtsam.PriorFactorVector(Q(i), np.zeros(len(sigma)), prior))
+        if not timed or i == 0:
+            graph.add(gtsam.PriorFactorVector(Q(i), np.zeros(len(sigma)), prior))
+        else:  # the wander as an Ornstein-Uhlenbeck process: dq_i = a dq_(i-1) + what is new since
+            a = float(np.exp(-abs(s.t_s - stations[i - 1].t_s) / wander_time_s))
+            graph.add(_wander_factor(Q(i - 1), Q(i), a, gtsam.noiseModel.Diagonal.Sigmas(
+                sigma * np.sqrt(max(1 - a * a, 1e-6)))))
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
                                                gtsam.noiseModel.Isotropic.Sigma(2 * len(s.uv), sigma_px))
         graph.add(_joint_station_factor(K, s, i, tip_pose, noise))

@@ -281,20 +281,28 @@ def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, 
 
 def _fit(model: _EpipolarModel, start_s: float, free: int, period_s: float, where: str = "",
          pair_mask: np.ndarray | None = None, dq: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """Offset (s) and backlash (per joint) by robust least squares from the grid's best offset; the offset is
-    scaled to ms and the backlash to mrad (mm) so that the steps are alike."""
+    """Offset (s) and backlash (per joint) by robust least squares from the grid's best offset."""
     from scipy.optimize import least_squares
 
     n = model.joints.q.shape[1]
     keep = None if pair_mask is None else pair_mask[model.pairs.owner]
 
+    # unknowns from zero (least_squares sizes its first step by |x0|): the offset's change from the start, in
+    # ms, and the backlash in mrad (mm), so that the steps are alike
     def fun(x: np.ndarray) -> np.ndarray:
-        r = model.residuals(np.r_[x[0] * 1e-3, x[1:] * 1e-3, np.zeros(n - free)], dq)
+        r = model.residuals(np.r_[start_s + x[0] * 1e-3, x[1:] * 1e-3, np.zeros(n - free)], dq)
         return r if keep is None else r[keep]
 
-    fit = least_squares(fun, np.r_[start_s * 1e3, np.zeros(free)], loss="cauchy", f_scale=CAUCHY_SCALE_PX,
-                        diff_step=1e-3, max_nfev=60)
-    offset_s, backlash = fit.x[0] * 1e-3, np.r_[fit.x[1:] * 1e-3, np.zeros(n - free)]
+    def jac(x: np.ndarray) -> np.ndarray:  # central differences with absolute steps (0.05 ms, 0.01 mrad)
+        columns = []
+        for k, h in enumerate(np.r_[0.05, np.full(free, 0.01)]):
+            step = np.zeros(len(x))
+            step[k] = h
+            columns.append((fun(x + step) - fun(x - step)) / (2 * h))
+        return np.column_stack(columns)
+
+    fit = least_squares(fun, np.zeros(1 + free), jac=jac, loss="cauchy", f_scale=CAUCHY_SCALE_PX, max_nfev=60)
+    offset_s, backlash = start_s + fit.x[0] * 1e-3, np.r_[fit.x[1:] * 1e-3, np.zeros(n - free)]
     if abs(offset_s - start_s) > 2 * period_s:  # a fit that ran off its basin is no better than the grid
         log.warning("%s: the refined offset left the grid's basin; keeping the grid's %.1f ms", where,
                     start_s * 1e3)

@@ -98,6 +98,7 @@ def hand_eye_stations(session, board, camera, stride: int):
         st = board_station(f"frame {frame.seq}", frame.image, board, camera, kin.tip_pose(q), q=q)
         if st is not None:
             st.side = track.at(np.array([t]))[1][0]  # the side of each joint's backlash
+            st.t_s = (t - session.joint_samples[0].t_ns) * 1e-9
             stations.append(st)
     return stations, kin
 
