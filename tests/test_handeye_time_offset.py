@@ -181,6 +181,11 @@ def test_bring_up_record_without_hand_eye_then_calibrate(tmp_path, warp_cpu):
     meta = json.loads((tmp_path / "cal" / "session.json").read_text())
     assert "T_tip_camera" not in meta["robot"]  # the format allows it: a calibration session
     assert Session(tmp_path / "cal").robot.T_tip_camera is None
+    from lapreco_hil.cli.replay import run_replay
+
+    with pytest.raises(ConfigError, match="no hand-eye .*lapreco calibrate handeye.*--hand-eye handeye.yaml"):
+        run_replay(str(tmp_path / "cal"), str(tmp_path / "replayed"), tracker="opencv", device=warp_cpu,
+                   progress=False)
     out = tmp_path / "handeye.yaml"
     result = calibrate_hand_eye_session(str(tmp_path / "cal"), "charuco:10x7:0.004:0.003:DICT_5X5_100", str(out),
                                         stride=3)
