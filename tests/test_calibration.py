@@ -197,6 +197,9 @@ def test_time_offset_is_recovered_within_one_frame(tmp_path, warp_cpu, capsys):
     est = json.loads((tmp_path / "t.json").read_text())
     print(capsys.readouterr().out)
     assert abs(est["offset_ms"] - 80.0) < 40.0  # one frame period at 25 fps
+    # the arm's joint wander moves a 3 s session's estimate by tens of ms (measured -22 ms here): the stated
+    # uncertainty must cover it (docs/calibration-handeye.md)
+    assert abs(est["offset_ms"] - 80.0) < 3 * est["sigma_ms"]
     assert est["median_sampson_px_at_offset"] < est["median_sampson_px_at_zero"]
     applied = json.loads((session / "session.json").read_text())["time_offset_ns"]
     assert abs(applied * 1e-6 - est["offset_ms"]) < 1e-3
