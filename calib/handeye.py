@@ -23,10 +23,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, Q, T, X
 
-from ..camera import CameraModel
-from ..errors import CalibrationError
-from ..geometry import make_T, rotation_angle
-from .boards import Board
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.geometry import make_T, rotation_angle
+from lapreco_hil.calib.boards import Board
 
 log = logging.getLogger(__name__)
 

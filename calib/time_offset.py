@@ -27,11 +27,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..config import PipelineConfig
-from ..errors import CalibrationError
-from ..frontend import make_frontend
-from ..kinematics import CameraKinematics
-from ..robot_models import urdf_path
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.frontend import make_frontend
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.robot_models import urdf_path
 
 log = logging.getLogger(__name__)
 
@@ -332,7 +332,7 @@ def _jackknife_sigma(model: _EpipolarModel, free: int, period_s: float, offset_s
 
 
 def _default_joint_sigma(n: int) -> np.ndarray:
-    from ..config import PriorConfig
+    from lapreco_hil.config import PriorConfig
 
     sigma = np.asarray(PriorConfig().joint_sigma, float)
     return sigma if sigma.shape == (n,) else np.full(n, float(np.max(sigma)))

@@ -1,28 +1,37 @@
-"""What devices this machine can see: serial ports, SocketCAN interfaces, V4L2 video devices."""
+"""What devices this machine can see: every registered back-end looks for its own (serial ports, SocketCAN
+interfaces, V4L2 video devices, simulated scenes); see ``Device.discover``."""
 
 from __future__ import annotations
 
-
-def discover() -> dict[str, list[str]]:
-    from .grabber.v4l2 import video_devices
-    from .robot.canopen402 import can_interfaces
-    from .robot.dynamixel import serial_ports
-
-    return {"serial": serial_ports(), "can": can_interfaces(), "v4l2": video_devices()}
+from lapreco_hil import registry
+from lapreco_hil.drivers.device import Discovery
 
 
-def format_devices(found: dict[str, list[str]]) -> str:
-    examples = {"serial": "serial://{}?baud=1000000&ids=1,2,3,4", "can": "canopen://socketcan/{}?nodes=1-4",
-                "v4l2": "v4l2://{}?width=1920&height=1080&fps=60"}
-    titles = {"serial": "serial ports (Dynamixel robots)", "can": "SocketCAN interfaces (CANopen robots)",
-              "v4l2": "V4L2 video devices (frame grabbers)"}
+def discover() -> list[Discovery]:
+    """What every registered back-end finds on this machine (``Discovery`` per back-end that looks), each
+    back-end imported only now; a back-end that cannot be imported says so instead of raising."""
+    real, simulated = [], []
+    for target in dict.fromkeys([*registry.ROBOT_BACKENDS.values(), *registry.GRABBER_BACKENDS.values()]):
+        try:
+            cls = registry.import_backend(target)
+            found, kind = cls.discover(), cls.clock_domain
+        except (ImportError, OSError) as exc:  # a missing library or an unreadable OS listing: said, not raised
+            found, kind = Discovery(target.split(":")[1], (), f"cannot look ({exc})"), registry.HOST
+        out = real if kind == registry.HOST else simulated  # hardware first
+        if found is not None and found not in out:
+            out.append(found)
+    return real + simulated
+
+
+def format_devices(found: list[Discovery]) -> str:
     lines = []
-    for kind in ("serial", "can", "v4l2"):
-        lines.append(f"{titles[kind]}:")
-        if not found[kind]:
-            lines.append("  none")
-        for dev in found[kind]:
-            lines.append(f"  {dev:<20} {examples[kind].format(dev)}")
-    lines.append("simulated: sim://skull | sim://liver | sim://apple (robot and grabber; link=serial|canopen on the "
-                 "robot goes through a device emulator); recorded: replay://SESSION")
+    for d in found:
+        lines.append(f"{d.title}:")
+        if not d.found:
+            lines.append(f"  none{f': {d.note}' if d.note else ''}")
+        elif d.note:
+            lines.append(f"  ({d.note})")
+        for dev in d.found:
+            lines.append(f"  {dev.address:<20} {dev.url}")
+    lines.append("recorded: replay://SESSION (a session folder written by 'lapreco record')")
     return "\n".join(lines)

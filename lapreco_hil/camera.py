@@ -74,8 +74,3 @@ class CameraModel:
         r = int(round(self.fov_radius_px - margin_px))
         cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(r, 0), 255, -1)
         return mask
-
-    def scaled(self, width: int, height: int) -> "CameraModel":
-        sx, sy = width / self.width, height / self.height
-        return CameraModel(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.dist,
-                           self.fov_radius_px * min(sx, sy))

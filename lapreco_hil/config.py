@@ -1,7 +1,9 @@
 """Configuration: frozen dataclasses, loaded once from TOML and passed down (no global parameters).
 
 A TOML file mirrors the dataclass tree: ``[tracker]``, ``[mapper]``, ``[surface]``... Every key is optional;
-an unknown key or a value of the wrong type is a :class:`ConfigError` naming the file and the key.
+an unknown key, a value of the wrong type or a number outside its range is a :class:`ConfigError` naming the
+file, the section and the key: ``config.toml: [mapper] window_keyframes = 0: must be >= 2``. Each numeric
+field declares its range where it is defined, with :func:`ranged`.
 """
 
 from __future__ import annotations
@@ -13,29 +15,58 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import ConfigError
+from lapreco_hil.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric field accepts: finite, ``>= ge`` or ``> gt``, and ``<= le``."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+
+    def problem(self, value: float) -> str | None:
+        """What is wrong with ``value``, or None."""
+        if not math.isfinite(value):
+            return f"must be a finite number {self}"
+        if (self.ge is not None and value < self.ge) or (self.gt is not None and value <= self.gt) \
+                or (self.le is not None and value > self.le):
+            return f"must be {self}"
+        return None
+
+    def __str__(self) -> str:
+        low = f">= {self.ge:g}" if self.ge is not None else f"> {self.gt:g}" if self.gt is not None else ""
+        high = f"<= {self.le:g}" if self.le is not None else ""
+        return " and ".join(t for t in (low, high) if t)
+
+
+def ranged(default, *, ge: float | None = None, gt: float | None = None, le: float | None = None):
+    """A numeric dataclass field with its accepted range (checked when a configuration is loaded); for a tuple
+    the range applies to each element."""
+    return field(default=default, metadata={"range": Range(ge, gt, le)})
 
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    max_features: int = 800
-    min_distance_px: float = 8.0
-    quality_level: float = 0.01
-    block_size: int = 7
-    window_px: int = 21
-    pyramid_levels: int = 3
-    max_lk_error: float = 30.0
-    fov_margin_px: float = 12.0
+    max_features: int = ranged(800, ge=1)
+    min_distance_px: float = ranged(8.0, ge=0.0)
+    quality_level: float = ranged(0.01, gt=0.0, le=1.0)
+    block_size: int = ranged(7, ge=3)
+    window_px: int = ranged(21, ge=3)
+    pyramid_levels: int = ranged(3, ge=0)
+    max_lk_error: float = ranged(30.0, gt=0.0)
+    fov_margin_px: float = ranged(12.0, ge=0.0)
     # re-detect when fewer than this share of max_features is alive
-    redetect_below: float = 0.9
+    redetect_below: float = ranged(0.9, ge=0.0, le=1.0)
     # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did)
-    shading_sigma_px: float = 6.0
+    shading_sigma_px: float = ranged(6.0, ge=0.0)
     # no new features where the local mean grey level is below this (0-255)
-    min_brightness: float = 20.0
+    min_brightness: float = ranged(20.0, ge=0.0, le=255.0)
     # Zinsser drift check: affine + gain/bias registration of each track's first patch
     drift_check: bool = True
-    drift_patch_px: int = 13
-    drift_max_residual: float = 0.75
+    drift_patch_px: int = ranged(13, ge=3)
+    drift_max_residual: float = ranged(0.75, gt=0.0)
 
 
 @dataclass(frozen=True)
@@ -44,67 +75,67 @@ class PriorConfig:
     mapped to a camera-pose covariance through the manipulator Jacobian, plus a floor for what the
     joints do not explain (hand-eye, scope bending)."""
 
-    joint_sigma: tuple[float, ...] = (0.0035, 0.0035, 0.0003, 0.0035)  # rad, rad, m, rad
-    floor_rot_sigma_rad: float = 0.0005
-    floor_trans_sigma_m: float = 0.0002
+    joint_sigma: tuple[float, ...] = ranged((0.0035, 0.0035, 0.0003, 0.0035), ge=0.0)  # rad, rad, m, rad
+    floor_rot_sigma_rad: float = ranged(0.0005, gt=0.0)
+    floor_trans_sigma_m: float = ranged(0.0002, gt=0.0)
 
 
 @dataclass(frozen=True)
 class MapperConfig:
-    keyframe_translation_m: float = 0.002
-    keyframe_rotation_rad: float = 0.02
-    keyframe_track_ratio: float = 0.7
-    keyframe_parallax_deg: float = 1.0
-    min_parallax_deg: float = 2.0
-    max_reprojection_px: float = 3.0
-    window_keyframes: int = 8
+    keyframe_translation_m: float = ranged(0.002, ge=0.0)
+    keyframe_rotation_rad: float = ranged(0.02, ge=0.0)
+    keyframe_track_ratio: float = ranged(0.7, ge=0.0, le=1.0)
+    keyframe_parallax_deg: float = ranged(1.0, ge=0.0)
+    min_parallax_deg: float = ranged(2.0, gt=0.0)
+    max_reprojection_px: float = ranged(3.0, gt=0.0)
+    window_keyframes: int = ranged(8, ge=2)
     # the seed's robust schedule: Cauchy then Tukey, MAD scale re-estimated before each stage
-    local_cauchy_iterations: int = 3
-    local_tukey_iterations: int = 3
-    final_cauchy_iterations: int = 15
-    final_tukey_iterations: int = 15
-    sigma_floor_px: float = 0.2
+    local_cauchy_iterations: int = ranged(3, ge=0)
+    local_tukey_iterations: int = ranged(3, ge=0)
+    final_cauchy_iterations: int = ranged(15, ge=0)
+    final_tukey_iterations: int = ranged(15, ge=0)
+    sigma_floor_px: float = ranged(0.2, gt=0.0)
     # a landmark is an inlier with at least this many inlier observations, making up at least this share
-    min_inlier_observations: int = 3
-    min_inlier_fraction: float = 0.5
+    min_inlier_observations: int = ranged(3, ge=2)
+    min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
     final_global_ba: bool = True
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
-    active_keyframes: int = 400
+    active_keyframes: int = ranged(400, ge=0)
     # a frame's pose is refined against at most this many of its landmarks, evenly spread (0 = all)
-    resection_max_points: int = 400
-    retire_batch: int = 100
+    resection_max_points: int = ranged(400, ge=0)
+    retire_batch: int = ranged(100, ge=1)
 
 
 @dataclass(frozen=True)
 class SurfaceConfig:
-    alpha_factor: float = 4.0  # alpha = factor x median nearest-neighbour distance
-    render_width: int = 1024
-    render_height: int = 768
+    alpha_factor: float = ranged(4.0, gt=0.0)  # alpha = factor x median nearest-neighbour distance
+    render_width: int = ranged(1024, ge=16)
+    render_height: int = ranged(768, ge=16)
 
 
 @dataclass(frozen=True)
 class RuntimeConfig:
     """The live runtime's queues and rates (lapreco_hil/runtime)."""
 
-    capture_queue: int = 4  # frames between capture and tracking; the oldest is dropped when full
+    capture_queue: int = ranged(4, ge=1)  # frames between capture and tracking; the oldest is dropped when full
     # observation slots in shared memory between tracking and the mapper process: enough to hold the frames
     # that arrive during one local BA (about a second at 60 fps), which the mapper then catches up on cheaply
-    mapper_slots: int = 128
-    mapper_backlog_skip_ba: int = 2  # local BA is deferred while more frames than this wait for the mapper
+    mapper_slots: int = ranged(128, ge=1)
+    mapper_backlog_skip_ba: int = ranged(2, ge=0)  # local BA is deferred while more frames than this wait for the mapper
     # local BA in a worker process of its own, on the newest window, while the mapper goes on mapping frames
     # ("on"), or run by the mapper between frames, deferred while frames wait ("off"). "auto": on with 4 or
     # more CPU cores; on 2 cores a third busy process took the time tracking needs (25 -> 22 fps at 384x288)
     ba_worker: str = "auto"
-    max_tracks: int = 4096
-    max_landmarks: int = 200_000
-    surface_period_s: float = 2.0  # live mesh rebuild
-    surface_max_points: int = 15_000  # the live mesh is built on at most this many points, evenly thinned
-    view_period_s: float = 0.0  # live textured view to PNG (0 = off)
-    record_queue: int = 64
+    max_tracks: int = ranged(4096, ge=1)
+    max_landmarks: int = ranged(200_000, ge=1)
+    surface_period_s: float = ranged(2.0, gt=0.0)  # live mesh rebuild
+    surface_max_points: int = ranged(15_000, ge=4)  # the live mesh is built on at most this many points, evenly thinned
+    view_period_s: float = ranged(0.0, ge=0.0)  # live textured view to PNG (0 = off)
+    record_queue: int = ranged(64, ge=1)
     # the front-end reports a "partial view" while its tracks span less than this share of the view they
     # normally span (an instrument or blood over part of the scope's view)
-    partial_view_below: float = 0.6
+    partial_view_below: float = ranged(0.6, ge=0.0, le=1.0)
 
 
 @dataclass(frozen=True)
@@ -118,45 +149,57 @@ class PipelineConfig:
 
 def _build(cls, data: dict, where: str, source: str):
     hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
-    names = {f.name for f in dataclasses.fields(cls)}
     for key, value in data.items():
-        if key not in names:
-            raise ConfigError(f"{source}: unknown key '{where}{key}' (known: {', '.join(sorted(names))})")
+        if key not in fields:
+            raise ConfigError(f"{source}: {_key(where, key)}: unknown key (known: {', '.join(sorted(fields))})")
         hint = hints[key]
         if dataclasses.is_dataclass(hint):
             if not isinstance(value, dict):
                 raise ConfigError(f"{source}: '{where}{key}' must be a table [{where}{key}]")
             kwargs[key] = _build(hint, value, f"{where}{key}.", source)
             continue
-        kwargs[key] = _coerce(value, hint, f"{where}{key}", source)
+        kwargs[key] = _coerce(value, hint, fields[key].metadata.get("range"), f"{_key(where, key)} = {value!r}",
+                              source)
     return cls(**kwargs)
 
 
-def _coerce(value, hint, name: str, source: str):
+def _key(where: str, key: str) -> str:
+    """'[mapper] window_keyframes' (TOML's section and key)."""
+    return f"[{where.rstrip('.')}] {key}" if where else key
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _coerce(value, hint, accepted: Range | None, name: str, source: str):
     origin = typing.get_origin(hint)
     if origin is tuple:
-        if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                  and math.isfinite(v) and v >= 0 for v in value):
-            raise ConfigError(f"{source}: '{name}' must be a list of non-negative numbers, got {value!r}")
+        if not isinstance(value, list) or not all(_is_number(v) for v in value):
+            raise ConfigError(f"{source}: {name}: must be a list of numbers")
+        for v in value:
+            if accepted is not None and (problem := accepted.problem(float(v))):
+                raise ConfigError(f"{source}: {name}: each value {problem}")
         return tuple(float(v) for v in value)
     if hint is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{source}: '{name}' must be true or false, got {value!r}")
+            raise ConfigError(f"{source}: {name}: must be true or false")
         return value
-    # every number in the configuration is a count, a size, a rate or a threshold: finite and >= 0
     if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ConfigError(f"{source}: '{name}' must be a non-negative integer, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-            raise ConfigError(f"{source}: '{name}' must be a finite non-negative number, got {value!r}")
-        return float(value)
-    if hint is str:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{source}: {name}: must be a whole number{f' {accepted}' if accepted else ''}")
+    elif hint is float:
+        if not _is_number(value):
+            raise ConfigError(f"{source}: {name}: must be a number{f' {accepted}' if accepted else ''}")
+        value = float(value)
+    elif hint is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{source}: '{name}' must be a string, got {value!r}")
+            raise ConfigError(f"{source}: {name}: must be a string")
         return value
+    if accepted is not None and (problem := accepted.problem(value)):
+        raise ConfigError(f"{source}: {name}: {problem}")
     return value
 
 

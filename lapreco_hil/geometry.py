@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,6 +107,39 @@ class SampledPoses:
         return interpolate_pose(self.poses[i - 1], self.poses[i], s)
 
 
+# A pose at time t is interpolated only between two samples around t that are at most this many median sample
+# periods apart: across a longer gap (a link that dropped out) the motion in between is unknown.
+MAX_GAP_PERIODS = 3.0
+
+# why a time has no pose (the keys of report.json's frames.without_pose_by_cause)
+BEFORE_FIRST, AFTER_LAST, IN_GAP = "before_first", "after_last", "in_gap"
+NO_POSE_CAUSES = (BEFORE_FIRST, AFTER_LAST, IN_GAP)
+
+
+def max_gap_ns(times, periods: float = MAX_GAP_PERIODS) -> float:
+    """The longest interval between two samples that a pose may be interpolated across: ``periods`` times
+    the median interval of ``times`` (infinite with fewer than two samples: no period is known)."""
+    t = np.asarray(times, dtype=np.int64)
+    if len(t) < 2:
+        return float("inf")
+    return periods * float(np.median(np.diff(t)))
+
+
+def no_pose_cause(times, t_ns: int, gap_ns: float) -> str | None:
+    """Why there is no pose at ``t_ns`` among samples at ``times`` (sorted): ``BEFORE_FIRST``,
+    ``AFTER_LAST``, ``IN_GAP`` (the samples around it are more than ``gap_ns`` apart), or None when two
+    samples bracket it (or one sits exactly at it). A pose is never held or extrapolated."""
+    n = len(times)
+    if n == 0 or t_ns < times[0]:
+        return BEFORE_FIRST
+    if t_ns > times[n - 1]:
+        return AFTER_LAST
+    i = bisect.bisect_left(times, t_ns)  # (a list or an array)
+    if times[i] == t_ns:
+        return None
+    return IN_GAP if times[i] - times[i - 1] > gap_ns else None
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     """T_world_camera of an OpenCV camera (x right, y down, z forward) at ``eye`` looking at ``target``."""
     z = np.asarray(target, float) - np.asarray(eye, float)
@@ -117,12 +151,19 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 __all__ = [
+    "AFTER_LAST",
+    "BEFORE_FIRST",
+    "IN_GAP",
+    "MAX_GAP_PERIODS",
+    "NO_POSE_CAUSES",
     "Rotation",
     "SampledPoses",
     "inv_T",
     "interpolate_pose",
     "look_at",
     "make_T",
+    "max_gap_ns",
+    "no_pose_cause",
     "pose_error",
     "pose_from_tum",
     "rot_x",

@@ -7,14 +7,14 @@ link, so FK and the manipulator Jacobian of the camera come from one model.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
+import collections
 
 import numpy as np
 import pinocchio as pin
 
-from .errors import ConfigError
-from .geometry import interpolate_pose, make_T
-from .types import JointLimits, JointSample, PosePrior, RobotInfo
+from lapreco_hil.errors import ConfigError, LaprecoError
+from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, MAX_GAP_PERIODS, interpolate_pose, make_T, no_pose_cause
+from lapreco_hil.types import JointLimits, JointSample, PosePrior, RobotInfo
 
 
 def prismatic_joints(model: "pin.Model") -> np.ndarray:
@@ -55,15 +55,6 @@ def load_urdf_model(urdf_file) -> "pin.Model":
         if not np.all(np.isfinite(placement.homogeneous)):
             raise ConfigError(f"{path}: joint '{name}' has a non-finite origin; fix its <origin>")
     return model
-
-
-@dataclass(frozen=True)
-class RobotModelSpec:
-    """Which URDF, which link holds the scope, and where the robot base sits in the world."""
-
-    urdf: str
-    tip_frame: str
-    T_world_base: np.ndarray
 
 
 class CameraKinematics:
@@ -126,16 +117,35 @@ class CameraKinematics:
         return cov
 
 
+class NoPoseError(LaprecoError):
+    """No joint readings bracket the requested time (before the first, after the last, or in a gap);
+    ``cause`` is one of geometry.NO_POSE_CAUSES."""
+
+    def __init__(self, message: str, cause: str) -> None:
+        super().__init__(message)
+        self.cause = cause
+
+
+_CAUSE_WORDS = {BEFORE_FIRST: "before the first joint reading", AFTER_LAST: "after the last joint reading"}
+
+
 class PoseAtTime:
     """Joint samples in a bounded buffer; the camera pose at any requested time.
 
     The pose at t is FK at the two samples that bracket t, interpolated on SE(3); ``offset_ns`` is the
-    known video-to-kinematics offset (kinematics time = video time + offset).
+    known video-to-kinematics offset (kinematics time = video time + offset). A time that no two samples
+    bracket, or that falls in a gap longer than ``max_gap_periods`` median sample periods, has no pose
+    (``no_pose_cause`` says why; ``prior_at`` raises NoPoseError): a pose is never held or extrapolated.
     """
 
+    # intervals between recent samples kept for the median sample period
+    period_window = 256
+
     def __init__(self, kinematics: CameraKinematics, joint_sigma, floor_rot: float, floor_trans: float,
-                 offset_ns: int = 0, capacity: int = 4096) -> None:
+                 offset_ns: int = 0, capacity: int = 4096, max_gap_periods: float = MAX_GAP_PERIODS) -> None:
         self.kin = kinematics
+        self.max_gap_periods = max_gap_periods
+        self._intervals: collections.deque[int] = collections.deque(maxlen=self.period_window)
         self.joint_sigma = np.asarray(joint_sigma, float)
         self.floor_rot = floor_rot
         self.floor_trans = floor_trans
@@ -148,6 +158,8 @@ class PoseAtTime:
     def add(self, sample: JointSample) -> None:
         if self._times and sample.t_ns <= self._times[-1]:
             return  # out of order or duplicate: the newest sample wins, time never runs backwards
+        if self._times:
+            self._intervals.append(sample.t_ns - self._times[-1])
         self._samples.append(sample)
         self._times.append(sample.t_ns)
         if len(self._times) > 2 * self.capacity:
@@ -165,17 +177,39 @@ class PoseAtTime:
     def last_time_ns(self) -> int | None:
         return self._times[-1] if self._times else None
 
+    @property
+    def max_gap_ns(self) -> float:
+        """The longest interval between readings that a pose is interpolated across (``max_gap_periods``
+        times the median interval of the recent readings)."""
+        if not self._intervals:
+            return float("inf")
+        return self.max_gap_periods * float(np.median(self._intervals))
+
+    def no_pose_cause(self, t_ns: int) -> str | None:
+        """Why video time ``t_ns`` has no pose (geometry.NO_POSE_CAUSES), or None when it has one."""
+        return self._cause(t_ns + self.offset_ns)
+
+    def _cause(self, t_kin_ns: int) -> str | None:
+        return no_pose_cause(self._times, t_kin_ns, self.max_gap_ns)
+
     def joints_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, float]:
-        """(q before, q after, fraction) bracketing kinematics time t_ns (clamped to the buffer's ends)."""
-        if not self._samples:
-            raise ConfigError("no joint samples received yet: is the robot connected?")
+        """(q before, q after, fraction) bracketing kinematics time t_ns; NoPoseError when no two readings
+        within ``max_gap_ns`` of each other bracket it."""
+        cause = self._cause(t_ns)
+        if cause is not None:
+            if not self._samples:
+                where = "no joint readings received yet: is the robot connected?"
+            elif cause in _CAUSE_WORDS:
+                where = (f"kinematics time {t_ns} ns is {_CAUSE_WORDS[cause]} "
+                         f"({self._times[0]}..{self._times[-1]} ns)")
+            else:
+                where = (f"kinematics time {t_ns} ns falls in a gap between joint readings longer than "
+                         f"{self.max_gap_ns * 1e-6:.1f} ms")
+            raise NoPoseError(f"no camera pose: {where}", cause)
         times = self._times
-        i = bisect.bisect_right(times, t_ns)
-        if i == 0:
-            s = self._samples[0]
-            return s.q, s.q, 0.0
-        if i >= len(times):
-            s = self._samples[-1]
+        i = bisect.bisect_left(times, t_ns)
+        if times[i] == t_ns:
+            s = self._samples[i]
             return s.q, s.q, 0.0
         a, b = self._samples[i - 1], self._samples[i]
         return a.q, b.q, (t_ns - a.t_ns) / (b.t_ns - a.t_ns)

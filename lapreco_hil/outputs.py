@@ -1,21 +1,46 @@
 """The outputs contract of a run (DESIGN.md): points.ply, mesh.ply, trajectory.tum, reconstruction.png,
-report.json, all in one folder."""
+report.json, all in one folder, written from a finished map by :func:`write_outputs`."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
+import time
 from pathlib import Path
 
 import numpy as np
 import pyvista as pv
 
-from .errors import OutputError
-from .geometry import to_tum
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import OutputError
+from lapreco_hil.evaluation.accuracy import accuracy_report
+from lapreco_hil.geometry import to_tum
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.surface.mesh import alpha_shape
+from lapreco_hil.surface.render import ENABLE_RENDERING, offscreen_unavailable, render_reconstruction
+
+log = logging.getLogger(__name__)
+
+
+def check_output_dir(path: str | Path) -> Path:
+    """Prove, before devices are opened, that the folder can be created and written, without creating it:
+    a run that never starts leaves nothing behind."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"output folder '{path}' is a file; choose another --out")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write to output folder '{path}' ('{existing}' is not writable); "
+                          f"choose another --out")
+    return path
 
 
 def prepare_output_dir(path: str | Path) -> Path:
-    """Create the folder and prove it is writable before any work is done."""
+    """Create the folder (once the run's devices are open) and prove it is writable."""
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -79,3 +104,68 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path, *, tracker: str, device: str,
+                  truth: GroundTruth | None, report_fields: dict | None, metrics: dict, run_wall_s: float) -> dict:
+    """The outputs contract from a finished map: mesh, PLYs, TUM trajectory, picture, report.json."""
+    t0 = time.perf_counter()
+    points, colors = m.points[m.inlier], m.colors[m.inlier]
+    mesh = alpha_shape(points, colors, config.surface.alpha_factor)
+    surface_s = time.perf_counter() - t0
+    accuracy = accuracy_report(m, truth) if truth is not None else None
+
+    t1 = time.perf_counter()
+    write_points_ply(out_dir / "points.ply", points, colors)
+    write_mesh_ply(out_dir / "mesh.ply", mesh)
+    write_tum(out_dir / "trajectory.tum", np.array([f.t_ns for f in m.frames]), m.frame_poses)
+    cams = [(k.T_world_camera, k.refined) for k in m.keyframes]
+    picture = _render_picture(out_dir / "reconstruction.png", mesh, points, colors, cams, camera, config)
+    output_s = time.perf_counter() - t1
+
+    metrics = dict(metrics)  # the caller's figures stay as they were
+    stage_ms = dict(metrics.pop("stage_ms", {}))
+    stage_ms["surface"] = {"mean": surface_s * 1e3}
+    stage_ms["outputs"] = {"mean": output_s * 1e3}
+    report = {
+        "lapreco_version": __import__("lapreco_hil").__version__,
+        **(report_fields or {}),
+        "tracker": tracker,
+        "drift_check": config.tracker.drift_check,
+        "device": device,
+        "resolution": [camera.width, camera.height],
+        "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist)},
+        "out": str(out_dir),
+        **metrics,
+        "wall_s": run_wall_s + surface_s + output_s,
+        "stage_ms": stage_ms,
+        "tracks": m.stats["tracks"],
+        "keyframes": m.stats["keyframes"],
+        "landmarks": m.stats["landmarks"],
+        "inliers": m.stats["inliers"],
+        "outliers": m.stats["outliers"],
+        "observations": m.observations,
+        "inlier_observations": m.inlier_observations,
+        "mesh": {"points": int(mesh.n_points), "triangles": int(mesh.n_cells)},
+        "bundle_adjustment": {k: m.stats[k] for k in ("local_ba_runs", "local_ba_mean_s", "final_ba_s")},
+        "picture": picture,
+    }
+    if accuracy is not None:
+        report["accuracy"] = accuracy
+    write_report(out_dir / "report.json", report)
+    return report
+
+
+def _render_picture(path: Path, mesh, points, colors, cams, camera: CameraModel, config: PipelineConfig) -> str | None:
+    """reconstruction.png, or None with one warning when this machine has no renderer: the picture is the one
+    output that needs one, and every other output is written regardless."""
+    why = offscreen_unavailable()
+    if why is None:
+        try:
+            render_reconstruction(str(path), mesh, points, colors, cams, (camera.width, camera.height),
+                                  (config.surface.render_width, config.surface.render_height), camera.fx)
+            return path.name
+        except Exception as exc:  # VTK reports a window it cannot make in several ways
+            why = f"VTK could not render ({exc})"
+    log.warning("%s not written: %s; to enable rendering, %s", path.name, why, ENABLE_RENDERING)
+    return None

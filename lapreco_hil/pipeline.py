@@ -11,11 +11,11 @@ import logging
 import time
 from dataclasses import dataclass
 
-from .camera import CameraModel
-from .config import PipelineConfig
-from .errors import ReconstructionError
-from .frontend import make_frontend
-from .mapping.mapper import Mapper, MapResult
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ReconstructionError
+from lapreco_hil.frontend import make_frontend
+from lapreco_hil.mapping.mapper import Mapper, MapperSchedule, MapResult
 
 log = logging.getLogger(__name__)
 
@@ -28,19 +28,18 @@ class RunResult:
     wall_s: float
     stage_s: dict[str, list[float]]
     latency_s: list[float]
-    last_frame_t_ns: int
-    frames_without_pose: int = 0  # frames before the robot's first reading: skipped, not mapped
+    frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
+    without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
 
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
                  progress=None, device: str | None = None) -> RunResult:
     """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources)."""
     frontend = make_frontend(tracker, camera, config.tracker, device)
-    mapper = Mapper(camera.K, config.mapper)
+    mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline())
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0
-    last_t = 0
     t_start = time.perf_counter()
     while True:
         t0 = time.perf_counter()
@@ -50,7 +49,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         t1 = time.perf_counter()
         frames_in += 1
         poses.poll()
-        if not poses.has_pose():
+        if not poses.has_pose(frame.t_ns):
             frames_without_pose += 1
             continue
         prior = poses.prior_at(frame.t_ns)
@@ -62,21 +61,22 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)
         latency.append(t4 - t1)  # frame in hand -> pose/points available
-        last_t = frame.t_ns
         if progress is not None:
             progress.update(1)
             progress.set_postfix(tracks=len(obs), keyframes=len(mapper.keyframes), points=len(mapper.landmarks),
                                  refresh=False)
     if frames_in == 0:
         raise ReconstructionError("the grabber delivered no frames; check the grabber URL")
-    if frames_without_pose == frames_in:
-        raise ReconstructionError(f"none of the {frames_in} frames came after a robot reading: is the robot "
-                                  f"connected, and does its stream cover the video?")
+    by_cause = getattr(poses, "without_pose", None)
+    by_cause = by_cause.as_dict() if by_cause is not None else None
     if frames_without_pose:
-        log.warning("%d frames before the robot's first reading were skipped", frames_without_pose)
+        poses.warn_without_pose()
+    if frames_without_pose == frames_in:
+        raise ReconstructionError(f"none of the {frames_in} frames has a pose ({by_cause}): is the robot "
+                                  f"connected, and does its stream cover the video?")
     t5 = time.perf_counter()
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]
     processed = frames_in - frames_without_pose
-    return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency, last_t,
-                     frames_without_pose)
+    return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency,
+                     frames_without_pose, by_cause)

@@ -1,19 +1,104 @@
 """Where camera-pose priors come from: a robot's joint readings through its kinematics, or camera poses
-given directly (an external optical tracker, a calibrated stereo rig). Both answer ``prior_at(t_ns)``."""
+given directly (an external optical tracker, a calibrated stereo rig). Both answer ``has_pose(t_ns)`` and
+``prior_at(t_ns)``.
+
+A frame gets a pose only when two samples around its time bracket it, no further apart than
+``geometry.MAX_GAP_PERIODS`` median sample periods: a frame before the first sample, after the last or
+inside a longer gap gets none (never a held or extrapolated one). ``has_pose(t_ns)`` counts such frames by
+cause (``without_pose``) and ``warn_without_pose()`` logs one warning per cause with the count and the span.
+"""
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Mapping
+from types import MappingProxyType
 
 import numpy as np
 
-from .config import PriorConfig
-from .errors import ConfigError
-from .geometry import SampledPoses
-from .drivers.health import Health, HealthState
-from .kinematics import CameraKinematics, PoseAtTime, prismatic_joints
-from .robot_models import urdf_path
-from .types import PosePrior, RobotDescription
+from lapreco_hil.config import PriorConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS, NO_POSE_CAUSES, SampledPoses, \
+    max_gap_ns, no_pose_cause
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.kinematics import CameraKinematics, NoPoseError, PoseAtTime, prismatic_joints
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import PosePrior, RobotDescription
+
+log = logging.getLogger(__name__)
+
+_CAUSE_TEXT = {BEFORE_FIRST: "before the first {what}", AFTER_LAST: "after the last {what}",
+               IN_GAP: "in gaps between {what}s longer than {gap}"}
+
+
+class FramesWithoutPose:
+    """Frames that got no pose, counted by cause (geometry.NO_POSE_CAUSES) with the span of their times.
+
+    A live stream cannot tell at a frame whether its readings have ended or only paused: such a frame is
+    counted after the last reading, and moved to the gap count when later readings show it was inside one."""
+
+    def __init__(self, what: str) -> None:
+        self.what = what  # "joint reading", "camera pose"
+        self.times: dict[str, list[int]] = {c: [] for c in NO_POSE_CAUSES}
+        self.unsettled: list[int] = []  # counted after the last reading; no newer reading seen since
+        self.first_frame_ns: int | None = None
+
+    def seen(self, t_ns: int) -> None:
+        if self.first_frame_ns is None:
+            self.first_frame_ns = t_ns
+
+    def add(self, cause: str, t_ns: int) -> None:
+        self.times[cause].append(t_ns)
+        if cause == AFTER_LAST:
+            self.unsettled.append(t_ns)
+
+    def resolve_after_last(self, cause_now) -> None:
+        """Re-judge the frames counted after the last reading once newer readings came (``cause_now(t)``):
+        those now inside a gap move to the gap count; the others stay (their reading came too late)."""
+        still, moved = [], []
+        for t in self.unsettled:
+            cause = cause_now(t)
+            (still if cause == AFTER_LAST else moved if cause == IN_GAP else []).append(t)
+        self.unsettled = still
+        if moved:
+            gone = set(moved)
+            self.times[AFTER_LAST] = [t for t in self.times[AFTER_LAST] if t not in gone]
+            self.times[IN_GAP] = sorted(self.times[IN_GAP] + moved)
+
+    def as_dict(self) -> dict[str, int]:
+        return {c: len(self.times[c]) for c in NO_POSE_CAUSES}
+
+    def warn(self, gap_ns: float) -> None:
+        """One warning per cause: how many frames, and where in the video (seconds from its first frame)."""
+        t0 = self.first_frame_ns or 0
+        gap = f"{gap_ns * 1e-6:.0f} ms" if np.isfinite(gap_ns) else "a few sample periods"
+        for cause in NO_POSE_CAUSES:
+            times = self.times[cause]
+            if times:
+                n, lo, hi = len(times), min(times), max(times)
+                log.warning("%d frames %s were skipped, not mapped (frames at %.3f..%.3f s of the video): no %s "
+                            "brackets them, and a pose is never held or extrapolated", n,
+                            _CAUSE_TEXT[cause].format(what=self.what, gap=gap), (lo - t0) * 1e-9, (hi - t0) * 1e-9,
+                            self.what)
+
+
+class RateLimitedWarning:
+    """A console warning at most once per ``every_s`` seconds; the ones held back are counted into the next."""
+
+    def __init__(self, logger: logging.Logger, every_s: float = 1.0) -> None:
+        self.logger, self.every_s = logger, every_s
+        self._last = -float("inf")
+        self._held = 0
+
+    def __call__(self, message: str, *args) -> bool:
+        now = time.monotonic()
+        if now - self._last < self.every_s:
+            self._held += 1
+            return False
+        held, self._held, self._last = self._held, 0, now
+        self.logger.warning(message + (f" ({held} more like it since the last warning)" if held else ""), *args)
+        return True
 
 
 class RobotPoseSource:
@@ -21,11 +106,19 @@ class RobotPoseSource:
 
     Whatever the robot delivers is checked before it becomes a pose: a reading with a NaN or infinite joint,
     a joint beyond the URDF's limits (plus a margin for calibration slack), or a time that does not move
-    forward is refused and counted; ``health`` shows it as degraded while refusals keep coming."""
+    forward is refused, counted and warned about on the console (rate limited); ``health`` shows it as
+    degraded while refusals keep coming.
+
+    A frame newer than the newest reading, by no more than the gap limit, waits up to ``reading_wait_s``
+    for the reading after it (a live robot's next sample is due within a period); when none comes the frame
+    has no pose, and later frames do not wait again until the robot delivers (a stream that ended costs one
+    wait, not one per frame)."""
 
     limit_margin_rad = 0.05
     limit_margin_m = 0.005
     degraded_for_s = 0.25
+    reading_wait_s = 0.1
+    refusal_warning_every_s = 1.0
 
     def __init__(self, robot, description: RobotDescription, prior: PriorConfig, offset_ns: int = 0) -> None:
         self.robot = robot
@@ -44,27 +137,32 @@ class RobotPoseSource:
         self.rejected_by_cause: dict[str, int] = {}
         self._last_refusal = ""
         self._last_refusal_wall = 0.0
+        self._warn_refusal = RateLimitedWarning(log, self.refusal_warning_every_s)
+        self.without_pose = FramesWithoutPose("joint reading")
+        self._taken: list = []  # accepted while a frame waited for a reading; handed on by the next poll()
+        self._stalled = False  # the last wait for a reading came back empty
 
     def _refusal(self, s) -> tuple[str, str] | None:
-        """(cause, message) when the sample cannot be a pose, else None."""
+        """(cause, message) when the sample cannot be a pose, else None; the message names the joint and value."""
         n = self.pose_at.kin.n_joints
-        if s.q.shape != (n,):
-            return "joint count", f"{s.q.shape[0] if s.q.ndim else 0} joints, the robot model has {n}"
-        if not np.all(np.isfinite(s.q)):
-            return "non-finite joint value", "non-finite joint value"
-        bad = np.flatnonzero((s.q < self._lower) | (s.q > self._upper))
+        q = np.asarray(s.q)
+        if q.shape != (n,):
+            return "joint count", f"{q.shape[0] if q.ndim else 0} joint values, the robot model has {n} joints"
+        bad = np.flatnonzero(~np.isfinite(q))
         if len(bad):
             i = int(bad[0])
-            return "beyond limits", f"joint '{self._names[i]}' = {s.q[i]:.4g} beyond its limits"
+            return "non-finite joint value", f"joint '{self._names[i]}' = {q[i]}"
+        bad = np.flatnonzero((q < self._lower) | (q > self._upper))
+        if len(bad):
+            i = int(bad[0])
+            return "beyond limits", (f"joint '{self._names[i]}' = {q[i]:.4g} beyond its limits "
+                                     f"[{self._lower[i]:.4g}, {self._upper[i]:.4g}] (margin included)")
         last = self.pose_at.last_time_ns
         if last is not None and s.t_ns <= last:
-            return "time did not move forward", "time did not move forward"
+            return "time did not move forward", f"time {s.t_ns} ns is not after the last reading's {last} ns"
         return None
 
-    def poll(self) -> list:
-        """Take the robot's new samples, refusing (and counting) what cannot be a pose; returns the accepted
-        ones (a live run records them)."""
-        samples = self.robot.read(timeout_s=0.0)
+    def _take(self, samples) -> list:
         good = []
         for s in samples:
             refusal = self._refusal(s)
@@ -73,10 +171,41 @@ class RobotPoseSource:
                 self.rejected += 1
                 self.rejected_by_cause[cause] = self.rejected_by_cause.get(cause, 0) + 1
                 self._last_refusal, self._last_refusal_wall = message, time.monotonic()
+                self._warn_refusal("robot reading refused (%s): %s; %d refused so far", cause, message,
+                                   self.rejected)
                 continue
             self.pose_at.add(s)
             good.append(s)
+        if good:
+            self._stalled = False
+            if self.without_pose.unsettled:
+                self.without_pose.resolve_after_last(self.pose_at.no_pose_cause)
         return good
+
+    def poll(self) -> list:
+        """Take the robot's new samples, refusing (counting, warning about) what cannot be a pose; returns the
+        accepted ones (a live run records them)."""
+        good, self._taken = self._taken + self._take(self.robot.read(timeout_s=0.0)), []
+        return good
+
+    def _wait_for_reading_after(self, t_kin_ns: int) -> None:
+        if self._stalled:
+            return
+        deadline = time.monotonic() + self.reading_wait_s
+        while self.pose_at.last_time_ns < t_kin_ns:  # (called after the first reading: there is a last one)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self._stalled = True
+                return
+            got = self._take(self.robot.read(timeout_s=min(left, 0.01)))
+            self._taken.extend(got)
+            if not got:
+                time.sleep(min(left, 0.002))  # (a reader that returns at once, without waiting)
+
+    @property
+    def last_refusal(self) -> str:
+        """Why the newest refused reading was refused, with its value ("" before any refusal)."""
+        return self._last_refusal
 
     @property
     def health(self) -> Health:
@@ -84,33 +213,77 @@ class RobotPoseSource:
             return Health(HealthState.DEGRADED, f"{self.rejected} readings refused; last: {self._last_refusal}")
         return Health(HealthState.OK)
 
-    def has_pose(self) -> bool:
-        """Whether a prior can be given yet: not before the robot's first accepted reading (a recording may
-        start its video before the joint stream)."""
-        return len(self.pose_at) > 0
+    def has_pose(self, t_ns: int | None = None) -> bool:
+        """Whether frame time ``t_ns`` has a pose: two accepted readings bracket it, within the gap limit. A
+        frame that has none is counted by cause (``without_pose``). Without a time: whether any reading came."""
+        if t_ns is None:
+            return len(self.pose_at) > 0
+        self.without_pose.seen(t_ns)
+        cause = self.pose_at.no_pose_cause(t_ns)
+        t_kin = t_ns + self.pose_at.offset_ns
+        # only a reading due within the gap limit can still bracket the frame: further out, none is awaited
+        if cause == AFTER_LAST and t_kin - self.pose_at.last_time_ns <= self.pose_at.max_gap_ns:
+            self._wait_for_reading_after(t_kin)
+            cause = self.pose_at.no_pose_cause(t_ns)
+        if cause is not None:
+            self.without_pose.add(cause, t_ns)
+        return cause is None
+
+    def warn_without_pose(self) -> None:
+        """One console warning per cause of frames without a pose (call at the end of a run)."""
+        self.without_pose.warn(self.pose_at.max_gap_ns)
 
     def prior_at(self, t_ns: int) -> PosePrior:
+        """The prior at frame time ``t_ns``; NoPoseError when ``has_pose(t_ns)`` is False."""
         return self.pose_at.prior_at(t_ns)
 
 
 class GivenPoseSource:
     """Camera poses T_world_camera known at times (an optical tracker): interpolated on SE(3) at frame
-    times, clamped at the ends, with a fixed diagonal covariance."""
+    times, with a fixed diagonal covariance. A frame outside the poses' span, or in a gap longer than
+    ``max_gap_periods`` median periods, has no pose (counted in ``without_pose``)."""
+
+    # what a robot pose source also answers (the live run's report reads both kinds alike): no robot, no refusals
+    robot = None
+    rejected = 0
+    rejected_by_cause: Mapping[str, int] = MappingProxyType({})
+    last_refusal = ""
 
     def __init__(self, t_ns: np.ndarray, poses: np.ndarray, sigma_rotation_rad: float, sigma_translation_m: float,
-                 offset_ns: int = 0) -> None:
+                 offset_ns: int = 0, max_gap_periods: float = MAX_GAP_PERIODS) -> None:
         if len(t_ns) == 0:
             raise ConfigError("no camera poses given")
         self.poses = SampledPoses(np.asarray(t_ns, np.int64), np.asarray(poses, float))
         self.offset_ns = offset_ns
+        self.max_gap_ns = max_gap_ns(self.poses.t_ns, max_gap_periods)
         self.cov = np.diag([sigma_rotation_rad**2] * 3 + [sigma_translation_m**2] * 3)
+        self.without_pose = FramesWithoutPose("camera pose")
 
     def poll(self) -> list:
         return []
 
-    def has_pose(self) -> bool:
-        return True
+    def no_pose_cause(self, t_ns: int) -> str | None:
+        """Why frame time ``t_ns`` has no pose (geometry.NO_POSE_CAUSES), or None when it has one."""
+        return no_pose_cause(self.poses.t_ns, t_ns + self.offset_ns, self.max_gap_ns)
+
+    def has_pose(self, t_ns: int | None = None) -> bool:
+        """Whether frame time ``t_ns`` has a pose; a frame that has none is counted by cause."""
+        if t_ns is None:
+            return True
+        self.without_pose.seen(t_ns)
+        cause = self.no_pose_cause(t_ns)
+        if cause is not None:
+            self.without_pose.add(cause, t_ns)
+        return cause is None
+
+    def warn_without_pose(self) -> None:
+        self.without_pose.warn(self.max_gap_ns)
 
     def prior_at(self, t_ns: int) -> PosePrior:
+        """The prior at frame time ``t_ns``; NoPoseError when ``has_pose(t_ns)`` is False."""
+        cause = self.no_pose_cause(t_ns)
+        if cause is not None:
+            raise NoPoseError(f"no camera pose at video time {t_ns} ns ({cause.replace('_', ' ')} of the given "
+                              f"camera poses)", cause)
         T = self.poses(t_ns + self.offset_ns)
         return PosePrior(T_world_camera=T.copy(), cov=self.cov.copy(), t_ns=t_ns)

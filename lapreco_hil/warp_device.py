@@ -12,7 +12,7 @@ import sys
 import tempfile
 import threading
 
-from .errors import DeviceError
+from lapreco_hil.errors import DeviceError
 
 log = logging.getLogger(__name__)
 

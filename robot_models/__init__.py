@@ -8,7 +8,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from ..errors import ConfigError
+from lapreco_hil.errors import ConfigError
 
 _PACKAGED = {"ecm": "ecm.urdf"}
 

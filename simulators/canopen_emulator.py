@@ -2,7 +2,8 @@
 
 Each node has the same object dictionary as the driver's RemoteNodes (drivers/robot/cia402.py), answers
 SDO, follows NMT, produces its heartbeat at the period the master writes to 0x1017, and on every SYNC
-latches its position actual value (from ``joints_at(t_ns)`` through the shared JointMap: encoder counts)
+latches its position actual value (from ``joints_at(t_ns)`` through the shared JointMap,
+``cia402_joint_map``: increments, 0 = the joint's zero)
 and sends TPDO1 with the mapping the master configured.
 
 Tests use python-can's in-process ``virtual`` interface (``canopen://virtual/<channel>``); nothing leaves

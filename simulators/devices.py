@@ -7,34 +7,70 @@ A robot and a grabber with the same scene name, opened in the same DeviceContext
 joints drive a device emulator (a Dynamixel chain on a pseudo-terminal, CiA 402 nodes on a python-can
 virtual bus) and the robot's samples are what the real driver reads from it. Polling needs time to pass
 between frames, so a linked world's clock flows (``speed``, default 0.2 x real time).
+
+Parameters: :class:`SimRobotConfig`, :class:`SimGrabberConfig`. In a run where every device is simulated the
+devices stamp on simulated time (starting at 1 s); in a run with a real device (a sim grabber with a robot on
+a serial port) they stamp on the host's monotonic clock like the real one, simulated time laid on it from
+their opening, and the grabber is paced in real time (see ``lapreco_hil.registry``).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 
+from lapreco_hil.drivers.device import Discovery, FoundDevice
 from lapreco_hil.drivers.grabber.base import Grabber
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.errors import ConfigError
-from lapreco_hil.registry import DeviceContext, DeviceURL
-from lapreco_hil.evaluation.truth import GroundTruth
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.registry import HOST, DeviceContext, DeviceURL, URLConfig, parse_bool, url_param
 from lapreco_hil.types import Frame, JointSample, RobotDescription
 
-from .world import SimSettings, SimWorld
-from .world.world import T0_NS
+from lapreco_hil.simulators.world import SCENES, SimSettings, SimWorld
+from lapreco_hil.simulators.world.world import T0_NS
 
-_WORLD_KEYS = {"width": int, "height": int, "fps": float, "seed": int, "device": str, "rate": float,
-               "speed": float, "instrument": lambda v: v.lower() in ("1", "true", "yes")}
-_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}
+_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}  # URL parameter -> SimSettings field
 LINKS = ("direct", "serial", "canopen")
+PACES = ("afap", "realtime")
 
 
-def _world_for(url: DeviceURL, context: DeviceContext) -> SimWorld:
-    params = {k: url.get(k, cast=c) for k, c in _WORLD_KEYS.items() if k in url.query}
+@dataclass(frozen=True)
+class SimWorldConfig(URLConfig):
+    """The simulated world's parameters (a robot and a grabber of one scene must agree on those they give)."""
 
+    width: int = url_param(SimSettings.width, low=16, high=8192, unit="px")
+    height: int = url_param(SimSettings.height, low=16, high=8192, unit="px")
+    fps: float = url_param(SimSettings.fps, low=0.1, high=1000.0)
+    seed: int = url_param(SimSettings.seed)
+    device: str | None = url_param(None, help="Warp device for rendering (cpu, cuda:0)")
+    rate: float = url_param(SimSettings.robot_rate_hz, low=0.1, high=10_000.0, unit="Hz", help="robot readings")
+    speed: float | None = url_param(None, low=1e-3, high=100.0, help="simulated time flows at this x real time")
+    instrument: bool = url_param(False, parse=parse_bool, help="a moving instrument in view")
+
+    def world_params(self, url: DeviceURL) -> dict:
+        """The world parameters the URL gives (the others keep the world's defaults)."""
+        return {k: getattr(self, k) for k in url.query if k in _WORLD_KEYS}
+
+
+_WORLD_KEYS = tuple(SimWorldConfig.known_parameters())
+
+
+@dataclass(frozen=True)
+class SimRobotConfig(SimWorldConfig):
+    link: str = url_param("direct", choices=LINKS, help="direct, or through a device emulator and the real driver")
+    offset_ms: float = url_param(0.0, low=-1e6, high=1e6, unit="ms", help="kinematics clock offset")
+
+
+@dataclass(frozen=True)
+class SimGrabberConfig(SimWorldConfig):
+    frames: int | None = url_param(None, low=0, help="end after this many frames")
+    pace: str | None = url_param(None, choices=PACES, help="afap (default on the simulated clock) or realtime")
+
+
+def _world_for(url: DeviceURL, params: dict, context: DeviceContext) -> SimWorld:
     def make() -> SimWorld:
         settings = SimSettings(scene=url.name)
         settings = replace(settings, **{_FIELDS.get(k, k): v for k, v in params.items()})
@@ -51,56 +87,106 @@ def _world_for(url: DeviceURL, context: DeviceContext) -> SimWorld:
     return world
 
 
+class HostTimeline:
+    """Simulated time laid on the host's clock, for simulated devices in a run with real ones: simulated time
+    T0 is the host time of the first such device's opening, and flows at the world's speed (default 1)."""
+
+    def __init__(self, host_clock, speed: float) -> None:
+        self.host_clock = host_clock
+        self.speed = speed
+        self.epoch_ns = host_clock()
+
+    def to_host(self, t_sim_ns: int) -> int:
+        return self.epoch_ns + int(round((t_sim_ns - T0_NS) / self.speed))
+
+    def to_sim(self, t_host_ns: int) -> int:
+        return T0_NS + int(round((t_host_ns - self.epoch_ns) * self.speed))
+
+    def sim_now(self) -> int:
+        return self.to_sim(self.host_clock())
+
+    def sleep_until(self, t_host_ns: int) -> None:
+        delay = (t_host_ns - self.host_clock()) * 1e-9
+        if delay > 0:
+            time.sleep(delay)
+
+
+def _host_timeline(world: SimWorld, url: DeviceURL, context: DeviceContext) -> HostTimeline | None:
+    """The timeline when this run stamps on the host's clock (a real device in it); None on simulated time."""
+    if context.clock_domain(url.raw) != HOST:
+        return None
+    return context.shared("sim-host-timeline", url.name,
+                          lambda: HostTimeline(context.clock_ns, world.settings.clock_speed or 1.0))
+
+
+def _scenes() -> Discovery:
+    return Discovery("simulated (robot and grabber; link=serial|canopen on the robot goes through a device emulator)",
+                     tuple(FoundDevice(name, f"sim://{name}") for name in sorted(SCENES)))
+
+
 class SimRobot(RobotDriver):
     """Encoder readings of the simulated holder, at ``rate`` Hz of simulated time (``link=direct``), or
-    what a real driver reads from a device emulator (``link=serial|canopen``)."""
+    what a real driver reads from a device emulator (``link=serial|canopen``). Stamped on simulated time, or
+    on the host's clock when the run has a real device."""
+
+    clock_domain = "simulated"
 
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        config = SimRobotConfig.from_url(url)
         self.url = url
-        self.link = url.get("link", "direct")
-        if self.link not in LINKS:
-            raise ConfigError(f"device URL '{url.raw}': link must be one of {', '.join(LINKS)}, got '{self.link}'")
-        if self.link != "direct" and "speed" not in url.query:
-            url = replace(url, query={**url.query, "speed": "0.2"})
-        self.world = _world_for(url, context)
+        self.config = config
+        self.link = config.link
+        params = config.world_params(url)
+        if self.link != "direct" and "speed" not in params:
+            params["speed"] = 0.2
+        self.world = _world_for(url, params, context)
         if self.link != "direct" and self.world.settings.clock_speed is None:
             raise ConfigError(f"device URL '{url.raw}': link={self.link} needs a flowing clock; open the grabber "
                               f"of '{url.name}' with the same speed=... (e.g. speed=0.2)")
         self.info = self.world.kinematics.info
         # a kinematics clock that is off: readings of time t are stamped t + offset (public surgical datasets
         # have offsets up to seconds; calibrate time-offset recovers it)
-        self.stamp_offset_ns = int(round(url.get("offset_ms", 0.0, float) * 1e6))
+        self.stamp_offset_ns = int(round(config.offset_ms * 1e6))
         self._context = context
         self._next_seq = 0
         self._open = False
+        self._timeline: HostTimeline | None = None
         self.emulator = None
         self.driver: RobotDriver | None = None
 
+    @classmethod
+    def discover(cls) -> Discovery:
+        return _scenes()
+
     def _open_link(self) -> None:
-        from lapreco_hil.drivers.robot.joint_map import JointMap
+        from lapreco_hil.drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
         from lapreco_hil.registry import open_robot
 
-        world = self.world
+        world, timeline = self.world, self._timeline
         ids = list(range(1, len(self.info.joint_names) + 1))
         # the robot's own rate in simulated time, as wall-clock polling on the flowing clock
-        rate = world.settings.robot_rate_hz * world.settings.clock_speed
+        speed = timeline.speed if timeline else world.settings.clock_speed
+        rate = world.settings.robot_rate_hz * speed
+        # the emulator and the driver share the run's clock: simulated, or the host's with the world laid on it
+        clock = timeline.host_clock if timeline else world.now_ns
+        to_sim = timeline.to_sim if timeline else (lambda t: t)
 
         def joints_at(t_ns: int):
-            return world.arm.motor_joints(world.seconds(t_ns))
+            return world.arm.motor_joints(world.seconds(to_sim(t_ns)))
 
-        context = DeviceContext(**{**self._context.options, "clock_ns": world.now_ns})
+        context = DeviceContext(**{**self._context.options, "clock_ns": clock})
         if self.link == "serial":
-            from .dynamixel_emulator import DynamixelChainEmulator
+            from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
-            joint_map = JointMap.for_model(world.robot_model)
-            self.emulator = DynamixelChainEmulator(ids, joint_map, joints_at, world.now_ns)
+            joint_map = dynamixel_joint_map(world.robot_model)
+            self.emulator = DynamixelChainEmulator(ids, joint_map, joints_at, clock)
             url = f"serial://{self.emulator.port}?baud=1000000&ids={','.join(map(str, ids))}&rate={rate}"
         else:
-            from .canopen_emulator import CANopenDriveChainEmulator
+            from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
 
-            joint_map = JointMap.for_model(world.robot_model, counts_per_rev=4 * 4096)
+            joint_map = cia402_joint_map(world.robot_model)
             channel = f"lapreco-sim-{id(self)}"
-            self.emulator = CANopenDriveChainEmulator(channel, ids, joint_map, joints_at, world.now_ns)
+            self.emulator = CANopenDriveChainEmulator(channel, ids, joint_map, joints_at, clock)
             url = f"canopen://virtual/{channel}?nodes=1-{len(ids)}&rate={rate}"
         self.driver = open_robot(url + f"&model={world.robot_model}", context)
         try:
@@ -115,6 +201,8 @@ class SimRobot(RobotDriver):
         return RobotDescription(self.world.robot_model, self.world.tip_frame, self.world.T_tip_camera)
 
     def open(self) -> None:
+        if not self._open:
+            self._timeline = _host_timeline(self.world, self.url, self._context)
         if self.link != "direct" and self.driver is None:
             self._open_link()
         self._open = True
@@ -129,16 +217,24 @@ class SimRobot(RobotDriver):
     def sample_time_ns(self, seq: int) -> int:
         return T0_NS + int(round(seq * 1e9 / self.world.settings.robot_rate_hz))
 
-    def read(self, timeout_s: float | None = None) -> list[JointSample]:
+    def _read(self, timeout_s: float | None) -> list[JointSample]:
         if self.driver is not None:
             return [JointSample(s.q, s.t_ns + self.stamp_offset_ns, s.seq) for s in self.driver.read(timeout_s)]
-        now = self.world.now_ns()
+        timeline = self._timeline
+        if timeline is None:
+            now = self.world.now_ns()
+        else:
+            next_host = timeline.to_host(self.sample_time_ns(self._next_seq))
+            if timeout_s and next_host > timeline.host_clock():  # nothing due yet: wait for one, up to timeout_s
+                timeline.sleep_until(min(next_host, timeline.host_clock() + int(timeout_s * 1e9)))
+            now = timeline.sim_now()
+        to_stamp = timeline.to_host if timeline else (lambda t: t)
         out = []
         while self.sample_time_ns(self._next_seq) <= now:
             seq = self._next_seq
             t_ns = self.sample_time_ns(seq)
             q = self.world.arm.reported_joints(self.world.seconds(t_ns), seq)
-            out.append(JointSample(q, t_ns + self.stamp_offset_ns, seq))
+            out.append(JointSample(q, to_stamp(t_ns) + self.stamp_offset_ns, seq))
             self._next_seq += 1
         return out
 
@@ -146,28 +242,37 @@ class SimRobot(RobotDriver):
     def health(self) -> Health:
         if self.driver is not None:
             return self.driver.health
-        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=self.world.now_ns())
+        t_ns = self._timeline.host_clock() if self._timeline else self.world.now_ns()
+        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=t_ns)
 
     @property
-    def faults(self) -> dict[str, int]:
+    def faults(self):
         """What the real driver counted on the link (nothing without one)."""
-        return dict(self.driver.faults) if self.driver is not None else {}
+        return self.driver.faults if self.driver is not None else super().faults
 
 
 class SimGrabber(Grabber):
-    """Renders what the true camera sees at the robot's true pose; as fast as possible or paced to fps."""
+    """Renders what the true camera sees at the robot's true pose; as fast as possible or paced to fps.
+    Stamped on simulated time, or on the host's clock (paced in real time) when the run has a real device."""
+
+    clock_domain = "simulated"
 
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        config = SimGrabberConfig.from_url(url)
         self.url = url
-        self.world = _world_for(url, context)
-        self.max_frames = url.get("frames", None, int)
-        pace = url.get("pace", "afap")
-        if pace not in ("afap", "realtime"):
-            raise ConfigError(f"device URL '{url.raw}': pace must be 'afap' or 'realtime', got '{pace}'")
-        self.realtime = pace == "realtime"
+        self.config = config
+        self.world = _world_for(url, config.world_params(url), context)
+        self.max_frames = config.frames
+        self.realtime = config.pace == "realtime"
+        self._context = context
+        self._timeline: HostTimeline | None = None
         self._seq = 0
         self._open = False
         self._wall0 = 0.0
+
+    @classmethod
+    def discover(cls) -> Discovery:
+        return _scenes()
 
     @property
     def camera(self):
@@ -178,6 +283,11 @@ class SimGrabber(Grabber):
         return self.world.settings.fps
 
     def open(self) -> None:
+        if not self._open:
+            self._timeline = _host_timeline(self.world, self.url, self._context)
+            if self._timeline is not None and self.config.pace == "afap":
+                raise ConfigError(f"device URL '{self.url.raw}': pace=afap runs ahead of real time, but this run "
+                                  f"has a real device and stamps on the host's clock; leave pace out (real time)")
         self._open = True
         self._wall0 = time.monotonic()
 
@@ -187,7 +297,23 @@ class SimGrabber(Grabber):
     def frame_time_ns(self, seq: int) -> int:
         return T0_NS + int(round(seq * 1e9 / self.world.settings.fps))
 
+    def _read_on_host_clock(self, timeline: HostTimeline) -> Frame | None:
+        # a camera does not wait for its reader: frames whose time has passed are gone
+        due = int((timeline.sim_now() - T0_NS) * 1e-9 * self.world.settings.fps)
+        self._seq = max(self._seq, due)
+        if self.max_frames is not None and self._seq >= self.max_frames:
+            return None
+        seq = self._seq
+        t_sim = self.frame_time_ns(seq)
+        t_host = timeline.to_host(t_sim)
+        timeline.sleep_until(t_host)
+        image, _ = self.world.render(t_sim, seq)
+        self._seq += 1
+        return Frame(image=image, t_ns=t_host, seq=seq, host_ns=t_host)
+
     def read(self, timeout_s: float | None = None) -> Frame | None:
+        if self._timeline is not None:
+            return self._read_on_host_clock(self._timeline)
         if self.max_frames is not None and self._seq >= self.max_frames:
             return None
         if self.realtime:
@@ -213,8 +339,13 @@ class SimGrabber(Grabber):
 
     @property
     def health(self) -> Health:
-        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=self.world.now_ns())
+        t_ns = self._timeline.host_clock() if self._timeline else self.world.now_ns()
+        return Health(HealthState.OK if self._open else HealthState.DISCONNECTED, t_ns=t_ns)
 
     @property
     def ground_truth(self) -> GroundTruth:
-        return GroundTruth(self.world.surface_mesh(), self.world.true_camera_pose)
+        def camera_pose(t_ns: int):
+            timeline = self._timeline
+            return self.world.true_camera_pose(timeline.to_sim(t_ns) if timeline else t_ns)
+
+        return GroundTruth(self.world.surface_mesh(), camera_pose)

@@ -3,8 +3,10 @@
 The real driver opens ``emulator.port`` (a stable symlink to the pty's slave, like /dev/ttyUSB0) with
 pyserial through dynamixel-sdk and cannot tell it from a USB-RS485 adapter. Each servo has an X-series
 control table; Present Position comes from ``joints_at(t_ns)`` (the simulated robot's encoder-side joints)
-through the shared JointMap, which quantises to encoder counts. Framing, byte stuffing and the CRC are the
-SDK's own routines (the SDK is written for the master side; the device side here parses and answers).
+through the shared JointMap (``dynamixel_joint_map``: 2048 ticks = 0 rad, the X-series convention), which
+quantises to ticks; or, in raw mode (``ticks_at``), straight from ticks the caller chooses, with no JointMap
+at all (a chain whose servos rest where they rest). Framing, byte stuffing and the CRC are the SDK's own
+routines (the SDK is written for the master side; the device side here parses and answers).
 
 Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
 replies, late replies, a silent bus, a servo's hardware-error alert, a joint reading out of its limits,
@@ -41,7 +43,7 @@ def status_packet(sdk, dxl_id: int, error: int, params: bytes) -> bytearray:
     """A Protocol 2.0 status packet, stuffed and with its CRC (``sdk``: a Protocol2PacketHandler)."""
     length = len(params) + 4  # instruction + error + params + CRC
     packet = list(HEADER) + [dxl_id, length & 0xFF, length >> 8, INST_STATUS, error] + list(params) + [0, 0]
-    sdk.addStuffing(packet)  # updates the length field too
+    packet = sdk.addStuffing(packet)  # a new list when it stuffed (and the length field updated)
     total = 7 + (packet[5] | (packet[6] << 8))
     crc = sdk.updateCRC(0, packet, total - 2)
     packet[total - 2], packet[total - 1] = crc & 0xFF, crc >> 8
@@ -62,13 +64,17 @@ class DynamixelFaults:
 
 
 class DynamixelChainEmulator:
-    def __init__(self, ids: list[int], joint_map: JointMap, joints_at, clock_ns=time.monotonic_ns,
-                 link_dir: str | None = None, seed: int = 0) -> None:
+    def __init__(self, ids: list[int], joint_map: JointMap | None = None, joints_at=None, clock_ns=time.monotonic_ns,
+                 link_dir: str | None = None, seed: int = 0, ticks_at=None) -> None:
+        """``joint_map`` + ``joints_at(t_ns) -> SI joints``, or ``ticks_at(t_ns) -> raw Present Position ticks``."""
         from dynamixel_sdk import PacketHandler
 
+        if (ticks_at is None) == (joint_map is None or joints_at is None):
+            raise ValueError("give joint_map and joints_at, or ticks_at")
         self.ids = list(ids)
         self.joint_map = joint_map
         self.joints_at = joints_at
+        self.ticks_at = ticks_at or (lambda t_ns: joint_map.to_counts(joints_at(t_ns)))
         self.clock_ns = clock_ns
         self.faults = DynamixelFaults()
         self.stats = {"packets": 0, "bad_crc": 0, "replies": 0}
@@ -208,7 +214,7 @@ class DynamixelChainEmulator:
         table[6] = 52  # firmware version
         table[7] = dxl_id
         j = self.ids.index(dxl_id)
-        counts = int(self.joint_map.to_counts(self.joints_at(t_ns))[j])
+        counts = int(self.ticks_at(t_ns)[j])
         counts = self.faults.position_override.get(dxl_id, counts)
         alert = dxl_id in self.faults.hardware_alert
         table[70] = 0x04 if alert else 0  # Hardware Error Status: overheating

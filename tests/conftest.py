@@ -14,3 +14,23 @@ def warp_cpu():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def skull_world(warp_cpu):
+    """The simulated skull world at 320x240 on the CPU device, built once (its mesh, renderer and robot).
+    Tests read it (render at a given time, the true surface); none advances or changes it."""
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+    return SimWorld(SimSettings(scene="skull", width=320, height=240, device=warp_cpu))
+
+
+@pytest.fixture(scope="session")
+def small_skull_session(tmp_path_factory, warp_cpu):
+    """A 12-frame 256x192 simulated skull session with ground truth, recorded once (`lapreco sim-record`'s
+    work) for the tests that only need some recorded input to replay. Read-only: copy it to change it."""
+    from lapreco_hil.app.record import sim_record
+
+    path = tmp_path_factory.mktemp("sessions") / "skull-12"
+    sim_record("skull", str(path), frames=12, resolution=(256, 192), device=warp_cpu, progress=False)
+    return path

@@ -179,7 +179,7 @@ def test_hand_eye_from_a_simulated_board_session(tmp_path, warp_cpu, capsys):
     # with the robot's compliance (about 3 mrad of joint wander) in the tip poses: measured 0.34 deg, 1.4 mm
     assert rot_deg < 1.0 and trans_mm < 3.0
     # the pipeline reads it: a replay with this hand-eye
-    from lapreco_hil.cli.replay import run_replay
+    from lapreco_hil.app.replay import run_replay
 
     r = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False,
                    hand_eye_file=str(out))

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from lapreco_hil.cli.main import main
-from lapreco_hil.config import PipelineConfig, load_config
+from lapreco_hil.config import PipelineConfig, config_from_dict, load_config
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 
@@ -17,10 +17,16 @@ def test_config_defaults_and_overrides(tmp_path):
 
 
 @pytest.mark.parametrize("text,match", [
-    ("[mapper]\nbogus = 1\n", "unknown key 'mapper.bogus'"),
-    ("[mapper]\nwindow_keyframes = 'many'\n", "'mapper.window_keyframes' must be a non-negative integer"),
-    ("[mapper]\nwindow_keyframes = -3\n", "'mapper.window_keyframes' must be a non-negative integer"),
-    ("[tracker]\nmax_lk_error = nan\n", "'tracker.max_lk_error' must be a finite non-negative number"),
+    ("[mapper]\nbogus = 1\n", r"\[mapper\] bogus: unknown key"),
+    ("[mapper]\nwindow_keyframes = 'many'\n", r"\[mapper\] window_keyframes = 'many': must be a whole number >= 2"),
+    ("[mapper]\nwindow_keyframes = -3\n", r"\[mapper\] window_keyframes = -3: must be >= 2"),
+    ("[mapper]\nwindow_keyframes = 1\n", r"\[mapper\] window_keyframes = 1: must be >= 2"),
+    ("[tracker]\nmax_lk_error = nan\n", r"\[tracker\] max_lk_error = nan: must be a finite number > 0"),
+    ("[tracker]\nquality_level = 1.5\n", r"\[tracker\] quality_level = 1.5: must be > 0 and <= 1"),
+    ("[prior]\nfloor_rot_sigma_rad = 0\n", r"\[prior\] floor_rot_sigma_rad = 0: must be > 0"),
+    ("[prior]\njoint_sigma = [0.1, -1]\n", r"\[prior\] joint_sigma = \[0.1, -1\]: each value must be >= 0"),
+    ("[runtime]\ncapture_queue = 0\n", r"\[runtime\] capture_queue = 0: must be >= 1"),
+    ("[runtime]\nsurface_period_s = inf\n", r"\[runtime\] surface_period_s = inf: must be a finite number > 0"),
     ("[tracker]\nmax_features = 10\n\xff\n", "not UTF-8"),
     ("[mapper\n", "not valid TOML"),
     ("mapper = 3\n", "'mapper' must be a table"),
@@ -31,6 +37,23 @@ def test_malformed_config_names_file_and_key(tmp_path, text, match):
     with pytest.raises(ConfigError, match=match) as info:
         load_config(path)
     assert str(path) in str(info.value)
+
+
+def test_every_numeric_config_field_declares_its_range_and_the_defaults_are_in_it():
+    import dataclasses
+    import typing
+
+    defaults = PipelineConfig()
+    for section in dataclasses.fields(defaults):
+        sub = getattr(defaults, section.name)
+        hints = typing.get_type_hints(type(sub))
+        for f in dataclasses.fields(sub):
+            if hints[f.name] in (int, float) or typing.get_origin(hints[f.name]) is tuple:
+                assert "range" in f.metadata, f"[{section.name}] {f.name} declares no range (use ranged())"
+    # every default, written out and loaded back, passes its own range check
+    import json
+
+    assert config_from_dict(json.loads(json.dumps(dataclasses.asdict(defaults)))) == defaults  # (lists, as TOML)
 
 
 def test_unknown_url_scheme_lists_the_known_ones():
@@ -80,10 +103,8 @@ def test_cli_malformed_config(tmp_path, capsys):
 
 
 def test_cli_rejects_bad_resolution(capsys):
-    with pytest.raises(SystemExit) as info:
-        main(["demo", "--resolution", "big"])
-    assert info.value.code == 2
-    assert "must look like 640x480" in capsys.readouterr().err
+    assert main(["demo", "--resolution", "big"]) == 2
+    assert capsys.readouterr().err.splitlines() == ["lapreco: error: --resolution: 'big' must look like 640x480"]
 
 
 def test_tracker_auto_is_warp_on_a_gpu_and_opencv_on_a_cpu():

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from lapreco_hil.cli.run import run_live
+from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.types import Frame
@@ -47,10 +47,20 @@ class SmokeGrabber(Wrapped):
 
 
 def _run_injecting(inject, robot, grabber, tmp_path, **kwargs) -> dict:
-    """A live run with ``inject`` running beside it in a thread; the run's report."""
-    injector = threading.Thread(target=inject, daemon=True)
+    """A live run with ``inject`` running beside it in a thread, from when the run's first frame is in (its
+    start-up, the mapper process's imports, takes seconds on a loaded machine); the run's report."""
+    runs = []
+
+    def when_live():
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and not (runs and runs[0].status()["frames_in"] > 0):
+            time.sleep(0.005)
+        inject()
+
+    injector = threading.Thread(target=when_live, daemon=True)
     injector.start()
-    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", progress=False, **kwargs)
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", progress=False,
+                      on_live=runs.append, **kwargs)
     injector.join(timeout=1)
     return report
 
@@ -197,6 +207,21 @@ def test_can_faults_nan_joints_and_bad_timestamps_during_a_live_run(tmp_path, wa
     assert np.isfinite(np.loadtxt(tmp_path / "trajectory.tum")).all()
 
 
+class HostClockRobot(Wrapped):
+    """The simulated robot (its clock flowing at real speed) with its readings on the host's monotonic clock,
+    the one V4L2 buffers carry: a frame has a pose only where frames and readings share a clock."""
+
+    offset_ns = None
+
+    def read(self, timeout_s=None):
+        from lapreco_hil.types import JointSample
+
+        out = self.inner.read(timeout_s)
+        if out and self.offset_ns is None:
+            self.offset_ns = time.monotonic_ns() - out[-1].t_ns
+        return [JointSample(s.q, s.t_ns + self.offset_ns, s.seq) for s in out]
+
+
 def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     """The V4L2 grabber (over a scripted capture: no /dev/video here) is unplugged and plugged back in while
     the live pipeline runs on it."""
@@ -216,7 +241,7 @@ def test_grabber_unplug_during_a_live_run_is_reported_and_recovered(tmp_path):
     ctx = DeviceContext(device="cpu", v4l2_capture=cam.factory)
     grabber = open_grabber("v4l2:///dev/video7?width=256&height=192&fps=30", ctx)
     grabber.reconnect_interval_s = 0.05
-    robot = open_robot("sim://skull?width=256&height=192&speed=1.0", ctx)
+    robot = HostClockRobot(open_robot("sim://skull?width=256&height=192&speed=1.0", ctx))
     camera = CameraModel(256, 192, 200.0, 200.0, 128.0, 96.0)
     marks = {}
 
@@ -313,17 +338,22 @@ def test_serial_link_faults_during_a_live_run(tmp_path, warp_cpu):
 
 
 class InstrumentGrabber(Wrapped):
-    """While ``present`` is set a dark, untextured instrument shaft covers the left half of the view and
-    sways; ``first_seen`` is when the first such frame left the grabber."""
+    """For frames ``start`` to ``end`` (by sequence number: the same frames however loaded the machine) a dark,
+    untextured instrument shaft covers the left half of the view and sways; ``first_seen`` is when the first
+    such frame left the grabber, ``cleared`` when the first frame after them did."""
 
-    def __init__(self, inner):
+    def __init__(self, inner, start: int, end: int):
         super().__init__(inner)
-        self.present = threading.Event()
-        self.first_seen = None
+        self.start, self.end = start, end
+        self.first_seen = self.cleared = None
 
     def read(self, timeout_s=None):
         f = self.inner.read(timeout_s)
-        if f is None or not self.present.is_set():
+        if f is None:
+            return f
+        if f.seq >= self.end and self.cleared is None:
+            self.cleared = time.monotonic()
+        if not self.start <= f.seq < self.end:
             return f
         img = f.image.copy()
         w = img.shape[1]
@@ -338,22 +368,14 @@ def test_an_instrument_over_half_the_view_is_reported_and_tracking_recovers(tmp_
     ctx = DeviceContext(device=warp_cpu)
     url = "sim://skull?width=256&height=192&speed=0.5"
     robot = open_robot(url, ctx)
-    grabber = InstrumentGrabber(open_grabber(url + "&frames=130", ctx))
-    marks = {}
-
-    def inject():
-        time.sleep(3.0)
-        grabber.present.set()
-        time.sleep(2.0)
-        grabber.present.clear()
-        marks["clear"] = time.monotonic()
-
-    report = _run_injecting(inject, robot, grabber, tmp_path, device=warp_cpu)
+    grabber = InstrumentGrabber(open_grabber(url + "&frames=130", ctx), start=38, end=63)
+    report = run_live(robot, grabber, PipelineConfig(), str(tmp_path), tracker="opencv", progress=False,
+                      device=warp_cpu)
     events = report["health"]["events"]
     front = [e for e in events if e["device"] == "front-end"]
     assert not any(e["state"] == "partial view" and e["t_monotonic"] < grabber.first_seen for e in front), front
     seen = _first(events, "front-end", "partial view", grabber.first_seen)
     assert seen is not None and seen < 0.1, front
-    assert _first(events, "front-end", "tracking", marks["clear"]) is not None
+    assert _first(events, "front-end", "tracking", grabber.cleared) is not None
     assert report["health"]["counts"]["partial_view"] >= 1
     assert report["frames"]["processed"] > 80 and report["inliers"] > 100

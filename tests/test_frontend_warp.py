@@ -77,7 +77,7 @@ def test_shading_removal_matches_the_opencv_baseline(wp, rng):
     """Level 0 with shading removal is the OpenCV baseline's log high-pass (log - GaussianBlur(log, sigma)),
     though the Warp front-end takes the blur at half resolution."""
     from lapreco_hil.frontend.opencv import remove_shading
-    from lapreco_hil.frontend.warp import kernels as K
+    from lapreco_hil.frontend.warp.pyramid import HIGHPASS_RANGE
 
     cam = CameraModel(320, 240, 300.0, 300.0, 159.5, 119.5)
     fe = frontend(cam, shading_sigma_px=6.0)
@@ -87,7 +87,7 @@ def test_shading_removal_matches_the_opencv_baseline(wp, rng):
     fe._upload(bgr(gray))
     fe._prepare_kernels()
     ours = fe._pyr[fe._cur].numpy()[: 320 * 240].reshape(240, 320)
-    ref = np.clip(remove_shading(gray, 6.0), -K.HIGHPASS_RANGE, K.HIGHPASS_RANGE)
+    ref = np.clip(remove_shading(gray, 6.0), -HIGHPASS_RANGE, HIGHPASS_RANGE)
     inner = np.abs(ours - ref)[20:-20, 20:-20]  # the blurs' borders differ (replicate vs reflect-101)
     assert inner.max() < 0.01 and inner.mean() < 0.002, (inner.max(), inner.mean())  # measured 0.0031, 0.0005
     # the shading is gone: the high-pass has the same spread in the dim corner as in the lit centre
@@ -99,7 +99,7 @@ def test_shading_removal_matches_the_opencv_baseline(wp, rng):
 
 
 def test_pyramid_gradients_and_min_eigenvalue_match_opencv(wp, rng):
-    from lapreco_hil.frontend.warp import kernels as K
+    from lapreco_hil.frontend.warp import corners
 
     cam = CameraModel(320, 240, 300.0, 300.0, 159.5, 119.5)
     fe = frontend(cam)
@@ -116,12 +116,10 @@ def test_pyramid_gradients_and_min_eigenvalue_match_opencv(wp, rng):
     gx = fe._gx[fe._cur].numpy()[: ws[0] * hs[0]].reshape(hs[0], ws[0])
     refx = cv2.Sobel(gray.astype(np.float32) / 255.0, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     np.testing.assert_allclose(gx[1:-1, 1:-1], refx[1:-1, 1:-1], atol=1e-5)
-    wp.launch(K.structure_rows, (hs[0], ws[0]), [fe._gx[fe._cur], fe._gy[fe._cur], ws[0], hs[0], 7, fe._rows],
-              device=DEVICE)
-    wp.launch(K.selection_begin, 1, [fe._stamp, fe._max_eig], device=DEVICE)  # a new occupancy stamp: none yet
-    wp.launch_tiled(K.min_eigenvalue, dim=[hs[0]], inputs=[
-        fe._rows, ws[0], hs[0], 7, fe._mask, fe._lit, -1e30, fe._occ, fe._stamp, fe._eig, fe._max_eig], block_dim=256,
-        device=DEVICE)
+    corners.structure_rows(fe._gx[fe._cur], fe._gy[fe._cur], ws[0], hs[0], 7, fe._rows, DEVICE)
+    corners.selection_begin(fe._stamp, fe._max_eig, DEVICE)  # a new occupancy stamp: none yet
+    corners.min_eigenvalue(fe._rows, ws[0], hs[0], 7, fe._mask, fe._lit, -1e30, fe._occ, fe._stamp, fe._eig,
+                           fe._max_eig, DEVICE)
     eig = fe._eig.numpy()
     assert fe._max_eig.numpy()[0] == pytest.approx(eig.max())  # no occupancy: the best anywhere
     # cornerMinEigenVal normalises by the window area and its own Sobel scale: compare up to one factor
@@ -223,15 +221,15 @@ def test_lk_window_samples_stay_inside_the_image_wherever_the_window_goes(wp):
     """A diverging LK step (a near-singular window) can put a window anywhere, NaN and infinity included. Its
     samples are clamped to the image (border replicated), never read out of bounds: on CUDA a saturated
     float-to-int conversion once made an unclamped window pass a bounds test and read out of bounds."""
-    from lapreco_hil.frontend.warp import kernels as K
+    from lapreco_hil.frontend.warp import lk
 
     @wp.kernel
     def probe(img: wp.array(dtype=float), xs: wp.array(dtype=float), out: wp.array(dtype=float)):
         i = wp.tid()
         # pixel 0 (top-left) and pixel 440 (bottom-right) of a 21 x 21 window
-        o = K._window_origin(xs[i], xs[i])
-        out[2 * i] = K._window_px(img, 0, 100, 80, o, 0, 21, 1.0 / 21.0)
-        out[2 * i + 1] = K._window_px(img, 0, 100, 80, o, 440, 21, 1.0 / 21.0)
+        o = lk._window_origin(xs[i], xs[i])
+        out[2 * i] = lk._window_px(img, 0, 100, 80, o, 0, 21, 1.0 / 21.0)
+        out[2 * i + 1] = lk._window_px(img, 0, 100, 80, o, 440, 21, 1.0 / 21.0)
 
     yy, xx = np.mgrid[0:80, 0:100]
     img = (xx + 1000.0 * yy).astype(np.float32)  # a pixel's value says where it is
@@ -255,15 +253,14 @@ def test_lk_window_samples_stay_inside_the_image_wherever_the_window_goes(wp):
     (-20, (512, 0, 12)),  # 30 free, 12 selected corners: all of them, no cut
 ])
 def test_score_threshold_takes_the_strongest_that_fit(wp, live, expect):
-    from lapreco_hil.frontend.warp import kernels as K
+    from lapreco_hil.frontend.warp import corners
 
-    hist = np.zeros(K.SCORE_BINS, np.int32)
+    hist = np.zeros(corners.SCORE_BINS, np.int32)
     hist[[0, 2, 3, 40]] = [2, 7, 2, 1]
     count = wp.array(np.array([live], np.int32), dtype=wp.int32, device=DEVICE)
     cut = wp.zeros(2, dtype=wp.int32, device=DEVICE)
     taken = wp.array(np.array([5, 5], np.int32), dtype=wp.int32, device=DEVICE)
-    wp.launch(K.score_threshold, K.SCORE_BINS, [wp.array(hist, dtype=wp.int32, device=DEVICE), count, 10, cut,
-                                                taken], device=DEVICE)
+    corners.score_threshold(wp.array(hist, dtype=wp.int32, device=DEVICE), count, 10, cut, taken, DEVICE)
     assert taken.numpy().tolist() == [0, 0]  # take_corners' counters start from zero
     want = 10 - live
     c0, c1 = (int(v) for v in cut.numpy())

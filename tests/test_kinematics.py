@@ -78,3 +78,35 @@ def test_bad_urdf_and_missing_frame_are_clear_errors(tmp_path):
         CameraKinematics(str(urdf_path("ecm")), "nope", np.eye(4))
     with pytest.raises(ConfigError, match="no such URDF"):
         urdf_path("not-a-robot")
+
+
+def test_pose_at_time_gives_no_pose_outside_or_between_distant_readings(kin):
+    """A pose is interpolated only between two readings around the time, no further apart than
+    MAX_GAP_PERIODS median periods: before the first, after the last and inside a long gap there is none
+    (never the nearest reading held)."""
+    from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS
+    from lapreco_hil.kinematics import NoPoseError
+
+    pa = PoseAtTime(kin, (0.003, 0.003, 0.0003, 0.003), 1e-4, 1e-4)
+    with pytest.raises(NoPoseError, match="no joint readings received yet") as err:
+        pa.prior_at(0)
+    assert err.value.cause == BEFORE_FIRST
+    q = np.array([0.0, 0.0, 0.1, 0.0])
+    period = 10_000_000
+    times = [i * period for i in range(10)] + [(9 + MAX_GAP_PERIODS + 1) * period + i * period for i in range(10)]
+    for i, t in enumerate(times):
+        pa.add(JointSample(q + 0.001 * i, int(t), i))
+    assert pa.max_gap_ns == pytest.approx(MAX_GAP_PERIODS * period)
+    assert pa.no_pose_cause(5 * period + 1) is None and pa.no_pose_cause(0) is None  # bracketed; on a reading
+    assert pa.no_pose_cause(-1) == BEFORE_FIRST
+    assert pa.no_pose_cause(int(times[-1]) + 1) == AFTER_LAST
+    assert pa.no_pose_cause(11 * period) == IN_GAP
+    for t, cause, words in ((-1, BEFORE_FIRST, "before the first joint reading"),
+                            (int(times[-1]) + 1, AFTER_LAST, "after the last joint reading"),
+                            (11 * period, IN_GAP, "gap between joint readings longer than 30.0 ms")):
+        with pytest.raises(NoPoseError, match=words) as err:
+            pa.prior_at(t)
+        assert err.value.cause == cause
+    # the offset moves video time onto kinematics time
+    pa.offset_ns = -period
+    assert pa.no_pose_cause(0) == BEFORE_FIRST and pa.no_pose_cause(int(times[-1]) + period) is None

@@ -14,7 +14,7 @@ import time
 import pytest
 
 from lapreco_hil.cli.main import main
-from lapreco_hil.cli.run import run_live
+from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.runtime.live import StageError
@@ -165,7 +165,7 @@ def test_ctrl_c_on_lapreco_run_writes_outputs_and_completes_the_recording(tmp_pa
 
 
 def test_live_view_renders_the_frame_projected_on_the_mesh(tmp_path, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     report = run_demo(scene="skull", frames=40, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
                       tracker="opencv", progress=False, view_every=0.3)
@@ -247,3 +247,30 @@ def test_the_mapper_collects_garbage_only_when_idle():
         assert collector.collect_if_due() and alive() is None
         assert collector.collected >= 1
     assert gc.isenabled() == was and len(kept) == 20_000
+
+
+def test_a_run_whose_robot_readings_are_all_refused_says_why(tmp_path, warp_cpu):
+    """Every reading beyond the robot model's limits (a wrong model, or a joint's zero offset): no frame gets a
+    pose, and the error names the cause, the last refused value and the next step, instead of a bare "mapped
+    no frames"."""
+    import numpy as np
+
+    from lapreco_hil.errors import ReconstructionError
+    from lapreco_hil.types import JointSample
+
+    ctx = DeviceContext(device=warp_cpu)
+    url = "sim://skull?width=256&height=192&speed=0.5"
+    robot, grabber = open_robot(url, ctx), open_grabber(url + "&frames=20", ctx)
+    real_read = robot.read
+
+    def beyond_limits(timeout_s=None):  # the ECM's pitch stops at 1.13 rad
+        return [JointSample(np.where(np.arange(len(s.q)) == 1, 3.0, s.q), s.t_ns, s.seq) for s in real_read(timeout_s)]
+
+    robot.read = beyond_limits
+    with pytest.raises(ReconstructionError) as err:
+        run_live(robot, grabber, PipelineConfig(), str(tmp_path / "out"), tracker="opencv", device=warp_cpu,
+                 progress=False)
+    message = str(err.value)
+    assert "20 frames in, 20 without a pose" in message, message
+    assert "beyond limits" in message and "= 3 beyond its limits" in message, message
+    assert "lapreco devices --probe URL" in message and "\n" not in message

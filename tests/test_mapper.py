@@ -4,7 +4,7 @@ import numpy as np
 
 from lapreco_hil.config import MapperConfig
 from lapreco_hil.geometry import Rotation, make_T
-from lapreco_hil.mapping.mapper import Mapper
+from lapreco_hil.mapping.mapper import Mapper, MapperSchedule
 from lapreco_hil.types import Observations, PosePrior
 
 K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
@@ -70,14 +70,14 @@ def test_long_runs_retire_old_keyframes_with_bounded_memory_and_the_same_map(rng
                keyframe_track_ratio=0.0, window_keyframes=6, final_cauchy_iterations=5, final_tukey_iterations=5)
     results, peaks, most_active = {}, {}, {}
     for label, active in (("all", 0), ("bounded", 12), ("idle-time", 12)):
-        m = Mapper(K, MapperConfig(**cfg, active_keyframes=active, retire_batch=6))
         # live: retirement one keyframe at a time when the mapper is idle (here: after every frame)
-        m.defer_retirement = label == "idle-time"
+        m = Mapper(K, MapperConfig(**cfg, active_keyframes=active, retire_batch=6),
+                   schedule=MapperSchedule(defer_retirement=label == "idle-time"))
         peak = most = 0
         for o, prior, _ in frames:
             m.add(o, prior)
             most = max(most, len(m.keyframes) - m.first_active)
-            while m.defer_retirement and m.maintain():
+            while m.schedule.defer_retirement and m.maintain():
                 pass
             peak = max(peak, len(m.tracks))
         peaks[label], most_active[label] = peak, most
@@ -119,8 +119,7 @@ def test_local_ba_solved_late_by_a_worker_keeps_the_keyframes_right(rng):
                        keyframe_track_ratio=0.0, window_keyframes=6)
     errors = {}
     for delay in (None, 4):
-        m = Mapper(K, cfg)
-        m.defer_local_ba = delay is not None
+        m = Mapper(K, cfg, schedule=MapperSchedule(defer_local_ba=delay is not None))
         flight = None
         applied = 0
         for i, (o, prior, _) in enumerate(frames):
@@ -157,8 +156,7 @@ def test_keyframes_are_refined_against_the_map_before_their_points_are_triangula
     truth = {f[0].frame_seq: f[2] for f in frames}
     entered = {}
     for resect in (True, False):
-        m = Mapper(K, cfg)
-        m.defer_local_ba = True
+        m = Mapper(K, cfg, schedule=MapperSchedule(defer_local_ba=True))
         flight, errors = None, []
         for i, (o, prior, _) in enumerate(frames):
             if flight is not None and i >= flight[0]:  # the worker's result, 4 frames late
@@ -188,8 +186,7 @@ def test_deferred_triangulation_publishes_the_keyframe_first_and_builds_the_same
                        final_tukey_iterations=3)
     maps, pieces = {}, []
     for defer in (False, True):
-        m = Mapper(K, cfg)
-        m.defer_triangulation = defer
+        m = Mapper(K, cfg, schedule=MapperSchedule(defer_triangulation=defer))
         for o, prior, _ in frames:
             before = len(m.landmarks)
             if m.add(o, prior) and defer and len(m.keyframes) > 3:
@@ -221,3 +218,38 @@ def test_map_points_gathered_in_pieces_are_the_whole_map(rng):
     pts, cols = steps[-1]
     whole_pts, whole_cols = m.map_points()
     assert np.array_equal(pts, whole_pts) and np.array_equal(cols, whole_cols) and len(pts) == len(m.landmarks)
+
+
+def test_one_problem_builder_gives_the_local_window_and_the_final_pass(rng):
+    """Local BA and the final pass are built by one builder from a scope. The window adjusts the newest
+    keyframes' landmarks with their observations within reach; the final pass takes every observation of the
+    active keyframes' landmarks, those in retired keyframes whose arrays were let go included (held fixed)."""
+    from lapreco_hil.mapping.mapper import ProblemScope
+
+    _, frames = _scan(rng, n_frames=100)
+    cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
+                       keyframe_track_ratio=0.0, window_keyframes=4, active_keyframes=12, retire_batch=6,
+                       local_cauchy_iterations=2, local_tukey_iterations=2)
+    m = Mapper(K, cfg)
+    for o, prior, _ in frames:
+        m.add(o, prior)
+    n, fa, w = len(m.keyframes), m.first_active, cfg.window_keyframes
+    assert m.retirement.emptied > 0  # some retired keyframes hold no observations any more
+
+    local = m._problem(m._local_scope())
+    obs_kf = local.pose_ids[local.obs_pose]
+    assert obs_kf.min() >= n - 3 * w  # nothing beyond the window's reach
+    newest = np.concatenate([kf.track_ids for kf in m.keyframes[n - w:]])
+    assert np.isin(local.point_ids, newest).all() and all(t in m.landmarks for t in local.point_ids.tolist())
+    assert np.array_equal(local.fixed, local.pose_ids < fa)
+    assert len(local.obs_pose) == sum(int(np.isin(kf.track_ids, local.point_ids).sum())
+                                      for kf in m.keyframes[n - 3 * w:])
+    uv = local.obs_uv[0]
+    kf = m.keyframes[int(obs_kf[0])]
+    assert np.array_equal(kf.uv[kf.track_ids == local.point_ids[local.obs_point[0]]][0], uv)
+
+    final = m._problem(ProblemScope(points_from=fa, views_from=fa, every_view=True))
+    assert set(range(fa, n)) <= set(final.pose_ids.tolist())  # every active keyframe, free
+    assert np.array_equal(final.fixed, final.pose_ids < fa) and final.fixed.any()
+    assert len(final.obs_pose) == sum(len(m.tracks[t]) for t in final.point_ids.tolist())
+    assert (final.pose_ids[final.obs_pose] < m.retirement.emptied).any()  # views kept only by the tracks

@@ -9,10 +9,8 @@ from lapreco_hil.geometry import transform_points
 
 
 @pytest.fixture(scope="module")
-def world(warp_cpu):
-    from lapreco_hil.simulators.world import SimSettings, SimWorld
-
-    return SimWorld(SimSettings(scene="skull", width=320, height=240, device=warp_cpu))
+def world(skull_world):
+    return skull_world
 
 
 def test_rendered_depth_backprojects_onto_the_true_surface_and_reprojects_to_its_pixel(world):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lapreco_hil.drivers.health import HealthState
-from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.drivers.robot.joint_map import JointMap, cia402_joint_map, dynamixel_joint_map
 from lapreco_hil.errors import DeviceError, DeviceNotFoundError
 from lapreco_hil.registry import DeviceContext, open_robot
 from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
@@ -40,7 +40,7 @@ def wait_for(predicate, timeout_s: float = 2.0) -> float:
 
 @pytest.fixture
 def dxl():
-    jm = JointMap.for_model("ecm")
+    jm = dynamixel_joint_map("ecm")
     emu = DynamixelChainEmulator([1, 2, 3, 4], jm, joints_at)
     robot = open_robot(f"serial://{emu.port}?baud=1000000&ids=1,2,3,4&rate=100", DeviceContext())
     robot.open()
@@ -52,7 +52,7 @@ def dxl():
 
 @pytest.fixture
 def can_robot():
-    jm = JointMap.for_model("ecm", counts_per_rev=16384)
+    jm = cia402_joint_map("ecm")
     channel = f"test-{next(_channels)}"
     emu = CANopenDriveChainEmulator(channel, [1, 2, 3, 4], jm, joints_at)
     robot = open_robot(f"canopen://virtual/{channel}?nodes=1-4&rate=100&heartbeat_ms=40", DeviceContext())
@@ -156,7 +156,7 @@ def test_dynamixel_hardware_alert_faults_then_clears(dxl):
 
 def test_dynamixel_out_of_limit_reading_is_held_back_and_reported(dxl):
     emu, robot = dxl
-    emu.faults.position_override = {2: 3000}  # pitch: 3000 ticks = 4.6 rad, far past its limit
+    emu.faults.position_override = {2: 4000}  # pitch: 4000 ticks = (4000 - 2048) ticks = 3.0 rad, past its limit
     assert wait_for(lambda: robot.health.state is HealthState.FAULTED) < 0.1
     assert "joint 'pitch'" in robot.health.detail
     robot.read()
@@ -180,7 +180,7 @@ def test_dynamixel_unplug_and_replug(dxl):
 
 
 def test_dynamixel_missing_servo_and_missing_port_are_clear_errors():
-    jm = JointMap.for_model("ecm")
+    jm = dynamixel_joint_map("ecm")
     with DynamixelChainEmulator([1, 2, 4], jm, joints_at) as emu:
         robot = open_robot(f"serial://{emu.port}?ids=1,2,3,4", DeviceContext())
         with pytest.raises(DeviceNotFoundError, match=r"no answer from ID\(s\) 3 \(answered: 1, 2, 4\)"):
@@ -262,7 +262,7 @@ def test_canopen_statusword_fault_and_out_of_limit(can_robot):
 
 
 def test_canopen_missing_node_and_interface_are_clear_errors():
-    jm = JointMap.for_model("ecm", counts_per_rev=16384)
+    jm = cia402_joint_map("ecm")
     channel = f"test-{next(_channels)}"
     with CANopenDriveChainEmulator(channel, [1, 2, 3], jm, joints_at):
         with pytest.raises(DeviceNotFoundError, match=r"no SDO answer from node\(s\) 4 \(answered: 1, 2, 3\)"):
@@ -275,7 +275,7 @@ def test_canopen_missing_node_and_interface_are_clear_errors():
 
 @pytest.mark.parametrize("link", ["serial", "canopen"])
 def test_demo_runs_through_the_real_driver(link, tmp_path, warp_cpu):
-    from lapreco_hil.cli.demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     r = run_demo(scene="skull", frames=24, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
                  tracker="opencv", progress=False, robot_link=link, sim_speed=0.25)

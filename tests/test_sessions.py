@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from lapreco_hil.cli.main import main
-from lapreco_hil.cli.replay import run_replay
+from lapreco_hil.app.replay import run_replay
 from lapreco_hil.errors import SessionError
 from lapreco_hil.geometry import make_T, pose_error, tum_values
 from lapreco_hil.sessions import Session
@@ -261,7 +261,9 @@ def test_given_pose_source_interpolates_on_se3():
     mid = src.prior_at(150).T_world_camera
     assert pose_error(mid, make_T(rot_z(0.1), [0.005, 0, 0]))[0] < 1e-12
     assert pose_error(mid, make_T(rot_z(0.1), [0.005, 0, 0]))[1] < 1e-12
-    assert np.array_equal(src.prior_at(50).T_world_camera, T0) and np.array_equal(src.prior_at(900).T_world_camera, T1)
+    assert np.array_equal(src.prior_at(100).T_world_camera, T0) and np.array_equal(src.prior_at(200).T_world_camera, T1)
+    # outside the poses' span there is no pose: never the end pose held
+    assert not src.has_pose(50) and not src.has_pose(900)
     assert src.prior_at(150).cov[0, 0] == pytest.approx(1e-6)
 
 
@@ -271,14 +273,16 @@ def test_frames_before_the_first_joint_reading_are_skipped_and_counted(recorded,
     session = tmp_path / "late-joints"
     shutil.copytree(recorded, session)
     s = Session(session)
-    start = s.frame_t_ns[6] + 1  # the first reading comes just after frame 6
+    start = s.frame_t_ns[6]  # the first reading is the one taken at frame 6's capture time
     lines = (session / "joints.csv").read_text().splitlines(keepends=True)
     kept = [ln for ln in lines[1:] if int(ln.split(",")[1]) >= start]
     assert 0 < len(kept) < len(lines) - 1
     (session / "joints.csv").write_text(lines[0] + "".join(kept))
     r = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False)
-    # the replay clock hands on readings up to one frame period ahead, so frame 6 already has one
+    assert int(lines[len(lines) - len(kept)].split(",")[1]) == start  # (the robot samples at frame times too)
+    # frames 0-5 come before the first reading: no pose (never the first one held); frame 6 sits on it
     assert r["frames"]["without_pose"] == 6 and r["frames"]["processed"] == 24 and r["frames"]["dropped"] == 0
+    assert r["frames"]["without_pose_by_cause"] == {"before_first": 6, "after_last": 0, "in_gap": 0}
     assert r["inliers"] > 50
 
 

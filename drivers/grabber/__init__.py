@@ -1,3 +1,3 @@
-from .base import Grabber
+from lapreco_hil.drivers.grabber.base import Grabber
 
 __all__ = ["Grabber"]

@@ -4,21 +4,16 @@ from __future__ import annotations
 
 import abc
 
-from ...camera import CameraModel
-from ...types import Frame
-from ..health import Health
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.types import Frame
+from lapreco_hil.drivers.device import Device
 
 
-class Grabber(abc.ABC):
+class Grabber(Device):
     """Delivers frames stamped with their capture time."""
 
-    @abc.abstractmethod
-    def open(self) -> None:
-        ...
-
-    @abc.abstractmethod
-    def close(self) -> None:
-        ...
+    # frames per second the source delivers when it knows (None: unknown until frames arrive)
+    nominal_fps: float | None = None
 
     @abc.abstractmethod
     def read(self, timeout_s: float | None = None) -> Frame | None:
@@ -33,15 +28,3 @@ class Grabber(abc.ABC):
     def ground_truth(self):
         """A GroundTruth (true surface, true camera poses) when the source has one (simulator, session)."""
         return None
-
-    @property
-    @abc.abstractmethod
-    def health(self) -> Health:
-        ...
-
-    def __enter__(self) -> "Grabber":
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

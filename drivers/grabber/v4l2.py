@@ -1,6 +1,6 @@
 """A V4L2 frame grabber through OpenCV's V4L2 back-end.
 
-``v4l2:///dev/video0?width=1920&height=1080&fps=60&fourcc=MJPG&queue=4``
+``v4l2:///dev/video0?width=1920&height=1080&fps=60&fourcc=MJPG&queue=4`` (parameters: :class:`V4L2Config`)
 
 A reader thread takes every frame the driver delivers, stamps it with the driver's buffer timestamp
 (CAP_PROP_POS_MSEC: the V4L2 buffer time, CLOCK_MONOTONIC on Linux, the app's clock), and keeps the newest
@@ -11,22 +11,40 @@ buffer timestamps. When the device goes away (unplug), the thread reports it and
 
 from __future__ import annotations
 
+import collections
 import glob
 import logging
 import queue
 import threading
-import time
+from dataclasses import dataclass
 
-from ..health import Health, HealthState
-from .base import Grabber
-from ...errors import DeviceError, DeviceNotFoundError, DeviceTimeoutError
-from ...types import Frame
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.grabber.base import Grabber
+from lapreco_hil.errors import DeviceError, DeviceNotFoundError, DeviceTimeoutError
+from lapreco_hil.registry import URLConfig, url_param
+from lapreco_hil.types import Frame
 
 log = logging.getLogger(__name__)
 
 
 def video_devices() -> list[str]:
     return sorted(glob.glob("/dev/video*"))
+
+
+def _fourcc(text: str) -> str:
+    if len(text) != 4:
+        raise ValueError("must be 4 characters (e.g. MJPG, YUYV)")
+    return text
+
+
+@dataclass(frozen=True)
+class V4L2Config(URLConfig):
+    width: int | None = url_param(None, low=16, high=16384, unit="px", help="frame width to ask for")
+    height: int | None = url_param(None, low=16, high=16384, unit="px", help="frame height to ask for")
+    fps: float | None = url_param(None, low=0.1, high=1000.0, help="frame rate to ask for")
+    fourcc: str | None = url_param(None, parse=_fourcc, help="pixel format, e.g. MJPG, YUYV")
+    queue: int = url_param(4, low=1, high=1000, unit="frame", help="frames held for a slow consumer")
 
 
 def _opencv_capture(device: str):
@@ -49,18 +67,18 @@ class V4L2Grabber(Grabber):
     def __init__(self, url, context) -> None:
         import cv2
 
+        config = V4L2Config.from_url(url)
+        if not url.name:
+            raise url.error("give the video device, e.g. v4l2:///dev/video0")
         self.url = url
+        self.config = config
         self.device = url.name
-        self.width = url.get("width", None, int)
-        self.height = url.get("height", None, int)
-        self.fps = url.get("fps", None, float)
-        self.fourcc = url.get("fourcc", None, str)
-        self.queue_len = url.get("queue", 4, int)
-        if self.fourcc is not None and len(self.fourcc) != 4:
-            raise DeviceError(f"grabber '{url.raw}': fourcc must be 4 characters (e.g. MJPG, YUYV)")
-        # the capture factory and the clock are injected so the driver's logic can be tested without hardware
+        self.width, self.height, self.fps = config.width, config.height, config.fps
+        self.fourcc, self.queue_len = config.fourcc, config.queue
+        # the capture factory is injected so the driver's logic can be tested without hardware; the clock is
+        # the run's (V4L2 buffer stamps are CLOCK_MONOTONIC, the host clock's default)
         self._factory = context.options.get("v4l2_capture", _opencv_capture)
-        self._clock = context.options.get("clock_ns", time.monotonic_ns)
+        self._clock = context.clock_ns
         self._cv2 = cv2
         self._frames: queue.Queue[Frame] = queue.Queue(maxsize=max(1, self.queue_len))
         self._lock = threading.Lock()
@@ -75,6 +93,17 @@ class V4L2Grabber(Grabber):
         self.nominal_fps: float | None = self.fps
         self.stats = {"frames": 0, "dropped_by_driver": 0, "dropped_by_consumer": 0, "reconnects": 0,
                       "unplugs": 0, "stamped_on_arrival": 0, "non_increasing_stamps": 0}
+
+    @property
+    def faults(self) -> collections.Counter[str]:
+        return collections.Counter({k: v for k, v in self.stats.items() if k != "frames"})
+
+    @classmethod
+    def discover(cls) -> Discovery:
+        found = video_devices()
+        return Discovery("V4L2 video devices (frame grabbers)",
+                         tuple(FoundDevice(d, f"v4l2://{d}?width=1920&height=1080&fps=60") for d in found),
+                         "" if found else "no /dev/video* devices (is the grabber plugged in and its driver loaded?)")
 
     # --- opening and format negotiation ----------------------------------------------------------------------
     def _open_capture(self):

@@ -1,3 +1,3 @@
-from .base import RobotDriver
+from lapreco_hil.drivers.robot.base import RobotDriver
 
 __all__ = ["RobotDriver"]

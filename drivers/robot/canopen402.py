@@ -1,7 +1,9 @@
 """A robot of CiA 402 drives (e.g. maxon EPOS4) on a CAN bus, through the ``canopen`` package on python-can.
 
 ``canopen://<interface>/<channel>?nodes=1-4&rate=100&heartbeat_ms=100&model=ecm&bitrate=1000000``
-(``canopen://socketcan/can0?...`` on real hardware, ``canopen://virtual/ch0?...`` in tests.)
+(``canopen://socketcan/can0?...`` on real hardware, ``canopen://virtual/ch0?...`` in tests; parameters:
+:class:`CANopenConfig`; node ids 1..127.) Position actual value increments become joint positions with the
+CiA 402 convention, 0 increments = 0 (see ``joint_map``).
 
 On connect the master checks every node answers SDO (device type), maps statusword (0x6041) and position
 actual value (0x6064) into TPDO1 sent on every SYNC, sets each node's producer heartbeat time (0x1017) and
@@ -16,24 +18,30 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from .cia402 import POSITION_ACTUAL, PRODUCER_HEARTBEAT, STATUS_FAULT_BIT, STATUSWORD, cia402_object_dictionary
-from .dynamixel import parse_ids
-from .joint_map import JointMap
-from .polling import PollingRobotDriver
-from ...errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.robot.cia402 import (POSITION_ACTUAL, PRODUCER_HEARTBEAT, STATUS_FAULT_BIT, STATUSWORD,
+                                              cia402_object_dictionary)
+from lapreco_hil.drivers.robot.joint_map import cia402_joint_map
+from lapreco_hil.drivers.robot.polling import PolledRobotConfig, PollingRobotDriver
+from lapreco_hil.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError
+from lapreco_hil.registry import id_list_parser, url_param
 
 log = logging.getLogger(__name__)
 
 
+CANOPEN_NODE_IDS = (1, 127)  # CiA 301: node-ID 0 is reserved for NMT broadcast
+SYS_NET = Path("/sys/class/net")
+
+
 def can_interfaces() -> list[str]:
     """SocketCAN network interfaces this machine has (Linux: type 280 in /sys/class/net)."""
-    from pathlib import Path
-
     out = []
-    for dev in sorted(Path("/sys/class/net").glob("*")):
+    for dev in sorted(SYS_NET.glob("*")):
         try:
             if (dev / "type").read_text().strip() == "280":
                 out.append(dev.name)
@@ -42,27 +50,50 @@ def can_interfaces() -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class CANopenConfig(PolledRobotConfig):
+    nodes: tuple[int, ...] = url_param((1, 2, 3, 4), parse=id_list_parser(*CANOPEN_NODE_IDS, "CANopen"),
+                                       help="node ids in joint order, e.g. 1-4")
+    heartbeat_ms: int = url_param(100, low=1, high=65535, unit="ms", help="producer heartbeat time set on each node")
+    bitrate: int | None = url_param(None, low=10_000, high=1_000_000, help="CAN bit rate (interfaces that set it)")
+    sync_timeout_ms: float = url_param(20.0, low=0.1, high=10_000, unit="ms", help="wait for TPDO1 after SYNC")
+    # quadrature: 4 increments per encoder line
+    counts_per_rev: float = url_param(4.0 * 4096, low=1.0, help="increments per revolution")
+
+
 class CANopenRobot(PollingRobotDriver):
+    raw_unit = "increments"
+
     def __init__(self, url, context) -> None:
+        config = CANopenConfig.from_url(url)
         self.interface = url.netloc
         self.channel = url.path.lstrip("/")
         if not self.interface or not self.channel:
-            raise DeviceError(f"robot '{url.raw}': give the CAN interface and channel, e.g. "
-                              f"canopen://socketcan/can0?nodes=1-4")
-        self.node_ids = parse_ids(url.get("nodes", "1-4"), "nodes")
-        self.heartbeat_ms = url.get("heartbeat_ms", 100, int)
-        self.bitrate = url.get("bitrate", None, int)
-        self.sync_timeout_s = url.get("sync_timeout_ms", 20.0, float) / 1e3
-        joint_map = JointMap.from_url(url, counts_per_rev=4 * 4096)  # quadrature: 4 counts per encoder line
+            raise url.error("give the CAN interface and channel, e.g. canopen://socketcan/can0?nodes=1-4")
+        self.node_ids = list(config.nodes)
+        self.heartbeat_ms = config.heartbeat_ms
+        self.bitrate = config.bitrate
+        self.sync_timeout_s = config.sync_timeout_ms / 1e3
+        joint_map = cia402_joint_map(config.model, config.map, config.lead_m, config.counts_per_rev)
         if len(self.node_ids) != len(joint_map.names):
             raise DeviceError(f"robot '{url.raw}': {len(self.node_ids)} nodes for {len(joint_map.names)} joints "
                               f"({', '.join(joint_map.names)})")
-        super().__init__(url, context, joint_map, f"CANopen bus {self.interface}/{self.channel}")
+        super().__init__(url, context, config, joint_map, f"CANopen bus {self.interface}/{self.channel}")
         self._network = None
         self._nodes = {}
         self._tpdo_lock = threading.Condition()
         self._tpdo: dict[int, tuple[int, int]] = {}  # node -> (statusword, position) since the last SYNC
         self._heartbeat_wall: dict[int, float] = {}
+
+    @classmethod
+    def discover(cls) -> Discovery:
+        title = "SocketCAN interfaces (CANopen robots)"
+        if not SYS_NET.is_dir():
+            return Discovery(title, (), f"cannot look: {SYS_NET} is missing (SocketCAN is Linux only)")
+        found = can_interfaces()
+        return Discovery(title, tuple(FoundDevice(i, f"canopen://socketcan/{i}?nodes=1-4") for i in found),
+                         "" if found else "no SocketCAN interfaces (is the CAN adapter plugged in and up? "
+                                          "'ip link set can0 up type can bitrate 1000000')")
 
     # --- connection ------------------------------------------------------------------------------------------
     def _connect(self) -> None:
@@ -154,7 +185,7 @@ class CANopenRobot(PollingRobotDriver):
             self.set_device_fault(f"node {node_id} EMCY", None)
             log.info("%s: node %d error reset", self.device_name, node_id)
         else:
-            self.faults["emcy"] += 1
+            self.count_fault("emcy")
             self.set_device_fault(f"node {node_id} EMCY", f"0x{emcy.code:04X} {emcy.get_desc()} "
                                                           f"(error register 0x{emcy.register:02X})")
             log.warning("%s: node %d EMCY 0x%04X %s", self.device_name, node_id, emcy.code, emcy.get_desc())
@@ -170,7 +201,7 @@ class CANopenRobot(PollingRobotDriver):
             silent = now - self._heartbeat_wall.get(node_id, now)
             if silent > limit:
                 if f"node {node_id} heartbeat" not in self._device_faults:
-                    self.faults["heartbeat_lost"] += 1
+                    self.count_fault("heartbeat_lost")
                 self.set_device_fault(f"node {node_id} heartbeat", f"no heartbeat for {silent * 1e3:.0f} ms "
                                                                    f"(producer time {self.heartbeat_ms} ms)")
             else:

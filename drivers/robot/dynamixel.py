@@ -2,6 +2,8 @@
 ``dynamixel-sdk`` (PortHandler, Protocol2PacketHandler: framing, byte stuffing, CRC-16).
 
 ``serial:///dev/ttyUSB0?baud=1000000&ids=1,2,3,4&rate=100&model=ecm&map=joints.toml``
+(parameters: :class:`DynamixelConfig`; servo IDs 0..252, in joint order). Present Position ticks become
+joint positions with the X-series convention, 2048 ticks = 0 rad (see ``joint_map``).
 
 Each poll is one Sync Read of the block 120..135 of every servo (Realtime Tick, current, velocity, Present
 Position), servo IDs in joint order. A reading is stamped at the middle of the request/reply exchange on the
@@ -12,13 +14,16 @@ alert bit set marks the robot faulted until replies come back clean.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
-from .joint_map import JointMap
-from .polling import PollingRobotDriver
-from ...errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
+from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.robot.joint_map import DYNAMIXEL_TICKS_PER_REV, dynamixel_joint_map
+from lapreco_hil.drivers.robot.polling import PolledRobotConfig, PollingRobotDriver
+from lapreco_hil.errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
                        ProtocolError)
+from lapreco_hil.registry import id_list_parser, url_param
 
 log = logging.getLogger(__name__)
 
@@ -35,36 +40,50 @@ def serial_ports() -> list[str]:
     return sorted(p.device for p in list_ports.comports())
 
 
-def parse_ids(text: str, what: str = "ids") -> list[int]:
-    """``1,2,3`` or ``1-4`` or ``1-2,5``."""
-    ids: list[int] = []
-    try:
-        for part in text.split(","):
-            if "-" in part:
-                a, b = (int(v) for v in part.split("-"))
-                ids.extend(range(a, b + 1))
-            elif part.strip():
-                ids.append(int(part))
-    except ValueError:
-        raise DeviceError(f"'{what}={text}' must be numbers like 1,2,3,4 or 1-4") from None
-    if not ids or len(set(ids)) != len(ids) or not all(0 <= i <= 252 for i in ids):
-        raise DeviceError(f"'{what}={text}' must list distinct IDs in 0..252")
-    return ids
+DYNAMIXEL_IDS = (0, 252)  # Protocol 2.0: 253..255 are reserved (0xFE broadcast)
+BAUD_RATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 4_500_000)  # X-series settings
+
+
+def _baud(text: str) -> int:
+    baud = int(text)
+    if baud not in BAUD_RATES:
+        raise ValueError(f"is not an X-series baud rate ({', '.join(map(str, BAUD_RATES))})")
+    return baud
+
+
+@dataclass(frozen=True)
+class DynamixelConfig(PolledRobotConfig):
+    baud: int = url_param(1_000_000, parse=_baud, help="bus baud rate")
+    ids: tuple[int, ...] = url_param((1, 2, 3, 4), parse=id_list_parser(*DYNAMIXEL_IDS, "Dynamixel Protocol 2.0"),
+                                     help="servo IDs in joint order, e.g. 1,2,3,4 or 1-4")
+    counts_per_rev: float = url_param(float(DYNAMIXEL_TICKS_PER_REV), low=1.0, help="ticks per revolution")
 
 
 class DynamixelRobot(PollingRobotDriver):
+    raw_unit = "ticks"
+
     def __init__(self, url, context) -> None:
+        config = DynamixelConfig.from_url(url)
+        if not url.name:
+            raise url.error("give the serial port, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4")
         self.port_path = url.name
-        self.baud = url.get("baud", 1_000_000, int)
-        self.ids = parse_ids(url.get("ids", "1,2,3,4"))
-        joint_map = JointMap.from_url(url, counts_per_rev=4096)
+        self.baud = config.baud
+        self.ids = list(config.ids)
+        joint_map = dynamixel_joint_map(config.model, config.map, config.lead_m, config.counts_per_rev)
         if len(self.ids) != len(joint_map.names):
             raise DeviceError(f"robot '{url.raw}': {len(self.ids)} servo IDs for {len(joint_map.names)} joints "
                               f"({', '.join(joint_map.names)})")
-        super().__init__(url, context, joint_map, f"Dynamixel bus '{self.port_path}'")
+        super().__init__(url, context, config, joint_map, f"Dynamixel bus '{self.port_path}'")
         self._port = None
         self._packets = None
         self.models: dict[int, int] = {}
+
+    @classmethod
+    def discover(cls) -> Discovery:
+        ports = serial_ports()
+        return Discovery("serial ports (Dynamixel robots)",
+                         tuple(FoundDevice(p, f"serial://{p}?baud=1000000&ids=1,2,3,4") for p in ports),
+                         "" if ports else "no serial ports (is the USB-RS485/TTL adapter plugged in?)")
 
     def _connect(self) -> None:
         import serial

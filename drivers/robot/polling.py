@@ -15,16 +15,56 @@ import collections
 import logging
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..health import Health, HealthState
-from .base import RobotDriver
-from .joint_map import JointMap
-from ...errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, ProtocolError
-from ...types import JointLimits, JointSample, RobotInfo
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.robot.base import RobotDriver
+from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError, ProtocolError
+from lapreco_hil.registry import URLConfig, url_param
+from lapreco_hil.types import JointLimits, JointSample, RobotInfo
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PolledRobotConfig(URLConfig):
+    """URL parameters every polled robot takes (a back-end adds its own)."""
+
+    rate: float = url_param(100.0, low=0.1, high=2000.0, unit="Hz", help="readings per second")
+    model: str = url_param("ecm", help="robot model: a packaged name or a URDF path")
+    map: str | None = url_param(None, help="joint map TOML (sign, zero_count, offset, counts_per_rev per joint)")
+    counts_per_rev: float = url_param(4096.0, low=1.0, help="encoder counts per revolution")
+    lead_m: float = url_param(0.002, low=1e-6, high=1.0, unit="m", help="prismatic joints: metres per revolution")
+
+
+@dataclass(frozen=True)
+class RawReading:
+    """One reading as the device gave it (before the joint map), and whether it was delivered."""
+
+    counts: np.ndarray
+    t_ns: int
+    delivered: bool
+
+
+class _RateLimitedWarning:
+    """The first warning at once, then at most one per ``interval_s`` with the count of those held back."""
+
+    def __init__(self, interval_s: float = 5.0) -> None:
+        self.interval_s = interval_s
+        self._last = -float("inf")
+        self._held = 0
+
+    def __call__(self, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last < self.interval_s:
+            self._held += 1
+            return
+        more = f" ({self._held} more since the last warning)" if self._held else ""
+        log.warning("%s%s", message, more)
+        self._last, self._held = now, 0
 
 
 class PollingRobotDriver(RobotDriver):
@@ -35,17 +75,20 @@ class PollingRobotDriver(RobotDriver):
     degraded_after_periods = 10.0
     degraded_min_s = 0.25
     buffer_len = 4096
+    raw_unit = "counts"  # what the device's raw positions are called (ticks, increments)
 
-    def __init__(self, url, context, joint_map: JointMap, device_name: str) -> None:
+    def __init__(self, url, context, config: PolledRobotConfig, joint_map: JointMap, device_name: str) -> None:
         self.url = url
+        self.config = config
         self.device_name = device_name
         self.joint_map = joint_map
-        self.rate_hz = url.get("rate", 100.0, float)
-        if not 0.1 <= self.rate_hz <= 2000:
-            raise DeviceError(f"robot '{url.raw}': rate={self.rate_hz} Hz out of range (0.1..2000)")
-        self.info = RobotInfo(url.get("model", "ecm"), joint_map.names, JointLimits(joint_map.lower, joint_map.upper))
-        # the clock is injected (a simulated world's clock in the demo); staleness is judged on the wall clock
-        self._clock = context.options.get("clock_ns", time.monotonic_ns)
+        self.rate_hz = config.rate
+        self.info = RobotInfo(config.model, joint_map.names, JointLimits(joint_map.lower, joint_map.upper))
+        # the run's clock comes through the context (a simulated world's clock when the driver sits on a device
+        # emulator inside a simulation); staleness is judged on the wall clock
+        self._clock = context.clock_ns
+        self._raw: collections.deque[RawReading] = collections.deque(maxlen=self.buffer_len)
+        self._warn_limits = _RateLimitedWarning()
         self._cond = threading.Condition()
         self._new: collections.deque[JointSample] = collections.deque(maxlen=self.buffer_len)
         self._history: collections.deque[JointSample] = collections.deque(maxlen=self.buffer_len)
@@ -60,7 +103,19 @@ class PollingRobotDriver(RobotDriver):
         self._last_error = ""
         self._last_t_ns = 0
         self._seq = 0
-        self.faults: collections.Counter[str] = collections.Counter()
+        self._faults: collections.Counter[str] = collections.Counter()
+        self._faults_lock = threading.Lock()  # counted from the reader thread and python-can's notifier
+
+    @property
+    def faults(self) -> collections.Counter[str]:
+        """Counts per fault kind: timeouts, protocol_errors, disconnects, reconnects, out_of_limits,
+        non_increasing_stamps, and the back-end's own (emcy, heartbeat_lost)."""
+        with self._faults_lock:
+            return collections.Counter(self._faults)
+
+    def count_fault(self, kind: str) -> None:
+        with self._faults_lock:
+            self._faults[kind] += 1
 
     # --- what a back-end implements -------------------------------------------------------------------------
     @abc.abstractmethod
@@ -108,7 +163,7 @@ class PollingRobotDriver(RobotDriver):
                 self._last_fault = message
 
     def _note(self, kind: str, message: str) -> None:
-        self.faults[kind] += 1
+        self.count_fault(kind)
         self._last_fault = message
         log.debug("%s: %s", self.device_name, message)
 
@@ -162,16 +217,26 @@ class PollingRobotDriver(RobotDriver):
             self._last_fault = str(exc)
             return
         self._connected = True
-        self.faults["reconnects"] += 1
+        self.count_fault("reconnects")
         log.warning("%s reconnected", self.device_name)
 
     def _accept(self, counts: np.ndarray, t_ns: int) -> None:
-        q = self.joint_map.to_si(counts)
-        bad = self.joint_map.out_of_limits(q)
-        if bad:
-            # a reading beyond the joint limits is a broken reading, not a pose: it is counted, not delivered
+        jm = self.joint_map
+        q = jm.to_si(counts)
+        beyond = jm.beyond_limits(q)
+        self._raw.append(RawReading(np.array(counts, np.int64), t_ns, not beyond.any()))
+        if beyond.any():
+            # a reading beyond the joint limits is a broken reading (or a wrong joint map), not a pose: it is
+            # counted and reported, not delivered
+            bad = jm.out_of_limits(q)
             self._note("out_of_limits", f"{self.device_name}: {'; '.join(bad)}")
             self.set_device_fault("limits", f"{'; '.join(bad)}")
+            i = int(np.flatnonzero(beyond)[0])
+            self._warn_limits(f"{self.device_name}: reading refused: joint '{jm.names[i]}' = {q[i]:.4g} {jm.unit(i)} "
+                              f"({int(counts[i])} {self.raw_unit}) is beyond its limits [{jm.lower[i]:.4g}, "
+                              f"{jm.upper[i]:.4g}] {jm.unit(i)}"
+                              + (f" ({len(bad) - 1} more joint(s) too)" if len(bad) > 1 else "")
+                              + "; check the joint map (map=FILE) with 'lapreco devices --probe URL'")
             return
         self.set_device_fault("limits", None)
         if t_ns <= self._last_t_ns:
@@ -193,13 +258,20 @@ class PollingRobotDriver(RobotDriver):
         if self._thread is None:
             raise DeviceError(f"{self.device_name} is not open")
 
-    def read(self, timeout_s: float | None = None) -> list[JointSample]:
+    def _read(self, timeout_s: float | None) -> list[JointSample]:
         self._raise_if_failed()
         with self._cond:
             if not self._new and timeout_s:
                 self._cond.wait(timeout_s)
             out = list(self._new)
             self._new.clear()
+        return out
+
+    def take_raw_readings(self) -> list[RawReading]:
+        """Every reading polled since the last call (up to ``buffer_len``), delivered or refused, raw counts."""
+        out = []
+        while self._raw:
+            out.append(self._raw.popleft())
         return out
 
     def latest(self) -> JointSample | None:
@@ -238,6 +310,7 @@ class PollingRobotDriver(RobotDriver):
             silent = "no reading yet" if last == 0.0 else f"no reading for {(now - last) * 1e3:.0f} ms"
             return Health(HealthState.STALE, f"{silent} ({self._last_fault or 'no fault seen'})", self._clock())
         if now - self._last_error_wall < max(self.degraded_min_s, self.degraded_after_periods / self.rate_hz):
-            lost = self.faults["timeouts"] + self.faults["protocol_errors"]
+            counts = self.faults
+            lost = counts["timeouts"] + counts["protocol_errors"]
             return Health(HealthState.DEGRADED, f"{lost} readings lost so far; last: {self._last_error}", self._clock())
         return Health(HealthState.OK, "", self._clock())

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calib.boards import parse_board
-from ..calib.files import read_camera_yaml, read_handeye_yaml, write_handeye_yaml
-from ..errors import CalibrationError, ConfigError
-from ..outputs import write_json
-from ..types import RobotDescription
+from lapreco_hil.calib.boards import parse_board
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml, write_handeye_yaml
+from lapreco_hil.errors import CalibrationError, ConfigError
+from lapreco_hil.outputs import write_json
+from lapreco_hil.types import RobotDescription
 
 log = logging.getLogger(__name__)
 
@@ -75,10 +75,10 @@ def require_hand_eye(robot, grabber, description: RobotDescription | None) -> Ro
 
 def hand_eye_stations(session, board, camera, stride: int):
     """Stations (tip pose from the joint readings at each used frame, board pose by PnP) of a session."""
-    from ..calib.handeye import board_station
-    from ..config import PriorConfig
-    from ..kinematics import CameraKinematics, PoseAtTime
-    from ..robot_models import urdf_path
+    from lapreco_hil.calib.handeye import board_station
+    from lapreco_hil.config import PriorConfig
+    from lapreco_hil.kinematics import CameraKinematics, PoseAtTime
+    from lapreco_hil.robot_models import urdf_path
 
     robot = session.robot
     kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, np.eye(4), robot.T_world_base)
@@ -86,7 +86,7 @@ def hand_eye_stations(session, board, camera, stride: int):
     joints = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
                         capacity=max(4096, len(session.joint_samples)))
     joints.extend(session.joint_samples)
-    from ..calib.time_offset import JointTrack
+    from lapreco_hil.calib.time_offset import JointTrack
 
     track = JointTrack(np.array([j.t_ns for j in session.joint_samples], np.int64),
                        np.array([j.q for j in session.joint_samples]))
@@ -107,8 +107,8 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
                                stride: int = 5, json_file: str | None = None) -> dict:
     """``lapreco calibrate handeye``: stations from the session, every closed-form method, the joint
     refinement, the report; writes ``out`` (handeye.yaml) and, if asked, the report as JSON."""
-    from ..calib.handeye import calibrate_hand_eye
-    from ..sessions import Session
+    from lapreco_hil.calib.handeye import calibrate_hand_eye
+    from lapreco_hil.sessions import Session
 
     session = Session(session_dir)
     if session.meta.pose_source != "joints":
@@ -120,7 +120,7 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
     if len(stations) < 3:
         raise CalibrationError(f"session '{session_dir}': the board ({board_spec}) was found in {len(stations)} "
                                f"stations; at least 3 are needed")
-    from ..config import PriorConfig
+    from lapreco_hil.config import PriorConfig
 
     # the refinement's joint errors have the pipeline's joint prior (the robot's 1-sigma joint error)
     result = calibrate_hand_eye(stations, camera, tip_pose=kin.tip_pose, joint_sigma=PriorConfig().joint_sigma)
@@ -140,9 +140,9 @@ def estimate_session_time_offset(session_dir: str, search_ms: float = 1000.0, ap
                                  hand_eye_file: str | None = None, json_file: str | None = None) -> dict:
     """``lapreco calibrate time-offset``: the estimate's summary; with ``apply`` it is written into the
     session's time_offset_ns (and the estimate under source.time_offset_estimate)."""
-    from ..calib.time_offset import estimate_time_offset
-    from ..sessions import Session
-    from ..sessions.format import META_FILE
+    from lapreco_hil.calib.time_offset import estimate_time_offset
+    from lapreco_hil.sessions import Session
+    from lapreco_hil.sessions.format import META_FILE
 
     if not (isinstance(search_ms, (int, float)) and math.isfinite(search_ms) and search_ms > 0):
         raise CalibrationError(f"--search-ms must be a positive, finite number of milliseconds, got {search_ms}")

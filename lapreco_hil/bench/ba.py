@@ -10,10 +10,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from ..geometry import pose_error
-from ..mapping import bundle_adjustment as ba
-from ..mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
-from ..mapping.synthetic import make_problem
+from lapreco_hil.geometry import pose_error
+from lapreco_hil.mapping import bundle_adjustment as ba
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.synthetic import make_problem
 
 
 def _pose_rms_mm(poses, truth) -> float:

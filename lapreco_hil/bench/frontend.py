@@ -13,14 +13,14 @@ import time
 import cv2
 import numpy as np
 
-from ..config import TrackerConfig
+from lapreco_hil.config import TrackerConfig
 
 
 def _frames(scene: str, width: int, height: int, n: int, device: str):
-    from ..simulators.world import SimSettings, SimWorld
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
 
     world = SimWorld(SimSettings(scene=scene, width=width, height=height, device=device))
-    from ..types import Frame
+    from lapreco_hil.types import Frame
 
     out = []
     for k in range(n):
@@ -60,8 +60,8 @@ def _run(make, frames, warmup: int) -> dict:
 
 def run(device: str, resolutions: list[tuple[int, int]], features: list[int], frames: int = 40,
         warmup: int = 8, scene: str = "skull") -> dict:
-    from ..frontend.opencv import OpenCVFrontEnd
-    from ..frontend.warp import WarpFrontEnd
+    from lapreco_hil.frontend.opencv import OpenCVFrontEnd
+    from lapreco_hil.frontend.warp import WarpFrontEnd
 
     cv2.setNumThreads(os.cpu_count() or 1)
     rows = []

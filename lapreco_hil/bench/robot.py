@@ -35,20 +35,20 @@ def _measure(robot, seconds: float) -> dict:
 
 
 def run(links=("serial", "canopen"), rates=(100.0, 500.0), seconds: float = 5.0) -> dict:
-    from ..drivers.robot.joint_map import JointMap
-    from ..registry import DeviceContext, open_robot
-    from ..simulators.canopen_emulator import CANopenDriveChainEmulator
-    from ..simulators.dynamixel_emulator import DynamixelChainEmulator
+    from lapreco_hil.drivers.robot.joint_map import cia402_joint_map, dynamixel_joint_map
+    from lapreco_hil.registry import DeviceContext, open_robot
+    from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
+    from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
     rows = []
     for link in links:
         for rate in rates:
             if link == "serial":
-                emu = DynamixelChainEmulator([1, 2, 3, 4], JointMap.for_model("ecm"), _joints_at)
+                emu = DynamixelChainEmulator([1, 2, 3, 4], dynamixel_joint_map("ecm"), _joints_at)
                 url = f"serial://{emu.port}?baud=1000000&ids=1,2,3,4&rate={rate}"
             else:
                 emu = CANopenDriveChainEmulator(f"bench-{rate}", [1, 2, 3, 4],
-                                                JointMap.for_model("ecm", counts_per_rev=16384), _joints_at)
+                                                cia402_joint_map("ecm"), _joints_at)
                 url = f"canopen://virtual/bench-{rate}?nodes=1-4&rate={rate}"
             try:
                 with open_robot(url, DeviceContext()) as robot:

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import CameraModel
-from ..sessions import Session, SessionMeta
-from ..sessions.writer import SessionWriter
-from ..types import Frame
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.sessions import Session, SessionMeta
+from lapreco_hil.sessions.writer import SessionWriter
+from lapreco_hil.types import Frame
 
 
 def _frames(width: int, height: int, n: int, seed: int = 0) -> list[np.ndarray]:

@@ -1,4 +1,4 @@
-"""``lapreco bench soak``: the live runtime on the simulated world for a long time (30 minutes for
+"""``lapreco bench soak`` (run by lapreco_hil.app.bench): the live runtime on the simulated world for a long time (30 minutes for
 docs/reliability.md), sampling every few seconds the resident memory of the main and the mapper process,
 the map's size, the frames in and mapped, and the latency of the frames done since the last sample. The
 summary gives memory growth (a straight-line fit after the warm-up) and latency drift (first vs last
@@ -7,12 +7,8 @@ stretch)."""
 from __future__ import annotations
 
 import json
-import os
-import platform
-import tempfile
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -96,42 +92,6 @@ def summarize(samples: list[dict], warmup_s: float, stretch_s: float) -> dict:
             "from_s": lo, "median_p50_ms": float(np.median([s["latency_p50_ms"] for s in sel])) if sel else None,
             "median_p99_ms": float(np.median([s["latency_p99_ms"] for s in sel])) if sel else None}
     return out
-
-
-def run(device: str, resolution: tuple[int, int], fps: float, minutes: float, features: int, scene: str = "skull",
-        tracker: str = "auto", sample_s: float = 10.0, stream: str | None = None) -> dict:
-    from ..cli.run import run_live
-    from ..config import PipelineConfig
-    from ..frontend import resolve_tracker
-    from ..registry import DeviceContext, open_grabber, open_robot
-
-    w, h = resolution
-    tracker = resolve_tracker(tracker, device)
-    config = PipelineConfig()
-    config = replace(config, tracker=replace(config.tracker, max_features=features))
-    ctx = DeviceContext(device=device)
-    # an endless simulated world (its scan is periodic), rendered as the camera would deliver it
-    url = f"sim://{scene}?width={w}&height={h}&fps={fps}&speed=1.0"
-    robot, grabber = open_robot(url, ctx), open_grabber(url + "&pace=realtime", ctx)
-    sampler = Sampler(sample_s, stream)
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            report = run_live(robot, grabber, config, str(Path(tmp) / "out"), tracker=tracker, device=device,
-                              seconds=minutes * 60.0, progress=False, report_fields={"command": "bench soak"},
-                              write=False, on_live=sampler.attach)
-        finally:
-            sampler.stop()
-    wall = time.perf_counter() - t0
-    samples = sampler.samples
-    f = report["frames"]
-    return {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "device": device,
-            "tracker": tracker, "scene": scene, "resolution": f"{w}x{h}", "fps_target": fps, "minutes": minutes,
-            "features": features, "wall_s": wall, "frames": f, "latency_ms": report["latency_ms"],
-            "keyframes": report["keyframes"], "landmarks": report["landmarks"], "inliers": report["inliers"],
-            "final_ba_s": report["live"].get("final_ba_s"), "health_counts": report["health"]["counts"],
-            "summary": summarize(samples, warmup_s=min(120.0, minutes * 60 / 4), stretch_s=min(300.0, minutes * 60 / 4)),
-            "samples": samples}
 
 
 def format_table(r: dict) -> str:

@@ -1,16 +1,17 @@
-"""``lapreco calibrate lens|handeye|time-offset``: the calibration workflows, writing OpenCV YAML that the
-rest of the app reads (``record``/``replay --camera``, ``--hand-eye``) and, for the time offset, the
-session's own ``time_offset_ns``."""
+"""``lapreco calibrate lens|stereo|handeye|time-offset``: the calibration workflows, writing OpenCV YAML that
+the rest of the app reads (``record``/``replay --camera``, ``--hand-eye``) and, for the time offset, the
+session's own ``time_offset_ns``. Lens and stereo run in ``lapreco_hil.app.calibrate``; this module parses
+and prints."""
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
 
+import numpy as np
 
-from ..calib.boards import parse_board
-from ..calib.files import write_camera_yaml
-from ..outputs import write_json
+from lapreco_hil.cli.args import positive
+from lapreco_hil.outputs import write_json
 
 log = logging.getLogger(__name__)
 
@@ -19,15 +20,32 @@ def add_parsers(sub, positive_int) -> None:
     cal = sub.add_parser("calibrate", help="lens, hand-eye and video-kinematics time-offset calibration")
     cal_sub = cal.add_subparsers(dest="calibration", required=True)
 
+    boards = ("chessboard:9x6:0.025 (inner corners, square m), charuco:10x7:0.004:0.003[:DICT_5X5_100], "
+              "circles:25x18:0.005[:8,5+16,5] (dots per row x rows, pitch m, large dots), acircles:4x11:0.02, "
+              "or viking")
+    models = ("auto", "standard", "paper", "rational", "full")
     lens = cal_sub.add_parser("lens", help="lens intrinsics and distortion from board images")
     lens.add_argument("images", nargs="+", help="board images (or a session's frames/*.png)")
-    lens.add_argument("--board", required=True, help="chessboard:9x6:0.025 (inner corners, square m) or "
-                                                     "charuco:10x7:0.004:0.003[:DICT_5X5_100]")
-    lens.add_argument("--model", default="paper", choices=("paper", "standard", "rational", "full"),
-                      help="distortion model (default: paper = radial k1..k3, tangential, thin prism)")
+    lens.add_argument("--board", required=True, help=boards)
+    lens.add_argument("--model", default="auto", choices=models,
+                      help="distortion model (default: auto = the simplest of standard, rational, full whose "
+                           "error on held-out views is within 5%% of the best)")
     lens.add_argument("--out", required=True, help="camera.yaml to write (OpenCV FileStorage)")
+    lens.add_argument("--ros-out", default=None, help="also write a ROS camera_info YAML")
+    lens.add_argument("--camera-name", default="camera", help="camera_name in the ROS camera_info YAML")
     lens.add_argument("--json", default=None, help="also write the report as JSON")
     lens.set_defaults(func=cmd_lens)
+
+    st = cal_sub.add_parser("stereo", help="a stereo rig (both lenses and T_cam0_cam1) from board image pairs")
+    st.add_argument("--left", nargs="+", required=True, help="camera 0's board images")
+    st.add_argument("--right", nargs="+", required=True, help="camera 1's, taken with them, in the same order")
+    st.add_argument("--board", required=True, help=boards)
+    st.add_argument("--model", default="auto", choices=models, help="each camera's distortion model")
+    st.add_argument("--refine-intrinsics", action="store_true",
+                    help="refine both lenses with the rig (default: each lens as calibrated alone, fixed)")
+    st.add_argument("--out", required=True, help="rig.yaml to write (OpenCV FileStorage)")
+    st.add_argument("--json", default=None, help="also write the report as JSON")
+    st.set_defaults(func=cmd_stereo)
 
     he = cal_sub.add_parser("handeye", help="T_tip_camera from a session of joint readings and board views")
     he.add_argument("session", help="a session with joint readings (pose_source 'joints') looking at a board")
@@ -40,7 +58,7 @@ def add_parsers(sub, positive_int) -> None:
 
     to = cal_sub.add_parser("time-offset", help="offset between video and kinematics timestamps")
     to.add_argument("session", help="a session with joint readings over a textured scene, the camera moving")
-    to.add_argument("--search-ms", type=float, default=1000.0, help="search +- this many ms (default 1000)")
+    to.add_argument("--search-ms", type=positive, default=1000.0, help="search +- this many ms (default 1000)")
     to.add_argument("--apply", action="store_true", help="write the estimate into the session's time_offset_ns")
     to.add_argument("--hand-eye", default=None, help="hand-eye (OpenCV YAML) in place of the session's own")
     to.add_argument("--json", default=None, help="also write the report as JSON")
@@ -52,29 +70,50 @@ def _write_json(path: str | None, doc: dict) -> None:
         write_json(path, doc)
 
 
-def cmd_lens(args) -> int:
-    from ..calib.lens import calibrate_lens, load_images, save_check_image
-
-    board = parse_board(args.board)
-    images = load_images(args.images)
-    result = calibrate_lens(images, board, args.model)
-    write_camera_yaml(args.out, result.camera, {"rms_px": result.rms_px, "model": result.model,
-                                                "views": len(result.per_view_rms_px)})
-    check = Path(args.out).with_suffix(".check.png")
-    save_check_image(check, result, images)
+def _print_lens(prefix: str, result) -> None:
+    for s in result.scores:
+        held = "not fitted: " + (s.error or "") if s.held_out_rms_px is None else f"held out {s.held_out_rms_px:.3f} px"
+        fitted = "" if s.fit_rms_px is None else f", fitted {s.fit_rms_px:.3f} px"
+        mark = "  <- chosen" if s.model == result.model else ""
+        print(f"{prefix}model {s.model:<8} ({s.coefficients:>2} coefficients): {held}{fitted}{mark}")
     for name, why in result.rejected.items():
-        print(f"  rejected {name}: {why}")
+        print(f"{prefix}rejected {name}: {why}")
+    sd = result.std
+    print(f"{prefix}std: fx {sd['fx']:.2f} fy {sd['fy']:.2f} cx {sd['cx']:.2f} cy {sd['cy']:.2f} px")
+
+
+def cmd_lens(args) -> int:
+    from lapreco_hil.app.calibrate import run_lens_calibration
+
+    run = run_lens_calibration(args.images, args.board, args.out, args.model, args.ros_out, args.camera_name)
+    result = run.result
+    _print_lens("  ", result)
     worst = max(result.per_view_rms_px.items(), key=lambda kv: kv[1])
-    print(f"lapreco calibrate lens: {len(result.per_view_rms_px)} of {len(images)} views, model {result.model}, "
+    cam = result.camera
+    print(f"lapreco calibrate lens: {len(result.per_view_rms_px)} of {run.images} views, model {result.model}, "
           f"RMS {result.rms_px:.3f} px (worst view {Path(worst[0]).name}: {worst[1]:.3f} px); "
-          f"fx {result.camera.fx:.1f} fy {result.camera.fy:.1f} cx {result.camera.cx:.1f} cy {result.camera.cy:.1f}; "
-          f"wrote {args.out} and {check}")
+          f"fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f}; wrote {', '.join(run.written)}")
     _write_json(args.json, result.summary())
     return 0
 
 
+def cmd_stereo(args) -> int:
+    from lapreco_hil.app.calibrate import run_stereo_calibration
+
+    run = run_stereo_calibration(args.left, args.right, args.board, args.out, args.model, args.refine_intrinsics)
+    for tag, lens in (("camera 0", run.lens0), ("camera 1", run.lens1)):
+        print(f"  {tag}: model {lens.model}, RMS {lens.rms_px:.3f} px, {len(lens.per_view_rms_px)} views")
+        _print_lens("    ", lens)
+    r = run.result
+    print(f"lapreco calibrate stereo: {len(r.pairs)} pairs, RMS {r.rms_px:.3f} px, rectified epipolar error "
+          f"{r.rectified_epipolar_error_px:.3f} px, baseline {float(np.linalg.norm(r.T)) * 1e3:.2f} mm; "
+          f"wrote {args.out}")
+    _write_json(args.json, {**r.summary(), "cam0_lens": run.lens0.summary(), "cam1_lens": run.lens1.summary()})
+    return 0
+
+
 def cmd_handeye(args) -> int:
-    from ..app.handeye import calibrate_hand_eye_session
+    from lapreco_hil.app.handeye import calibrate_hand_eye_session
 
     result = calibrate_hand_eye_session(args.session, args.board, args.out, camera_file=args.camera,
                                         stride=args.stride, json_file=args.json)
@@ -94,7 +133,7 @@ def cmd_handeye(args) -> int:
 
 
 def cmd_time_offset(args) -> int:
-    from ..app.handeye import estimate_session_time_offset
+    from lapreco_hil.app.handeye import estimate_session_time_offset
 
     s = estimate_session_time_offset(args.session, args.search_ms, apply=args.apply, hand_eye_file=args.hand_eye,
                                      json_file=args.json)

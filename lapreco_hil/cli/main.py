@@ -1,38 +1,20 @@
-"""The ``lapreco`` command. Every LaprecoError becomes one line on stderr and exit status 2."""
+"""The ``lapreco`` command: parses arguments, calls lapreco_hil.app and prints the result. Every LaprecoError,
+and every refused argument, becomes one line on stderr and exit status 2. Nothing imports this package."""
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import sys
 
-from .. import __version__
-from ..errors import ConfigError, LaprecoError
+from lapreco_hil import __version__
+from lapreco_hil.errors import LaprecoError
+from lapreco_hil.cli.args import ArgumentParser, finite, non_negative, positive, positive_int, resolution, seed
+
+_positive_int = positive_int  # the calibration parsers take it as an argument
 
 
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution '{text}' must look like 640x480") from None
-    if not (64 <= w <= 8192 and 64 <= h <= 8192):
-        raise argparse.ArgumentTypeError(f"resolution '{text}' out of range (64..8192 per side)")
-    return w, h
-
-
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"'{text}' must be at least 1")
-    return n
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lapreco", description=__doc__)
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog="lapreco", description=__doc__)
     parser.add_argument("--version", action="version", version=f"lapreco-hil {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -40,9 +22,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="simulated robot + simulated grabber through the pipeline, with accuracy "
                                         "against ground truth")
     demo.add_argument("--scene", default="skull", help="skull | liver | apple | uterus | board (default: skull)")
-    demo.add_argument("--frames", type=_positive_int, default=150, help="frames to simulate (default: 150)")
-    demo.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH (default: 640x480)")
-    demo.add_argument("--fps", type=float, default=25.0, help="simulated frame rate (default: 25)")
+    demo.add_argument("--frames", type=positive_int, default=150, help="frames to simulate (default: 150)")
+    demo.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH (default: 640x480)")
+    demo.add_argument("--fps", type=positive, default=25.0, help="simulated frame rate, > 0 (default: 25)")
     demo.add_argument("--out", default="lapreco-demo", help="output folder (default: ./lapreco-demo)")
     demo.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda (default: auto)")
     demo.add_argument("--tracker", default="auto",
@@ -50,30 +32,33 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-drift-check", dest="drift_check", action="store_const", const=False, default=None,
                       help="switch off the Zinsser drift check (for the seed's four-way comparison)")
     demo.add_argument("--config", default=None, help="pipeline configuration (TOML)")
-    demo.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    demo.add_argument("--seed", type=seed, default=0, help="simulation seed, 0..2^31-1 (default: 0)")
     demo.add_argument("--robot-link", choices=("direct", "serial", "canopen"), default="direct",
                       help="read the simulated robot directly, or through the real Dynamixel (serial) or CANopen "
                            "driver talking to a device emulator (default: direct)")
-    demo.add_argument("--sim-speed", type=float, default=0.2,
+    demo.add_argument("--sim-speed", type=positive, default=0.2,
                       help="with a serial/canopen link: simulated time per real second (default: 0.2)")
     demo.add_argument("--sequential", action="store_true",
                       help="one frame at a time through every stage (deterministic) instead of the live runtime")
-    demo.add_argument("--view-every", type=float, default=0.0,
-                      help="render the live textured view every S seconds (OUT/live/*.png, OUT/live.mp4)")
+    demo.add_argument("--view-every", type=non_negative, default=0.0,
+                      help="render the live textured view every S seconds (OUT/live/*.png, OUT/live.mp4; 0 = off)")
     demo.add_argument("--instrument", action="store_true",
                       help="a moving instrument in view (it is not part of the true surface)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
 
     dev = sub.add_parser("devices", help="list the serial ports, CAN interfaces and video devices this machine sees")
+    dev.add_argument("--probe", metavar="URL", default=None, help="instead, open this robot URL and read it")
+    dev.add_argument("--seconds", type=positive, default=2.0, help="with --probe: read for this long (default 2)")
+    dev.add_argument("--device", default="auto", help="with --probe: Warp device for simulated devices")
     dev.set_defaults(func=_cmd_devices)
 
     rec = sub.add_parser("record", help="record frames and joint readings from devices into a session")
     rec.add_argument("--robot", required=True, help="robot URL, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4 or sim://skull")
     rec.add_argument("--grabber", required=True, help="grabber URL, e.g. v4l2:///dev/video0 or sim://skull")
     rec.add_argument("--out", required=True, help="new session folder")
-    rec.add_argument("--seconds", type=float, default=None, help="stop after this much capture time")
-    rec.add_argument("--frames", type=_positive_int, default=None, help="stop after this many frames")
+    rec.add_argument("--seconds", type=positive, default=None, help="stop after this much capture time (s, > 0)")
+    rec.add_argument("--frames", type=positive_int, default=None, help="stop after this many frames")
     rec.add_argument("--camera", default=None, help="lens calibration (OpenCV YAML) when the grabber has none")
     rec.add_argument("--robot-model", default=None, help="packaged robot model name or URDF path")
     rec.add_argument("--tip-frame", default=None, help="the URDF link that holds the scope")
@@ -85,17 +70,17 @@ def build_parser() -> argparse.ArgumentParser:
     simrec = sub.add_parser("sim-record", help="record a simulated session with ground truth")
     simrec.add_argument("--scene", default="skull", help="skull | liver | apple | uterus | board (default: skull)")
     simrec.add_argument("--out", required=True, help="new session folder")
-    simrec.add_argument("--frames", type=_positive_int, default=150, help="frames (default: 150)")
-    simrec.add_argument("--resolution", type=_resolution, default=(640, 480), help="WxH (default: 640x480)")
-    simrec.add_argument("--fps", type=float, default=25.0, help="frame rate (default: 25)")
-    simrec.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    simrec.add_argument("--frames", type=positive_int, default=150, help="frames (default: 150)")
+    simrec.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH (default: 640x480)")
+    simrec.add_argument("--fps", type=positive, default=25.0, help="frame rate, > 0 (default: 25)")
+    simrec.add_argument("--seed", type=seed, default=0, help="simulation seed, 0..2^31-1 (default: 0)")
     simrec.add_argument("--device", default="auto", help="Warp device for rendering: auto | cpu | cuda")
     simrec.add_argument("--robot-link", choices=("direct", "serial", "canopen"), default="direct",
                         help="record the robot through the real Dynamixel/CANopen driver and a device emulator")
-    simrec.add_argument("--sim-speed", type=float, default=0.2,
+    simrec.add_argument("--sim-speed", type=positive, default=0.2,
                         help="with a serial/canopen link: simulated time per real second (default: 0.2)")
     simrec.add_argument("--instrument", action="store_true", help="a moving instrument in view")
-    simrec.add_argument("--kinematics-offset-ms", type=float, default=0.0,
+    simrec.add_argument("--kinematics-offset-ms", type=finite, default=0.0,
                         help="stamp the robot's readings this late (a known video-kinematics offset to recover)")
     simrec.add_argument("--no-progress", action="store_true", help="no progress bar")
     simrec.set_defaults(func=_cmd_sim_record)
@@ -115,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--config", default=None, help="pipeline configuration (TOML)")
     rep.add_argument("--camera", default=None, help="use this lens calibration (OpenCV YAML) instead of the session's")
     rep.add_argument("--hand-eye", default=None, help="use this hand-eye (OpenCV YAML) instead of the session's")
-    rep.add_argument("--time-offset-ms", type=float, default=None,
+    rep.add_argument("--time-offset-ms", type=finite, default=None,
                      help="video-to-kinematics offset instead of the session's time_offset_ns")
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
@@ -124,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("outdir", help="a run's output folder (points.ply, trajectory.tum, report.json)")
     ev.add_argument("--truth", required=True, help="ground-truth surface mesh in the world frame, metres (PLY, "
                                                    "OBJ, STL, VTK)")
-    ev.add_argument("--coverage-mm", type=float, default=3.0, help="coverage radius (default 3 mm)")
+    ev.add_argument("--coverage-mm", type=positive, default=3.0, help="coverage radius, > 0 (default 3 mm)")
     ev.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ev.set_defaults(func=_cmd_evaluate)
 
@@ -137,8 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--no-progress", action="store_true", help="no progress bar")
     cmp_.set_defaults(func=_cmd_compare)
 
-    from .calibrate import add_parsers as add_calibrate_parsers
-    from .run import add_parser as add_run_parser
+    from lapreco_hil.cli.calibrate import add_parsers as add_calibrate_parsers
+    from lapreco_hil.cli.run import add_parser as add_run_parser
 
     add_run_parser(sub)
     add_calibrate_parsers(sub, _positive_int)
@@ -146,23 +131,23 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")
-    bench_ba.add_argument("--repeats", type=_positive_int, default=3)
+    bench_ba.add_argument("--repeats", type=positive_int, default=3)
     bench_ba.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_ba.set_defaults(func=_cmd_bench_ba)
     bench_fe = bench_sub.add_parser("frontend", help="Warp front-end vs the OpenCV baseline, per stage")
     bench_fe.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
-    bench_fe.add_argument("--resolution", type=_resolution, nargs="+", default=[(1920, 1080)])
-    bench_fe.add_argument("--features", type=_positive_int, nargs="+", default=[2000])
-    bench_fe.add_argument("--frames", type=_positive_int, default=40)
+    bench_fe.add_argument("--resolution", type=resolution, nargs="+", default=[(1920, 1080)])
+    bench_fe.add_argument("--features", type=positive_int, nargs="+", default=[2000])
+    bench_fe.add_argument("--frames", type=positive_int, default=40)
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
     bench_p = bench_sub.add_parser("pipeline", help="the live runtime in real time: sustained fps, drops, latency")
     bench_p.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
-    bench_p.add_argument("--resolution", type=_resolution, default=None,
+    bench_p.add_argument("--resolution", type=resolution, default=None,
                          help="WxH (default: 1920x1080 on a GPU, 384x288 on a CPU)")
-    bench_p.add_argument("--fps", type=float, default=None, help="frame rate (default: 60 on a GPU, 25 on a CPU)")
-    bench_p.add_argument("--seconds", type=float, default=20.0, help="duration (default 20)")
-    bench_p.add_argument("--features", type=_positive_int, default=None,
+    bench_p.add_argument("--fps", type=positive, default=None, help="frame rate (default: 60 on a GPU, 25 on a CPU)")
+    bench_p.add_argument("--seconds", type=positive, default=20.0, help="duration, s (default 20)")
+    bench_p.add_argument("--features", type=positive_int, default=None,
                          help="tracked features (default: 2000 on a GPU, 800 on a CPU)")
     bench_p.add_argument("--source", choices=("auto", "sim", "replay"), default="auto",
                          help="replay (auto): a session recorded first, replayed in real time; sim: the simulated "
@@ -174,131 +159,103 @@ def build_parser() -> argparse.ArgumentParser:
     bench_p.set_defaults(func=_cmd_bench_pipeline)
     bench_k = bench_sub.add_parser("soak", help="the live runtime for a long time: memory growth, latency drift")
     bench_k.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
-    bench_k.add_argument("--minutes", type=float, default=30.0, help="duration (default 30)")
-    bench_k.add_argument("--resolution", type=_resolution, default=(320, 240), help="WxH (default 320x240)")
-    bench_k.add_argument("--fps", type=float, default=10.0, help="frame rate (default 10)")
-    bench_k.add_argument("--features", type=_positive_int, default=400)
+    bench_k.add_argument("--minutes", type=positive, default=30.0, help="duration (default 30)")
+    bench_k.add_argument("--resolution", type=resolution, default=(320, 240), help="WxH (default 320x240)")
+    bench_k.add_argument("--fps", type=positive, default=10.0, help="frame rate (default 10)")
+    bench_k.add_argument("--features", type=positive_int, default=400)
     bench_k.add_argument("--scene", default="skull")
     bench_k.add_argument("--tracker", default="auto", help="warp | opencv | auto")
-    bench_k.add_argument("--sample-s", type=float, default=10.0, help="seconds between samples")
+    bench_k.add_argument("--sample-s", type=positive, default=10.0, help="seconds between samples")
     bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file; "
                          "samples also go to JSON.samples.jsonl as they are taken")
     bench_k.set_defaults(func=_cmd_bench_soak)
     bench_r = bench_sub.add_parser("robot", help="robot drivers on their emulators: sample rate, jitter, latency")
     bench_r.add_argument("--link", nargs="+", choices=("serial", "canopen"), default=["serial", "canopen"])
-    bench_r.add_argument("--rate", type=float, nargs="+", default=[100.0, 500.0])
-    bench_r.add_argument("--seconds", type=float, default=5.0)
+    bench_r.add_argument("--rate", type=positive, nargs="+", default=[100.0, 500.0], help="sample rates, Hz")
+    bench_r.add_argument("--seconds", type=positive, default=5.0, help="per link and rate (default 5)")
     bench_r.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_r.set_defaults(func=_cmd_bench_robot)
     bench_s = bench_sub.add_parser("session", help="session write (crash-safe) and read throughput")
-    bench_s.add_argument("--resolution", type=_resolution, nargs="+", default=[(640, 480), (1920, 1080)])
-    bench_s.add_argument("--frames", type=_positive_int, default=60)
+    bench_s.add_argument("--resolution", type=resolution, nargs="+", default=[(640, 480), (1920, 1080)])
+    bench_s.add_argument("--frames", type=positive_int, default=60)
     bench_s.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_s.set_defaults(func=_cmd_bench_session)
     return parser
 
 
-def _cmd_bench_pipeline(args) -> int:
-    from ..bench.pipeline import format_table, run
-    from ..warp_device import resolve_device
+def _write_json(path: str | None, result: dict) -> None:
+    if path:
+        from lapreco_hil.outputs import write_json
 
-    device = resolve_device(args.device)
-    gpu = device.startswith("cuda")
-    result = run(device, args.resolution or ((1920, 1080) if gpu else (384, 288)), args.fps or (60.0 if gpu else 25.0),
-                 args.seconds, args.features or (2000 if gpu else 800), args.source, args.tracker,
-                 session=args.session)
+        write_json(path, result)
+
+
+def _cmd_bench_pipeline(args) -> int:
+    from lapreco_hil.app.bench import bench_pipeline
+    from lapreco_hil.bench.pipeline import format_table
+
+    result = bench_pipeline(args.device, args.resolution, args.fps, args.seconds, args.features, args.source,
+                            args.tracker, session=args.session)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
 def _cmd_bench_soak(args) -> int:
-    from ..bench.soak import format_table, run
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.bench import bench_soak
+    from lapreco_hil.bench.soak import format_table
 
-    result = run(resolve_device(args.device), args.resolution, args.fps, args.minutes, args.features, args.scene,
-                 args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None)
+    result = bench_soak(args.device, args.resolution, args.fps, args.minutes, args.features, args.scene,
+                        args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
 def _cmd_bench_robot(args) -> int:
-    from ..bench.robot import format_table, run
+    from lapreco_hil.app.bench import bench_robot
+    from lapreco_hil.bench.robot import format_table
 
-    result = run(args.link, args.rate, args.seconds)
+    result = bench_robot(args.link, args.rate, args.seconds)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
 def _cmd_bench_session(args) -> int:
-    from ..bench.session import format_table, run
+    from lapreco_hil.app.bench import bench_session
+    from lapreco_hil.bench.session import format_table
 
-    result = run(args.resolution, frames=args.frames)
+    result = bench_session(args.resolution, frames=args.frames)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
-def _write_json(path: str | None, result: dict) -> None:
-    if path:
-        from ..outputs import write_json
-
-        write_json(path, result)
-
-
 def _cmd_bench_frontend(args) -> int:
-    from ..bench.frontend import format_table, run
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.bench import bench_frontend
+    from lapreco_hil.bench.frontend import format_table
 
-    device = resolve_device(args.device)
-    result = run(device, args.resolution, args.features, frames=args.frames)
+    result = bench_frontend(args.device, args.resolution, args.features, frames=args.frames)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
 def _cmd_bench_ba(args) -> int:
-    from ..bench.ba import format_table, run
+    from lapreco_hil.app.bench import bench_ba
+    from lapreco_hil.bench.ba import format_table
 
-    result = run(repeats=args.repeats)
+    result = bench_ba(repeats=args.repeats)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
 
 
 def _cmd_evaluate(args) -> int:
-    from pathlib import Path
+    from lapreco_hil.app.evaluate import evaluate
 
-    import numpy as np
-    import pyvista as pv
-
-    from ..evaluation.compare import read_points_ply, read_tum
-    from ..evaluation.icp import evaluate_points
-
-    out = Path(args.outdir)
-    points_file = out / "points.ply"
-    if not points_file.is_file():
-        raise ConfigError(f"{points_file}: missing; give a run's output folder (lapreco demo/replay/run --out)")
-    truth_path = Path(args.truth)
-    if not truth_path.is_file():
-        raise ConfigError(f"{truth_path}: no such ground-truth mesh")
-    try:
-        truth = pv.read(str(truth_path))
-    except Exception as exc:  # VTK raises several kinds for a file it cannot parse
-        raise ConfigError(f"{truth_path}: cannot read the mesh ({exc})") from None
-    if truth.n_points == 0 or truth.n_cells == 0:
-        raise ConfigError(f"{truth_path}: the mesh is empty")
-    poses = K = size = None
-    if (out / "trajectory.tum").is_file() and (out / "report.json").is_file():
-        cam = json.loads((out / "report.json").read_text()).get("camera")
-        if cam:
-            _, poses = read_tum(out / "trajectory.tum")
-            K, size = np.array(cam["K"]), (cam["width"], cam["height"])
-    result = evaluate_points(read_points_ply(points_file), truth, poses, K, size, args.coverage_mm)
-    if "error" in result:
-        raise ConfigError(f"{points_file}: {result['error']}")
+    result = evaluate(args.outdir, args.truth, args.coverage_mm)
     icp = result["icp"]
     cov = result.get("coverage", {}).get("covered_fraction")
     print(f"lapreco evaluate: {result['points']} points; after similarity ICP RMS {icp['rms_mm']:.3f} mm, median "
@@ -310,8 +267,9 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from ..evaluation.compare import format_markdown, run_comparison
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.compare import run_comparison
+    from lapreco_hil.evaluation.compare import format_markdown
+    from lapreco_hil.warp_device import resolve_device
 
     result = run_comparison(args.session, args.out, device=resolve_device(args.device), config_path=args.config,
                             progress=not args.no_progress)
@@ -320,26 +278,18 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_devices(args) -> int:
-    from ..drivers.discovery import discover, format_devices
+    from lapreco_hil.app.devices import list_devices, probe
 
-    print(format_devices(discover()))
+    print(probe(args.probe, args.seconds, args.device) if args.probe else list_devices())
     return 0
 
 
 def _cmd_record(args) -> int:
-    from ..registry import DeviceContext, open_grabber, open_robot
-    from ..sessions.recorder import record
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.record import record_session
 
-    context = DeviceContext(device=resolve_device(args.device))
-    robot, grabber = open_robot(args.robot, context), open_grabber(args.grabber, context)
-    from .run import rig_from
-
-    camera, description = rig_from(robot, grabber, args.camera, args.hand_eye, args.robot_model, args.tip_frame)
-    with robot, grabber:
-        stats = record(grabber, robot, args.out, seconds=args.seconds, max_frames=args.frames, camera=camera,
-                       description=description, source={"robot": args.robot, "grabber": args.grabber},
-                       progress=not args.no_progress)
+    stats = record_session(args.robot, args.grabber, args.out, seconds=args.seconds, frames=args.frames,
+                           camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
+                           hand_eye_file=args.hand_eye, device=args.device, progress=not args.no_progress)
     _print_record(args.out, stats)
     return 0
 
@@ -351,30 +301,18 @@ def _print_record(out: str, stats) -> None:
 
 
 def _cmd_sim_record(args) -> int:
-    from ..registry import DeviceContext, open_grabber, open_robot
-    from ..sessions.recorder import record
-    from ..warp_device import resolve_device
+    from lapreco_hil.app.record import sim_record
 
-    device = resolve_device(args.device)
-    w, h = args.resolution
-    url = f"sim://{args.scene}?width={w}&height={h}&fps={args.fps}&seed={args.seed}"
-    if args.instrument:
-        url += "&instrument=1"
-    if args.robot_link != "direct":
-        url += f"&speed={args.sim_speed}"
-    context = DeviceContext(device=device)
-    robot = open_robot(url + f"&link={args.robot_link}&offset_ms={args.kinematics_offset_ms}", context)
-    grabber = open_grabber(url + f"&frames={args.frames}", context)
-    with robot, grabber:
-        stats = record(grabber, robot, args.out, max_frames=args.frames, progress=not args.no_progress,
-                       source={"simulator": url, "scene": args.scene, "seed": args.seed,
-                               "robot_link": args.robot_link})
+    stats = sim_record(args.scene, args.out, frames=args.frames, resolution=args.resolution, fps=args.fps,
+                       seed=args.seed, device=args.device, robot_link=args.robot_link, sim_speed=args.sim_speed,
+                       instrument=args.instrument, kinematics_offset_ms=args.kinematics_offset_ms,
+                       progress=not args.no_progress)
     _print_record(args.out, stats)
     return 0
 
 
 def _cmd_replay(args) -> int:
-    from .replay import run_replay
+    from lapreco_hil.app.replay import run_replay
 
     report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
                         config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
@@ -385,7 +323,7 @@ def _cmd_replay(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from .demo import run_demo
+    from lapreco_hil.app.demo import run_demo
 
     report = run_demo(scene=args.scene, frames=args.frames, resolution=args.resolution, fps=args.fps,
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
@@ -414,9 +352,17 @@ def _fmt(v) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a refused argument (its one line is already printed)
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    # each change of a device's health is news on the console, its recovery ("robot: ok again", INFO) too
+    logging.getLogger("lapreco_hil.runtime.health").setLevel(logging.INFO)
+    from lapreco_hil.app.noise import route_third_party_output
+
+    route_third_party_output()
     try:
         return args.func(args)
     except LaprecoError as exc:

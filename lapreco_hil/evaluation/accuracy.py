@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 
-from ..geometry import pose_error
+from lapreco_hil.geometry import pose_error
+from lapreco_hil.ground_truth import GroundTruth
 
 
 def surface_distances(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
@@ -52,3 +53,26 @@ def shape_error(points: np.ndarray, truth: np.ndarray) -> np.ndarray:
     gauge (global pose and scale) that priors alone fix."""
     s, R, t = similarity_align(points, truth)
     return np.linalg.norm(s * points @ R.T + t - truth, axis=1)
+
+
+def accuracy_report(m, truth: GroundTruth) -> dict:
+    """Points to the true surface (mm) and camera poses before/after BA against the true poses (``m``: a
+    MapResult)."""
+    acc: dict = {}
+    if truth.surface is not None:
+        points = m.points[m.inlier]
+        acc["points_to_surface"] = distance_stats_mm(surface_distances(points, truth.surface))
+        acc["all_points_to_surface"] = distance_stats_mm(surface_distances(m.points, truth.surface))
+    if truth.camera_pose is not None and m.frames:
+        true_frames = np.array([truth.camera_pose(f.t_ns) for f in m.frames])
+        raw = pose_error_stats(np.array([f.T_prior for f in m.frames]), true_frames)
+        refined = pose_error_stats(m.frame_poses, true_frames)
+        acc["camera_raw_fk"] = raw
+        acc["camera_refined"] = refined
+        if m.keyframes:
+            true_kf = np.array([truth.camera_pose(k.t_ns) for k in m.keyframes])
+            acc["keyframes_raw_fk"] = pose_error_stats(np.array([k.prior.T_world_camera for k in m.keyframes]),
+                                                       true_kf)
+            acc["keyframes_refined"] = pose_error_stats(np.array([k.T_world_camera for k in m.keyframes]), true_kf)
+        acc["position_improvement_ratio"] = raw["position_rms_mm"] / max(refined["position_rms_mm"], 1e-9)
+    return acc

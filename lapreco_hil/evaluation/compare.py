@@ -1,19 +1,14 @@
-"""The seed paper's comparison on one session: the Warp tracker and the OpenCV tracker, each with and without
-the drift check, replayed on identical input; inliers (its Fig 3), tracking time per frame (Fig 5), ICP RMS
-error against the true surface (Fig 6b), and camera pose error before and after bundle adjustment."""
+"""The seed paper's comparison (run by lapreco_hil.app.compare): its variants and figures, the readers of a
+run's outputs, the table and the tracking-time plot. The seed ran its Warp-like tracker on a GPU; a variant is
+labelled by the device it actually ran on."""
 
 from __future__ import annotations
 
 import csv
-import json
-import logging
 from pathlib import Path
 
 import numpy as np
 
-from ..outputs import prepare_output_dir
-
-log = logging.getLogger(__name__)
 
 VARIANTS = (("warp", True), ("warp", False), ("opencv", True), ("opencv", False))
 SEED_FIGURES = {  # Moll, Tang, Van Gool: Fig 3 (inliers, skull sequence) and Fig 6b (ICP RMS, mm, skull)
@@ -29,6 +24,15 @@ def variant_name(tracker: str, drift: bool) -> str:
     return f"{tracker}{'-drift' if drift else ''}"
 
 
+def variant_label(tracker: str, drift: bool, device: str) -> str:
+    """What ran, on what: 'Warp on GPU (cuda:0) drift corr.', 'Warp on CPU', 'OpenCV drift corr.'."""
+    if tracker == "warp":
+        name = f"Warp on {'GPU' if device.startswith('cuda') else 'CPU'} ({device})"
+    else:
+        name = "OpenCV"
+    return name + (" drift corr." if drift else "")
+
+
 def read_points_ply(path: Path) -> np.ndarray:
     import pyvista as pv
 
@@ -38,7 +42,7 @@ def read_points_ply(path: Path) -> np.ndarray:
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from ..geometry import pose_from_tum
+    from lapreco_hil.geometry import pose_from_tum
 
     rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
     t = np.array([float(r[0]) for r in rows])
@@ -51,59 +55,19 @@ def frame_timings(path: Path) -> dict[str, np.ndarray]:
     return {k: np.array([float(r[k]) for r in rows]) for k in (rows[0].keys() if rows else [])}
 
 
-def run_comparison(session: str, out: str, device: str = "auto", config_path: str | None = None,
-                   variants=VARIANTS, progress: bool = True) -> dict:
-    from ..cli.replay import run_replay
-    from ..sessions import Session
-    from .icp import evaluate_points
-
-    out_dir = prepare_output_dir(out)
-    truth = Session(session).ground_truth()
-    rows = []
-    for tracker, drift in variants:
-        name = variant_name(tracker, drift)
-        log.info("compare: %s", name)
-        report = run_replay(session, str(out_dir / name), tracker=tracker, device=device, config_path=config_path,
-                            drift_check=drift, progress=progress)
-        times = frame_timings(out_dir / name / "frame_timings.csv")
-        row = {"variant": name, "tracker": tracker, "drift_check": drift, "inliers": report["inliers"],
-               "outliers": report["outliers"], "tracking_ms_mean": float(np.mean(times["frontend_ms"])),
-               "tracking_ms_p95": float(np.percentile(times["frontend_ms"], 95)),
-               "tracking_ms_per_frame": times["frontend_ms"].tolist(), "device": report["device"]}
-        acc = report.get("accuracy", {})
-        if "camera_raw_fk" in acc:
-            row["camera_raw_mm"] = acc["camera_raw_fk"]["position_rms_mm"]
-            row["camera_refined_mm"] = acc["camera_refined"]["position_rms_mm"]
-        if truth is not None and truth.surface is not None:
-            cam = report["camera"]
-            _, poses = read_tum(out_dir / name / "trajectory.tum")
-            ev = evaluate_points(read_points_ply(out_dir / name / "points.ply"), truth.surface, poses,
-                                 np.array(cam["K"]), (cam["width"], cam["height"]))
-            row["icp_rms_mm"] = ev.get("icp", {}).get("rms_mm")
-            row["icp_scale"] = ev.get("icp", {}).get("scale")
-            row["coverage"] = ev.get("coverage", {}).get("covered_fraction")
-        rows.append(row)
-    result = {"session": str(session), "variants": rows,
-              "seed": {variant_name(*k): v for k, v in SEED_FIGURES.items()}}
-    (out_dir / "comparison.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "comparison.md").write_text(format_markdown(result))
-    plot_tracking_times(result, out_dir / "tracking_time.png")
-    return result
-
-
 def _f(v, fmt: str = "{:.2f}") -> str:
     return "n/a" if v is None else fmt.format(v)
 
 
 def format_markdown(result: dict) -> str:
     lines = [f"Session: `{result['session']}`", "",
-             "| variant | inliers (Fig 3) | seed: skull / uterus | tracking ms/frame mean / p95 (Fig 5) "
+             "| variant (ran on) | inliers (Fig 3) | seed: skull / uterus | tracking ms/frame mean / p95 (Fig 5) "
              "| ICP RMS mm (Fig 6b) | seed: skull | ICP scale | coverage | camera mm raw -> refined |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in result["variants"]:
         seed = result["seed"][r["variant"]]
         lines.append(
-            f"| {seed['name']} (`{r['variant']}`) | {r['inliers']} | {seed['inliers_skull']} / {seed['inliers_uterus']} | "
+            f"| {variant_label(r['tracker'], r['drift_check'], r['device'])} (`{r['variant']}`; seed: {seed['name']}) | {r['inliers']} | {seed['inliers_skull']} / {seed['inliers_uterus']} | "
             f"{r['tracking_ms_mean']:.1f} / {r['tracking_ms_p95']:.1f} | {_f(r.get('icp_rms_mm'))} | "
             f"{seed['icp_rms_mm']:.2f} | {_f(r.get('icp_scale'), '{:.4f}')} | {_f(r.get('coverage'), '{:.0%}')} | "
             f"{_f(r.get('camera_raw_mm'), '{:.3f}')} -> {_f(r.get('camera_refined_mm'), '{:.3f}')} |")
@@ -118,7 +82,7 @@ def plot_tracking_times(result: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 4), dpi=100)
     for r in result["variants"]:
-        ax.plot(r["tracking_ms_per_frame"], label=f"{result['seed'][r['variant']]['name']} ({r['device']})",
+        ax.plot(r["tracking_ms_per_frame"], label=variant_label(r["tracker"], r["drift_check"], r["device"]),
                 linewidth=1)
     ax.set_xlabel("frame")
     ax.set_ylabel("tracking time (ms)")

@@ -16,7 +16,7 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
-from .accuracy import distance_stats_mm, surface_distances
+from lapreco_hil.evaluation.accuracy import distance_stats_mm, surface_distances
 
 
 @dataclass

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from ..camera import CameraModel
-from ..config import TrackerConfig
-from ..errors import ConfigError
-from ..types import Frame, Observations
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import TrackerConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.types import Frame, Observations
 
 
 class FrontEnd(Protocol):
@@ -34,11 +34,11 @@ def resolve_tracker(name: str, device: str) -> str:
 
 def make_frontend(name: str, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> FrontEnd:
     if name == "opencv":
-        from .opencv import OpenCVFrontEnd
+        from lapreco_hil.frontend.opencv import OpenCVFrontEnd
 
         return OpenCVFrontEnd(camera, config)
     if name == "warp":
-        from .warp import WarpFrontEnd
+        from lapreco_hil.frontend.warp import WarpFrontEnd
 
         return WarpFrontEnd(camera, config, device)
     raise ConfigError(f"unknown tracker '{name}' (known: opencv, warp)")

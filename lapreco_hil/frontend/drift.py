@@ -66,7 +66,7 @@ class AffineDriftCheck:
         ref64 = ref.astype(np.float64)
         ref32 = ref.astype(np.float32)
         ox, oy = off[None, :, 0].astype(np.float32), off[None, :, 1].astype(np.float32)
-        active = np.arange(n)  # tracks still moving; converged ones leave the loop (most do in 2-3 steps)
+        active = np.arange(n)  # tracks still moving; converged ones leave the loop (most converge in a few steps)
         # the Jacobian and residual in float32 (169 terms per sum: ample precision), solved in float64
         G = np.empty((n, off.shape[0], 8), np.float32)
         for it in range(self.max_iterations):

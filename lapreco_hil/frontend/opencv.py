@@ -8,10 +8,10 @@ import time
 import cv2
 import numpy as np
 
-from ..camera import CameraModel
-from ..config import TrackerConfig
-from ..types import Frame, Observations
-from .drift import AffineDriftCheck
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import TrackerConfig
+from lapreco_hil.types import Frame, Observations
+from lapreco_hil.frontend.drift import AffineDriftCheck
 
 
 def remove_shading(gray: np.ndarray, sigma_px: float) -> np.ndarray:

@@ -14,8 +14,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from ..geometry import make_T
-from .robust import RobustSchedule, mad_sigma
+from lapreco_hil.geometry import make_T
+from lapreco_hil.mapping.robust import RobustSchedule, mad_sigma
 
 
 @dataclass
@@ -75,7 +75,7 @@ def _build(problem: BAProblem, noise: gtsam.noiseModel.Base):
     for i, pid in enumerate(p.pose_ids):
         key = X(int(pid))
         if p.fixed[i]:
-            # a very tight prior rather than NonlinearEqualityPose3, which made LM 5x slower here
+            # a very tight prior rather than NonlinearEqualityPose3, which made LM much slower (docs/benchmarks.md)
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.poses[i]), _FIXED_NOISE))
         else:
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.prior_poses[i]),
@@ -105,7 +105,7 @@ def _unpack(result: gtsam.Values, pose_keys, point_keys, fallback_poses):
 
 
 def _points_first(pose_keys, point_keys) -> gtsam.Ordering:
-    """Eliminate landmarks before poses (the Schur-complement order); measured no slower than COLAMD."""
+    """Eliminate landmarks before poses (the Schur-complement order), no slower than COLAMD here."""
     ordering = gtsam.Ordering()
     for k in point_keys:
         ordering.push_back(k)
@@ -114,11 +114,9 @@ def _points_first(pose_keys, point_keys) -> gtsam.Ordering:
     return ordering
 
 
-# Above this many poses the linear systems are solved by block-Jacobi preconditioned conjugate gradients.
-# A direct solve eliminates each landmark into a dense factor over all the poses that see it: long tracks
-# over hundreds of keyframes made the final pass of a 30-minute run take 24 GB (measured on 320 keyframes,
-# 2679 points, 112k observations: points-first 21.7 s / 3.1 GB, METIS 11.7 s / 0.9 GB, PCG 3.7 s / 0.33 GB,
-# final error within 0.02 %).
+# Above this many poses the linear systems are solved by block-Jacobi preconditioned conjugate gradients: a
+# direct solve eliminates each landmark into a dense factor over all the poses that see it, which long tracks
+# over hundreds of keyframes make huge (the measurements: docs/benchmarks.md).
 ITERATIVE_ABOVE_POSES = 50
 
 

@@ -18,13 +18,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import MapperConfig
-from ..geometry import interpolate_pose, inv_T, rigid, rotation_angle
-from ..types import Observations, PosePrior
-from . import bundle_adjustment as ba
-from .robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
-from .resection import refine_pose
-from .triangulation import triangulate
+from lapreco_hil.config import MapperConfig
+from lapreco_hil.geometry import inv_T, rigid
+from lapreco_hil.types import Observations, PosePrior
+from lapreco_hil.mapping import bundle_adjustment as ba
+from lapreco_hil.mapping.archive import LandmarkArchive
+from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
+from lapreco_hil.mapping.resection import refine_pose
+from lapreco_hil.mapping.retirement import Retirement, correction_at
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +36,7 @@ TRIANGULATION_VIEWS = 6
 # a track is triangulated once its end rays span this share of min_parallax_deg
 PARALLAX_PRECHECK = 0.8
 # live, a keyframe's new points are made in idle-time pieces of this many tracks (a frame that arrives waits
-# for one piece at most: a few milliseconds, not the ~25 ms of a whole keyframe at 2000 tracks)
+# for one piece at most, not for a whole keyframe's points)
 TRIANGULATION_PIECE = 250
 
 
@@ -45,67 +48,48 @@ def _spread(seen: list, n: int) -> list:
     return [seen[(i * (m - 1) + (n - 1) // 2) // (n - 1)] for i in range(n)]  # distinct: m > n
 
 
-@dataclass
-class Keyframe:
-    id: int
-    frame_seq: int
-    t_ns: int
-    prior: PosePrior
-    T_world_camera: np.ndarray
-    track_ids: np.ndarray
-    uv: np.ndarray
-    colors: np.ndarray
-    refined: bool = False
+@dataclass(frozen=True)
+class MapperSchedule:
+    """When the mapper does its heavier work: inline, as an offline run does (``offline``), or spread over a
+    live run's idle moments so that no frame waits for it (``live``)."""
+
+    # local BA is asked of a worker process (``local_ba_wanted``, ``local_ba_job``) while frames go on being
+    # mapped, instead of being solved inline
+    defer_local_ba: bool = False
+    # frames settled at a retirement get a fresh pose refinement against the map; live they keep the
+    # interpolated keyframe correction (hundreds at once would stall the frames waiting; each was refined as
+    # it came)
+    resect_on_retire: bool = True
+    # keyframes retire one at a time in idle moments (``maintain``), not a batch in the middle of a frame;
+    # ``add`` still retires a batch if the map gets a whole batch over its bound (no idle time for that long)
+    defer_retirement: bool = False
+    # a keyframe's new points are triangulated (and its local BA asked for) in the next idle moment, so its
+    # pose is published first and the frames behind it do not wait for its structure
+    defer_triangulation: bool = False
+
+    @classmethod
+    def offline(cls) -> MapperSchedule:
+        """Everything inline, in frame order: evaluations, demos, replays."""
+        return cls()
+
+    @classmethod
+    def live(cls, ba_worker: bool) -> MapperSchedule:
+        """A live run: structure and retirement in idle moments, local BA in a worker process if there is one
+        (else inline, in idle moments after the keyframe's points)."""
+        return cls(defer_local_ba=ba_worker, resect_on_retire=False, defer_retirement=True,
+                   defer_triangulation=True)
 
 
-@dataclass(slots=True)
-class _PendingStructure:
-    """A keyframe whose new points are still to be made (and its local BA asked for after them)."""
+@dataclass(frozen=True)
+class ProblemScope:
+    """Which part of the map a bundle adjustment covers: the landmarks seen by keyframes from ``points_from``
+    on, with their observations in keyframes from ``views_from`` on, keyframe by keyframe (a local window), or
+    with every observation of them, landmark by landmark (``every_view``: the final pass; every keyframe from
+    ``points_from`` on joins, free). Keyframes before the first active one join fixed."""
 
-    kf_id: int
-    local_ba: bool
-    tracks: list[int] | None = None  # the candidate tracks still to triangulate (None: not chosen yet)
-    colors: dict[int, np.ndarray] | None = None  # their colours in the keyframe
-
-
-@dataclass(slots=True)
-class FrameRecord:
-    seq: int
-    t_ns: int
-    T_prior: np.ndarray
-    cov: np.ndarray | None
-    keyframe: int | None
-    track_ids: np.ndarray | None  # None once the frame's pose is final (its keyframes were retired)
-    uv: np.ndarray | None
-    T_refined: np.ndarray | None = None
-
-
-class LandmarkArchive:
-    """Landmarks of retired keyframes: final positions, colours and inlier labels in flat arrays."""
-
-    def __init__(self) -> None:
-        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._joined = None
-        self.observations = 0
-        self.inlier_observations = 0
-
-    def add(self, ids: np.ndarray, points: np.ndarray, colors: np.ndarray, inlier: np.ndarray) -> None:
-        if len(ids):
-            self._parts.append((ids, points, colors, inlier))
-            self._joined = None
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(ids, points, colours, inlier) of every archived landmark, oldest first."""
-        if self._joined is None:
-            if self._parts:
-                self._joined = tuple(np.concatenate(a) for a in zip(*self._parts))
-                self._parts = [self._joined]
-            else:
-                self._joined = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, bool))
-        return self._joined
-
-    def __len__(self) -> int:
-        return len(self.arrays()[0])
+    points_from: int
+    views_from: int
+    every_view: bool = False
 
 
 @dataclass
@@ -130,36 +114,20 @@ def local_schedule(config: MapperConfig) -> RobustSchedule:
 
 
 class Mapper:
-    def __init__(self, K: np.ndarray, config: MapperConfig) -> None:
+    def __init__(self, K: np.ndarray, config: MapperConfig, schedule: MapperSchedule | None = None) -> None:
         self.K = np.asarray(K, float)
         self.config = config
+        self.schedule = schedule if schedule is not None else MapperSchedule.offline()
         self.keyframes: list[Keyframe] = []
         self.frames: list[FrameRecord] = []
         self.tracks: dict[int, list[tuple[int, np.ndarray]]] = {}  # track id -> [(keyframe id, uv)]
-        # keyframe id -> the tracks last seen in it (a retirement finds its tracks without scanning them all)
-        self._last_seen_in: dict[int, set[int]] = {}
         self.landmarks: dict[int, np.ndarray] = {}  # track id -> X
         self.landmark_colors: dict[int, np.ndarray] = {}
         self.archive = LandmarkArchive()
-        self.first_active = 0  # keyframes before this one are retired
-        self._frames_final = 0  # frames before this index have their final pose
-        self._emptied = 0  # keyframes before this index hold no observations any more
+        self.retirement = Retirement(config)
         self.tracks_seen = 0
-        self._retired_tracks: set[int] = set()
-        # live: local BA is solved by a worker process while frames go on being mapped (local_ba_job)
-        self.defer_local_ba = False
-        self.local_ba_wanted = False
-        # live, frames settled at a retirement keep the interpolated keyframe correction without a fresh
-        # refinement (hundreds of them at once would stall the frames waiting; each was refined as it came)
-        self.resect_on_retire = True
-        # live: keyframes retire one at a time in the mapper's idle moments (maintain()), not a hundred at once
-        # in the middle of a frame (a 0.6 s stall at 1080p / 2000 tracks); ``add`` still retires a batch if the
-        # map gets a whole batch over its bound (no idle time for that long)
-        self.defer_retirement = False
-        # live: a keyframe's new points are triangulated (and its local BA asked for) in the mapper's next idle
-        # moment, so its pose is published first and the frames behind it do not wait for its structure
-        self.defer_triangulation = False
-        self._untriangulated: list[_PendingStructure] = []  # oldest first
+        self._local_ba_wanted = False
+        self._untriangulated: list[PendingStructure] = []  # oldest first
         self.structured: list[int] = []  # keyframes whose deferred points are now made (the live mapper drains it)
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
@@ -169,13 +137,23 @@ class Mapper:
             (RobustStage("cauchy", CAUCHY_K, config.final_cauchy_iterations),
              RobustStage("tukey", TUKEY_C, config.final_tukey_iterations)), sigma_floor_px=config.sigma_floor_px)
 
+    @property
+    def first_active(self) -> int:
+        """Keyframes before this one are retired."""
+        return self.retirement.first_active
+
+    @property
+    def local_ba_wanted(self) -> bool:
+        """A keyframe's local BA waits to be taken (``local_ba_job``) by the worker (deferred local BA)."""
+        return self._local_ba_wanted
+
     # --- per frame -----------------------------------------------------------------------------------------
     def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True, resect: bool = True) -> bool:
         """Take one frame's observations and pose prior; returns True if it became a keyframe.
         A live run that is behind passes ``local_ba=False`` (this keyframe's local BA is deferred to the next)
         and ``resect=False`` (a non-keyframe takes its prior with the last keyframe's correction instead of a
         pose refinement; ``finish`` refines every frame anyway)."""
-        is_kf = self._is_keyframe(obs, prior)
+        is_kf = is_keyframe(self.keyframes[-1] if self.keyframes else None, obs, prior, self.K, self.config)
         if is_kf and len(self._untriangulated) >= 2:
             self._structure_step(None)  # no idle moment for two keyframes: the oldest one's points now
         record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
@@ -195,26 +173,23 @@ class Mapper:
                       self._resect(record, predicted) if resect and stale else predicted,
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
         self.keyframes.append(kf)
+        retirement = self.retirement
         for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
-            if tid in self._retired_tracks:
-                continue  # a track that outlived the keyframes it was archived with: its landmark is final
+            if retirement.is_retired(tid):
+                continue  # its landmark is final
             seen = self.tracks.get(tid)
             if seen is None:
                 self.tracks[tid] = seen = []
                 self.tracks_seen += 1
-            else:
-                self._last_seen_in[seen[-1][0]].discard(tid)
+            retirement.seen(tid, kf.id, seen[-1][0] if seen else None)
             seen.append((kf.id, uv))
-            self._last_seen_in.setdefault(kf.id, set()).add(tid)
         record.T_refined = kf.T_world_camera
-        self._untriangulated.append(_PendingStructure(kf.id, local_ba))
-        if not self.defer_triangulation:
+        self._untriangulated.append(PendingStructure(kf.id, local_ba))
+        if not self.schedule.defer_triangulation:
             self._triangulate_pending()
-        cfg = self.config
-        batch = max(1, min(cfg.retire_batch, cfg.active_keyframes // 2))
-        over = len(self.keyframes) - self.first_active - cfg.active_keyframes
-        if cfg.active_keyframes and over > (batch if self.defer_retirement else 0):
-            self._retire(self.first_active + batch)
+        cutoff = retirement.batch_due(len(self.keyframes), deferred=self.schedule.defer_retirement)
+        if cutoff is not None:
+            self._retire(cutoff)
         return True
 
     def _triangulate_pending(self) -> None:
@@ -237,11 +212,11 @@ class Mapper:
         if pending.tracks:
             return
         self._untriangulated.pop(0)
-        if self.defer_triangulation:
+        if self.schedule.defer_triangulation:
             self.structured.append(pending.kf_id)
         if len(self.keyframes) >= 2 and pending.local_ba:
-            if self.defer_local_ba:
-                self.local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
+            if self.schedule.defer_local_ba:
+                self._local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
             else:
                 self._local_ba()
 
@@ -253,10 +228,10 @@ class Mapper:
         if self._untriangulated:
             self._structure_step(TRIANGULATION_PIECE)
             return "triangulate"
-        cfg = self.config
-        if not cfg.active_keyframes or len(self.keyframes) - self.first_active <= cfg.active_keyframes:
+        cutoff = self.retirement.one_due(len(self.keyframes))
+        if cutoff is None:
             return None
-        self._retire(self.first_active + 1)
+        self._retire(cutoff)
         return "retire"
 
     # --- bounded memory ------------------------------------------------------------------------------------
@@ -264,15 +239,12 @@ class Mapper:
         """Retire keyframes before ``cutoff``: final poses for the frames before it, landmarks seen only by
         retired keyframes labelled and archived, their observations let go."""
         self._triangulate_pending()
-        t_cut = self.keyframes[cutoff].t_ns
-        kt, corr = self._corrections(upto=cutoff)  # the frames settled here lie before keyframe ``cutoff``
-        n = self._frames_final
-        while n < len(self.frames) and self.frames[n].t_ns < t_cut:
-            self._settle_frame(self.frames[n], kt, corr, resect=self.resect_on_retire)
-            n += 1
-        self._frames_final = n
-        retired = [t for k in sorted(k for k in self._last_seen_in if k < cutoff)
-                   for t in sorted(self._last_seen_in.pop(k))]
+        retirement = self.retirement
+        # the frames settled here lie before keyframe ``cutoff``
+        kt, corr = retirement.corrections(self.keyframes, upto=cutoff)
+        for f in retirement.take_frames(self.frames, self.keyframes[cutoff].t_ns):
+            self._settle_frame(f, kt, corr, resect=self.schedule.resect_on_retire)
+        retired = retirement.take_tracks(cutoff)
         with_point = [t for t in retired if t in self.landmarks]
         if with_point:
             obs = [(k, j, uv) for j, t in enumerate(with_point) for k, uv in self.tracks[t]]
@@ -290,19 +262,14 @@ class Mapper:
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
             self.archive.inlier_observations += int(good.sum())
-        self._retired_tracks.update(retired)
         for t in retired:
             del self.tracks[t]
             self.landmarks.pop(t, None)
             self.landmark_colors.pop(t, None)
-        # a retired keyframe's observations are let go once no local window can reach back to it (it still
-        # anchors, fixed, the windows just after its retirement)
         empty = np.zeros(0, np.int64)
-        reach = max(0, cutoff - 3 * self.config.window_keyframes)
-        for kf in self.keyframes[self._emptied:reach]:
+        for kf in retirement.take_keyframes_to_empty(self.keyframes, cutoff):
             kf.track_ids, kf.uv, kf.colors = empty, np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
-        self._emptied = max(self._emptied, reach)
-        self.first_active = cutoff
+        retirement.advance(cutoff)
         log.debug("retired keyframes before %d: %d landmarks archived, %d active", cutoff, len(with_point),
                   len(self.landmarks))
 
@@ -322,7 +289,7 @@ class Mapper:
     def map_points_in_pieces(self, piece: int | None):
         """``map_points`` as a generator that gathers ``piece`` active landmarks per step (None: all at once),
         yielding None after each step and the map (points, colours) at the end: the live mapper gathers its
-        snapshot in idle moments (~15 ms for 30 000 landmarks in one go). Landmarks that BA moves meanwhile
+        snapshot in idle moments (a large map takes milliseconds in one go). Landmarks that BA moves meanwhile
         are taken where they are when their piece is gathered; landmarks retired meanwhile are left out."""
         _, apts, acols, ain = self.archive.arrays()
         ids = list(self.landmarks)
@@ -358,37 +325,6 @@ class Mapper:
         correction = last.T_world_camera @ inv_T(last.prior.T_world_camera)
         return rigid(correction @ prior.T_world_camera)
 
-    def _is_keyframe(self, obs: Observations, prior: PosePrior) -> bool:
-        if not self.keyframes:
-            return len(obs) > 0
-        cfg = self.config
-        last = self.keyframes[-1]
-        T0, T1 = last.prior.T_world_camera, prior.T_world_camera
-        if np.linalg.norm(T1[:3, 3] - T0[:3, 3]) > cfg.keyframe_translation_m:
-            return True
-        if rotation_angle(T0[:3, :3].T @ T1[:3, :3]) > cfg.keyframe_rotation_rad:
-            return True
-        alive = np.isin(last.track_ids, obs.track_ids).sum()
-        if alive < cfg.keyframe_track_ratio * max(len(last.track_ids), 1):
-            return True
-        return self._median_parallax_deg(last, obs, prior) > cfg.keyframe_parallax_deg
-
-    def _median_parallax_deg(self, last: Keyframe, obs: Observations, prior: PosePrior) -> float:
-        """Median angle between each common track's ray in the last keyframe and in this frame, with the
-        camera rotation between them removed: what a triangulation from the two would get."""
-        common, ia, ib = np.intersect1d(last.track_ids, obs.track_ids, return_indices=True)
-        if len(common) == 0:
-            return 0.0
-        Kinv = np.linalg.inv(self.K)
-
-        def rays(uv):
-            r = np.column_stack([uv, np.ones(len(uv))]) @ Kinv.T
-            return r / np.linalg.norm(r, axis=1, keepdims=True)
-
-        R_rel = last.prior.T_world_camera[:3, :3].T @ prior.T_world_camera[:3, :3]
-        a, b = rays(last.uv[ia]), rays(obs.uv[ib]) @ R_rel.T
-        return float(np.degrees(np.median(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))))
-
     # --- structure -----------------------------------------------------------------------------------------
     def _triangulation_candidates(self, kf: Keyframe) -> list[int]:
         """The keyframe's tracks that have no point yet and whose views now span (nearly) enough parallax."""
@@ -403,7 +339,7 @@ class Mapper:
             return
         # A track that has not yet had the parallax for a point is seen in every keyframe since it started: its
         # first and last views (the parallax) and a few evenly between are enough for the initial point, which
-        # bundle adjustment then refines with all of them (every view cost ~100 ms a keyframe at 2000 tracks).
+        # bundle adjustment then refines with all of them (every view made triangulation a keyframe's main cost).
         views = [_spread(self.tracks[t], TRIANGULATION_VIEWS) for t in cands]
         V = max(len(v) for v in views)
         uv = np.zeros((len(cands), V, 2))
@@ -451,33 +387,50 @@ class Mapper:
         return [t for t, w in zip(cands, wide.tolist()) if w]
 
     # --- bundle adjustment ---------------------------------------------------------------------------------
-    def _problem(self, free_kfs: list[int]) -> tuple[ba.BAProblem, list[int]] | None:
-        """The final pass's problem: ``free_kfs`` and every landmark they see, with all its observations
-        (keyframes outside ``free_kfs``, i.e. retired ones, held fixed)."""
-        free = set(free_kfs)
-        point_ids = sorted({t for k in free_kfs for t in self.keyframes[k].track_ids.tolist() if t in self.landmarks})
-        if not point_ids:
+    def _problem(self, scope: ProblemScope) -> ba.BAProblem | None:
+        """The bundle adjustment of ``scope`` (None when it holds no landmark). Built from the keyframes' own
+        arrays, vectorised: a local window at 2000 tracks holds tens of thousands of observations, built while
+        frames wait."""
+        reach = self.keyframes[scope.views_from:]
+        tids = np.concatenate([kf.track_ids for kf in reach]) if reach else np.zeros(0, np.int64)
+        uvs = np.concatenate([kf.uv for kf in reach]) if reach else np.zeros((0, 2))
+        kfi = np.repeat(np.array([kf.id for kf in reach], np.int64), [len(kf.track_ids) for kf in reach])
+        landmarks = self.landmarks
+        point_ids = np.array([t for t in np.unique(tids[kfi >= scope.points_from]).tolist() if t in landmarks],
+                             np.int64)
+        if not len(point_ids):
             return None
-        obs = [(k, t, uv) for t in point_ids for k, uv in self.tracks[t]]
-        fixed = {k for k, _, _ in obs if k not in free}
-        kf_ids = sorted(free) + sorted(fixed)
-        index = {k: i for i, k in enumerate(kf_ids)}
-        pidx = {t: i for i, t in enumerate(point_ids)}
-        kfs = [self.keyframes[k] for k in kf_ids]
-        problem = ba.BAProblem(
-            K=self.K,
-            pose_ids=np.array(kf_ids),
-            poses=np.array([k.T_world_camera for k in kfs]),
-            fixed=np.array([k not in free for k in kf_ids]),
-            prior_poses=np.array([k.prior.T_world_camera for k in kfs]),
-            prior_covs=np.array([k.prior.cov for k in kfs]),
-            point_ids=np.array(point_ids),
-            points=np.array([self.landmarks[t] for t in point_ids]),
-            obs_pose=np.array([index[k] for k, _, _ in obs], dtype=np.int64),
-            obs_point=np.array([pidx[t] for _, t, _ in obs], dtype=np.int64),
-            obs_uv=np.array([uv for _, _, uv in obs]),
-        )
-        return problem, kf_ids
+        free = np.zeros(0, np.int64)
+        if scope.every_view:
+            # every view of each landmark (retired keyframes' too: their arrays may be gone, the tracks keep them)
+            obs = [(k, uv) for t in point_ids.tolist() for k, uv in self.tracks[t]]
+            kfi = np.array([k for k, _ in obs], np.int64)
+            tids = np.repeat(point_ids, [len(self.tracks[t]) for t in point_ids.tolist()])
+            uvs = np.array([uv for _, uv in obs])
+            free = np.arange(scope.points_from, len(self.keyframes))
+        else:
+            sel = np.isin(tids, point_ids)
+            tids, uvs, kfi = tids[sel], uvs[sel], kfi[sel]
+        seen = np.unique(kfi)
+        first_active = self.first_active
+        kf_ids = np.concatenate([np.union1d(free, seen[seen >= first_active]), seen[seen < first_active]])
+        index = np.zeros(len(self.keyframes), np.int64)
+        index[kf_ids] = np.arange(len(kf_ids))
+        chosen = [self.keyframes[k] for k in kf_ids.tolist()]
+        return ba.BAProblem(
+            K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
+            fixed=kf_ids < first_active, prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
+            prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
+            points=np.array([landmarks[t] for t in point_ids.tolist()]),
+            obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs)
+
+    def _local_scope(self) -> ProblemScope:
+        """The newest ``window_keyframes`` keyframes and their landmarks, with every observation of those
+        landmarks in the ``2 x window`` keyframes before the window. Those co-visible older keyframes join as
+        free variables with their robot priors (a soft edge): holding them fixed would carry their errors
+        into every later window; only retired ones stay fixed."""
+        n, w = len(self.keyframes), self.config.window_keyframes
+        return ProblemScope(points_from=max(self.first_active, n - w), views_from=max(0, n - 3 * w))
 
     def _apply(self, problem: ba.BAProblem, result: ba.BAResult) -> None:
         for i, k in enumerate(problem.pose_ids.tolist()):
@@ -491,44 +444,16 @@ class Mapper:
         self.ba_iterations.append(result.iterations)
         self.last_sigma_px = result.stats.get("sigma_px", self.last_sigma_px)
 
-    def _local_problem(self) -> ba.BAProblem | None:
-        """The newest ``window_keyframes`` keyframes and their landmarks, with every observation of those
-        landmarks in the ``2 x window`` keyframes before the window. Those co-visible older keyframes join as
-        free variables with their robot priors (a soft edge): holding them fixed would carry their errors
-        into every later window; only retired ones stay fixed. Built from the keyframes' own arrays (vectorised: at 2000 tracks a window
-        holds ~50k observations, built once a keyframe while frames wait)."""
-        cfg = self.config
-        n = len(self.keyframes)
-        start = max(self.first_active, n - cfg.window_keyframes)
-        kfs = self.keyframes[max(0, n - 3 * cfg.window_keyframes):]
-        tids = np.concatenate([kf.track_ids for kf in kfs])
-        uvs = np.concatenate([kf.uv for kf in kfs])
-        kfi = np.repeat([kf.id for kf in kfs], [len(kf.track_ids) for kf in kfs])
-        landmarks = self.landmarks
-        point_ids = np.array([t for t in np.unique(tids[kfi >= start]).tolist() if t in landmarks], np.int64)
-        if not len(point_ids):
-            return None
-        sel = np.isin(tids, point_ids)
-        tids, uvs, kfi = tids[sel], uvs[sel], kfi[sel]
-        kf_ids = np.unique(kfi)
-        chosen = [self.keyframes[k] for k in kf_ids.tolist()]
-        return ba.BAProblem(
-            K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
-            fixed=kf_ids < self.first_active, prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
-            prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
-            points=np.array([landmarks[t] for t in point_ids.tolist()]),
-            obs_pose=np.searchsorted(kf_ids, kfi), obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs)
-
     def _local_ba(self) -> None:
-        problem = self._local_problem()
+        problem = self._problem(self._local_scope())
         if problem is not None:
             self._apply(problem, ba.solve_robust(problem, self.local_schedule))
 
     def local_ba_job(self) -> tuple[ba.BAProblem, dict] | None:
         """The newest window's local BA for a worker to solve (``ba.solve_robust(problem, local_schedule)``),
         and the ticket ``apply_local_ba`` needs; None when there is nothing to adjust."""
-        self.local_ba_wanted = False
-        problem = self._local_problem()
+        self._local_ba_wanted = False
+        problem = self._problem(self._local_scope())
         if problem is None:
             return None
         last = len(self.keyframes) - 1
@@ -549,14 +474,14 @@ class Mapper:
         self._triangulate_pending()
         cfg = self.config
         t0 = time.perf_counter()
-        active = list(range(self.first_active, len(self.keyframes)))
-        built = self._problem(active) if active else None
+        # the final pass: every active keyframe, its landmarks with all their observations
+        final = ProblemScope(points_from=self.first_active, views_from=self.first_active, every_view=True)
+        problem = self._problem(final) if self.first_active < len(self.keyframes) else None
         ids = np.array(sorted(self.landmarks), dtype=np.int64)
         inlier = np.zeros(len(ids), bool)
         n_obs = n_inlier_obs = 0
         threshold = float("nan")
-        if built is not None:
-            problem, _ = built
+        if problem is not None:
             if cfg.final_global_ba:
                 result = ba.solve_robust(problem, self.final_schedule)
                 self._apply(problem, result)
@@ -586,11 +511,11 @@ class Mapper:
             "archived_landmarks": len(self.archive),
             "inliers": int(inlier.sum()),
             "outliers": int((~inlier).sum()),
-            "local_ba_runs": len(self.ba_times) - (1 if built is not None and cfg.final_global_ba else 0),
+            "local_ba_runs": len(self.ba_times) - (1 if problem is not None and cfg.final_global_ba else 0),
             "local_ba_mean_s": float(np.mean(self.ba_times[:-1])) if len(self.ba_times) > 1 else 0.0,
             "final_ba_s": time.perf_counter() - t0,
             "pixel_sigma_mad": self.last_sigma_px,
-            "inlier_threshold_px": float(threshold) if built is not None else None,
+            "inlier_threshold_px": float(threshold) if problem is not None else None,
         }
         return MapResult(self.keyframes, self.frames, self._frame_poses(), ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
@@ -600,18 +525,10 @@ class Mapper:
         pose-only refinement started from the keyframe corrections interpolated in time."""
         if not self.keyframes:
             return np.array([f.T_prior for f in self.frames])
-        kt, corr = self._corrections()
-        for f in self.frames[self._frames_final:]:
+        kt, corr = self.retirement.corrections(self.keyframes)
+        for f in self.retirement.take_frames(self.frames):
             self._settle_frame(f, kt, corr)
-        self._frames_final = len(self.frames)
         return np.array([f.T_refined for f in self.frames])
-
-    def _corrections(self, upto: int | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Times and corrections of the robot prior (T_refined @ T_prior^-1) of the keyframes an unsettled
-        frame can lie between (frames before the first active keyframe are settled already), up to keyframe
-        ``upto`` (all by default)."""
-        kfs = self.keyframes[max(0, self.first_active - 1):None if upto is None else upto + 1]
-        return np.array([k.t_ns for k in kfs]), [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in kfs]
 
     def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray], resect: bool = True) -> None:
         """A frame's final pose: a keyframe's own, else its prior with the keyframe corrections interpolated
@@ -619,13 +536,6 @@ class Mapper:
         if f.keyframe is not None:
             f.T_refined = self.keyframes[f.keyframe].T_world_camera
         else:
-            i = int(np.searchsorted(kt, f.t_ns))
-            if i == 0:
-                C = corr[0]
-            elif i >= len(kt):
-                C = corr[-1]
-            else:
-                s = (f.t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
-                C = interpolate_pose(corr[i - 1], corr[i], s)
+            C = correction_at(kt, corr, f.t_ns)
             f.T_refined = self._resect(f, C @ f.T_prior) if resect else C @ f.T_prior
         f.track_ids = f.uv = f.cov = None

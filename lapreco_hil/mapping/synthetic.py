@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import Rotation, look_at, make_T
-from .bundle_adjustment import BAProblem
+from lapreco_hil.geometry import Rotation, look_at, make_T
+from lapreco_hil.mapping.bundle_adjustment import BAProblem
 
 
 @dataclass

@@ -13,7 +13,7 @@ import collections
 
 import numpy as np
 
-from ..camera import CameraModel
+from lapreco_hil.camera import CameraModel
 
 
 class ViewCoverage:

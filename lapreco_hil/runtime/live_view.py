@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pyvista as pv
 
-from ..camera import CameraModel
-from ..geometry import inv_T
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.geometry import inv_T
 
 
 def projective_tcoords(mesh: pv.PolyData, camera: CameraModel, T_world_camera: np.ndarray) -> tuple[np.ndarray,

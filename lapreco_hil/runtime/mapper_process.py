@@ -1,5 +1,5 @@
 """The mapper in its own process, and its local BA in another. GTSAM's optimiser holds the GIL for the whole
-solve (measured: a Python thread runs at a few per cent of its speed during one; docs/benchmarks.md), so a
+solve (docs/benchmarks.md, "Runtime notes"), so a
 local BA in a thread would stall whatever else runs in that process: capture and tracking in the main
 process, and the per-frame work (keyframe choice, triangulation, pose refinement) in the mapper. So frames
 are mapped as they come while the BA worker solves the newest window; when its result is back the mapper
@@ -8,17 +8,26 @@ A keyframe's pose is published as soon as it is resected; its new points (and th
 wait for the mapper's next idle moment, so the frames queued behind a keyframe do not wait for its structure.
 
 Observations arrive through shared memory (ObservationRing), slot numbers and refined poses through queues;
-BA problems and results (numpy arrays) through the worker's queues; the final map goes back through a pipe."""
+BA problems and results (numpy arrays) through the worker's queues; the final map goes back through a pipe.
+Every message is a small frozen dataclass (runtime/messages.py). Both processes end when the main process
+dies, however it dies (``die_with_parent``)."""
 
 from __future__ import annotations
 
 import gc
 import logging
+import os
 import queue
+import signal
+import sys
+import threading
 import time
 import traceback
 
 import numpy as np
+
+from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
+                                          MapperFailed, MapperReady, SlotFree)
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +42,8 @@ _IDLE = object()  # no frame waiting
 
 class IdleTimeGC:
     """Garbage collection in the mapper's idle moments only. The mapper holds every active track's views, a
-    few hundred thousand small objects into a run, and CPython's automatic full collections walk them all:
-    28-113 ms pauses in a 15 s replay, growing with the map, each one stalling the frames waiting (measured;
-    docs/benchmarks.md). The mapper makes almost no reference cycles (under a thousand objects unreachable
+    few hundred thousand small objects into a run, and CPython's automatic full collections walk them all,
+    pauses that grow with the map and stall the frames waiting (docs/benchmarks.md, "Runtime notes"). The mapper makes almost no reference cycles (under a thousand objects unreachable
     after a whole session), so in its process automatic collection is off and the young generations, where
     short-lived cycles are, are collected when no frame waits. Reference counting frees everything else as
     before."""
@@ -69,24 +77,51 @@ class IdleTimeGC:
         return True
 
 
-def ba_worker_main(schedule, jobs_q, results_q) -> None:
-    """Process body: solve each (job id, BAProblem) until a None arrives; errors go back, never lost."""
-    import signal
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
-    from ..mapping.bundle_adjustment import solve_robust
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process when ``parent_pid`` (the main process) dies, even by kill -9: on Linux the kernel sends
+    SIGKILL (prctl PR_SET_PDEATHSIG); elsewhere a thread watches the parent pid. A parent that died before this
+    call is caught by the pid check. (No cleanup is needed here: the shared memory and semaphores belong to the
+    main process, and multiprocessing's resource tracker unlinks them once every process of the run is gone.)"""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+        if armed:
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            return
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.25)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent watch", daemon=True).start()
+
+
+def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int) -> None:
+    """Process body: solve each BAJob until EndOfJobs arrives; errors go back, never lost."""
+    die_with_parent(parent_pid)
+    from lapreco_hil.mapping.bundle_adjustment import solve_robust
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     while True:
         job = jobs_q.get()
-        if job is None:
+        if isinstance(job, EndOfJobs):
             return
-        job_id, problem = job
         t0 = time.perf_counter()
         try:
-            solved = solve_robust(problem, schedule)
-            results_q.put((job_id, "ok", solved, time.perf_counter() - t0))
+            solved = solve_robust(job.problem, schedule)
+            results_q.put(BAResult(job.job_id, solved, "", time.perf_counter() - t0))
         except Exception:
-            results_q.put((job_id, "error", traceback.format_exc(), time.perf_counter() - t0))
+            results_q.put(BAResult(job.job_id, None, traceback.format_exc(), time.perf_counter() - t0))
 
 
 class _BAClient:
@@ -102,7 +137,7 @@ class _BAClient:
     def submit(self, job) -> None:
         problem, ticket = job
         self.in_flight = (self._next_id, problem, ticket)
-        self.jobs_q.put((self._next_id, problem))
+        self.jobs_q.put(BAJob(self._next_id, problem))
         self._next_id += 1
 
     def collect(self, mapper, timeout_s: float = 0.0) -> bool:
@@ -110,44 +145,39 @@ class _BAClient:
         if self.in_flight is None:
             return False
         try:
-            job_id, status, payload, solve_s = (self.results_q.get(timeout=timeout_s) if timeout_s
-                                                else self.results_q.get_nowait())
+            reply: BAResult = self.results_q.get(timeout=timeout_s) if timeout_s else self.results_q.get_nowait()
         except queue.Empty:
             return False
-        self.solve_s.append(solve_s)
+        self.solve_s.append(reply.solve_s)
         _, problem, ticket = self.in_flight
         self.in_flight = None
-        if status == "ok":
-            mapper.apply_local_ba(problem, payload, ticket)
+        if not reply.error:
+            mapper.apply_local_ba(problem, reply.solved, ticket)
             self.runs += 1
         else:  # a failed local BA loses one refinement, not the run: the next window covers it
             self.failed += 1
-            log.error("local BA %d failed in the worker:\n%s", job_id, payload)
+            log.error("local BA %d failed in the worker:\n%s", reply.job_id, reply.error)
         return True
 
 
 def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str, max_points: int, snap_lock,
-                K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn,
+                K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn, parent_pid: int,
                 ba_jobs_q=None, ba_results_q=None) -> None:
-    """Process body: take slots until a None arrives, then finish the map and send it (or the error).
-    With BA queues, local BA goes to the worker; without, it runs here (deferred while frames wait)."""
-    import signal
-
-    from ..mapping.mapper import Mapper
-    from .shm import MapSnapshot, ObservationRing
+    """Process body: take SlotReady messages until EndOfFrames, then finish the map and send it (FinalMap, or
+    MapperFailed). With BA queues, local BA goes to the worker; without, it runs here (deferred while frames
+    wait)."""
+    die_with_parent(parent_pid)
+    from lapreco_hil.mapping.mapper import Mapper, MapperSchedule
+    from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle: it ends the run cleanly
     ring = ObservationRing(ring_slots, max_tracks, name=ring_name)
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
-        mapper = Mapper(K, mapper_config)
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
-        mapper.defer_local_ba = worker is not None
-        mapper.resect_on_retire = False
-        mapper.defer_retirement = True
-        mapper.defer_triangulation = True
+        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None))
         collector = IdleTimeGC().start()  # for the life of the process
-        done_q.put(("ready",))  # imports done, the mapper made: the main process starts capture now
+        done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
         last_publish, map_changed = 0.0, False
         clock = StageClock()
@@ -156,7 +186,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
 
         def publish_if_due(whole: bool = False) -> None:
             # the live surface rebuilds every couple of seconds: a snapshot twice a second is plenty, and
-            # gathering the map (~15 ms at 30 000 landmarks) is done in pieces, so no frame waits for all of it
+            # gathering the whole map takes long enough that it is done in pieces, so no frame waits for all of it
             nonlocal last_publish, map_changed, gathering
             if gathering is None:
                 if not (map_changed and (whole or time.monotonic() - last_publish >= SNAPSHOT_PERIOD_S)):
@@ -232,10 +262,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     continue
                 finally:
                     clock.add("wait_for_frames", time.perf_counter() - t)
-            if slot is None:
+            if isinstance(slot, EndOfFrames):
                 break
-            obs, prior, arrival_ns = ring.read(slot)
-            done_q.put(("free", slot))
+            obs, prior, arrival_ns = ring.read(slot.slot)
+            done_q.put(SlotFree(slot.slot))
             try:
                 backlog = ready_q.qsize()
             except NotImplementedError:  # macOS has no qsize; never skip there
@@ -254,8 +284,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             if not is_kf and not resect:
                 skipped_resection += 1
             map_changed |= bool(is_kf)
-            done_q.put(("pose", obs.frame_seq, time.monotonic_ns(), arrival_ns,
-                        mapper.frames[-1].T_refined, bool(is_kf), skipped_ba, skipped_resection))
+            done_q.put(FramePose(obs.frame_seq, time.monotonic_ns(), arrival_ns, mapper.frames[-1].T_refined,
+                                 bool(is_kf), skipped_ba, skipped_resection))
         publish_if_due(whole=True)  # (the map as it ended, if it changed since the last snapshot)
         if worker is not None:
             worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass
@@ -272,9 +302,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         if worker is not None:
             result.stats["local_ba_worker_runs"] = worker.runs
             result.stats["local_ba_worker_failed"] = worker.failed
-        final_conn.send(("ok", result))
+        final_conn.send(FinalMap(result))
     except BaseException:  # reported to the main loop, never lost with the process
-        final_conn.send(("error", traceback.format_exc()))
+        final_conn.send(MapperFailed(traceback.format_exc()))
     finally:
         ring.close()
         snapshot.close()

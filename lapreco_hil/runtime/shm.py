@@ -1,14 +1,77 @@
 """Shared memory between the tracking thread and the mapper process: a ring of observation slots (tracks and
 pose prior of one frame each) and a snapshot of the map (landmarks) for the live surface. Only small control
-messages (slot numbers, refined poses) go through multiprocessing queues."""
+messages (slot numbers, refined poses) go through multiprocessing queues.
+
+Segments are named ``lapreco_<owner pid>_<random>``: a run killed outright (kill -9, out of memory) cannot
+unlink its own, and multiprocessing's resource tracker may have been killed with it, so the next run
+unlinks every such segment whose owner process is gone (``unlink_leftovers``)."""
 
 from __future__ import annotations
 
+import logging
+import os
+import secrets
 from multiprocessing import shared_memory
+from pathlib import Path
 
 import numpy as np
 
-from ..types import Observations, PosePrior
+from lapreco_hil.types import Observations, PosePrior
+
+log = logging.getLogger(__name__)
+PREFIX = "lapreco_"
+SHM_DIR = Path("/dev/shm")  # where POSIX shared memory shows as files (Linux)
+
+
+def new_segment_name(owner_pid: int | None = None) -> str:
+    return f"{PREFIX}{owner_pid or os.getpid()}_{secrets.token_hex(4)}"
+
+
+def owner_pid(name: str) -> int | None:
+    """The owner pid in a segment name made by ``new_segment_name`` (None for any other name)."""
+    parts = name.lstrip("/").split("_")
+    if len(parts) != 3 or parts[0] + "_" != PREFIX or not parts[1].isdigit():
+        return None
+    return int(parts[1])
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def unlink_leftovers(shm_dir: Path = SHM_DIR) -> list[str]:
+    """Unlink the segments of runs whose owner process is gone; returns their names. Where shared memory is
+    not visible as files (macOS) there is nothing to list, and nothing is done."""
+    try:
+        entries = list(shm_dir.iterdir())
+    except OSError:
+        return []
+    removed = []
+    for entry in entries:
+        pid = owner_pid(entry.name)
+        if pid is None or _alive(pid):
+            continue
+        try:
+            entry.unlink()
+        except FileNotFoundError:  # another run's start took it meanwhile
+            continue
+        except OSError as exc:
+            log.warning("could not remove the shared memory '%s' left by process %d: %s", entry, pid, exc)
+            continue
+        removed.append(entry.name)
+    if removed:
+        log.info("removed %d shared-memory segments left by killed runs", len(removed))
+    return removed
+
+
+def _segment(name: str | None, size: int) -> shared_memory.SharedMemory:
+    return shared_memory.SharedMemory(name=name or new_segment_name(), create=name is None, size=size)
 
 
 class ObservationRing:
@@ -20,7 +83,7 @@ class ObservationRing:
         self._slot_bytes = 8 * self.HEADER + 8 * self.PRIOR + 8 * max_tracks + 16 * max_tracks + 3 * max_tracks
         self._slot_bytes = (self._slot_bytes + 63) // 64 * 64
         size = self._slot_bytes * slots
-        self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
+        self.shm = _segment(name, size)
         self.owner = name is None
 
     @property
@@ -72,7 +135,7 @@ class MapSnapshot:
         self.max_points = max_points
         self.lock = lock
         size = 16 + 24 * max_points + 3 * max_points
-        self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=size)
+        self.shm = _segment(name, size)
         self.owner = name is None
         self._header = np.ndarray((2,), np.int64, self.shm.buf, 0)
         self._points = np.ndarray((max_points, 3), np.float64, self.shm.buf, 16)
@@ -94,7 +157,7 @@ class MapSnapshot:
 
     def size(self) -> int:
         """Points in the snapshot now (0 once closed)."""
-        header = getattr(self, "_header", None)
+        header = self._header
         return int(header[1]) if header is not None else 0
 
     def read(self) -> tuple[int, np.ndarray, np.ndarray]:
@@ -104,7 +167,7 @@ class MapSnapshot:
 
     def close(self) -> None:
         # views into the buffer must go before the mapping can be closed
-        del self._header, self._points, self._colors
+        self._header = self._points = self._colors = None
         self.shm.close()
         if self.owner:
             self.shm.unlink()

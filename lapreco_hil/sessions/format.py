@@ -11,6 +11,7 @@ A session is a folder::
     camera_poses.csv        t_ns,tx,ty,tz,qx,qy,qz,qw  when pose_source = "camera_poses"
     truth/surface.ply       optional ground truth, world frame
     truth/camera_poses.csv  optional ground truth, same columns as camera_poses.csv
+    events.csv              t_ns,device,event,detail  device faults and health changes while recording
 
 Rows are appended while recording; a row is complete only when it ends with a newline, so a session cut
 short by a crash reads up to its last complete row.
@@ -25,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import N_DIST, CameraModel
-from ..errors import SessionError
-from ..types import RobotDescription
+from lapreco_hil.camera import N_DIST, CameraModel
+from lapreco_hil.errors import SessionError
+from lapreco_hil.types import RobotDescription
 
 FORMAT = "lapreco-session"
 VERSION = 1
@@ -38,6 +39,8 @@ JOINTS_FILE = "joints.csv"
 CAMERA_POSES_FILE = "camera_poses.csv"
 TRUTH_SURFACE_FILE = "truth/surface.ply"
 TRUTH_POSES_FILE = "truth/camera_poses.csv"
+EVENTS_FILE = "events.csv"
+EVENT_COLUMNS = ("t_ns", "device", "event", "detail")
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
@@ -69,6 +72,7 @@ class SessionMeta:
     complete: bool = False
     counts: dict = field(default_factory=dict)
     source: dict = field(default_factory=dict)  # free-form: what wrote it (devices, scene, seed)
+    health: dict = field(default_factory=dict)  # informative: the devices' faults while recording
 
     @property
     def joint_scale(self) -> np.ndarray:
@@ -93,6 +97,8 @@ class SessionMeta:
             "counts": self.counts,
             "source": self.source,
         }
+        if self.health:
+            doc["health"] = self.health
         if self.nominal_fps:
             doc["nominal_fps"] = self.nominal_fps
         if self.robot is not None:
@@ -219,7 +225,7 @@ def meta_from_json(doc, source: str) -> SessionMeta:
                        joint_units=joint_units, pose_sigma=sigma, time_offset_ns=f.get("time_offset_ns", int, 0),
                        length_unit=length, angle_unit=angle, nominal_fps=fps,
                        complete=f.get("complete", bool, True), counts=f.get("counts", dict, {}),
-                       source=f.get("source", dict, {}))
+                       source=f.get("source", dict, {}), health=f.get("health", dict, {}))
 
 
 def read_meta(folder: Path) -> SessionMeta:
@@ -307,7 +313,7 @@ def check_increasing(path: Path, t_ns: np.ndarray, what: str = "t_ns") -> None:
 
 def read_pose_table(path: Path, length_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """(t_ns (N,), T_world_camera (N, 4, 4)) from a table with POSE_COLUMNS; translations to metres."""
-    from ..geometry import pose_from_tum
+    from lapreco_hil.geometry import pose_from_tum
 
     rows, _ = read_rows(path, POSE_COLUMNS)
     t = np.array([parse_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)], dtype=np.int64)

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import collections
 import logging
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from ..camera import CameraModel
-from ..errors import ConfigError
-from ..robot_models import urdf_path
-from ..types import RobotDescription
-from .format import SessionMeta
-from .writer import SessionWriter
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.errors import ConfigError, DeviceError
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import RobotDescription
+from lapreco_hil.drivers.health import HealthState
+from lapreco_hil.sessions.format import EVENTS_FILE, SessionMeta
+from lapreco_hil.sessions.writer import SessionWriter
 
 log = logging.getLogger(__name__)
 
@@ -25,13 +27,59 @@ class RecordStats:
     capture_span_s: float
     wall_s: float
     stopped_by: str
+    robot_faults: dict = field(default_factory=dict)  # the robot driver's fault counts at the end
+    events: int = 0  # rows of events.csv: faults and health changes seen while recording
 
     @property
     def frames_per_s(self) -> float:
         return self.frames / self.wall_s if self.wall_s > 0 else 0.0
 
-    def as_dict(self) -> dict:
-        return {**self.__dict__, "frames_per_s": self.frames_per_s}
+
+class DeviceWatch:
+    """Device faults and health changes while recording: each one a row of events.csv and one console
+    warning (at most one per device and kind of event every ``warn_every_s``)."""
+
+    def __init__(self, writer: SessionWriter, devices: dict, warn_every_s: float = 1.0) -> None:
+        from lapreco_hil.pose_sources import RateLimitedWarning
+
+        self.writer, self.devices = writer, devices  # name -> device (a grabber, a robot driver)
+        self._warn = collections.defaultdict(lambda: RateLimitedWarning(log, warn_every_s))
+        self._state = {name: None for name in devices}
+        self._started: set[str] = set()  # devices seen in a state other than "no reading yet" (stale)
+        self._faults: dict[str, dict] = {name: {} for name in devices}
+        self.last_problem: dict[str, str] = {}  # name -> the detail of its last fault, else its last other problem
+        self.last_fault: dict[str, str] = {}  # name -> the detail of its last FAULTED state
+
+    def check(self, t_ns: int) -> None:
+        for name, dev in self.devices.items():
+            health = dev.health
+            if health is not None and health.state != self._state[name]:
+                # a device that has not delivered yet (stale, then OK) is starting, not changing
+                starting = name not in self._started and health.state in (HealthState.OK, HealthState.STALE)
+                self._state[name] = health.state
+                if health.state is not HealthState.STALE:
+                    self._started.add(name)
+                if not starting:
+                    self._event(t_ns, name, f"health:{health.state.value}", health.detail)
+            if health is not None and health.state is not HealthState.OK and health.detail:
+                # a device's own fault (limits, EMCY) says more than a late reply: it is kept over them
+                if health.state is HealthState.FAULTED or name not in self.last_fault:
+                    self.last_problem[name] = health.detail
+                if health.state is HealthState.FAULTED:
+                    self.last_fault[name] = health.detail
+            faults = dict(dev.faults)
+            for kind, count in faults.items():
+                new = count - self._faults[name].get(kind, 0)
+                if new > 0:
+                    detail = f"{new} more, {count} in all"
+                    if health is not None and health.detail:
+                        detail += f"; {health.detail}"
+                    self._event(t_ns, name, f"fault:{kind}", detail)
+            self._faults[name] = faults
+
+    def _event(self, t_ns: int, name: str, event: str, detail: str) -> None:
+        self.writer.add_event(t_ns, name, event, detail)
+        self._warn[(name, event)]("record: %s %s: %s", name, event, detail or "(no detail)")
 
 
 def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames: int | None = None,
@@ -55,10 +103,12 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
     stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
     bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
     wall0 = time.perf_counter()
+    robot_name, grabber_name = f"robot {robot.url.raw}", f"grabber {grabber.url.raw}"
     with SessionWriter(out, meta, urdf_path(description.urdf)) as writer, bar:
         if truth is not None and truth.surface is not None:
             writer.set_truth_surface(truth.surface)
-        first_t = None
+        watch = DeviceWatch(writer, {robot_name: robot, grabber_name: grabber})
+        first_t = last_t = None
         try:
             while True:
                 frame = grabber.read(timeout_s=1.0)
@@ -69,7 +119,9 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
                 if truth is not None and truth.camera_pose is not None:
                     writer.add_true_pose(frame.t_ns, truth.camera_pose(frame.t_ns))
                 first_t = frame.t_ns if first_t is None else first_t
+                last_t = frame.t_ns
                 stats.capture_span_s = (frame.t_ns - first_t) * 1e-9
+                watch.check(frame.t_ns)
                 bar.update(1)
                 if max_frames is not None and writer.n_queued >= max_frames:
                     stats.stopped_by = "frame count"
@@ -77,14 +129,53 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
                 if seconds is not None and stats.capture_span_s >= seconds:
                     stats.stopped_by = "duration"
                     break
+            # the readings captured just after the last frame: without them it has no pose on replay
+            stats.skipped_joint_samples += writer.add_joints(robot.read(timeout_s=FINAL_READING_WAIT_S))
         except KeyboardInterrupt:
             stats.stopped_by = "interrupted"
+        if last_t is not None:
+            watch.check(last_t)
+        stats.robot_faults = {k: int(v) for k, v in dict(robot.faults).items() if v}
+        # readings the driver handed on (RobotDriver counts them)
+        delivered = robot.readings_delivered
+        writer.set_health({"robot_faults": stats.robot_faults, "robot_readings_delivered": delivered,
+                           "joint_samples_not_recorded": stats.skipped_joint_samples,
+                           "last_robot_problem": watch.last_problem.get(robot_name, ""),
+                           "events": writer.n_events})
     stats.frames, stats.joint_samples = writer.n_frames, writer.n_joints  # after close: every frame on disk
+    stats.events = writer.n_events
     stats.wall_s = time.perf_counter() - wall0
-    if stats.skipped_joint_samples:
-        log.warning("%d joint samples were not recorded (non-finite, wrong size or not newer than the last)",
-                    stats.skipped_joint_samples)
+    by_driver = sum(stats.robot_faults.get(k, 0) for k in REFUSED_READING_FAULTS)
+    refused = by_driver + stats.skipped_joint_samples
+    last = writer.last_skipped_joints or watch.last_problem.get(robot_name, "")
+    if stats.robot_faults or stats.skipped_joint_samples:
+        faults = ", ".join(f"{k} {v}" for k, v in sorted(stats.robot_faults.items())) or "none"
+        log.warning("record: robot %s: faults during the recording: %s; %d readings refused (%d by the driver, "
+                    "%d not recorded); last: %s (each one in %s/%s)", robot.url.raw, faults, refused, by_driver,
+                    stats.skipped_joint_samples, last or "-", out, EVENTS_FILE)
+    if stats.frames and not stats.joint_samples:
+        raise DeviceError(_no_joints_message(robot.url.raw, out, stats, delivered, refused, last))
     return stats
+
+
+# driver fault counters that stand for a reading received and refused (not one lost on the link)
+REFUSED_READING_FAULTS = ("out_of_limits",)
+# how long the end of a recording waits for the readings captured just after its last frame
+FINAL_READING_WAIT_S = 0.05
+
+
+def _no_joints_message(url: str, out: str, stats: RecordStats, delivered: int | None, refused: int,
+                       last: str) -> str:
+    kept = f"the {stats.frames} frames are saved in {out}, but a replay needs joint readings"
+    probe = f"next: check the robot with 'lapreco devices --probe {url}'"
+    faults = "; ".join(f"{k} {v}" for k, v in sorted(stats.robot_faults.items())) or "no faults counted"
+    if refused or delivered:
+        n = delivered if delivered else refused
+        return (f"record: robot '{url}' delivered {n} readings but none was usable (0 joint samples kept, "
+                f"{refused} refused: {faults}; last: {last or 'no detail'}); {kept}; {probe} (joint map, "
+                f"limits, units)")
+    return (f"record: robot '{url}' delivered no readings during {stats.frames} frames ({faults}"
+            f"{'; last: ' + last if last else ''}); {kept}; {probe}")
 
 
 def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDescription,
@@ -92,14 +183,14 @@ def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDesc
     return SessionMeta(camera=camera, pose_source="joints", robot=description,
                        joint_names=tuple(robot.info.joint_names),
                        joint_units=_joint_units(description, len(robot.info.joint_names)),
-                       nominal_fps=getattr(grabber, "nominal_fps", None), source=source or {})
+                       nominal_fps=grabber.nominal_fps, source=source or {})
 
 
 def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:
     """'length' for prismatic joints, 'angle' for the others, read from the URDF."""
     import pinocchio as pin
 
-    from ..kinematics import prismatic_joints
+    from lapreco_hil.kinematics import prismatic_joints
 
     model = pin.buildModelFromUrdf(str(urdf_path(description.urdf)))
     units = tuple("length" if p else "angle" for p in prismatic_joints(model))

@@ -13,21 +13,35 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from dataclasses import dataclass
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
-from ..drivers.grabber.base import Grabber
-from ..drivers.health import Health, HealthState
-from ..drivers.robot.base import RobotDriver
-from ..errors import ConfigError, SessionError
-from ..kinematics import CameraKinematics
-from ..registry import DeviceContext, DeviceURL
-from ..robot_models import urdf_path
-from ..types import Frame, JointLimits, JointSample, RobotInfo
-from .session import Session
+from lapreco_hil.drivers.grabber.base import Grabber
+from lapreco_hil.drivers.health import Health, HealthState
+from lapreco_hil.drivers.robot.base import RobotDriver
+from lapreco_hil.errors import ConfigError, SessionError
+from lapreco_hil.kinematics import CameraKinematics
+from lapreco_hil.registry import RECORDED, DeviceContext, DeviceURL, URLConfig, url_param
+from lapreco_hil.robot_models import urdf_path
+from lapreco_hil.types import Frame, JointLimits, JointSample, RobotInfo
+from lapreco_hil.sessions.session import Session
+
+
+@dataclass(frozen=True)
+class ReplayGrabberConfig(URLConfig):
+    pace: str = url_param("afap", choices=("afap", "realtime"), help="as fast as possible, or the recorded rate")
+    queue: int = url_param(4, low=1, unit="frame", help="frames held for a slow reader (realtime)")
+
+
+@dataclass(frozen=True)
+class ReplayRobotConfig(URLConfig):
+    # the robot follows the grabber's pace; it takes the grabber's parameters so one URL opens both
+    pace: str = url_param("afap", choices=("afap", "realtime"))
+    queue: int = url_param(4, low=1, unit="frame")
 
 
 class _ReplayClock:
@@ -54,16 +68,14 @@ READ_AHEAD = 8
 
 
 class ReplayGrabber(Grabber):
+    clock_domain = RECORDED
+
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        config = ReplayGrabberConfig.from_url(url)
         self.url = url
         self.session, self.clock = _shared(url, context)
-        pace = url.get("pace", "afap")
-        if pace not in ("afap", "realtime"):
-            raise ConfigError(f"device URL '{url.raw}': pace must be 'afap' or 'realtime', got '{pace}'")
-        self.realtime = pace == "realtime"
-        self.queue_len = url.get("queue", 4, int)
-        if self.queue_len < 1:
-            raise ConfigError(f"device URL '{url.raw}': queue must be at least 1 frame, got {self.queue_len}")
+        self.realtime = config.pace == "realtime"
+        self.queue_len = config.queue
         self._i = 0
         self._open = False
         self._wall0: float | None = None
@@ -134,7 +146,10 @@ class ReplayGrabber(Grabber):
 
 
 class ReplayRobot(RobotDriver):
+    clock_domain = RECORDED
+
     def __init__(self, url: DeviceURL, context: DeviceContext) -> None:
+        ReplayRobotConfig.from_url(url)
         self.url = url
         self.session, self.clock = _shared(url, context)
         if self.session.meta.pose_source != "joints":
@@ -159,7 +174,7 @@ class ReplayRobot(RobotDriver):
     def close(self) -> None:
         self._open = False
 
-    def read(self, timeout_s: float | None = None) -> list[JointSample]:
+    def _read(self, timeout_s: float | None) -> list[JointSample]:
         samples = self.session.joint_samples
         now = self.clock.now_ns
         start = self._i

@@ -8,10 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import SessionError
-from ..evaluation.truth import GroundTruth, SampledPoses
-from ..types import Frame, JointSample, RobotDescription
-from . import format as fmt
+from lapreco_hil.errors import SessionError
+from lapreco_hil.geometry import SampledPoses
+from lapreco_hil.ground_truth import GroundTruth
+from lapreco_hil.types import Frame, JointSample, RobotDescription
+from lapreco_hil.sessions import format as fmt
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +25,8 @@ class Session:
         self.folder = Path(folder)
         self.meta = fmt.read_meta(self.folder)
         self.truncated: list[str] = []
+        # tables with fewer rows than session.json's counts say were recorded: {table: {recorded, found}}
+        self.shortfall: dict[str, dict[str, int]] = {}
         self._read_frames()
         self.joint_samples: list[JointSample] = []
         self.pose_t_ns = np.zeros(0, np.int64)
@@ -38,6 +41,23 @@ class Session:
         if not self.meta.complete:
             log.warning("session '%s' was not closed cleanly (recording cut short?); reading its %d complete "
                         "frames", self.folder, len(self.frame_t_ns))
+        self._check_counts()
+
+    def _check_counts(self) -> None:
+        """Compare the rows found with the counts session.json recorded: a table cut short after the recording
+        was closed (a copy that stopped halfway, a hand edit) is flagged, never replayed as if it were whole."""
+        found = {"frames": (fmt.FRAMES_FILE, len(self.frame_t_ns))}
+        if self.meta.pose_source == "joints":
+            found["joint_samples"] = (fmt.JOINTS_FILE, len(self.joint_samples))
+        else:
+            found["camera_poses"] = (fmt.CAMERA_POSES_FILE, len(self.pose_t_ns))
+        for key, (name, n) in found.items():
+            recorded = self.meta.counts.get(key)
+            if isinstance(recorded, int) and not isinstance(recorded, bool) and n < recorded:
+                self.shortfall[key] = {"recorded": recorded, "found": n}
+                log.warning("session '%s' is shorter than its %s says: %s has %d %s, %d were recorded; the "
+                            "rest is missing (an incomplete copy?)", self.folder, fmt.META_FILE, name, n,
+                            key.replace("_", " "), recorded)
 
     # --- frames ---------------------------------------------------------------------------------------------
     def _read_frames(self) -> None:
@@ -48,14 +68,31 @@ class Session:
         self.frame_seq = np.array([fmt.parse_int(path, i + 2, "seq", r[0]) for i, r in enumerate(rows)], np.int64)
         self.frame_t_ns = np.array([fmt.parse_int(path, i + 2, "t_ns", r[1]) for i, r in enumerate(rows)],
                                    np.int64)
-        self.frame_files = [self.folder / r[2] for r in rows]
         if not rows:
             raise SessionError(f"{path}: no frames")
         fmt.check_increasing(path, self.frame_t_ns)
         fmt.check_increasing(path, self.frame_seq, "seq")
-        for i, f in enumerate(self.frame_files):
-            if not f.is_file():
-                raise SessionError(f"{path}: line {i + 2}: frame file '{rows[i][2]}' is missing")
+        self.frame_files = [self._frame_file(path, i + 2, r[2]) for i, r in enumerate(rows)]
+
+    def _frame_file(self, table: Path, lineno: int, name: str) -> Path:
+        """The frame file a row names, checked: relative, inside the session folder (after following
+        symbolic links), and there."""
+        where = f"{table}: line {lineno}: frame file '{name}'"
+        if not name or Path(name).is_absolute() or name.startswith(("/", "\\")) or name[1:2] == ":":
+            raise SessionError(f"{where} is not a relative path; frame paths must be relative to the session "
+                               f"folder (e.g. frames/000000.png)")
+        file = self.folder / name
+        root = self.folder.resolve()
+        try:
+            resolved = file.resolve()
+        except (OSError, RuntimeError) as exc:  # a symbolic-link loop
+            raise SessionError(f"{where} cannot be resolved ({exc})") from None
+        if not resolved.is_relative_to(root):
+            raise SessionError(f"{where} leads outside the session folder (to '{resolved}'); frame paths must "
+                               f"stay inside it")
+        if not resolved.is_file():
+            raise SessionError(f"{where} is missing")
+        return file
 
     def __len__(self) -> int:
         return len(self.frame_t_ns)

@@ -14,6 +14,7 @@ drops and counts frames, rather than memory growing without bound).
 from __future__ import annotations
 
 import collections
+import csv
 import json
 import os
 import shutil
@@ -24,10 +25,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import OutputError, SessionError
-from ..geometry import tum_values
-from ..types import Frame, JointSample
-from . import format as fmt
+from lapreco_hil.errors import OutputError, SessionError
+from lapreco_hil.geometry import tum_values
+from lapreco_hil.types import Frame, JointSample
+from lapreco_hil.sessions import format as fmt
 
 
 def _write_json_atomic(path: Path, doc: dict) -> None:
@@ -62,7 +63,8 @@ class SessionWriter:
         self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="session-png")
         self._pending: collections.deque[tuple[Future, str]] = collections.deque()
         self._fsync_every = fsync_every
-        self.n_frames = self.n_queued = self.n_joints = self.n_poses = self.n_truth = 0
+        self.n_frames = self.n_queued = self.n_joints = self.n_poses = self.n_truth = self.n_events = 0
+        self.last_skipped_joints = ""  # why the last joint sample was not recorded (names the joint and value)
         self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
         _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json())
         self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, ("seq", "t_ns", "file"))}
@@ -133,14 +135,38 @@ class SessionWriter:
         skipped = 0
         for s in samples:
             q = np.asarray(s.q, float)
-            if (self._last_joint_t is not None and s.t_ns <= self._last_joint_t) or q.shape != scale.shape \
-                    or not np.all(np.isfinite(q)):
+            why = self._joint_sample_fault(s.t_ns, q, scale.shape)
+            if why:
                 skipped += 1
+                self.last_skipped_joints = why
                 continue
             fh.write(f"{s.seq},{s.t_ns}," + ",".join(f"{v:.9g}" for v in q / scale) + "\n")
             self._last_joint_t = s.t_ns
             self.n_joints += 1
         return skipped
+
+    def _joint_sample_fault(self, t_ns: int, q: np.ndarray, shape) -> str:
+        if q.shape != shape:
+            return f"{q.size} joint values, the session has {shape[0]} joints"
+        bad = np.flatnonzero(~np.isfinite(q))
+        if len(bad):
+            return f"joint '{self.meta.joint_names[int(bad[0])]}' = {q[int(bad[0])]}"
+        if self._last_joint_t is not None and t_ns <= self._last_joint_t:
+            return f"time {t_ns} ns is not after the last recorded sample's {self._last_joint_t} ns"
+        return ""
+
+    def add_event(self, t_ns: int, device: str, event: str, detail: str = "") -> None:
+        """One row of events.csv: a device fault or health change noticed at session time ``t_ns``."""
+        if "events" not in self._tables:
+            self._tables["events"] = self._open_table(fmt.EVENTS_FILE, fmt.EVENT_COLUMNS)
+        # the csv module quotes a detail that holds commas or quotes (RFC 4180)
+        csv.writer(self._tables["events"], lineterminator="\n").writerow(
+            [int(t_ns), device, event, " ".join(str(detail).split())])
+        self.n_events += 1
+
+    def set_health(self, health: dict) -> None:
+        """The devices' fault counts for session.json's ``health`` (written when the session is closed)."""
+        self.meta = replace(self.meta, health=dict(health))
 
     def add_camera_pose(self, t_ns: int, T_world_camera: np.ndarray) -> None:
         if self._last_pose_t is not None and t_ns <= self._last_pose_t:
@@ -191,6 +217,6 @@ class SessionWriter:
             os.fsync(fh.fileno())
             fh.close()
         counts = {"frames": self.n_frames, "joint_samples": self.n_joints, "camera_poses": self.n_poses,
-                  "true_camera_poses": self.n_truth}
+                  "true_camera_poses": self.n_truth, "events": self.n_events}
         self.meta = replace(self.meta, complete=True, counts=counts)
         _write_json_atomic(self.folder / fmt.META_FILE, self.meta.to_json())

@@ -3,12 +3,75 @@ the seed's Fig 2). Works headless through VTK's EGL or OSMesa render window."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
+from pathlib import Path
 
 import numpy as np
 import pyvista as pv
 
-from ..geometry import transform_points
+from lapreco_hil.geometry import transform_points
+
+
+# how to get a renderer on a headless machine (README, "Headless rendering")
+ENABLE_RENDERING = ("install Mesa's EGL libraries (Debian/Ubuntu: apt-get install libegl1 libgl1) or a VTK built "
+                    "with OSMesa (pip install vtk-osmesa in place of vtk)")
+_EGL_PLATFORM_DEVICE_EXT = 0x313F
+
+
+def offscreen_unavailable() -> str | None:
+    """Why VTK cannot open an off-screen window on this machine, or None when it can. Asked before rendering
+    because VTK, finding neither a usable EGL device nor OSMesa, crashes the process (SIGSEGV) instead of
+    raising."""
+    if os.environ.get("DISPLAY"):
+        return None
+    if _osmesa_present():
+        return None
+    if os.environ.get("VTK_DEFAULT_OPENGL_WINDOW") == "vtkOSOpenGLRenderWindow":
+        return "VTK_DEFAULT_OPENGL_WINDOW asks for OSMesa, and no OSMesa library is installed"
+    if _egl_devices_that_initialise() > 0:
+        return None
+    return "no display, no EGL device that initialises, and no OSMesa library"
+
+
+def _osmesa_present() -> bool:
+    import vtkmodules
+
+    bundled = Path(vtkmodules.__file__).parent.parent / "vtk.libs"  # vtk-osmesa wheels carry their own
+    return bool(ctypes.util.find_library("OSMesa")) or any(bundled.glob("libOSMesa*"))
+
+
+def _egl_devices_that_initialise() -> int:
+    """EGL devices (EGL_EXT_device_enumeration, as VTK's EGL window uses them) whose display initialises."""
+    try:
+        egl = ctypes.CDLL(ctypes.util.find_library("EGL") or "libEGL.so.1")
+    except OSError:
+        return 0
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    query_addr = egl.eglGetProcAddress(b"eglQueryDevicesEXT")
+    display_addr = egl.eglGetProcAddress(b"eglGetPlatformDisplayEXT")
+    if not query_addr or not display_addr:
+        return 0
+    query = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_int, ctypes.POINTER(ctypes.c_void_p),
+                             ctypes.POINTER(ctypes.c_int))(query_addr)
+    get_display = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_void_p, ctypes.c_void_p)(display_addr)
+    egl.eglInitialize.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int)]
+    egl.eglTerminate.argtypes = [ctypes.c_void_p]
+    n = ctypes.c_int(0)
+    if not query(0, None, ctypes.byref(n)) or n.value <= 0:
+        return 0
+    devices = (ctypes.c_void_p * n.value)()
+    query(n.value, devices, ctypes.byref(n))
+    working = 0
+    for device in devices[:n.value]:
+        display = get_display(_EGL_PLATFORM_DEVICE_EXT, device, None)
+        major, minor = ctypes.c_int(), ctypes.c_int()
+        if display and egl.eglInitialize(display, ctypes.byref(major), ctypes.byref(minor)):
+            egl.eglTerminate(display)
+            working += 1
+    return working
 
 
 def camera_pyramid(T_world_camera: np.ndarray, width: int, height: int, fx: float, depth: float) -> pv.PolyData:

@@ -14,9 +14,9 @@ import numpy as np
 
 from lapreco_hil.errors import SceneError
 
-from .renderer import Material
-from .textures import (apple_texture, bone_texture, fat_texture, gallbladder_texture, liver_texture,
-                       steel_texture, uterus_texture, value_noise)
+from lapreco_hil.simulators.world.renderer import Material
+from lapreco_hil.simulators.world.textures import (apple_texture, bone_texture, fat_texture, gallbladder_texture,
+                                                   liver_texture, steel_texture, uterus_texture, value_noise)
 
 
 @dataclass(frozen=True)

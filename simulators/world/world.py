@@ -17,9 +17,9 @@ from lapreco_hil.geometry import make_T, rot_x, transform_points
 from lapreco_hil.kinematics import CameraKinematics
 from lapreco_hil.robot_models import urdf_path
 
-from ..robot import ComplianceModel, ScanTrajectory, SimulatedArm
-from .renderer import Lighting, Renderer, vertex_normals
-from .scenes import build_scene, instrument_material, instrument_mesh, instrument_pose
+from lapreco_hil.simulators.robot import ComplianceModel, ScanTrajectory, SimulatedArm
+from lapreco_hil.simulators.world.renderer import Lighting, Renderer, vertex_normals
+from lapreco_hil.simulators.world.scenes import build_scene, instrument_material, instrument_mesh, instrument_pose
 
 T0_NS = 1_000_000_000  # simulated time starts at 1 s: timestamps are never 0
 

@@ -15,18 +15,17 @@ import cv2
 import numpy as np
 import warp as wp
 
-from ...camera import CameraModel
-from ...config import TrackerConfig
-from ...types import Frame, Observations
-from ...warp_device import device_lock
-from ..opencv import HIGHPASS_GAIN
-from . import kernels as K
+from lapreco_hil.camera import CameraModel
+from lapreco_hil.config import TrackerConfig
+from lapreco_hil.types import Frame, Observations
+from lapreco_hil.warp_device import device_lock
+from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.warp import corners, drift_check, lk, pyramid, tracks
 
 log = logging.getLogger(__name__)
 
 # rounds of the parallel greedy selection; a corner still undecided after them is dropped (a chain of ever
-# stronger neighbours longer than this). On 1080p frames with ~3600 selected corners, 6 rounds left 20-90
-# undecided and 8 rounds 0-12.
+# stronger neighbours longer than this): 8 leave next to none undecided (docs/benchmarks.md)
 SELECTION_ROUNDS = 8
 # LK gives up where the window's smaller gradient eigenvalue per pixel is below this. OpenCV's 1e-4 is in its
 # own units (0-255 intensities, Scharr derivatives x32, scaled by 2^-20): about 1.5e-6 for [0, 1] intensities.
@@ -39,7 +38,7 @@ COLOR_ROW = 64  # points per row of the colour remap
 
 class WarpFrontEnd:
     def __init__(self, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> None:
-        from ...warp_device import init_warp
+        from lapreco_hil.warp_device import init_warp
 
         init_warp()
         self.camera = camera
@@ -89,7 +88,7 @@ class WarpFrontEnd:
             self._pts = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]
             self._A = [wp.zeros(n, dtype=wp.mat22) for _ in range(2)]
             self._steps = [wp.zeros(n, dtype=wp.vec2) for _ in range(2)]  # each track's motion in its last frame
-            self._patches = [wp.zeros((n, K.PATCH * K.PATCH), dtype=float) for _ in range(2)]
+            self._patches = [wp.zeros((n, drift_check.PATCH * drift_check.PATCH), dtype=float) for _ in range(2)]
             self._lk_pts = wp.zeros(n, dtype=wp.vec2)
             self._status = wp.zeros(n, dtype=wp.int32)
             self._error = wp.zeros(n, dtype=float)
@@ -104,7 +103,7 @@ class WarpFrontEnd:
             self._cell_key = wp.zeros(n_cells, dtype=wp.uint64)  # zero between detections (cell_init clears it)
             self._cells = wp.zeros(n_cells, dtype=wp.vec3)  # each cell's strongest corner: (x, y, score)
             self._cell_state = wp.zeros(n_cells, dtype=wp.int32)  # -1 out, 0 undecided, 1 selected
-            self._hist = wp.zeros(K.SCORE_BINS, dtype=wp.int32)
+            self._hist = wp.zeros(corners.SCORE_BINS, dtype=wp.int32)
             self._cut = wp.zeros(2, dtype=wp.int32)
             self._taken = wp.zeros(2, dtype=wp.int32)
             # track bookkeeping lives on the device, so a frame needs no read-back until its results
@@ -149,9 +148,6 @@ class WarpFrontEnd:
         return self._n_tracks
 
     # --- image stages -----------------------------------------------------------------------------------------
-    def _launch(self, kernel, dim, inputs):
-        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
-
     def _to_staging(self, image: np.ndarray) -> None:
         """The frame's grey levels into the pinned staging buffer; its copy to the device is the first node of
         the frame's graph."""
@@ -170,8 +166,7 @@ class WarpFrontEnd:
         n = len(src)
         if n == 0:
             return np.zeros((0, 3), np.uint8)
-        # in rows of COLOR_ROW points: measured on the H100 lease's host, 2000 points took 10 us so against
-        # 18-35 us as one long row
+        # in rows of COLOR_ROW points: cv2.remap is faster on short rows than on one long one
         rows = -(-n // COLOR_ROW)
         xy = np.empty((rows * COLOR_ROW, 2), np.float32)
         xy[:n] = src
@@ -182,19 +177,18 @@ class WarpFrontEnd:
 
     def _prepare_kernels(self) -> None:
         """Undistort, remove shading, build the pyramid and its gradients into the current buffers."""
-        H, W = self.height, self.width
+        dev = self.device
         hw, hh = self._half
-        self._launch(K.undistort_log, (H, W), [self._frame, self._remap, self._log])
-        self._launch(K.half_mean, (hh, hw), [self._log, self._half_log, hw])
-        self._launch(K.blur_1d, (hh, hw), [self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp])
-        self._launch(K.blur_1d, (hh, hw), [self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit])
+        pyramid.undistort_log(self._frame, self._remap, self._log, dev)
+        pyramid.half_mean(self._log, self._half_log, hw, hh, dev)
+        pyramid.blur_1d(self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp, dev)
+        pyramid.blur_1d(self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit, dev)
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        subtract = 1 if self.config.shading_sigma_px > 0 else 0
-        self._launch(K.level0, (H, W), [self._log, self._half_lit, hw, hh, subtract, pyr, self._lit])
+        pyramid.level0(self._log, self._half_lit, hw, hh, self.config.shading_sigma_px > 0, pyr, self._lit, dev)
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
-            self._launch(K.pyr_down, (hs[l], ws[l]), [pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l]])
-        self._launch(K.sobel_levels, pyr.shape[0], [pyr, self._offs, self._ws, self._hs, self.levels, gx, gy])
+            pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
+        pyramid.sobel_levels(pyr, self._offs, self._ws, self._hs, self.levels, gx, gy, dev)
 
     # --- tracking -----------------------------------------------------------------------------------------------
     def _lk_kernels(self) -> None:
@@ -202,11 +196,10 @@ class WarpFrontEnd:
         kernels read the live count from the device, so the shapes are fixed (a graph)."""
         cfg = self.config
         prev, cur = 1 - self._cur, self._cur
-        wp.launch_tiled(K.lk_track, dim=[cfg.max_features], inputs=[
-            self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-            self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
-            cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
-            self._lk_pts, self._status, self._error], block_dim=K.LK_LANES, device=self.device)
+        lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
+                    self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
+                    self._lk_pts, self._status, self._error, self.device)
         self._sync_for_profile("lk")
 
     def _keep_kernels(self) -> None:
@@ -215,21 +208,20 @@ class WarpFrontEnd:
         cfg = self.config
         n = cfg.max_features
         prev, cur = 1 - self._cur, self._cur
+        dev = self.device
         if cfg.drift_check:
-            wp.launch_tiled(K.drift_check, dim=[n], inputs=[
+            drift_check.drift_check(
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
                 self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
-                cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual],
-                block_dim=K.DRIFT_LANES, device=self.device)
+                cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev)
         else:
-            self._launch(K.lk_keep, n, [self._lk_pts, self._status, self._mask, self._count[prev], self._keep])
-        wp.utils.array_scan(self._keep, self._slot, inclusive=False)
-        self._launch(K.scatter_tracks, (n, K.PATCH * K.PATCH), [
+            tracks.lk_keep(self._lk_pts, self._status, self._mask, self._count[prev], self._keep, dev)
+        tracks.compact_tracks(
             self._keep, self._slot, self._lk_pts, self._pts[prev], self._A[prev], self._patches[prev], self._ids[prev],
-            self._pts[cur], self._steps[cur], self._A[cur], self._patches[cur], self._ids[cur]])
+            self._pts[cur], self._steps[cur], self._A[cur], self._patches[cur], self._ids[cur], dev)
         redetect_below = int(np.ceil(cfg.redetect_below * n))
-        self._launch(K.count_kept, 1, [self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag,
-                                       self._n_new])
+        tracks.count_kept(self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag, self._n_new,
+                          dev)
         self._sync_for_profile("track")
 
     def _sync_for_profile(self, name: str) -> None:
@@ -241,19 +233,17 @@ class WarpFrontEnd:
     # --- detection ----------------------------------------------------------------------------------------------
     def _occupancy(self, buffer: int, ahead: float, which: int) -> None:
         """Stamp the discs around the live tracks of a track buffer, each moved on by ``ahead`` times its last
-        step (``which``: see ``K.occupancy``)."""
-        r = int(np.ceil(self.config.min_distance_px))
-        self._launch(K.occupancy, (self.config.max_features, (2 * r + 1) ** 2), [
-            self._pts[buffer], self._steps[buffer], ahead, self._count[buffer], float(self.config.min_distance_px),
-            self._stamp, which, self._occ])
+        step (``which``: see ``corners._occupancy``)."""
+        corners.occupancy(self._pts[buffer], self._steps[buffer], ahead, self._count[buffer],
+                          float(self.config.min_distance_px), self._stamp, which, self._occ, self.device)
 
     def _selection_start(self) -> None:
         """A new detection's stamps, and the occupancy discs around where the tracks are predicted in this
         frame: where each will be if it moves as in its last frame. That leaves less room between the discs
         the selection avoids and those the corners are checked against when taken (around the tracks' new
-        positions, ``K._free_now``) than the previous positions would. It needs nothing from the frame, so on
+        positions, ``corners._free_now``) than the previous positions would. It needs nothing from the frame, so on
         CUDA it runs while the frame is uploaded."""
-        self._launch(K.selection_begin, 1, [self._stamp, self._max_eig])
+        corners.selection_begin(self._stamp, self._max_eig, self.device)
         self._occupancy(1 - self._cur, 1.0, 0)
 
     def _selection_kernels(self) -> None:
@@ -263,44 +253,36 @@ class WarpFrontEnd:
         from tracking, so on CUDA it runs beside LK and the drift check."""
         cfg = self.config
         H, W = self.height, self.width
-        cur = self._cur
+        cur, dev = self._cur, self.device
         lit_min = self._lit_min if cfg.min_brightness > 0 else -1e30
-        self._launch(K.structure_rows, (H, W), [self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows])
-        wp.launch_tiled(K.min_eigenvalue, dim=[H], inputs=[
-            self._rows, W, H, cfg.block_size, self._mask, self._lit, lit_min, self._occ, self._stamp, self._eig,
-            self._max_eig], block_dim=256, device=self.device)
+        corners.structure_rows(self._gx[cur], self._gy[cur], W, H, cfg.block_size, self._rows, dev)
+        corners.min_eigenvalue(self._rows, W, H, cfg.block_size, self._mask, self._lit, lit_min, self._occ,
+                               self._stamp, self._eig, self._max_eig, dev)
         cell, gw, gh = self._grid
-        self._launch(K.corner_candidates, (H, W), [
-            self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min, self._occ, self._stamp,
-            cfg.block_size // 2 + 1, cell, gw, self._cell_key])
-        self._launch(K.cell_init, max(gw * gh, K.SCORE_BINS), [self._cell_key, self._eig, self._cells,
-                                                               self._cell_state, self._hist])
+        corners.corner_candidates(self._eig, self._max_eig, cfg.quality_level, self._mask, self._lit, lit_min,
+                                  self._occ, self._stamp, cfg.block_size // 2 + 1, cell, gw, self._cell_key, dev)
+        corners.cell_init(self._cell_key, self._eig, self._cells, self._cell_state, self._hist, dev)
         for _ in range(SELECTION_ROUNDS):
-            self._launch(K.selection_round, gw * gh, [self._cells, gw, gh, float(cfg.min_distance_px),
-                                                      self._cell_state])
+            corners.selection_round(self._cells, gw, gh, float(cfg.min_distance_px), self._cell_state, dev)
 
     def _detect_kernels(self, beside_tracking: bool) -> None:
         """New tracks in the free slots: the strongest selected corners (a score histogram picks them, no sort)
         that no surviving track has come near, and their first patches for the drift check. The selection ran
         beside tracking on CUDA; elsewhere it runs here, only on frames that need new corners."""
         cfg = self.config
-        cur = self._cur
+        cur, dev = self._cur, self.device
         count = self._count[cur]
         if not beside_tracking:
             self._selection_start()
             self._selection_kernels()
         self._occupancy(cur, 0.0, 1)
-        _, gw, gh = self._grid
-        self._launch(K.score_histogram, gw * gh, [self._cells, self._cell_state, self._max_eig, self._occ, self._stamp,
-                                                  self._hist])
-        self._launch(K.score_threshold, K.SCORE_BINS, [self._hist, count, cfg.max_features, self._cut, self._taken])
-        self._launch(K.take_corners, gw * gh, [self._cells, self._cell_state, self._max_eig, self._cut, self._occ,
-                                                self._stamp, count, self._next_id, self._taken, self._pts[cur],
-                                                self._ids[cur]])
-        self._launch(K.sample_patches, (cfg.max_features, K.PATCH * K.PATCH), [
-            self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken, self._patches[cur],
-            self._A[cur], self._steps[cur]])
-        self._launch(K.commit_new_tracks, 1, [self._taken, count, self._n_new, self._next_id])
+        corners.score_histogram(self._cells, self._cell_state, self._max_eig, self._occ, self._stamp, self._hist, dev)
+        corners.score_threshold(self._hist, count, cfg.max_features, self._cut, self._taken, dev)
+        corners.take_corners(self._cells, self._cell_state, self._max_eig, self._cut, self._occ, self._stamp, count,
+                             self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
+        drift_check.sample_patches(self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken,
+                                   self._patches[cur], self._A[cur], self._steps[cur], dev)
+        tracks.commit_new_tracks(self._taken, count, self._n_new, self._next_id, dev)
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def _frame_kernels(self) -> None:
@@ -340,8 +322,8 @@ class WarpFrontEnd:
 
     def _copy_results(self, out: tuple) -> None:
         cur = self._cur
-        self._launch(K.pack_results, self.config.max_features, [self._pts[cur], self._ids[cur], self._count[cur],
-                                                                 self._n_new, self._remap, *self._packed])
+        tracks.pack_results(self._pts[cur], self._ids[cur], self._count[cur], self._n_new, self._remap, *self._packed,
+                            self.device)
         for dst, src in zip(out, self._packed):
             wp.copy(dst, src)
 

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..config import load_config
-from ..frontend import resolve_tracker
-from ..offline import reconstruct
-from ..outputs import prepare_output_dir
-from ..pose_sources import RobotPoseSource
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..warp_device import resolve_device
+from lapreco_hil.config import load_config
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.offline import reconstruct
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir
+from lapreco_hil.pose_sources import RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.warp_device import resolve_device
+from lapreco_hil.app.record import sim_url
+from lapreco_hil.app.run import run_live
 
 
 def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps: float = 25.0,
@@ -24,28 +26,23 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
     config = load_config(config_path)
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
-    out_dir = prepare_output_dir(out)
+    check_output_dir(out)
     device = resolve_device(device)
     tracker = resolve_tracker(tracker, device)
-    url = f"sim://{scene}?width={resolution[0]}&height={resolution[1]}&fps={fps}&seed={seed}"
-    if instrument:
-        url += "&instrument=1"
-    if robot_link != "direct":
-        url += f"&speed={sim_speed}"
+    url = sim_url(scene, resolution, fps, seed, instrument, robot_link, sim_speed)
     context = DeviceContext(device=device)
     robot = open_robot(url + f"&link={robot_link}", context)
     grabber = open_grabber(url + f"&frames={frames}", context)
     fields = {"command": "demo", "scene": scene, "robot_link": robot_link, "instrument": instrument,
               "runtime": runtime}
     if runtime == "live":
-        from .run import run_live
-
         if view_every:
             config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))
-        return run_live(robot, grabber, config, str(out_dir), tracker=tracker, device=device, progress=progress,
+        return run_live(robot, grabber, config, out, tracker=tracker, device=device, progress=progress,
                         total=frames, report_fields=fields)
     poses = RobotPoseSource(robot, robot.description, config.prior)
     with robot, grabber:
+        out_dir = prepare_output_dir(out)  # once the devices are open: a failed start leaves no folder
         return reconstruct(grabber, poses, grabber.camera, config, out_dir, tracker=tracker, device=device,
                            truth=grabber.ground_truth, progress=progress, total=frames, label=f"demo {scene}",
                            report_fields=fields)

@@ -1,12 +1,9 @@
-"""Ground truth a source may carry: the true surface and the true camera poses (simulator, session)."""
+"""Ground truth a source may carry: the true surface and the true camera poses (simulator, session). A core
+type: sessions and simulators produce it, evaluation and the outputs read it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-from ..geometry import SampledPoses
-
-__all__ = ["GroundTruth", "SampledPoses"]
 
 
 @dataclass(frozen=True)

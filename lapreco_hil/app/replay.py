@@ -5,15 +5,15 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from ..calib.files import read_camera_yaml, read_handeye_yaml
-from ..config import load_config
-from ..errors import CalibrationError
-from ..frontend import resolve_tracker
-from ..offline import reconstruct
-from ..outputs import prepare_output_dir
-from ..pose_sources import GivenPoseSource, RobotPoseSource
-from ..registry import DeviceContext, open_grabber, open_robot
-from ..warp_device import resolve_device
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.config import load_config
+from lapreco_hil.errors import CalibrationError
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.offline import reconstruct
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir
+from lapreco_hil.pose_sources import GivenPoseSource, RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.warp_device import resolve_device
 
 
 def run_replay(session: str, out: str, tracker: str = "auto", device: str = "auto", config_path: str | None = None,
@@ -23,6 +23,7 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
     """``camera_file`` / ``hand_eye_file`` (OpenCV YAML from ``lapreco calibrate``) and ``time_offset_ms``
     replace what the session says."""
     config = load_config(config_path)
+    check_output_dir(out)
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
     device = resolve_device(device)
@@ -36,7 +37,6 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
         raise CalibrationError(f"{camera_file}: calibrated for {camera.width}x{camera.height}, the session's frames "
                                f"are {meta.camera.width}x{meta.camera.height}")
     offset_ns = meta.time_offset_ns if time_offset_ms is None else int(round(time_offset_ms * 1e6))
-    out_dir = prepare_output_dir(out)
     if meta.pose_source == "joints":
         robot = open_robot(url, context)
         description = robot.description
@@ -52,11 +52,14 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
                                 offset_ns=offset_ns)
     fields = {"command": "replay", "session": str(session), "pose_source": meta.pose_source,
               "time_offset_ms": offset_ns * 1e-6, "camera_file": camera_file, "hand_eye_file": hand_eye_file,
-              "session_complete": meta.complete, "pace": "realtime" if realtime else "afap"}
+              "session_complete": meta.complete, "pace": "realtime" if realtime else "afap",
+              # tables shorter than session.json's counts (Session.shortfall): {table: {recorded, found}}
+              "session_shortfall": grabber.session.shortfall}
     with grabber:
         if robot is not None:
             robot.open()
         try:
+            out_dir = prepare_output_dir(out)  # once the session is open: a failed replay leaves no folder
             return reconstruct(grabber, poses, camera, config, out_dir, tracker=tracker, device=device,
                                truth=grabber.ground_truth, progress=progress, total=len(grabber),
                                label=f"replay {Path(session).name}", report_fields=fields)

@@ -1,0 +1,20 @@
+"""``lapreco devices``: what this machine sees, and a short probe of one robot."""
+
+from __future__ import annotations
+
+from lapreco_hil.registry import DeviceContext
+from lapreco_hil.warp_device import resolve_device
+
+
+def list_devices() -> str:
+    """The serial ports, CAN interfaces and video devices found, as a table."""
+    from lapreco_hil.drivers.discovery import discover, format_devices
+
+    return format_devices(discover())
+
+
+def probe(url: str, seconds: float, device: str = "auto") -> str:
+    """Open the robot at ``url``, read it for ``seconds`` and say what it answered."""
+    from lapreco_hil.drivers.probe import probe_robot
+
+    return probe_robot(url, DeviceContext(device=resolve_device(device)), seconds)

@@ -1,0 +1,134 @@
+"""``lapreco run``: the live runtime on real (or simulated) devices until the source ends, ``seconds`` pass,
+or Ctrl-C; then the outputs contract, with the live metrics in report.json. ``lapreco demo`` is this runtime
+on simulated devices."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.frontend import resolve_tracker
+from lapreco_hil.outputs import check_output_dir, prepare_output_dir, write_outputs
+from lapreco_hil.pose_sources import RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.runtime.live import LiveRun
+from lapreco_hil.types import RobotDescription
+from lapreco_hil.warp_device import resolve_device
+
+log = logging.getLogger(__name__)
+
+
+def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
+             robot_model: str | None = None, tip_frame: str | None = None):
+    """Lens and robot description: from files where given, else from what the devices know."""
+    camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
+    if camera is None:
+        raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
+                          f"(from 'lapreco calibrate lens')")
+    description = robot.description
+    if hand_eye_file or robot_model or tip_frame:
+        he = read_handeye_yaml(hand_eye_file) if hand_eye_file else {}
+        base = description or RobotDescription("", "", None)
+        description = replace(base, urdf=robot_model or he.get("robot_model") or base.urdf,
+                              tip_frame=tip_frame or he.get("tip_frame") or base.tip_frame,
+                              T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
+    if description is None or not description.urdf or not description.tip_frame or description.T_tip_camera is None:
+        raise ConfigError(f"robot '{robot.url.raw}' has no robot model/hand-eye; pass --robot-model, --tip-frame "
+                          f"and --hand-eye handeye.yaml")
+    return camera, description
+
+
+def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str = "auto", device: str = "auto",
+             camera=None, description=None, record: str | None = None, seconds: float | None = None,
+             progress: bool = True, total: int | None = None, report_fields: dict | None = None,
+             on_stage_error: str = "stop", write: bool = True, on_live=None) -> dict:
+    """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers. ``write=False``
+    (benchmarks) returns the live metrics and map statistics without writing files or rendering;
+    ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler)."""
+    from tqdm import tqdm
+
+    from lapreco_hil.sessions.recorder import session_meta_for
+    from lapreco_hil.sessions.writer import SessionWriter
+    from lapreco_hil.robot_models import urdf_path
+
+    check_output_dir(out)
+    config = _live_view_if_renderable(config)
+    device = resolve_device(device)
+    tracker = resolve_tracker(tracker, device)
+    if camera is None or description is None:
+        camera, description = rig_from(robot, grabber)
+    poses = RobotPoseSource(robot, description, config.prior)
+    bar = tqdm(total=total, desc=f"live {Path(out).name}", unit="frame", file=sys.stderr, disable=not progress)
+    recorder = None
+    with robot, grabber, bar:
+        out_dir = prepare_output_dir(out)  # only once the devices are open: a run that never starts leaves nothing
+        if record:
+            recorder = SessionWriter(record, session_meta_for(grabber, robot, camera, description),
+                                     urdf_path(description.urdf))
+        try:
+            live = LiveRun(grabber, poses, camera, config, tracker=tracker, device=device, out_dir=out_dir,
+                           recorder=recorder, on_stage_error=on_stage_error, progress=bar)
+            if on_live is not None:
+                on_live(live)
+            result, metrics = live.run(seconds)
+        finally:
+            if recorder is not None:
+                recorder.close()
+    fields = {"command": "run", **(report_fields or {}), "runtime": "live"}
+    if not write:
+        return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")}}
+    if record:
+        fields["recorded_session"] = record
+    return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
+                         truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
+                         run_wall_s=metrics["wall_s"])
+
+
+def _live_view_if_renderable(config: PipelineConfig) -> PipelineConfig:
+    """The live view renders with VTK, which crashes the process where it has no renderer: off, with a warning."""
+    if config.runtime.view_period_s <= 0:
+        return config
+    from lapreco_hil.surface.render import ENABLE_RENDERING, offscreen_unavailable
+
+    why = offscreen_unavailable()
+    if why is None:
+        return config
+    log.warning("live view off: %s; to enable rendering, %s", why, ENABLE_RENDERING)
+    return replace(config, runtime=replace(config.runtime, view_period_s=0.0))
+
+
+def stop_on_signals() -> None:
+    """Ctrl-C (SIGINT) and SIGTERM (a supervisor stopping the run) both end the run cleanly, as
+    KeyboardInterrupt: outputs written, devices closed, recording complete. Set explicitly because a process
+    started in the background by a non-interactive shell inherits SIGINT ignored, and Python then never
+    raises KeyboardInterrupt."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, stop)
+
+
+def run(robot_url: str, grabber_url: str, out: str, *, config_path: str | None = None, record: str | None = None,
+        seconds: float | None = None, view_every: float = 0.0, tracker: str = "auto", device: str = "auto",
+        camera_file: str | None = None, robot_model: str | None = None, tip_frame: str | None = None,
+        hand_eye_file: str | None = None, progress: bool = True) -> dict:
+    """``lapreco run``: devices by URL, the rig from files or the devices, live until the end; the report."""
+    from lapreco_hil.config import load_config
+
+    config = load_config(config_path)
+    if view_every:
+        config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))
+    context = DeviceContext(device=resolve_device(device))
+    robot, grabber = open_robot(robot_url, context), open_grabber(grabber_url, context)
+    camera, description = rig_from(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
+    return run_live(robot, grabber, config, out, tracker=tracker, device=device, camera=camera,
+                    description=description, record=record, seconds=seconds, progress=progress,
+                    report_fields={"robot": robot_url, "grabber": grabber_url})

@@ -1,0 +1,213 @@
+"""Pyramidal Lucas-Kanade (Bouguet), one tiled block per feature: the lanes of a block share the feature's
+window and combine their partial sums by block sums."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from lapreco_hil.frontend.warp.block_sum import block_sum3
+
+# nothing differentiates these kernels, so no adjoints: they only add compile time
+wp.set_module_options({"enable_backward": False})
+
+# Lanes (threads) per feature. More lanes mean fewer window pixels per lane and shorter iterations, but wider
+# block sums; 128 was the fastest on whole frames (docs/benchmarks.md, "Front-end and mapper notes").
+LK_LANES = 128
+
+
+@wp.func
+def _window_origin(x: float, y: float) -> wp.vec4:
+    """(floor x, floor y, fraction x, fraction y) of a window's top-left sample. The floors are clamped to a
+    range that converts to int safely: a diverging step can put a window anywhere, NaN included."""
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    return wp.vec4(wp.clamp(fx, -1.0e6, 1.0e6), wp.clamp(fy, -1.0e6, 1.0e6), x - fx, y - fy)
+
+
+@wp.func
+def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, k: int, win: int,
+               inv_win: float) -> float:
+    """Pixel k (row-major) of a win x win window with origin o (``_window_origin``), bilinear, border
+    replicated. Every pixel of a translated window shares the same sub-pixel fractions. There is no branch:
+    the four addresses are clamped into the image, so the loads of all of a lane's pixels can be in flight at
+    once (an iteration waits for memory once, not once per pixel)."""
+    row = int((float(k) + 0.5) * inv_win)  # k // win without an integer division
+    col = k - row * win
+    x0 = int(o[0]) + col
+    y0 = int(o[1]) + row
+    xa = wp.clamp(x0, 0, w - 1)
+    xb = wp.clamp(x0 + 1, 0, w - 1)
+    ra = off + wp.clamp(y0, 0, h - 1) * w
+    rb = off + wp.clamp(y0 + 1, 0, h - 1) * w
+    a = img[ra + xa]
+    b = img[ra + xb]
+    c = img[rb + xa]
+    d = img[rb + xb]
+    top = a + o[2] * (b - a)
+    return top + o[3] * (c + o[2] * (d - c) - top)
+
+
+def _make_lk_track(cache: int):
+    """The LK kernel for lanes that each keep ``cache`` window pixels (and their gradients) in registers."""
+    cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
+    cache_ivec = wp.types.vector(length=cache, dtype=wp.int32)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def _lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
+                  cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
+                  hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
+                  max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
+                  out_pts: wp.array(dtype=wp.vec2),
+                  status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
+        """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
+        Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
+
+        The time goes into the iterations of the slowest features (30 per level at most, as OpenCV), so each
+        iteration is kept short: the window's sub-pixel fractions are computed once per iteration, not per pixel,
+        each lane keeps its pixels of the previous window and their gradients in registers (with enough lanes,
+        i.e. on CUDA; with one lane, on the CPU device, it re-samples them instead), and its loads of the current
+        window carry no branch, so they are all in flight together."""
+        f, lane = wp.tid()
+        if f >= count[0]:
+            return  # the launch covers every slot; the live count is on the device (the whole block leaves)
+        nl = wp.block_dim()
+        n = win * win
+        r = float(win - 1) * 0.5
+        inv_win = 1.0 / float(win)
+        p0 = pts[f]
+        g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
+        ok = int(1)
+        abs_sum = float(0.0)  # the last iteration's sum of absolute differences over the window
+        sums = int(0)  # block sums so far (their shared buffers alternate)
+        eps2 = eps * eps
+        cached = n <= cache * nl
+        for li in range(levels):
+            lvl = levels - 1 - li
+            off = offs[lvl]
+            w = ws[lvl]
+            h = hs[lvl]
+            p = p0 * (1.0 / float(1 << lvl))
+            o = _window_origin(p[0] - r, p[1] - r)
+            # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
+            acc = wp.vec3(0.0, 0.0, 0.0)
+            c_i = cache_vec()
+            c_x = cache_vec()
+            c_y = cache_vec()
+            c_o = cache_ivec()  # each cached pixel's offset in the level (row * w + col); 0 past the window
+            if cached:
+                for j in range(cache):
+                    # unconditional loads, masked: a lane's slots past the window read a clamped pixel, weigh 0
+                    k = lane + j * nl
+                    valid = wp.where(k < n, 1.0, 0.0)
+                    row = int((float(k) + 0.5) * inv_win)
+                    c_o[j] = wp.where(k < n, row * w + k - row * win, 0)
+                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win) * valid
+                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win) * valid
+                    c_i[j] = _window_px(prev, off, w, h, o, k, win, inv_win)
+                    c_x[j] = vx
+                    c_y[j] = vy
+                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+            else:
+                k = lane
+                while k < n:
+                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
+                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+                    k += nl
+            G = block_sum3(acc, sums)
+            sums += 1
+            det = G[0] * G[2] - G[1] * G[1]
+            lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
+            if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
+                ok = 0
+            inv_det = 1.0 / wp.where(ok == 1, det, 1.0)
+            nu = wp.vec2(0.0, 0.0)
+            last_step = wp.vec2(0.0, 0.0)
+            done = int(0)
+            if ok == 0:
+                done = 1
+            for _it in range(iterations):
+                # every lane holds the same reduced values, so leaving the loop is uniform across the block
+                if done == 1:
+                    break
+                oq = _window_origin(p[0] - r + g[0] + nu[0], p[1] - r + g[1] + nu[1])
+                if oq[0] < -float(win) or oq[1] < -float(win) or oq[0] >= float(w) or oq[1] >= float(h):
+                    # the window has left the level (OpenCV's test): its samples are the clamped border, so the
+                    # steps would not converge and the track would take every iteration of every level. The
+                    # track is lost if this happens on the finest level; on a coarser one it keeps its guess.
+                    if lvl == 0:
+                        ok = 0
+                    break
+                bacc = wp.vec3(0.0, 0.0, 0.0)
+                if cached and oq[0] >= 0.0 and oq[1] >= 0.0 and oq[0] + float(win) <= float(w - 1) and (
+                        oq[1] + float(win) <= float(h - 1)):
+                    # the window and its bilinear neighbours lie inside the level (the same answer in every lane):
+                    # each pixel is its precomputed offset from the window's corner, four loads and three lerps
+                    corner = off + int(oq[1]) * w + int(oq[0])
+                    for j in range(cache):
+                        i = corner + c_o[j]
+                        p00 = cur[i]
+                        p01 = cur[i + 1]
+                        p10 = cur[i + w]
+                        p11 = cur[i + w + 1]
+                        top = p00 + oq[2] * (p01 - p00)
+                        diff = (c_i[j] - top - oq[3] * (p10 + oq[2] * (p11 - p10) - top)) * wp.where(
+                            lane + j * nl < n, 1.0, 0.0)
+                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+                elif cached:
+                    for j in range(cache):
+                        k = lane + j * nl
+                        diff = (c_i[j] - _window_px(cur, off, w, h, oq, k, win, inv_win)) * wp.where(k < n, 1.0, 0.0)
+                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+                else:
+                    k = lane
+                    while k < n:
+                        diff = (_window_px(prev, off, w, h, o, k, win, inv_win)
+                                - _window_px(cur, off, w, h, oq, k, win, inv_win))
+                        vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
+                        vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                        bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
+                        k += nl
+                b = block_sum3(bacc, sums)
+                sums += 1
+                abs_sum = b[2]
+                step = wp.vec2(G[2] * b[0] - G[1] * b[1], G[0] * b[1] - G[1] * b[0]) * inv_det
+                nu = nu + step
+                if wp.dot(step, step) < eps2:
+                    done = 1
+                elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
+                    # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
+                    # as OpenCV's calcOpticalFlowPyrLK does, rather than bouncing until the iteration limit
+                    nu = nu - 0.5 * step
+                    done = 1
+                last_step = step
+            if lvl > 0:
+                g = (g + nu) * 2.0
+            else:
+                g = g + nu
+        if lane == 0:
+            q = p0 + g
+            finite = not (wp.isnan(q[0]) or wp.isnan(q[1]) or wp.isinf(q[0]) or wp.isinf(q[1]))
+            in_image = finite and q[0] >= 0.0 and q[1] >= 0.0 and q[0] <= float(ws[0] - 1) and q[1] <= float(hs[0] - 1)
+            err = abs_sum / float(n)
+            out_pts[f] = q
+            # lost: too little texture, the window left the image, or the window's mean absolute difference
+            # above max_error (as the OpenCV baseline filters calcOpticalFlowPyrLK's error)
+            status[f] = wp.where(ok == 1 and in_image and err < max_error, 1, 0)
+            error[f] = err
+
+    return _lk_track
+
+
+# each lane caches enough pixels that the lanes cover windows up to 22 x 22
+_lk_track = _make_lk_track((22 * 22 + LK_LANES - 1) // LK_LANES)
+
+
+def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array, offs: wp.array, ws: wp.array,
+             hs: wp.array, levels: int, win: int, iterations: int, eps: float, min_eig: float, max_error: float,
+             pts: wp.array, count: wp.array, out_pts: wp.array, status: wp.array, error: wp.array, device) -> None:
+    """Track ``pts`` (the first ``count[0]`` of them; every slot is launched) from the ``prev`` pyramid into
+    ``cur``: ``out_pts``, ``status`` (1: tracked) and ``error`` (the window's mean absolute difference)."""
+    wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
+        prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, iterations, eps, min_eig, max_error, pts, count,
+        out_pts, status, error], block_dim=LK_LANES, device=device)

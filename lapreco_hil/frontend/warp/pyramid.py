@@ -1,0 +1,184 @@
+"""The image stages of the front-end: undistortion into the log domain, shading removal (a wide blur at half
+resolution), the pyramid and its gradients. Images are float32; a pyramid is one flat array with per-level
+offsets, widths and heights (kernels cannot take a list of arrays)."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.warp.sampling import bilinear, clamped_px
+
+# nothing differentiates these kernels, so no adjoints: they only add compile time
+wp.set_module_options({"enable_backward": False})
+
+HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN  # what frontend.opencv.to_u8 keeps of the log high-pass
+
+
+@wp.func
+def _grey(frame: wp.array2d(dtype=wp.uint8), x: int, y: int) -> float:
+    return float(frame[wp.clamp(y, 0, frame.shape[0] - 1), wp.clamp(x, 0, frame.shape[1] - 1)])
+
+
+@wp.kernel
+def _undistort_log(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
+                   log_out: wp.array2d(dtype=float)):
+    """One resampling pass: undistorted pixel <- bilinear sample of the distorted grey frame (0-255) at the
+    precomputed map (outside the frame: 0, as cv2.remap's constant border), stored as log(1 + grey). The log
+    is what the shading removal works on; plain intensity is recovered from it exactly enough (``level0``)."""
+    y, x = wp.tid()
+    m = remap[y, x]
+    g = float(0.0)
+    if m[0] >= -1.0 and m[1] >= -1.0 and m[0] <= float(frame.shape[1]) and m[1] <= float(frame.shape[0]):
+        x0f = wp.floor(m[0])
+        y0f = wp.floor(m[1])
+        fx = m[0] - x0f
+        fy = m[1] - y0f
+        x0 = int(x0f)
+        y0 = int(y0f)
+        top = _grey(frame, x0, y0) * (1.0 - fx) + _grey(frame, x0 + 1, y0) * fx
+        bot = _grey(frame, x0, y0 + 1) * (1.0 - fx) + _grey(frame, x0 + 1, y0 + 1) * fx
+        g = top * (1.0 - fy) + bot * fy
+    log_out[y, x] = wp.log(1.0 + g)
+
+
+@wp.kernel
+def _half_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int):
+    """2x2 mean into a half-resolution flat image (odd sizes: the last column/row counts twice). The shading
+    estimate is a wide blur, so it is taken at half resolution: a quarter of the pixels and half the taps."""
+    y, x = wp.tid()
+    h = src.shape[0]
+    w = src.shape[1]
+    x1 = wp.min(2 * x + 1, w - 1)
+    y1 = wp.min(2 * y + 1, h - 1)
+    dst[y * dw + x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, x1] + src[y1, 2 * x] + src[y1, x1])
+
+
+@wp.kernel
+def _blur_1d(src: wp.array(dtype=float), w: int, h: int, weights: wp.array(dtype=float), step_x: int,
+             step_y: int, dst: wp.array(dtype=float)):
+    """One pass of a separable filter along (step_x, step_y) over a flat w x h image: run it along rows, then
+    along columns. Away from the border the taps walk a flat index with no clamping (the pass is bound by its
+    instruction count, not by memory)."""
+    y, x = wp.tid()
+    r = (weights.shape[0] - 1) // 2
+    s = float(0.0)
+    if x - r * step_x >= 0 and x + r * step_x < w and y - r * step_y >= 0 and y + r * step_y < h:
+        stride = step_x + step_y * w
+        i = y * w + x - r * stride
+        for k in range(weights.shape[0]):
+            s += weights[k] * src[i]
+            i += stride
+    else:
+        for k in range(weights.shape[0]):
+            xx = wp.clamp(x + (k - r) * step_x, 0, w - 1)
+            yy = wp.clamp(y + (k - r) * step_y, 0, h - 1)
+            s += weights[k] * src[yy * w + xx]
+    dst[y * w + x] = s
+
+
+@wp.kernel
+def _level0(log_img: wp.array2d(dtype=float), half_lit: wp.array(dtype=float), hw: int, hh: int, subtract: int,
+            pyr: wp.array(dtype=float), lit: wp.array2d(dtype=float)):
+    """Level 0 of the pyramid and the full-resolution shading level ``lit`` (the blurred log image, upsampled
+    bilinearly from half resolution). Level 0 is log - lit, the shading-free log image, clamped to the range
+    the OpenCV baseline keeps in 8 bits (so silhouettes against black do not dominate the corner threshold),
+    or, with ``subtract`` 0, plain intensity in [0, 1]."""
+    y, x = wp.tid()
+    # pixel centre x of the full image lies at (x - 0.5) / 2 in the half image's pixel coordinates
+    s = bilinear(half_lit, 0, hw, hh, 0.5 * float(x) - 0.25, 0.5 * float(y) - 0.25)
+    lit[y, x] = s
+    v = log_img[y, x]
+    if subtract != 0:
+        v = wp.clamp(v - s, -HIGHPASS_RANGE, HIGHPASS_RANGE)
+    else:
+        v = (wp.exp(v) - 1.0) / 255.0
+    pyr[y * log_img.shape[1] + x] = v
+
+
+@wp.kernel
+def _pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int):
+    """Gaussian 5-tap [1 4 6 4 1]/16 in both directions, then every other pixel (cv2.pyrDown)."""
+    y, x = wp.tid()
+    if x >= dw or y >= dh:
+        return
+    s = float(0.0)
+    for j in range(5):
+        wy = float(1.0)
+        if j == 1 or j == 3:
+            wy = 4.0
+        if j == 2:
+            wy = 6.0
+        for i in range(5):
+            wx = float(1.0)
+            if i == 1 or i == 3:
+                wx = 4.0
+            if i == 2:
+                wx = 6.0
+            s += wx * wy * clamped_px(pyr, src_off, sw, sh, 2 * x + i - 2, 2 * y + j - 2)
+    pyr[dst_off + y * dw + x] = s / 256.0
+
+
+@wp.kernel
+def _sobel_levels(pyr: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
+                  hs: wp.array(dtype=int), levels: int, gx: wp.array(dtype=float), gy: wp.array(dtype=float)):
+    """3x3 Sobel / 8 (cv2.Sobel ksize=3, scale 1/8) of every pyramid level in one launch over the flat
+    pyramid: a thread finds its level from the offsets."""
+    i = wp.tid()
+    lvl = int(0)
+    for l in range(1, levels):
+        if i >= offs[l]:
+            lvl = l
+    off = offs[lvl]
+    w = ws[lvl]
+    h = hs[lvl]
+    j = i - off
+    y = j // w
+    x = j - y * w
+    if y >= h:
+        return
+    a = clamped_px(pyr, off, w, h, x - 1, y - 1)
+    b = clamped_px(pyr, off, w, h, x, y - 1)
+    c = clamped_px(pyr, off, w, h, x + 1, y - 1)
+    d = clamped_px(pyr, off, w, h, x - 1, y)
+    f = clamped_px(pyr, off, w, h, x + 1, y)
+    g = clamped_px(pyr, off, w, h, x - 1, y + 1)
+    hh = clamped_px(pyr, off, w, h, x, y + 1)
+    k = clamped_px(pyr, off, w, h, x + 1, y + 1)
+    gx[i] = ((c + 2.0 * f + k) - (a + 2.0 * d + g)) / 8.0
+    gy[i] = ((g + 2.0 * hh + k) - (a + 2.0 * b + c)) / 8.0
+
+
+# --- host wrappers: a device and preallocated outputs --------------------------------------------------------
+def undistort_log(frame: wp.array, remap: wp.array, log_out: wp.array, device) -> None:
+    """``log_out`` (H, W) <- log(1 + grey) of the distorted ``frame`` resampled at ``remap``."""
+    wp.launch(_undistort_log, dim=log_out.shape, inputs=[frame, remap, log_out], device=device)
+
+
+def half_mean(src: wp.array, dst: wp.array, dw: int, dh: int, device) -> None:
+    """``dst`` (flat dw x dh) <- the 2x2 mean of ``src``."""
+    wp.launch(_half_mean, dim=(dh, dw), inputs=[src, dst, dw], device=device)
+
+
+def blur_1d(src: wp.array, w: int, h: int, weights: wp.array, step_x: int, step_y: int, dst: wp.array,
+            device) -> None:
+    """``dst`` <- one separable-filter pass of the flat w x h ``src`` along (step_x, step_y)."""
+    wp.launch(_blur_1d, dim=(h, w), inputs=[src, w, h, weights, step_x, step_y, dst], device=device)
+
+
+def level0(log_img: wp.array, half_lit: wp.array, hw: int, hh: int, subtract: bool, pyr: wp.array, lit: wp.array,
+           device) -> None:
+    """Pyramid level 0 into ``pyr`` and the full-resolution shading level into ``lit``."""
+    wp.launch(_level0, dim=log_img.shape, inputs=[log_img, half_lit, hw, hh, 1 if subtract else 0, pyr, lit],
+              device=device)
+
+
+def pyr_down(pyr: wp.array, src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int, device) -> None:
+    """The level at ``dst_off`` (dw x dh) of the flat pyramid from the one at ``src_off``."""
+    wp.launch(_pyr_down, dim=(dh, dw), inputs=[pyr, src_off, sw, sh, dst_off, dw, dh], device=device)
+
+
+def sobel_levels(pyr: wp.array, offs: wp.array, ws: wp.array, hs: wp.array, levels: int, gx: wp.array,
+                 gy: wp.array, device) -> None:
+    """``gx``, ``gy`` <- the Sobel gradients of every level of the flat pyramid, in one launch."""
+    wp.launch(_sobel_levels, dim=pyr.shape[0], inputs=[pyr, offs, ws, hs, levels, gx, gy], device=device)

@@ -1,0 +1,88 @@
+"""The live run's figures: counters the stages bump from their threads, the latency of every mapped frame,
+per-stage times, queue depths, and the report's live fields made from them at the end."""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import numpy as np
+
+
+class LiveMetrics:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: collections.Counter = collections.Counter()
+        self.latency_ns: list[int] = []  # capture -> refined pose, per mapped frame (appended by one thread)
+        self.stage_s: dict[str, list[float]] = collections.defaultdict(list)
+        self.depth: dict[str, list[int]] = collections.defaultdict(list)
+        self.first_arrival_ns = 0
+        self.last_done_ns = 0
+
+    def add(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[key] += n
+
+    def set(self, key: str, value: int) -> None:
+        with self._lock:
+            self.counts[key] = value
+
+    def get(self, key: str) -> int:
+        return self.counts.get(key, 0)
+
+    def time_stage(self, name: str, seconds: float) -> None:
+        self.stage_s[name].append(seconds)
+
+    def sample_depth(self, queue_name: str, depth: int) -> None:
+        self.depth[queue_name].append(depth)
+
+    def frame_done(self, arrival_ns: int, done_ns: int) -> None:
+        self.latency_ns.append(done_ns - arrival_ns)
+        self.first_arrival_ns = min(self.first_arrival_ns or arrival_ns, arrival_ns)
+        self.last_done_ns = done_ns
+
+    def report(self, *, wall_s: float, result, poses, errors: dict, disabled: set, interrupted: bool,
+               health_events: list[dict], health_event_count: int, health_counts: dict) -> dict:
+        """report.json's live fields."""
+        c = dict(self.counts)
+        lat_ms = np.array(self.latency_ns, float) * 1e-6
+        pct = {"p50": float(np.percentile(lat_ms, 50)), "p95": float(np.percentile(lat_ms, 95)),
+               "p99": float(np.percentile(lat_ms, 99)), "max": float(lat_ms.max())} if len(lat_ms) else {}
+        stage_ms = {k: {"mean": float(np.mean(v) * 1e3), "p95": float(np.percentile(v, 95) * 1e3)}
+                    for k, v in self.stage_s.items() if v}
+        processed = c.get("frames_processed", 0)
+        frames_in = c.get("frames_in", 0)
+        return {
+            "wall_s": wall_s,
+            "frames": {"in": frames_in, "processed": processed,
+                       "dropped": frames_in - processed + c.get("dropped_source", 0) - c.get("bad_timestamps", 0)
+                       - c.get("frames_without_pose", 0),
+                       "without_pose": c.get("frames_without_pose", 0),
+                       "without_pose_by_cause": poses.without_pose.as_dict(),
+                       "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0),
+                       "mapper_skipped": c.get("mapper_skipped", 0), "tracking_errors": c.get("tracking_errors", 0),
+                       "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0)},
+            "robot_samples_rejected": poses.rejected,  # (a given-pose source refuses nothing)
+            "robot_samples_rejected_by_cause": dict(poses.rejected_by_cause),
+            # what the robot driver counted on its link (lost readings, reconnects, device faults)
+            "robot_faults": dict(poses.robot.faults) if poses.robot is not None else {},
+            # frames mapped per second while the source delivered (the final global BA is not in it)
+            "throughput_fps": processed / max((self.last_done_ns - self.first_arrival_ns) * 1e-9, 1e-9)
+            if processed > 1 else 0.0,
+            "latency_ms": {**pct, "note": "capture (the grabber's host-clock stamp, else frame in hand) -> refined pose available"},
+            "stage_ms": stage_ms,
+            "queue_depth": {k: {"mean": float(np.mean(v)), "max": int(np.max(v))} for k, v in self.depth.items() if v},
+            "live": {"local_ba_skipped": c.get("local_ba_skipped", 0),
+                     "resection_skipped": c.get("resection_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),
+                     "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
+                     "stage_errors": dict(errors), "disabled_stages": sorted(disabled),
+                     "interrupted": interrupted,
+                     "final_ba_s": result.stats.get("final_ba_wall_s"),
+                     # the mapper process's own time, by kind of work (the usual bottleneck)
+                     "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
+                     # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
+                     "mapper_garbage_collected": result.stats.get("garbage_collected")},
+            "health": {"events": health_events[:200], "event_count": health_event_count, "counts": dict(health_counts)},
+            # every change of health the run saw (device, state, detail, time), as shown on the console
+            "health_events": health_events,
+        }

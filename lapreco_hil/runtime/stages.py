@@ -1,0 +1,278 @@
+"""The live runtime's stages, each a small object run in a thread of its own by the supervisor: what it reads,
+what it writes and what it counts are given to its constructor.
+
+- ``Capture``: grabber -> the capture queue (newest ``capture_queue`` frames; older ones dropped and counted)
+  and the record queue. Never blocks.
+- ``Tracking``: capture queue -> pose prior + front-end -> the mapper (a shared-memory slot; with none free the
+  frame is not mapped, counted). Takes every frame capture kept: LK needs consecutive frames.
+- ``Results``: the mapper's messages -> latency, counters, free slots, the refined pose of the live view.
+- ``Surface``: the mapper's map snapshot -> the live mesh every ``surface_period_s``, the textured view every
+  ``view_period_s``.
+- ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture)."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lapreco_hil.errors import DeviceTimeoutError
+from lapreco_hil.runtime.health import Condition
+from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree
+from lapreco_hil.runtime.metrics import LiveMetrics
+
+log = logging.getLogger(__name__)
+BAD_TIME_SHOWN_S = 0.25  # frame times read as "refused" this long after the last refused frame
+
+
+@dataclass
+class StageLinks:
+    """What the stages share: the run's events and the queues between them, under one condition."""
+
+    stop: threading.Event = field(default_factory=threading.Event)  # the caller's Ctrl-C, or a fatal error
+    capture_done: threading.Event = field(default_factory=threading.Event)
+    finished: threading.Event = field(default_factory=threading.Event)  # the mapper's results are all in
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    capture_q: collections.deque = field(default_factory=collections.deque)  # (Frame, arrival ns)
+    record_q: collections.deque = field(default_factory=collections.deque)  # ("frame", Frame) / ("joints", list)
+    disabled: set = field(default_factory=set)  # optional stages switched off after an error
+
+    def notify(self) -> None:
+        with self.cond:
+            self.cond.notify_all()
+
+
+class LatestView:
+    """The newest tracked frame and its pose (the prior, then the refined one) for the live view."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frame = self._T = None
+
+    def tracked(self, frame, T_world_camera: np.ndarray) -> None:
+        with self._lock:
+            self._frame, self._T = frame, T_world_camera
+
+    def refined(self, seq: int, T_world_camera: np.ndarray) -> None:
+        with self._lock:
+            if self._frame is not None and self._frame.seq == seq:
+                self._T = T_world_camera
+
+    def get(self):
+        with self._lock:
+            return None if self._frame is None else (self._frame, self._T)
+
+
+class Capture:
+    def __init__(self, grabber, links: StageLinks, metrics: LiveMetrics, *, capture_queue: int, record_queue: int,
+                 recording: bool) -> None:
+        self.grabber, self.links, self.metrics = grabber, links, metrics
+        self.capture_queue, self.record_queue, self.recording = capture_queue, record_queue, recording
+        self.bad_time_wall = 0.0  # when a frame was last refused for its time stamp
+
+    def run(self) -> None:
+        links, m = self.links, self.metrics
+        last_seq = last_t = None
+        while not links.stop.is_set():
+            try:
+                frame = self.grabber.read(timeout_s=0.5)
+            except DeviceTimeoutError:
+                m.add("capture_timeouts")
+                continue
+            if frame is None:
+                return
+            # the latency starts at capture: the grabber's host-clock stamp where it has one (time spent
+            # queued in the grabber counts), else now
+            arrival = frame.host_ns if frame.host_ns is not None else time.monotonic_ns()
+            m.add("frames_in")
+            if last_t is not None and frame.t_ns <= last_t:
+                # a duplicated or backwards capture time would break pose interpolation and the map's order
+                m.add("bad_timestamps")
+                self.bad_time_wall = time.monotonic()
+                continue
+            last_t = frame.t_ns
+            if last_seq is not None and frame.seq > last_seq + 1:
+                m.add("dropped_source", frame.seq - last_seq - 1)  # gone before we could read them
+            last_seq = frame.seq
+            with links.cond:
+                if len(links.capture_q) >= self.capture_queue:
+                    links.capture_q.popleft()
+                    m.add("dropped_capture")
+                links.capture_q.append((frame, arrival))
+                m.sample_depth("capture", len(links.capture_q))
+                if self.recording and "record" not in links.disabled:
+                    if len(links.record_q) >= self.record_queue:
+                        links.record_q.popleft()
+                        m.add("dropped_record")
+                    links.record_q.append(("frame", frame))
+                links.cond.notify_all()
+
+    def frame_times_health(self) -> Condition:
+        if time.monotonic() - self.bad_time_wall < BAD_TIME_SHOWN_S:
+            return Condition("refused", False, f"{self.metrics.get('bad_timestamps')} frames refused: duplicated "
+                             "or backwards time stamp", count_as="frame_times_refused")
+        return Condition("ok", True)
+
+
+class Tracking:
+    """``frontend`` is set before the thread starts (LiveRun makes it before capture starts); ``submit(obs,
+    prior, arrival_ns) -> bool`` hands a frame to the mapper."""
+
+    def __init__(self, poses, links: StageLinks, metrics: LiveMetrics, latest: LatestView, coverage, submit, *,
+                 device: str, degrade: bool, recording: bool) -> None:
+        self.poses, self.links, self.metrics, self.latest = poses, links, metrics, latest
+        self.coverage, self.submit = coverage, submit
+        self.device, self.degrade, self.recording = device, degrade, recording
+        self.frontend = None
+        self.tracks_lost = False
+
+    def run(self) -> None:
+        if self.device and str(self.device).startswith("cuda"):
+            import warp as wp
+
+            with wp.ScopedDevice(self.device):
+                self._loop()
+        else:
+            self._loop()
+
+    def _next(self):
+        links = self.links
+        with links.cond:
+            while not links.capture_q and not (links.capture_done.is_set() or links.stop.is_set()):
+                links.cond.wait(0.1)
+            return links.capture_q.popleft() if links.capture_q else None
+
+    def _loop(self) -> None:
+        links, m = self.links, self.metrics
+        while (item := self._next()) is not None:
+            frame, arrival = item
+            t0 = time.perf_counter()
+            samples = self.poses.poll()
+            if self.recording and samples and "record" not in links.disabled:
+                with links.cond:
+                    links.record_q.append(("joints", samples))
+                    links.cond.notify_all()
+            if not self.poses.has_pose(frame.t_ns):
+                m.add("frames_without_pose")  # no pose brackets it (counted by cause there): not mapped
+                continue
+            prior = self.poses.prior_at(frame.t_ns)
+            t1 = time.perf_counter()
+            try:
+                obs = self.frontend.process(frame)
+            except Exception as exc:
+                if self.degrade:
+                    m.add("tracking_errors")
+                    log.warning("tracking failed on frame %d (%s); frame skipped", frame.seq, exc)
+                    continue
+                raise
+            t2 = time.perf_counter()
+            self.tracks_lost = len(obs) == 0
+            self.coverage.update(obs.uv)
+            m.time_stage("pose", t1 - t0)
+            m.time_stage("frontend", t2 - t1)
+            self.latest.tracked(frame, prior.T_world_camera)
+            if not self.submit(obs, prior, arrival):
+                m.add("mapper_skipped")  # the mapper is a whole ring behind: this frame is not mapped
+                continue
+            m.add("frames_tracked")
+
+    def front_end_health(self) -> Condition:
+        """Tracks lost (smoke, blood, a lens against tissue), or spanning only part of the view."""
+        if self.tracks_lost:
+            return Condition("no tracks", False, count_as="tracks_lost")
+        if self.coverage.partial:
+            return Condition("partial view", False, f"tracks cover {self.coverage.share:.0%} of the view",
+                             count_as="partial_view")
+        return Condition("tracking", True)
+
+
+class Results:
+    def __init__(self, messages, slot_freed, metrics: LiveMetrics, latest: LatestView, progress=None) -> None:
+        self.messages, self.slot_freed = messages, slot_freed  # a queue of the mapper's messages
+        self.metrics, self.latest, self.progress = metrics, latest, progress
+
+    def run(self) -> None:
+        m = self.metrics
+        while True:
+            msg = self.messages.get()
+            if isinstance(msg, EndOfResults):
+                return
+            if isinstance(msg, SlotFree):
+                self.slot_freed(msg.slot)
+            elif isinstance(msg, FramePose):
+                m.frame_done(msg.arrival_ns, msg.done_ns)
+                m.add("frames_processed")
+                if msg.is_keyframe:
+                    m.add("keyframes")
+                m.set("local_ba_skipped", msg.local_ba_skipped)
+                m.set("resection_skipped", msg.resection_skipped)
+                self.latest.refined(msg.seq, msg.T_world_camera)
+                if self.progress is not None:
+                    self.progress.update(1)
+            elif not isinstance(msg, MapperReady):  # (MapperReady: when the start stopped waiting for it)
+                log.error("unexpected message from the mapper: %r", msg)
+
+
+class Surface:
+    def __init__(self, snapshot, camera, config, out_dir, links: StageLinks, metrics: LiveMetrics,
+                 latest: LatestView) -> None:
+        self.snapshot, self.camera, self.config, self.out_dir = snapshot, camera, config, out_dir
+        self.links, self.metrics, self.latest = links, metrics, latest
+        self.mesh = None
+
+    def run(self) -> None:
+        from lapreco_hil.surface.mesh import alpha_shape, thin_points
+        from lapreco_hil.runtime.live_view import LiveView
+
+        rt, m = self.config.runtime, self.metrics
+        view = LiveView(self.camera, self.out_dir, rt.view_period_s) if rt.view_period_s > 0 and \
+            self.out_dir is not None else None
+        version = -1
+        next_mesh = next_view = time.monotonic()
+        try:
+            while not self.links.stop.wait(0.02) and not self.links.finished.is_set():
+                now = time.monotonic()
+                if now >= next_mesh:
+                    next_mesh = now + rt.surface_period_s
+                    v, pts, cols = self.snapshot.read()
+                    if v != version and len(pts) >= 4:
+                        t0 = time.perf_counter()
+                        pts, cols = thin_points(pts, cols, rt.surface_max_points)
+                        self.mesh = alpha_shape(pts, cols, self.config.surface.alpha_factor)
+                        m.time_stage("surface", time.perf_counter() - t0)
+                        m.add("surface_rebuilds")
+                        version = v
+                if view is not None and now >= next_view and self.mesh is not None:
+                    next_view = now + rt.view_period_s
+                    latest = self.latest.get()
+                    if latest is not None:
+                        t0 = time.perf_counter()
+                        view.render(self.mesh, *latest)
+                        m.time_stage("view", time.perf_counter() - t0)
+                        m.add("views")
+        finally:
+            if view is not None:
+                view.close()
+
+
+class Record:
+    def __init__(self, recorder, links: StageLinks) -> None:
+        self.recorder, self.links = recorder, links
+
+    def run(self) -> None:
+        links = self.links
+        while True:
+            with links.cond:
+                while not links.record_q and not links.finished.is_set():
+                    links.cond.wait(0.1)
+                if not links.record_q:
+                    return
+                kind, item = links.record_q.popleft()
+            if kind == "frame":
+                self.recorder.add_frame(item)
+            else:
+                self.recorder.add_joints(item)

@@ -1,0 +1,60 @@
+"""``probe_robot``: live readings raw and in SI, the limits, and which readings are beyond them, against the
+Dynamixel emulator on a pty and the CiA 402 emulator on python-can's virtual bus."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+
+import numpy as np
+import pytest
+
+from lapreco_hil.drivers.probe import probe_robot
+from lapreco_hil.drivers.robot.joint_map import cia402_joint_map
+from lapreco_hil.errors import DeviceNotFoundError
+from lapreco_hil.registry import DeviceContext
+from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
+from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
+
+_channels = itertools.count()
+
+
+def _row(text: str, joint: str) -> str:
+    return next(line for line in text.splitlines() if re.match(rf"\s+{joint}\s", line))
+
+
+def test_probe_of_a_dynamixel_chain_shows_ticks_si_limits_and_what_is_beyond():
+    ticks = (3200, 2048, 2748, 2100)  # yaw 1.767 rad: beyond its limit; the others within theirs
+    with DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: ticks) as emu:
+        text = probe_robot(f"serial://{emu.port}?ids=1,2,3,4&rate=100", DeviceContext(), 0.5)
+    head = text.splitlines()[0]
+    n = int(re.search(r": (\d+) readings", head).group(1))
+    assert n >= 20 and "0 delivered" in head and f"{n} refused" in head
+    yaw, roll = _row(text, "yaw"), _row(text, "roll")
+    assert "3200" in yaw and f"{(3200 - 2048) * 2 * math.pi / 4096:.4g}" in yaw and "[-1.571, 1.571]" in yaw
+    assert f"{n} of {n}" in yaw and "BEYOND" in yaw
+    assert "2100" in roll and f"{52 * 2 * math.pi / 4096:.4g}" in roll and f"0 of {n}" in roll
+    assert "BEYOND" not in roll and "2048" in roll  # the zero of the X-series convention is shown
+    assert "check the joint map" in text and "out_of_limits" in text
+
+
+def test_probe_of_cia402_drives_shows_increments_and_si():
+    jm = cia402_joint_map("ecm")
+    q = np.array([0.1, -0.2, 0.12, 0.3])
+    channel = f"probe-{next(_channels)}"
+    with CANopenDriveChainEmulator(channel, [1, 2, 3, 4], jm, lambda t_ns: q):
+        text = probe_robot(f"canopen://virtual/{channel}?nodes=1-4&rate=100", DeviceContext(), 0.5)
+    counts = jm.to_counts(q)
+    head = text.splitlines()[0]
+    n = int(re.search(r": (\d+) readings", head).group(1))
+    assert n >= 20 and f"{n} delivered, 0 refused" in head
+    for name, c, v in zip(jm.names, counts, jm.to_si(counts)):
+        row = _row(text, name)
+        assert str(c) in row and f"{v:.4g}" in row and f"0 of {n}" in row
+    assert "increments" in text and "faults: none" in text
+
+
+def test_probe_of_a_missing_port_is_the_driver_s_clear_error():
+    with pytest.raises(DeviceNotFoundError, match="serial port '/dev/ttyNOPE' cannot be opened"):
+        probe_robot("serial:///dev/ttyNOPE?ids=1,2,3,4", DeviceContext(), 0.1)
