@@ -5,7 +5,10 @@ from PnP): A_i X C_i = T_base_board for every station.
 1. OpenCV's closed-form solvers of AX = XB (Tsai, Park, Horaud, Andreff, Daniilidis).
 2. A joint robust refinement in GTSAM: unknowns X, the board pose B = T_base_board and every station's tip
    pose T_i (with the robot's reading as a prior: the joints are not exact either), one factor per station
-   on the board corners' reprojection error under a Cauchy loss, started from the best closed-form X.
+   on the board corners' reprojection error under a Cauchy loss, started from the best closed-form X. This
+   assumes nothing about the arm beyond a tip-pose error of a few mrad / a fraction of a mm (the default).
+   On request (``refine="joints"``) the unknowns are the joint errors instead, with the arm's joint-error
+   time constant and backlash as the caller states them (``refine_in_joint_space``).
 3. Consistency per station (the board pose each station implies, against their consensus) and warnings
    for motion that cannot determine X well.
 """
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import tempfile
 from dataclasses import dataclass
@@ -74,9 +78,6 @@ def board_station(name: str, image: np.ndarray, board: Board, camera: CameraMode
 #   stacked unit axes (0: all parallel, 1: two equally used directions);
 # - a handful of stations gives the closed-form methods too little redundancy to expose a bad station.
 MIN_ROTATION_DEG = 10.0
-# how long the joints' elastic wander lasts (the refinement's prior links the joint errors of stations closer
-# in time than this; the simulated ECM's is 0.15 s, a real arm's cable stretch and gear elasticity alike)
-WANDER_TIME_S = 0.15
 MIN_AXIS_SPREAD = 0.3
 MIN_STATIONS = 10
 # rotations between stations below this angle have no meaningful axis (noise) and are left out of the spread
@@ -298,13 +299,27 @@ def _wander_factor(prev, this, a: float, noise) -> gtsam.CustomFactor:
     return gtsam.CustomFactor(noise, [prev, this], error)
 
 
+REFINEMENTS = ("poses", "joints")
+
+
 def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: CameraModel, tip_pose,
                           joint_sigma, sigma_px: float = 0.5, huber_k: float = 1.345,
-                          wander_time_s: float = WANDER_TIME_S) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                          wander_time_s: float = 0.0, backlash=None) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """(X, B, per-station reprojection RMS in px): X, the board pose and every station's joint error dq
-    (prior: the robot's joint sigma) from the board corners' reprojections under Huber's loss. A joint error
-    moves the tip the way the arm can move (a rotation about the remote centre carries its translation
-    with it), which constrains the stations far more than free 6-DOF tip poses do."""
+    (prior: the robot's joint sigma, per joint, SI) from the board corners' reprojections under Huber's loss.
+    A joint error moves the tip the way the arm can move (a rotation about the remote centre carries its
+    translation with it), which constrains the stations more than free 6-DOF tip poses do, IF the arm's
+    errors are what this model says; state them for the arm at hand:
+
+    - ``wander_time_s``: how long a deflection of the links from their readings lasts (elastic joints, cable
+      stretch), as the time constant of an Ornstein-Uhlenbeck process: the joint errors of stations closer
+      in time than this are linked. 0 (default): every station's joint error independent.
+    - ``backlash``: per joint (or one value for all), the expected half-play of its transmission (rad or m),
+      the prior sigma of one backlash per joint shared by the session and applied on the side of the
+      direction of motion (``Station.side``). None or 0 (default): no backlash term.
+    """
+    if not (math.isfinite(wander_time_s) and wander_time_s >= 0):
+        raise CalibrationError(f"the joints' wander time constant must be >= 0 s, got {wander_time_s!r}")
     K = camera.K
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
@@ -314,9 +329,13 @@ def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: Camer
     B0 = Bs[int(np.argmin([np.linalg.norm(b[:3, 3] - np.median(Bs[:, :3, 3], axis=0)) for b in Bs]))]
     values.insert(X(0), _pose3(X0))
     values.insert(B(0), _pose3(B0))
-    # the backlash, one per joint for the whole session, loosely held to zero (a few times the joint sigma)
+    # the backlash, one per joint for the whole session, held to zero with the play the caller expects
+    play = np.broadcast_to(np.asarray(0.0 if backlash is None else backlash, float), sigma.shape)
+    if not np.all(np.isfinite(play) & (play >= 0)):
+        raise CalibrationError(f"the joints' backlash must be >= 0 (rad or m) per joint, got {backlash!r}")
     values.insert(L(0), np.zeros(len(sigma)))
-    graph.add(gtsam.PriorFactorVector(L(0), np.zeros(len(sigma)), gtsam.noiseModel.Diagonal.Sigmas(3 * sigma)))
+    graph.add(gtsam.PriorFactorVector(L(0), np.zeros(len(sigma)),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.maximum(play, 1e-12))))
     timed = all(st.t_s is not None for st in stations) and wander_time_s > 0
     for i, s in enumerate(stations):
         values.insert(Q(i), np.zeros(len(sigma)))
@@ -371,12 +390,18 @@ def method_agreement(methods: dict[str, dict]) -> dict:
             "translation_mm": max(p["translation_mm"] for p in kept), "per_method": per, "outliers": outliers}
 
 
-def calibrate_hand_eye(stations: list[Station], camera: CameraModel, tip_pose=None, joint_sigma=None,
-                       **refine_options) -> dict:
+def calibrate_hand_eye(stations: list[Station], camera: CameraModel, refinement: str = "poses", tip_pose=None,
+                       joint_sigma=None, **refine_options) -> dict:
     """Every closed-form method, the refinement from the most consistent one, its reprojection residual,
-    the methods' agreement, and warnings (motion, disagreement, failed methods). With ``tip_pose`` (q -> the
-    robot's T_base_tip) and ``joint_sigma`` and the stations' joint readings, the refinement's unknowns are
-    the joint errors; otherwise free tip poses with a 6-DOF prior."""
+    the methods' agreement, and warnings (motion, disagreement, failed methods). ``refinement``: "poses"
+    (default: free tip poses with a 6-DOF prior, ``refine``) or "joints" (the joint errors are the unknowns,
+    ``refine_in_joint_space``; needs ``tip_pose`` (q -> the robot's T_base_tip), ``joint_sigma`` and the
+    stations' joint readings). ``refine_options`` go to the refinement chosen."""
+    if refinement not in REFINEMENTS:
+        raise CalibrationError(f"hand-eye refinement '{refinement}' is not one of {', '.join(REFINEMENTS)}")
+    if refinement == "joints" and (tip_pose is None or joint_sigma is None or any(st.q is None for st in stations)):
+        raise CalibrationError("the joint-space hand-eye refinement needs the robot's kinematics, its joint "
+                               "sigma and every station's joint reading")
     warnings = motion_warnings(stations)
     methods, failed = {}, {}
     for name in METHODS:
@@ -402,7 +427,7 @@ def calibrate_hand_eye(stations: list[Station], camera: CameraModel, tip_pose=No
     for w in warnings:
         log.warning("hand-eye: %s", w)
     best = min(methods, key=lambda n: methods[n]["translation_rms_mm"] + methods[n]["rotation_rms_deg"])
-    if tip_pose is not None and joint_sigma is not None and all(st.q is not None for st in stations):
+    if refinement == "joints":
         X_, B_, reproj = refine_in_joint_space(stations, methods[best]["T_tip_camera"], camera, tip_pose,
                                                joint_sigma, **refine_options)
     else:
@@ -412,4 +437,4 @@ def calibrate_hand_eye(stations: list[Station], camera: CameraModel, tip_pose=No
                "reprojection_per_station_px": reproj}
     return {"methods": methods, "initial_method": best, "T_tip_camera": X_, "T_base_board": B_,
             "refined": refined, "agreement": agreement, "warnings": warnings, "stations": len(stations),
-            "failed_methods": failed}
+            "failed_methods": failed, "refinement": refinement}

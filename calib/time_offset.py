@@ -9,10 +9,9 @@ basin; a robust least-squares fit (Cauchy loss) then refines the offset together
 Why the backlash: a geared joint's encoder sits on the motor, and the link trails or leads it by the play in
 the transmission, on the side set by the direction of motion. That error is +-b while the joint moves one way
 and -+b the other, so over a scan it correlates with the velocity, exactly as a time shift does
-(``q(t + d) ~ q(t) + qdot d``). Left out of the model it is taken for a delay: on the simulated ECM (1.5 mrad
-of backlash on yaw and pitch) a session recorded with no offset read +12 to +21 ms. A shift scales with the
-speed, backlash does not (only its sign), which is what separates them in the fit. docs/calibration-handeye.md
-has the measurements.
+(``q(t + d) ~ q(t) + qdot d``). Left out of the model it is taken for a delay. A shift scales with the speed,
+backlash does not (only its sign), which is what separates them in the fit. docs/calibration-handeye.md has
+the measurements and what the uncertainty assumes.
 
 Online (``TimeOffsetMonitor``): the image motion the tracker measures against the image motion the robot
 predicts, over a sliding window; it says when the offset in use has drifted.
@@ -51,11 +50,10 @@ MIN_COMMON_TRACKS = 15
 # the Cauchy loss's scale on Sampson distances (px): the tracker's noise is a fraction of a pixel, the
 # robot's joint wander maps to about a pixel; beyond a few pixels a correspondence is a tracking error
 CAUCHY_SCALE_PX = 1.0
-# the uncertainty leaves out stretches of about this length in turn (several of the joint wander's memory)
+# the uncertainty leaves out stretches of about this length in turn: it assumes the errors of the joint
+# readings (and of the tracks) are unrelated between stretches this far apart
 JACKKNIFE_BLOCK_S = 1.0
-# the robot's joint wander, for the uncertainty: how long a deflection lasts (elastic joints, cable stretch;
-# the simulated ECM's is 0.15 s) and how many draws of it measure the spread
-WANDER_TIME_S = 0.15
+# draws of the arm's joint wander that measure its part of the uncertainty (when its time constant is given)
 WANDER_SAMPLES = 8
 
 
@@ -215,10 +213,11 @@ class _EpipolarModel:
 
 
 def estimate_time_offset(session, config: PipelineConfig | None = None, search_s: float = 1.0,
-                         device: str = "cpu", obs=None, T_tip_camera: np.ndarray | None = None) -> OffsetEstimate:
+                         device: str = "cpu", obs=None, T_tip_camera: np.ndarray | None = None,
+                         wander_time_s: float = 0.0) -> OffsetEstimate:
     """The offset of a session with joint readings; ``obs`` (the tracker's observations of every frame) can
     be given to skip tracking; ``T_tip_camera`` replaces the session's hand-eye (a calibration session has
-    none)."""
+    none); ``wander_time_s``: the arm's joint-error time constant, if known (``estimate_from_tracks``)."""
     if session.meta.pose_source != "joints":
         raise CalibrationError(f"session '{session.folder}' has camera poses, not joint readings: there is no "
                                f"kinematics clock to align")
@@ -236,15 +235,19 @@ def estimate_time_offset(session, config: PipelineConfig | None = None, search_s
                         np.array([j.q for j in session.joint_samples]))
     obs = obs if obs is not None else track_session(session, config or PipelineConfig(), device)
     return estimate_from_tracks(obs, kin, joints, session.meta.camera.K, session.frame_period_ns, search_s,
-                                where=f"session '{session.folder}'")
+                                wander_time_s=wander_time_s, where=f"session '{session.folder}'")
 
 
 def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, K: np.ndarray, period_ns: int,
                          search_s: float = 1.0, model_backlash: bool = True, joint_sigma=None,
-                         wander_samples: int = WANDER_SAMPLES, where: str = "") -> OffsetEstimate:
-    """``joint_sigma``: the robot's joint error (1 sigma per joint, SI; default: the pipeline's prior), which
-    sets the part of the uncertainty that the robot's joint wander causes (``wander_samples`` draws of it;
-    0 leaves that part out)."""
+                         wander_time_s: float = 0.0, wander_samples: int = WANDER_SAMPLES,
+                         where: str = "") -> OffsetEstimate:
+    """The uncertainty is a delete-a-block jackknife over time (``JACKKNIFE_BLOCK_S``). If the arm's joint
+    errors are known to wander slowly, ``wander_time_s`` (their time constant, s) and ``joint_sigma`` (1 sigma
+    per joint, SI; default: the pipeline's prior) add the fit's spread under ``wander_samples`` draws of such
+    wander, which a short session's jackknife cannot see. 0 (default) leaves that part out."""
+    if not (math.isfinite(wander_time_s) and wander_time_s >= 0):
+        raise CalibrationError(f"the joints' wander time constant must be >= 0 s, got {wander_time_s!r}")
     if joint_sigma is None:
         joint_sigma = _default_joint_sigma(joints.q.shape[1])
     pairs = _frame_pairs(obs, K, PAIR_GAPS, MIN_COMMON_TRACKS)
@@ -266,7 +269,7 @@ def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, 
     offset_s, backlash = _fit(model, start, free, period_s, where)
     within_s = _jackknife_sigma(model, free, period_s, offset_s)
     wander_s = _wander_sigma(model, np.r_[offset_s, backlash], free, np.asarray(joint_sigma, float), period_s,
-                             wander_samples) if wander_samples > 0 else 0.0
+                             wander_time_s, wander_samples) if wander_samples > 0 and wander_time_s > 0 else 0.0
     sigma_s = float(np.hypot(within_s, wander_s))
     grid = np.concatenate([coarse, fine])
     order = np.argsort(grid)
@@ -339,14 +342,14 @@ def _default_joint_sigma(n: int) -> np.ndarray:
 
 
 def _wander_sigma(model: _EpipolarModel, params: np.ndarray, free: int, joint_sigma: np.ndarray,
-                  period_s: float, samples: int = WANDER_SAMPLES, seed: int = 0) -> float:
+                  period_s: float, wander_time_s: float, samples: int = WANDER_SAMPLES, seed: int = 0) -> float:
     """The offset's spread under the robot's joint wander (an Ornstein-Uhlenbeck deflection of joint_sigma
-    per joint and WANDER_TIME_S memory, as elastic joints wander): wander drawn at the frame times, added
-    to the readings, and the fit repeated. A shift and a slow wander look alike over a short session, which
-    the spread within the session (the jackknife) cannot see."""
+    per joint with time constant wander_time_s, as elastic joints wander): wander drawn at the frame times,
+    added to the readings, and the fit repeated. A shift and a slow wander look alike over a short session,
+    which the spread within the session (the jackknife) cannot see."""
     n = model.joints.q.shape[1]
     t = (model.frame_t_ns - model.frame_t_ns[0]) * 1e-9
-    a = np.exp(-np.diff(t, prepend=t[0]) / WANDER_TIME_S)
+    a = np.exp(-np.diff(t, prepend=t[0]) / wander_time_s)
     rng = np.random.default_rng(seed)
     shifts = []
     for _ in range(samples):

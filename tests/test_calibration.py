@@ -192,8 +192,10 @@ def test_time_offset_is_recovered_within_one_frame(tmp_path, warp_cpu, capsys):
     session = tmp_path / "late"
     assert main(["sim-record", "--scene", "skull", "--frames", "80", "--resolution", "320x240", "--device", "cpu",
                  "--no-progress", "--kinematics-offset-ms", "80", "--out", str(session)]) == 0
-    assert main(["calibrate", "time-offset", str(session), "--search-ms", "300", "--apply",
-                 "--json", str(tmp_path / "t.json")]) == 0
+    # the simulated arm's joints wander with a 0.15 s time constant (simulators/robot.py); stated, as a user
+    # states their arm's, it widens the uncertainty to cover what that wander does to a 3 s session
+    assert main(["calibrate", "time-offset", str(session), "--search-ms", "300", "--apply", "--joint-wander-s",
+                 "0.15", "--json", str(tmp_path / "t.json")]) == 0
     est = json.loads((tmp_path / "t.json").read_text())
     print(capsys.readouterr().out)
     assert abs(est["offset_ms"] - 80.0) < 40.0  # one frame period at 25 fps

@@ -40,21 +40,38 @@ def hand_eye_missing_message(robot_url: str, grabber_url: str, robot_model: str 
             f"--out handeye.yaml (your board's spec) ; then pass --hand-eye handeye.yaml")
 
 
+def calibrate_next_step(session_dir: str) -> str:
+    """What to run after recording a calibration session."""
+    return (f"no hand-eye: {session_dir} is a calibration session; next: lapreco calibrate handeye {session_dir} "
+            f"--board BOARD --out handeye.yaml (BOARD: the board in view, e.g. {EXAMPLE_BOARD}), then pass "
+            f"--hand-eye handeye.yaml")
+
+
+def describe_rig(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
+                 robot_model: str | None = None, tip_frame: str | None = None):
+    """(camera, description or None): the lens and the robot's description from files where given, else from
+    what the devices know. The description may lack a hand-eye (T_tip_camera None)."""
+    camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
+    if camera is None:
+        raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
+                          f"(from 'lapreco calibrate lens')")
+    description = robot.description
+    if hand_eye_file or robot_model or tip_frame:
+        he = read_handeye_yaml(hand_eye_file) if hand_eye_file else {}
+        base = description or RobotDescription("", "", None)
+        description = replace(base, urdf=robot_model or he.get("robot_model") or base.urdf,
+                              tip_frame=tip_frame or he.get("tip_frame") or base.tip_frame,
+                              T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
+    return camera, description
+
+
 def recording_rig(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
                   robot_model: str | None = None, tip_frame: str | None = None):
     """(camera, description, calibration_only) for ``lapreco record``. Without a hand-eye (no --hand-eye and
     none known to the robot) but with a robot model and tip link, the description has T_tip_camera None
     and the session recorded is a calibration session for ``lapreco calibrate handeye``."""
-    camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
-    if camera is None:
-        raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
-                          f"(from 'lapreco calibrate lens')")
-    base = robot.description or RobotDescription("", "", None)
-    he = read_handeye_yaml(hand_eye_file) if hand_eye_file else {}
-    description = replace(base, urdf=robot_model or he.get("robot_model") or base.urdf,
-                          tip_frame=tip_frame or he.get("tip_frame") or base.tip_frame,
-                          T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
-    if not description.urdf or not description.tip_frame:
+    camera, description = describe_rig(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
+    if description is None or not description.urdf or not description.tip_frame:
         raise ConfigError(f"robot '{robot.url.raw}' has no robot model; pass --robot-model (a packaged name such "
                           f"as 'ecm' or a URDF) and --tip-frame (the link that holds the scope)")
     calibration_only = description.T_tip_camera is None
@@ -104,12 +121,18 @@ def hand_eye_stations(session, board, camera, stride: int):
 
 
 def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, camera_file: str | None = None,
-                               stride: int = 5, json_file: str | None = None) -> dict:
-    """``lapreco calibrate handeye``: stations from the session, every closed-form method, the joint
-    refinement, the report; writes ``out`` (handeye.yaml) and, if asked, the report as JSON."""
+                               stride: int = 5, json_file: str | None = None, refinement: str = "poses",
+                               joint_wander_s: float = 0.0, backlash=None) -> dict:
+    """``lapreco calibrate handeye``: stations from the session, every closed-form method, the refinement
+    (``refinement`` "poses", the default, or "joints" with the arm's joint-error time constant
+    ``joint_wander_s`` and per-joint ``backlash``: ``calib.handeye.refine_in_joint_space``), the report;
+    writes ``out`` (handeye.yaml) and, if asked, the report as JSON."""
     from lapreco_hil.calib.handeye import calibrate_hand_eye
     from lapreco_hil.sessions import Session
 
+    if refinement != "joints" and (joint_wander_s or backlash is not None):
+        raise CalibrationError("--joint-wander-s and --backlash describe the arm for the joint-space refinement; "
+                               "add --refine joints")
     session = Session(session_dir)
     if session.meta.pose_source != "joints":
         raise CalibrationError(f"session '{session_dir}' has camera poses, not joint readings; hand-eye "
@@ -122,8 +145,15 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
                                f"stations; at least 3 are needed")
     from lapreco_hil.config import PriorConfig
 
-    # the refinement's joint errors have the pipeline's joint prior (the robot's 1-sigma joint error)
-    result = calibrate_hand_eye(stations, camera, tip_pose=kin.tip_pose, joint_sigma=PriorConfig().joint_sigma)
+    options = {}
+    if refinement == "joints":
+        if backlash is not None and len(backlash) not in (1, kin.n_joints):
+            raise CalibrationError(f"--backlash gives {len(backlash)} values; the robot has {kin.n_joints} joints "
+                                   f"(give one value for all, or one per joint)")
+        # the joint errors have the pipeline's joint prior (the robot's 1-sigma joint error)
+        options = {"tip_pose": kin.tip_pose, "joint_sigma": PriorConfig().joint_sigma,
+                   "wander_time_s": joint_wander_s, "backlash": backlash}
+    result = calibrate_hand_eye(stations, camera, refinement=refinement, **options)
     robot = session.robot
     write_handeye_yaml(out, result["T_tip_camera"], robot_model=session.meta.robot.urdf
                        if not Path(session.meta.robot.urdf).suffix else None, tip_frame=robot.tip_frame,
@@ -137,9 +167,11 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
 
 
 def estimate_session_time_offset(session_dir: str, search_ms: float = 1000.0, apply: bool = False,
-                                 hand_eye_file: str | None = None, json_file: str | None = None) -> dict:
+                                 hand_eye_file: str | None = None, json_file: str | None = None,
+                                 joint_wander_s: float = 0.0) -> dict:
     """``lapreco calibrate time-offset``: the estimate's summary; with ``apply`` it is written into the
-    session's time_offset_ns (and the estimate under source.time_offset_estimate)."""
+    session's time_offset_ns (and the estimate under source.time_offset_estimate). ``joint_wander_s``: the
+    arm's joint-error time constant, if known (it widens the uncertainty; ``estimate_from_tracks``)."""
     from lapreco_hil.calib.time_offset import estimate_time_offset
     from lapreco_hil.sessions import Session
     from lapreco_hil.sessions.format import META_FILE
@@ -148,8 +180,8 @@ def estimate_session_time_offset(session_dir: str, search_ms: float = 1000.0, ap
         raise CalibrationError(f"--search-ms must be a positive, finite number of milliseconds, got {search_ms}")
     session = Session(session_dir)
     hand_eye = read_handeye_yaml(hand_eye_file)["T_tip_camera"] if hand_eye_file else None
-    est = estimate_time_offset(session, search_s=search_ms / 1e3, T_tip_camera=hand_eye)
-    summary = est.summary()
+    est = estimate_time_offset(session, search_s=search_ms / 1e3, T_tip_camera=hand_eye, wander_time_s=joint_wander_s)
+    summary = {**est.summary(), "joint_wander_s": joint_wander_s}
     if apply:
         path = session.folder / META_FILE
         doc = json.loads(path.read_text())

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lapreco_hil.cli.args import positive
+from lapreco_hil.cli.args import non_negative, positive
 from lapreco_hil.outputs import write_json
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,15 @@ def add_parsers(sub, positive_int) -> None:
     he.add_argument("--board", required=True, help="the board, as for 'calibrate lens'")
     he.add_argument("--camera", default=None, help="lens calibration (default: the session's camera)")
     he.add_argument("--stride", type=positive_int, default=5, help="use every Nth frame as a station (default 5)")
+    he.add_argument("--refine", default="poses", choices=("poses", "joints"),
+                    help="poses (default): free tip poses with a prior of a few mrad; joints: the joint errors "
+                         "are the unknowns, as --joint-wander-s and --backlash describe the arm")
+    he.add_argument("--joint-wander-s", type=non_negative, default=0.0,
+                    help="with --refine joints: how long a deflection of the links from their readings lasts "
+                         "(s; elastic joints, cable stretch); 0 (default): independent at every station")
+    he.add_argument("--backlash", type=backlash_list, default=None,
+                    help="with --refine joints: the half-play of each joint's transmission (rad or m), one value "
+                         "or one per joint, comma-separated; default: none")
     he.add_argument("--out", required=True, help="handeye.yaml to write (OpenCV FileStorage)")
     he.add_argument("--json", default=None, help="also write the report as JSON")
     he.set_defaults(func=cmd_handeye)
@@ -61,8 +70,17 @@ def add_parsers(sub, positive_int) -> None:
     to.add_argument("--search-ms", type=positive, default=1000.0, help="search +- this many ms (default 1000)")
     to.add_argument("--apply", action="store_true", help="write the estimate into the session's time_offset_ns")
     to.add_argument("--hand-eye", default=None, help="hand-eye (OpenCV YAML) in place of the session's own")
+    to.add_argument("--joint-wander-s", type=non_negative, default=0.0,
+                    help="the arm's joint-error time constant (s), if known: the uncertainty then adds the "
+                         "offset's spread under such wander of the pipeline's joint sigma; 0 (default): the "
+                         "uncertainty is the block jackknife alone")
     to.add_argument("--json", default=None, help="also write the report as JSON")
     to.set_defaults(func=cmd_time_offset)
+
+
+def backlash_list(text: str) -> tuple[float, ...]:
+    """An argparse type: comma-separated non-negative numbers (rad or m per joint)."""
+    return tuple(non_negative(v) for v in text.split(","))
 
 
 def _write_json(path: str | None, doc: dict) -> None:
@@ -116,15 +134,16 @@ def cmd_handeye(args) -> int:
     from lapreco_hil.app.handeye import calibrate_hand_eye_session
 
     result = calibrate_hand_eye_session(args.session, args.board, args.out, camera_file=args.camera,
-                                        stride=args.stride, json_file=args.json)
+                                        stride=args.stride, json_file=args.json, refinement=args.refine,
+                                        joint_wander_s=args.joint_wander_s, backlash=args.backlash)
     for name, m in result["methods"].items():
         print(f"  {name:<11} station consistency: rotation {m['rotation_rms_deg']:.3f} deg, "
               f"translation {m['translation_rms_mm']:.3f} mm")
     for name, why in result["failed_methods"].items():
         print(f"  {name:<11} failed: {why}")
     ref, agree = result["refined"], result["agreement"]
-    print(f"  refined     station consistency: rotation {ref['rotation_rms_deg']:.3f} deg, translation "
-          f"{ref['translation_rms_mm']:.3f} mm; reprojection RMS {ref['reprojection_rms_px']:.3f} px")
+    print(f"  refined ({result['refinement']}) station consistency: rotation {ref['rotation_rms_deg']:.3f} deg, "
+          f"translation {ref['translation_rms_mm']:.3f} mm; reprojection RMS {ref['reprojection_rms_px']:.3f} px")
     print(f"  methods agree within {agree['rotation_deg']:.3f} deg / {agree['translation_mm']:.3f} mm")
     for w in result["warnings"]:
         print(f"  warning: {w}")
@@ -136,10 +155,13 @@ def cmd_time_offset(args) -> int:
     from lapreco_hil.app.handeye import estimate_session_time_offset
 
     s = estimate_session_time_offset(args.session, args.search_ms, apply=args.apply, hand_eye_file=args.hand_eye,
-                                     json_file=args.json)
+                                     json_file=args.json, joint_wander_s=args.joint_wander_s)
     print(f"lapreco calibrate time-offset: kinematics time = video time + {s['offset_ms']:.1f} ms "
           f"(+- {s['sigma_ms']:.1f} ms, {s['pairs']} frame pairs; median Sampson distance "
           f"{s['median_sampson_px_at_zero']:.3f} px at 0 -> {s['median_sampson_px_at_offset']:.3f} px)")
+    if not args.joint_wander_s:
+        print("  the uncertainty is a block jackknife over 1 s stretches: it assumes the joint errors are unrelated "
+              "that far apart; if the arm's joints wander slowly, give --joint-wander-s")
     if args.apply:
         print(f"  applied: {s['applied_to']} time_offset_ns = {round(s['offset_ms'] * 1e6)}")
     return 0
