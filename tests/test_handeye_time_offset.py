@@ -73,7 +73,7 @@ def test_time_offset_search_range_is_checked(tmp_path, capsys):
     for bad in ("-5", "0", "nan", "inf"):
         assert main(["calibrate", "time-offset", str(tmp_path), "--search-ms", bad]) == 2
         err = capsys.readouterr().err
-        assert "--search-ms" in err and "positive" in err and "Traceback" not in err
+        assert "--search-ms" in err and "> 0" in err and "Traceback" not in err
 
 
 # --- the online monitor ------------------------------------------------------------------------------------
@@ -181,7 +181,7 @@ def test_bring_up_record_without_hand_eye_then_calibrate(tmp_path, warp_cpu):
     meta = json.loads((tmp_path / "cal" / "session.json").read_text())
     assert "T_tip_camera" not in meta["robot"]  # the format allows it: a calibration session
     assert Session(tmp_path / "cal").robot.T_tip_camera is None
-    from lapreco_hil.cli.replay import run_replay
+    from lapreco_hil.app.replay import run_replay
 
     with pytest.raises(ConfigError, match="no hand-eye .*lapreco calibrate handeye.*--hand-eye handeye.yaml"):
         run_replay(str(tmp_path / "cal"), str(tmp_path / "replayed"), tracker="opencv", device=warp_cpu,
