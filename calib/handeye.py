@@ -141,12 +141,24 @@ def _captured_stderr():
             out.append(tmp.read().decode("utf-8", "replace"))
 
 
+@contextlib.contextmanager
+def _opencv_errors_logged():
+    """OpenCV's hand-eye solvers report "failed" only through its logger, at ERROR: the app may have silenced
+    that logger (lapreco_hil.app.noise), so it is let through to the (captured) stderr for the call."""
+    saved = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(max(saved, cv2.utils.logging.LOG_LEVEL_ERROR))
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(saved)
+
+
 def solve_closed_form(stations: list[Station], method: str) -> np.ndarray:
     """X by one of OpenCV's methods; CalibrationError when the method reports failure or gives no rigid,
     finite transform."""
     if len(stations) < 3:
         raise CalibrationError(f"hand-eye needs at least 3 stations where the board is seen, got {len(stations)}")
-    with _captured_stderr() as err:
+    with _captured_stderr() as err, _opencv_errors_logged():
         R, t = cv2.calibrateHandEye([s.T_base_tip[:3, :3] for s in stations],
                                     [s.T_base_tip[:3, 3] for s in stations],
                                     [s.T_camera_board[:3, :3] for s in stations],

@@ -116,7 +116,9 @@ def test_offset_monitor_refuses_to_judge_a_still_camera():
 
 # --- hand-eye ------------------------------------------------------------------------------------------------
 
-def test_a_failed_opencv_method_is_named_and_kept_off_the_console(capfd):
+@pytest.mark.parametrize("opencv_log", ("default", "silenced"))
+def test_a_failed_opencv_method_is_named_and_kept_off_the_console(capfd, opencv_log):
+    import cv2
     from test_calibration import CAM, synthetic_stations
 
     from lapreco_hil.calib.handeye import calibrate_hand_eye
@@ -126,7 +128,15 @@ def test_a_failed_opencv_method_is_named_and_kept_off_the_console(capfd):
     for s in stations:  # hardly any rotation between stations: Tsai's solver gives up
         rv = Rotation.from_matrix(s.T_base_tip[:3, :3]).as_rotvec()
         s.T_base_tip[:3, :3] = Rotation.from_rotvec(rv * 0.02).as_matrix()
-    result = calibrate_hand_eye(stations, CAM)
+    saved = cv2.utils.logging.getLogLevel()
+    if opencv_log == "silenced":  # as the CLI leaves OpenCV's logger (lapreco_hil.app.noise)
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        result = calibrate_hand_eye(stations, CAM)
+    finally:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(saved)
+    assert level == (cv2.utils.logging.LOG_LEVEL_SILENT if opencv_log == "silenced" else saved)
     captured = capfd.readouterr()
     assert "failed" not in captured.err and "calibrateHandEye" not in captured.err
     assert "tsai" in result["failed_methods"] and "tsai" not in result["methods"]
