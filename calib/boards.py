@@ -193,9 +193,8 @@ def grow_lattice(xy: np.ndarray, tol: float = 0.3) -> tuple[np.ndarray, np.ndarr
     labelled dots, or None when fewer than 12 are labelled."""
     tree = cKDTree(xy)
     seed = int(np.argmin(np.linalg.norm(xy - np.median(xy, axis=0), axis=1)))
-    dist, nn = tree.query(xy[seed], k=min(9, len(xy)))
+    _, nn = tree.query(xy[seed], k=min(9, len(xy)))
     steps = xy[nn[1:]] - xy[seed]
-    pitch = float(np.median(dist[1:5]))
     # two basis steps: the nearest neighbour, and the nearest one roughly perpendicular to it
     u = steps[0]
     perp = [s for s in steps[1:] if abs(np.dot(s, u)) < 0.5 * np.linalg.norm(s) * np.linalg.norm(u)]

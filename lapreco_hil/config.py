@@ -125,7 +125,7 @@ class RuntimeConfig:
     mapper_backlog_skip_ba: int = ranged(2, ge=0)  # local BA is deferred while more frames than this wait for the mapper
     # local BA in a worker process of its own, on the newest window, while the mapper goes on mapping frames
     # ("on"), or run by the mapper between frames, deferred while frames wait ("off"). "auto": on with 4 or
-    # more CPU cores; on 2 cores a third busy process took the time tracking needs (25 -> 22 fps at 384x288)
+    # more CPU cores: on 2 cores a third busy process takes the time tracking needs (docs/benchmarks.md)
     ba_worker: str = "auto"
     max_tracks: int = ranged(4096, ge=1)
     max_landmarks: int = ranged(200_000, ge=1)

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from lapreco_hil.calib.boards import parse_board
 from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml, write_camera_yaml
 from lapreco_hil.calib.handeye import Station, calibrate_hand_eye, pose_difference
-from lapreco_hil.calib.lens import calibrate_lens, load_images
+from lapreco_hil.calib.lens import calibrate_lens
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.cli.main import main
 from lapreco_hil.errors import CalibrationError

@@ -8,11 +8,14 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.types import Frame
+
+pytestmark = pytest.mark.slow  # each test runs the whole live pipeline for seconds
 
 
 class Wrapped:

@@ -5,7 +5,6 @@ written, recording complete), and the live textured view."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys

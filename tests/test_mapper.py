@@ -1,6 +1,7 @@
 """Keyframe selection: robot motion, track loss, and parallax with the camera rotation removed."""
 
 import numpy as np
+import pytest
 
 from lapreco_hil.config import MapperConfig
 from lapreco_hil.geometry import Rotation, make_T
@@ -64,6 +65,7 @@ def _scan(rng, n_frames=140, step_m=0.0015):
     return X, frames
 
 
+@pytest.mark.slow
 def test_long_runs_retire_old_keyframes_with_bounded_memory_and_the_same_map(rng):
     X, frames = _scan(rng)
     cfg = dict(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
@@ -108,6 +110,7 @@ def test_long_runs_retire_old_keyframes_with_bounded_memory_and_the_same_map(rng
     assert len(np.unique(r.landmark_ids)) == len(r.landmark_ids)  # no landmark both archived and active
 
 
+@pytest.mark.slow
 def test_local_ba_solved_late_by_a_worker_keeps_the_keyframes_right(rng):
     """Live, local BA is solved by a worker while frames go on being mapped: its result arrives some frames
     late, on a map that has grown since. Applied then (keyframes added meanwhile move with it), the
@@ -143,6 +146,7 @@ def test_local_ba_solved_late_by_a_worker_keeps_the_keyframes_right(rng):
 
 
 
+@pytest.mark.slow
 def test_keyframes_are_refined_against_the_map_before_their_points_are_triangulated(rng):
     """Live, local BA refines a keyframe a few hundred milliseconds late. Until then its pose must not be its
     predicted prior: points triangulated from it fail the reprojection test (and are all tried again at the
@@ -173,6 +177,7 @@ def test_keyframes_are_refined_against_the_map_before_their_points_are_triangula
     assert entered[True] < 0.6 * entered[False]
 
 
+@pytest.mark.slow
 def test_deferred_triangulation_publishes_the_keyframe_first_and_builds_the_same_map(rng, monkeypatch):
     """Live, a keyframe's pose goes out before its new points are triangulated; the points (and its local BA)
     follow in the mapper's idle moments (``maintain``), a few tracks at a time. With idle moments after every

@@ -97,6 +97,7 @@ def test_pose_only_refinement_pulls_a_frame_from_its_prior_to_the_truth(rng):
     assert not inlier[:20].any() and inlier[20:].mean() > 0.98
 
 
+@pytest.mark.slow
 def test_large_problems_solved_iteratively_match_the_direct_solution(rng):
     """Past ITERATIVE_ABOVE_POSES poses the robust BA solves with preconditioned conjugate gradients (a
     direct solve of the final pass of a long run took GBs); it must land where the direct solve does."""

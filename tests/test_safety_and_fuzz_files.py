@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fuzz_settings import EXAMPLES, FUZZ, mutated
+from fuzz_settings import FUZZ, mutated
 from hypothesis import example, given
 from hypothesis import strategies as st
 

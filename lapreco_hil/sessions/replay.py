@@ -62,8 +62,8 @@ def _shared(url: DeviceURL, context: DeviceContext) -> tuple[Session, _ReplayClo
     return session, clock
 
 
-# frames decoded ahead of the reader, in parallel (OpenCV's decoders release the GIL): one 1080p PNG takes
-# ~30 ms to decode, so a real-time replay at 60 fps needs several at once
+# frames decoded ahead of the reader, in parallel (OpenCV's decoders release the GIL): decoding one 1080p PNG
+# takes longer than a 60 fps frame period (docs/benchmarks.md), so a real-time replay needs several at once
 READ_AHEAD = 8
 
 

@@ -1,0 +1,37 @@
+"""A robot integrator's first recording, as issue 25 tried it: a Dynamixel X-series chain resting near its centre
+(2048 ticks), recorded with the plain URL (no joint map given) through the `lapreco record` command. Every
+reading the chain answered must land in the session, with the SI values the X-series convention gives
+(computed here from the raw ticks, not from the project's JointMap)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+
+from lapreco_hil.calib.files import write_handeye_yaml
+from lapreco_hil.cli.main import main
+from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
+
+from test_joint_convention import TICKS, expected_si
+
+
+def test_record_through_a_chain_resting_at_2048_keeps_every_reading(tmp_path, warp_cpu, capsys):
+    hand_eye = tmp_path / "handeye.yaml"
+    write_handeye_yaml(hand_eye, np.eye(4), robot_model="ecm", tip_frame="ecm_tip")
+    out = tmp_path / "session"
+    with DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: TICKS) as emu:
+        rc = main(["record", "--robot", f"serial://{emu.port}?ids=1,2,3,4",
+                   "--grabber", "sim://skull?width=160&height=120&fps=10", "--frames", "10",
+                   "--hand-eye", str(hand_eye), "--device", warp_cpu, "--out", str(out), "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    meta = json.loads((out / "session.json").read_text())
+    with open(out / "joints.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    delivered = meta["health"]["robot_readings_delivered"]
+    assert len(rows) > 10 and len(rows) == delivered  # every reading the driver handed on is in the session
+    assert "out_of_limits" not in meta["health"]["robot_faults"]
+    names = [k for k in rows[0] if k not in ("t_ns", "seq")]
+    q = np.array([[float(r[n]) for n in names] for r in rows])
+    np.testing.assert_allclose(q, np.broadcast_to(expected_si(TICKS), q.shape), rtol=0, atol=1e-9)
