@@ -5,20 +5,27 @@ from PnP): A_i X C_i = T_base_board for every station.
 1. OpenCV's closed-form solvers of AX = XB (Tsai, Park, Horaud, Andreff, Daniilidis).
 2. A joint robust refinement in GTSAM: unknowns X, the board pose B = T_base_board and every station's tip
    pose T_i (with the robot's reading as a prior: the joints are not exact either), one factor per station
-   on the board corners' reprojection error under a Cauchy loss, started from the best closed-form X.
+   on the board corners' reprojection error under a Cauchy loss, started from the best closed-form X. This
+   assumes nothing about the arm beyond a tip-pose error of a few mrad / a fraction of a mm (the default).
+   On request (``refine="joints"``) the unknowns are the joint errors instead, with the arm's joint-error
+   time constant and backlash as the caller states them (``refine_in_joint_space``).
 3. Consistency per station (the board pose each station implies, against their consensus) and warnings
    for motion that cannot determine X well.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import math
+import os
+import tempfile
 from dataclasses import dataclass
 
 import cv2
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, T, X
+from gtsam.symbol_shorthand import B, L, Q, T, X
 
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.errors import CalibrationError
@@ -43,10 +50,13 @@ class Station:
     T_camera_board: np.ndarray  # PnP
     object_points: np.ndarray  # (M, 3) board frame
     uv: np.ndarray  # (M, 2) undistorted pixels (pinhole K)
+    q: np.ndarray | None = None  # the joint reading T_base_tip came from (for the refinement in joint space)
+    side: np.ndarray | None = None  # per joint, the side its backlash is on (-1..1, from the direction of motion)
+    t_s: float | None = None  # when (for the joints' wander, correlated in time between stations)
 
 
 def board_station(name: str, image: np.ndarray, board: Board, camera: CameraModel,
-                  T_base_tip: np.ndarray, min_corners: int = 8) -> Station | None:
+                  T_base_tip: np.ndarray, min_corners: int = 8, q: np.ndarray | None = None) -> Station | None:
     found = board.detect(image)
     if found is None or len(found[0]) < min_corners:
         return None
@@ -56,12 +66,33 @@ def board_station(name: str, image: np.ndarray, board: Board, camera: CameraMode
     if not ok:
         return None
     rvec, tvec = cv2.solvePnPRefineLM(obj, pts, camera.K, camera.dist_array, rvec, tvec)
-    return Station(name, T_base_tip, make_T(cv2.Rodrigues(rvec)[0], tvec), obj, camera.undistort_pixels(pts))
+    return Station(name, T_base_tip, make_T(cv2.Rodrigues(rvec)[0], tvec), obj, camera.undistort_pixels(pts), q)
 
 
-def motion_warnings(stations: list[Station], min_rotation_deg: float = 5.0) -> list[str]:
-    """What makes X poorly determined: too little rotation between stations, or rotations about (nearly)
-    parallel axes (then the translation along that axis is unobservable)."""
+# What makes X poorly determined (Tsai and Lenz 1989; Shah et al. 2012): X's rotation comes from the rotation
+# axes of the motions between stations and its translation from how those rotations move the tip, so
+# - the largest rotation between two stations must be well above the joints' and PnP's rotation noise
+#   (a few mrad): below MIN_ROTATION_DEG the solution is mostly noise;
+# - the rotation axes must spread over at least two directions: about one axis only, the translation along
+#   it is unobservable. MIN_AXIS_SPREAD is the ratio of the second to the first singular value of the
+#   stacked unit axes (0: all parallel, 1: two equally used directions);
+# - a handful of stations gives the closed-form methods too little redundancy to expose a bad station.
+MIN_ROTATION_DEG = 10.0
+MIN_AXIS_SPREAD = 0.3
+MIN_STATIONS = 10
+# rotations between stations below this angle have no meaningful axis (noise) and are left out of the spread
+AXIS_MIN_ANGLE_DEG = 1.0
+# the methods' solutions should agree to about the noise; beyond these the data do not pin X down
+MAX_METHOD_SPREAD_DEG = 0.5
+MAX_METHOD_SPREAD_MM = 1.0
+# a method this many times further from the consensus than the median method (and beyond the limits above)
+# has broken down on these data rather than disagreeing within the noise
+OUTLIER_FACTOR = 5.0
+
+
+def motion_warnings(stations: list[Station], min_rotation_deg: float = MIN_ROTATION_DEG) -> list[str]:
+    """What makes X poorly determined: too few stations, too little rotation between them, or rotations
+    about (nearly) parallel axes (then the translation along that axis is unobservable)."""
     axes, angles = [], []
     for i in range(len(stations)):
         for j in range(i + 1, len(stations)):
@@ -69,30 +100,80 @@ def motion_warnings(stations: list[Station], min_rotation_deg: float = 5.0) -> l
             rv = cv2.Rodrigues(R)[0].ravel()
             angle = float(np.linalg.norm(rv))
             angles.append(angle)
-            if angle > np.deg2rad(1.0):
+            if angle > np.deg2rad(AXIS_MIN_ANGLE_DEG):
                 axes.append(rv / angle)
     warnings = []
+    if len(stations) < MIN_STATIONS:
+        warnings.append(f"only {len(stations)} stations see the board (want >= {MIN_STATIONS}): record longer or "
+                        f"use a smaller --stride")
     max_deg = float(np.degrees(max(angles))) if angles else 0.0
     if max_deg < min_rotation_deg:
         warnings.append(f"too little rotation between stations (largest {max_deg:.1f} deg, want >= "
                         f"{min_rotation_deg:.0f} deg): rotate the scope more between views")
     if len(axes) >= 2:
         s = np.linalg.svd(np.array(axes), compute_uv=False)
-        if s[1] / s[0] < 0.2:
-            warnings.append(f"rotations between stations are about nearly parallel axes (spread {s[1] / s[0]:.2f}): "
-                            f"rotate about at least two different axes")
+        if s[1] / s[0] < MIN_AXIS_SPREAD:
+            warnings.append(f"rotations between stations are about nearly parallel axes (spread {s[1] / s[0]:.2f}, "
+                            f"want >= {MIN_AXIS_SPREAD}): rotate about at least two different axes")
     elif len(stations) >= 2:
         warnings.append("fewer than two rotations between stations: the hand-eye is undetermined")
     return warnings
 
 
+@contextlib.contextmanager
+def _captured_stderr():
+    """OpenCV's C++ code writes to fd 2 (e.g. "calibrateHandEyeTsai ... failed"); keep it off the console
+    and hand it back as text (a list with one string, filled when the block ends)."""
+    out: list[str] = []
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no fd 2 (an embedded interpreter): nothing to capture
+            yield out
+            return
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield out
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            out.append(tmp.read().decode("utf-8", "replace"))
+
+
+@contextlib.contextmanager
+def _opencv_errors_logged():
+    """OpenCV's hand-eye solvers report "failed" only through its logger, at ERROR: the app may have silenced
+    that logger (lapreco_hil.app.noise), so it is let through to the (captured) stderr for the call."""
+    saved = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(max(saved, cv2.utils.logging.LOG_LEVEL_ERROR))
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(saved)
+
+
 def solve_closed_form(stations: list[Station], method: str) -> np.ndarray:
+    """X by one of OpenCV's methods; CalibrationError when the method reports failure or gives no rigid,
+    finite transform."""
     if len(stations) < 3:
         raise CalibrationError(f"hand-eye needs at least 3 stations where the board is seen, got {len(stations)}")
-    R, t = cv2.calibrateHandEye([s.T_base_tip[:3, :3] for s in stations], [s.T_base_tip[:3, 3] for s in stations],
-                                [s.T_camera_board[:3, :3] for s in stations],
-                                [s.T_camera_board[:3, 3] for s in stations], method=METHODS[method])
-    return make_T(R, t.ravel())
+    with _captured_stderr() as err, _opencv_errors_logged():
+        R, t = cv2.calibrateHandEye([s.T_base_tip[:3, :3] for s in stations],
+                                    [s.T_base_tip[:3, 3] for s in stations],
+                                    [s.T_camera_board[:3, :3] for s in stations],
+                                    [s.T_camera_board[:3, 3] for s in stations], method=METHODS[method])
+    message = " ".join(line.strip() for line in err[0].splitlines() if line.strip())
+    if "fail" in message.lower():
+        raise CalibrationError(f"OpenCV: {message}")
+    if message:
+        log.debug("hand-eye %s: OpenCV said: %s", method, message)
+    R, t = np.asarray(R, float), np.asarray(t, float).ravel()
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        raise CalibrationError("no finite solution (degenerate motion?)")
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise CalibrationError("the solution's rotation is not a rotation")
+    return make_T(R, t)
 
 
 def board_in_base(stations: list[Station], X_: np.ndarray) -> np.ndarray:
@@ -181,33 +262,191 @@ def refine(stations: list[Station], X0: np.ndarray, camera: CameraModel, sigma_p
     return X_, B_, per_station
 
 
+def _joint_station_factor(K, station: Station, index: int, tip_pose, noise) -> gtsam.CustomFactor:
+    """Reprojection of one station's corners with its tip pose FK(q + dq): the unknown is the joint error dq."""
+    obj, uv, q = station.object_points, station.uv, np.asarray(station.q, float)
+    side = np.zeros(len(q)) if station.side is None else np.asarray(station.side, float)
+    eps = 1e-6
+
+    def residual(dq, x, b):
+        return _reprojection(K, _pose3(tip_pose(q + dq)), x, b, obj, uv)
+
+    def error(this, values, H):
+        # the link is where the encoder reads, plus the play on the side of motion, plus the wander dq
+        dq = values.atVector(Q(index)) + side * values.atVector(L(0))
+        x, b = values.atPose3(X(0)), values.atPose3(B(0))
+        r0 = residual(dq, x, b)
+        if H is not None:
+            J = np.empty((len(r0), len(dq)))
+            for d in range(len(dq)):
+                step = np.zeros(len(dq))
+                step[d] = eps
+                J[:, d] = (residual(dq + step, x, b) - residual(dq - step, x, b)) / (2 * eps)
+            H[0] = J
+            H[3] = J * side
+            for slot, pose in ((1, x), (2, b)):
+                Jp = np.empty((len(r0), 6))
+                for d in range(6):
+                    delta = np.zeros(6)
+                    delta[d] = eps
+                    args = [x, b]
+                    args[slot - 1] = pose.retract(delta)
+                    plus = residual(dq, *args)
+                    args[slot - 1] = pose.retract(-delta)
+                    Jp[:, d] = (plus - residual(dq, *args)) / (2 * eps)
+                H[slot] = Jp
+        return r0
+
+    return gtsam.CustomFactor(noise, [Q(index), X(0), B(0), L(0)], error)
+
+
+def _wander_factor(prev, this, a: float, noise) -> gtsam.CustomFactor:
+    def error(factor, values, H):
+        if H is not None:
+            n = len(values.atVector(this))
+            H[0] = -a * np.eye(n)
+            H[1] = np.eye(n)
+        return values.atVector(this) - a * values.atVector(prev)
+
+    return gtsam.CustomFactor(noise, [prev, this], error)
+
+
+REFINEMENTS = ("poses", "joints")
+
+
+def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: CameraModel, tip_pose,
+                          joint_sigma, sigma_px: float = 0.5, huber_k: float = 1.345,
+                          wander_time_s: float = 0.0, backlash=None) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """(X, B, per-station reprojection RMS in px): X, the board pose and every station's joint error dq
+    (prior: the robot's joint sigma, per joint, SI) from the board corners' reprojections under Huber's loss.
+    A joint error moves the tip the way the arm can move (a rotation about the remote centre carries its
+    translation with it), which constrains the stations more than free 6-DOF tip poses do, IF the arm's
+    errors are what this model says; state them for the arm at hand:
+
+    - ``wander_time_s``: how long a deflection of the links from their readings lasts (elastic joints, cable
+      stretch), as the time constant of an Ornstein-Uhlenbeck process: the joint errors of stations closer
+      in time than this are linked. 0 (default): every station's joint error independent.
+    - ``backlash``: per joint (or one value for all), the expected half-play of its transmission (rad or m),
+      the prior sigma of one backlash per joint shared by the session and applied on the side of the
+      direction of motion (``Station.side``). None or 0 (default): no backlash term.
+    """
+    if not (math.isfinite(wander_time_s) and wander_time_s >= 0):
+        raise CalibrationError(f"the joints' wander time constant must be >= 0 s, got {wander_time_s!r}")
+    K = camera.K
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    sigma = np.asarray(joint_sigma, float)
+    prior = gtsam.noiseModel.Diagonal.Sigmas(sigma)
+    Bs = board_in_base(stations, X0)
+    B0 = Bs[int(np.argmin([np.linalg.norm(b[:3, 3] - np.median(Bs[:, :3, 3], axis=0)) for b in Bs]))]
+    values.insert(X(0), _pose3(X0))
+    values.insert(B(0), _pose3(B0))
+    # the backlash, one per joint for the whole session, held to zero with the play the caller expects
+    play = np.broadcast_to(np.asarray(0.0 if backlash is None else backlash, float), sigma.shape)
+    if not np.all(np.isfinite(play) & (play >= 0)):
+        raise CalibrationError(f"the joints' backlash must be >= 0 (rad or m) per joint, got {backlash!r}")
+    values.insert(L(0), np.zeros(len(sigma)))
+    graph.add(gtsam.PriorFactorVector(L(0), np.zeros(len(sigma)),
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.maximum(play, 1e-12))))
+    timed = all(st.t_s is not None for st in stations) and wander_time_s > 0
+    for i, s in enumerate(stations):
+        values.insert(Q(i), np.zeros(len(sigma)))
+        if not timed or i == 0:
+            graph.add(gtsam.PriorFactorVector(Q(i), np.zeros(len(sigma)), prior))
+        else:  # the wander as an Ornstein-Uhlenbeck process: dq_i = a dq_(i-1) + what is new since
+            a = float(np.exp(-abs(s.t_s - stations[i - 1].t_s) / wander_time_s))
+            graph.add(_wander_factor(Q(i - 1), Q(i), a, gtsam.noiseModel.Diagonal.Sigmas(
+                sigma * np.sqrt(max(1 - a * a, 1e-6)))))
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
+                                               gtsam.noiseModel.Isotropic.Sigma(2 * len(s.uv), sigma_px))
+        graph.add(_joint_station_factor(K, s, i, tip_pose, noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(1e-10)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    X_ = result.atPose3(X(0)).matrix()
+    B_ = result.atPose3(B(0)).matrix()
+    per_station = {}
+    for i, s in enumerate(stations):
+        side = np.zeros(len(sigma)) if s.side is None else s.side
+        tip = _pose3(tip_pose(np.asarray(s.q, float) + result.atVector(Q(i)) + side * result.atVector(L(0))))
+        r = _reprojection(K, tip, result.atPose3(X(0)), result.atPose3(B(0)), s.object_points, s.uv)
+        per_station[s.name] = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+    return X_, B_, per_station
+
+
 def pose_difference(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
     """(rotation deg, translation mm) between two transforms."""
     return float(np.degrees(rotation_angle(Ta[:3, :3].T @ Tb[:3, :3]))), \
         float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) * 1e3)
 
 
-def calibrate_hand_eye(stations: list[Station], camera: CameraModel, **refine_options) -> dict:
-    """Every closed-form method, the refinement from the most consistent one, consistency and warnings."""
+def method_agreement(methods: dict[str, dict]) -> dict:
+    """How far the methods' solutions lie from their consensus (chordal mean rotation, median translation),
+    in deg and mm, per method and at most. A method far outside the others' spread (Andreff's linear
+    translation is the usual one) is named an outlier and left out of the largest."""
+    Xs = np.array([m["T_tip_camera"] for m in methods.values()])
+    U, _, Vt = np.linalg.svd(Xs[:, :3, :3].sum(axis=0))
+    R_mean = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    t_med = np.median(Xs[:, :3, 3], axis=0)
+    per = {name: {"rotation_deg": float(np.degrees(rotation_angle(R_mean.T @ X[:3, :3]))),
+                  "translation_mm": float(np.linalg.norm(X[:3, 3] - t_med) * 1e3)}
+           for name, X in zip(methods, Xs)}
+    med_rot = float(np.median([p["rotation_deg"] for p in per.values()]))
+    med_trans = float(np.median([p["translation_mm"] for p in per.values()]))
+    outliers = [name for name, p in per.items() if len(per) >= 3 and
+                ((p["rotation_deg"] > OUTLIER_FACTOR * med_rot and p["rotation_deg"] > MAX_METHOD_SPREAD_DEG) or
+                 (p["translation_mm"] > OUTLIER_FACTOR * med_trans and p["translation_mm"] > MAX_METHOD_SPREAD_MM))]
+    kept = [p for name, p in per.items() if name not in outliers]
+    return {"rotation_deg": max(p["rotation_deg"] for p in kept),
+            "translation_mm": max(p["translation_mm"] for p in kept), "per_method": per, "outliers": outliers}
+
+
+def calibrate_hand_eye(stations: list[Station], camera: CameraModel, refinement: str = "poses", tip_pose=None,
+                       joint_sigma=None, **refine_options) -> dict:
+    """Every closed-form method, the refinement from the most consistent one, its reprojection residual,
+    the methods' agreement, and warnings (motion, disagreement, failed methods). ``refinement``: "poses"
+    (default: free tip poses with a 6-DOF prior, ``refine``) or "joints" (the joint errors are the unknowns,
+    ``refine_in_joint_space``; needs ``tip_pose`` (q -> the robot's T_base_tip), ``joint_sigma`` and the
+    stations' joint readings). ``refine_options`` go to the refinement chosen."""
+    if refinement not in REFINEMENTS:
+        raise CalibrationError(f"hand-eye refinement '{refinement}' is not one of {', '.join(REFINEMENTS)}")
+    if refinement == "joints" and (tip_pose is None or joint_sigma is None or any(st.q is None for st in stations)):
+        raise CalibrationError("the joint-space hand-eye refinement needs the robot's kinematics, its joint "
+                               "sigma and every station's joint reading")
     warnings = motion_warnings(stations)
-    for w in warnings:
-        log.warning("hand-eye: %s", w)
     methods, failed = {}, {}
     for name in METHODS:
         try:
             Xm = solve_closed_form(stations, name)
-        except cv2.error as exc:  # a method can break down on some data (e.g. Andreff's normalisation)
-            failed[name] = str(exc).strip().splitlines()[-1]
-            log.warning("hand-eye method %s failed: %s", name, failed[name])
-            continue
-        if not np.all(np.isfinite(Xm)):
-            failed[name] = "no finite solution (degenerate motion?)"
+        except (cv2.error, CalibrationError) as exc:  # a method can break down on some data
+            failed[name] = (str(exc).strip().splitlines() or ["failed"])[-1]
             continue
         methods[name] = {"T_tip_camera": Xm, **station_consistency(stations, Xm)}
     if not methods:
         raise CalibrationError(f"every hand-eye method failed: {failed}")
+    for name, why in failed.items():
+        warnings.append(f"method {name} failed: {why}")
+    agreement = method_agreement(methods)
+    for name in agreement["outliers"]:
+        p = agreement["per_method"][name]
+        warnings.append(f"method {name} is far from the others ({p['rotation_deg']:.2f} deg / "
+                        f"{p['translation_mm']:.1f} mm): left out of the agreement")
+    if agreement["rotation_deg"] > MAX_METHOD_SPREAD_DEG or agreement["translation_mm"] > MAX_METHOD_SPREAD_MM:
+        warnings.append(f"the methods disagree by up to {agreement['rotation_deg']:.2f} deg / "
+                        f"{agreement['translation_mm']:.2f} mm (want <= {MAX_METHOD_SPREAD_DEG} deg / "
+                        f"{MAX_METHOD_SPREAD_MM} mm): the motion does not pin the hand-eye down")
+    for w in warnings:
+        log.warning("hand-eye: %s", w)
     best = min(methods, key=lambda n: methods[n]["translation_rms_mm"] + methods[n]["rotation_rms_deg"])
-    X_, B_, reproj = refine(stations, methods[best]["T_tip_camera"], camera, **refine_options)
+    if refinement == "joints":
+        X_, B_, reproj = refine_in_joint_space(stations, methods[best]["T_tip_camera"], camera, tip_pose,
+                                               joint_sigma, **refine_options)
+    else:
+        X_, B_, reproj = refine(stations, methods[best]["T_tip_camera"], camera, **refine_options)
+    per = np.array(list(reproj.values()))
+    refined = {**station_consistency(stations, X_), "reprojection_rms_px": float(np.sqrt(np.mean(per**2))),
+               "reprojection_per_station_px": reproj}
     return {"methods": methods, "initial_method": best, "T_tip_camera": X_, "T_base_board": B_,
-            "refined": {**station_consistency(stations, X_), "reprojection_rms_px": reproj},
-            "warnings": warnings, "stations": len(stations), "failed_methods": failed}
+            "refined": refined, "agreement": agreement, "warnings": warnings, "stations": len(stations),
+            "failed_methods": failed, "refinement": refinement}

@@ -1,28 +1,60 @@
 """The constant offset between video and kinematics timestamps (kinematics time = video time + offset).
 
-Features are tracked through the session; for a candidate offset, the camera poses at the frame times come
-from the joint readings at the shifted times, and every pair of frames some distance apart gets its
-epipolar geometry from those poses. The Sampson distance of the tracked correspondences to it is smallest
-when the offset is right. The cost over a grid of offsets (coarse, then fine around the best) is minimised
-with a parabola through the three best points; the uncertainty is the spread of that minimum when the frame
-pairs are resampled (bootstrap).
+Offline (``estimate_time_offset``): features are tracked through the session; for a candidate offset, the
+camera poses at the frame times come from the joint readings at the shifted times, and every pair of frames
+some distance apart gets its epipolar geometry from those poses. The Sampson distances of the tracked
+correspondences to it are smallest when the offset is right. A coarse grid over the search range finds the
+basin; a robust least-squares fit (Cauchy loss) then refines the offset together with each joint's backlash.
+
+Why the backlash: a geared joint's encoder sits on the motor, and the link trails or leads it by the play in
+the transmission, on the side set by the direction of motion. That error is +-b while the joint moves one way
+and -+b the other, so over a scan it correlates with the velocity, exactly as a time shift does
+(``q(t + d) ~ q(t) + qdot d``). Left out of the model it is taken for a delay. A shift scales with the speed,
+backlash does not (only its sign), which is what separates them in the fit. docs/calibration-handeye.md has
+the measurements and what the uncertainty assumes.
+
+Online (``TimeOffsetMonitor``): the image motion the tracker measures against the image motion the robot
+predicts, over a sliding window; it says when the offset in use has drifted.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import math
+from collections import deque
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import CalibrationError
 from lapreco_hil.frontend import make_frontend
-from lapreco_hil.geometry import SampledPoses, inv_T
 from lapreco_hil.kinematics import CameraKinematics
 from lapreco_hil.robot_models import urdf_path
 
 log = logging.getLogger(__name__)
+
+# backlash changes sides while the joint reverses; below this fraction of the joint's RMS speed in the
+# session the side is taken as undecided (a smooth tanh switch): a reversal takes a small part of a scan
+BACKLASH_SWITCH_FRACTION = 0.1
+# joint velocities (the side of the backlash) from readings this far either side: long against the
+# encoders' quantisation noise (one count per 5 ms reading is 0.02 rad/s), short against a reversal
+VELOCITY_HALF_WINDOW_S = 0.04
+# the readings are smoothed over this span: the joints' elastic wander is rough on the scale of one reading
+# (it would make the fit's cost jagged in the offset), the scan's speed changes over seconds
+SMOOTHING_S = 0.2
+# frame pairs this many frames apart: a time shift moves both poses of a pair alike and shows only where the
+# velocity differs between them, so pairs far apart in time (where tracks survive) carry most of the signal
+PAIR_GAPS = (5, 10, 20, 40)
+MIN_COMMON_TRACKS = 15
+# the Cauchy loss's scale on Sampson distances (px): the tracker's noise is a fraction of a pixel, the
+# robot's joint wander maps to about a pixel; beyond a few pixels a correspondence is a tracking error
+CAUCHY_SCALE_PX = 1.0
+# the uncertainty leaves out stretches of about this length in turn: it assumes the errors of the joint
+# readings (and of the tracks) are unrelated between stretches this far apart
+JACKKNIFE_BLOCK_S = 1.0
+# draws of the arm's joint wander that measure its part of the uncertainty (when its time constant is given)
+WANDER_SAMPLES = 8
 
 
 @dataclass
@@ -34,26 +66,36 @@ class OffsetEstimate:
     pairs: int
     grid_s: np.ndarray
     cost_px: np.ndarray
+    backlash: np.ndarray  # per joint, SI units (rad or m): half the play, the link's side ahead of the motor
 
     def summary(self) -> dict:
         return {"offset_ms": self.offset_ns * 1e-6, "sigma_ms": self.sigma_ns * 1e-6, "pairs": self.pairs,
                 "median_sampson_px_at_zero": self.cost_at_zero_px,
-                "median_sampson_px_at_offset": self.cost_at_offset_px}
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+                "median_sampson_px_at_offset": self.cost_at_offset_px,
+                "backlash": [float(b) for b in self.backlash]}
 
 
 def sampson_px(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, f: float) -> np.ndarray:
     """Sampson distances (pixels, for focal length f) of normalised correspondences to essential matrix E."""
+    return np.abs(_signed_sampson(np.broadcast_to(E, (len(x1), 3, 3)), x1, x2, f))
+
+
+def _signed_sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, f: float) -> np.ndarray:
+    """Per correspondence: E (N, 3, 3), x1/x2 (N, 2) normalised, with x2^T E x1 = 0 for a perfect match."""
     h1 = np.column_stack([x1, np.ones(len(x1))])
     h2 = np.column_stack([x2, np.ones(len(x2))])
-    Ex1 = h1 @ E.T
-    Etx2 = h2 @ E
-    num = np.sum(h2 * Ex1, axis=1) ** 2
+    Ex1 = np.einsum("nij,nj->ni", E, h1)
+    Etx2 = np.einsum("nji,nj->ni", E, h2)
+    num = np.sum(h2 * Ex1, axis=1)
     den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    return f * np.sqrt(num / np.maximum(den, 1e-18))
+    return f * num / np.sqrt(np.maximum(den, 1e-18))
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices."""
+    z = np.zeros(len(t))
+    return np.stack([np.stack([z, -t[:, 2], t[:, 1]], 1), np.stack([t[:, 2], z, -t[:, 0]], 1),
+                     np.stack([-t[:, 1], t[:, 0], z], 1)], 1)
 
 
 def track_session(session, config: PipelineConfig, device: str = "cpu", tracker: str = "opencv"):
@@ -62,76 +104,357 @@ def track_session(session, config: PipelineConfig, device: str = "cpu", tracker:
     return [frontend.process(session.frame(i)) for i in range(len(session))]
 
 
-def estimate_time_offset(session, config: PipelineConfig | None = None, search_s: float = 1.0,
-                         pair_gaps: tuple[int, ...] = (5, 10, 20, 40),
-                         min_common: int = 15, bootstrap: int = 200, device: str = "cpu",
-                         seed: int = 0) -> OffsetEstimate:
-    if session.meta.pose_source != "joints":
-        raise CalibrationError(f"session '{session.folder}' has camera poses, not joint readings: there is no "
-                               f"kinematics clock to align")
-    config = config or PipelineConfig()
-    robot = session.robot
-    kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, robot.T_tip_camera, robot.T_world_base)
-    # camera poses at the readings, interpolated on SE(3) between them (as the pipeline's priors are)
-    poses_at = SampledPoses(np.array([j.t_ns for j in session.joint_samples], np.int64),
-                            np.array([kin.camera_pose(j.q) for j in session.joint_samples]))
-    obs = track_session(session, config, device)
-    K = session.meta.camera.K
+class JointTrack:
+    """Joint readings as a smooth function of time: positions smoothed by a local quadratic fit over
+    SMOOTHING_S (zero phase: no delay of its own), and the side each joint's backlash is on (from its
+    velocity)."""
+
+    def __init__(self, t_ns: np.ndarray, q: np.ndarray) -> None:
+        from scipy.signal import savgol_filter
+
+        t_ns = np.asarray(t_ns, np.int64)
+        if len(t_ns) < 2:
+            raise CalibrationError("the time offset needs at least two joint readings")
+        self.t0_ns = int(t_ns[0])
+        raw_t = (t_ns - self.t0_ns) * 1e-9
+        q = np.asarray(q, float)
+        # on a uniform grid at the readings' median interval (drivers' readings jitter a little)
+        dt = float(np.median(np.diff(raw_t)))
+        self.t_s = np.arange(0.0, raw_t[-1] + 1e-12, dt)
+        uniform = np.column_stack([np.interp(self.t_s, raw_t, q[:, j]) for j in range(q.shape[1])])
+        window = int(round(SMOOTHING_S / dt)) | 1
+        self.q = savgol_filter(uniform, window, 2, axis=0, mode="interp") if 3 < window < len(self.t_s) \
+            else uniform
+        h = VELOCITY_HALF_WINDOW_S
+        velocity = (self._interp(self.t_s + h) - self._interp(self.t_s - h)) / (2 * h)
+        rms = np.sqrt(np.mean(velocity**2, axis=0))
+        self.switch_speed = np.maximum(rms * BACKLASH_SWITCH_FRACTION, 1e-12)
+        self._velocity = velocity
+
+    def _interp(self, t_s: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t_s, self.t_s, self.q[:, j]) for j in range(self.q.shape[1])])
+
+    def at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (N, n), backlash sides in [-1, 1] (N, n)) at kinematics times."""
+        t_s = (np.asarray(t_ns, np.int64) - self.t0_ns) * 1e-9
+        v = np.column_stack([np.interp(t_s, self.t_s, self._velocity[:, j]) for j in range(self.q.shape[1])])
+        return self._interp(t_s), np.tanh(v / self.switch_speed)
+
+
+@dataclass
+class _Pairs:
+    first: np.ndarray  # (P,) frame index of each pair's earlier frame
+    second: np.ndarray  # (P,)
+    owner: np.ndarray  # (M,) pair of each correspondence
+    x1: np.ndarray  # (M, 2) normalised coordinates in the earlier frame
+    x2: np.ndarray  # (M, 2)
+
+
+def _frame_pairs(obs, K: np.ndarray, gaps, min_common: int) -> _Pairs:
     Kinv = np.linalg.inv(K)
-    f = float(K[0, 0])
-    # a time shift moves both poses of a pair alike, so it shows only where the velocity differs between
-    # them: pairs far apart in time (where tracks survive) carry most of the signal
-    pairs = []
-    for gap in pair_gaps:
+    first, second, owner, x1s, x2s = [], [], [], [], []
+    for gap in gaps:
         for i in range(0, len(obs) - gap):
             a, b = obs[i], obs[i + gap]
             common, ia, ib = np.intersect1d(a.track_ids, b.track_ids, return_indices=True)
-            if len(common) >= min_common:
-                x1 = np.column_stack([a.uv[ia], np.ones(len(ia))]) @ Kinv.T
-                x2 = np.column_stack([b.uv[ib], np.ones(len(ib))]) @ Kinv.T
-                pairs.append((a.t_ns, b.t_ns, x1[:, :2], x2[:, :2]))
-    if len(pairs) < 5:
-        raise CalibrationError(f"session '{session.folder}': only {len(pairs)} frame pairs share {min_common}+ "
-                               f"tracks; the time offset needs a moving camera over a textured scene")
+            if len(common) < min_common:
+                continue
+            owner.append(np.full(len(common), len(first)))
+            first.append(i)
+            second.append(i + gap)
+            x1s.append((np.column_stack([a.uv[ia], np.ones(len(ia))]) @ Kinv.T)[:, :2])
+            x2s.append((np.column_stack([b.uv[ib], np.ones(len(ib))]) @ Kinv.T)[:, :2])
+    if not first:
+        return _Pairs(np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)))
+    return _Pairs(np.array(first), np.array(second), np.concatenate(owner), np.concatenate(x1s),
+                  np.concatenate(x2s))
 
-    def costs(offset_s: float) -> np.ndarray:
-        off = int(round(offset_s * 1e9))
-        out = np.empty(len(pairs))
-        for n, (ta, tb, x1, x2) in enumerate(pairs):
-            T_ab = inv_T(poses_at(ta + off)) @ poses_at(tb + off)  # camera b in camera a
-            R, t = T_ab[:3, :3], T_ab[:3, 3]
-            # x_a ~ R x_b + t  =>  x_a^T [t]x R x_b = 0
-            E = _skew(t) @ R
-            out[n] = np.median(sampson_px(E.T, x1, x2, f)) if np.linalg.norm(t) > 1e-6 else np.nan
-        return out
 
-    period_s = session.frame_period_ns * 1e-9
+class _EpipolarModel:
+    """Signed Sampson distances of every correspondence for parameters (offset s, backlash per joint)."""
+
+    def __init__(self, obs, kinematics: CameraKinematics, joints: JointTrack, K: np.ndarray, pairs: _Pairs):
+        self.frame_t_ns = np.array([o.t_ns for o in obs], np.int64)
+        self.kin, self.joints, self.pairs = kinematics, joints, pairs
+        self.f = float(K[0, 0])
+        used = np.unique(np.concatenate([pairs.first, pairs.second]))
+        self.used = used
+
+    def poses(self, offset_s: float, backlash: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
+        T = np.zeros((len(self.frame_t_ns), 4, 4))
+        q, side = self.joints.at(self.frame_t_ns[self.used] + int(round(offset_s * 1e9)))
+        q = q + side * backlash  # the link is where the motor reads plus the play on the side of motion
+        if dq is not None:
+            q = q + dq[self.used]
+        for k, i in enumerate(self.used):
+            T[i] = self.kin.camera_pose(q[k])
+        return T
+
+    def residuals(self, params: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
+        P = self.poses(params[0], params[1:], dq)
+        p = self.pairs
+        Ta, Tb = P[p.first], P[p.second]
+        # camera b in camera a: x_a ~ R x_b + t  =>  x_a^T [t]x R x_b = 0
+        R = np.einsum("pji,pjk->pik", Ta[:, :3, :3], Tb[:, :3, :3])
+        t = np.einsum("pji,pj->pi", Ta[:, :3, :3], Tb[:, :3, 3] - Ta[:, :3, 3])
+        E = _skew(t) @ R  # maps x_b to the epipolar line in a
+        return _signed_sampson(E.transpose(0, 2, 1)[p.owner], p.x1, p.x2, self.f)
+
+    def robust_cost(self, params: np.ndarray) -> float:
+        r = self.residuals(params) / CAUCHY_SCALE_PX
+        return float(np.mean(np.log1p(r * r)))
+
+    def pair_medians(self, params: np.ndarray) -> np.ndarray:
+        r = np.abs(self.residuals(params))
+        order = np.lexsort((r, self.pairs.owner))
+        counts = np.bincount(self.pairs.owner, minlength=len(self.pairs.first))
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        return np.array([np.median(r[order][s:s + c]) for s, c in zip(starts, counts)])
+
+
+def estimate_time_offset(session, config: PipelineConfig | None = None, search_s: float = 1.0,
+                         device: str = "cpu", obs=None, T_tip_camera: np.ndarray | None = None,
+                         wander_time_s: float = 0.0) -> OffsetEstimate:
+    """The offset of a session with joint readings; ``obs`` (the tracker's observations of every frame) can
+    be given to skip tracking; ``T_tip_camera`` replaces the session's hand-eye (a calibration session has
+    none); ``wander_time_s``: the arm's joint-error time constant, if known (``estimate_from_tracks``)."""
+    if session.meta.pose_source != "joints":
+        raise CalibrationError(f"session '{session.folder}' has camera poses, not joint readings: there is no "
+                               f"kinematics clock to align")
+    if not (math.isfinite(search_s) and search_s > 0):
+        raise CalibrationError(f"the time-offset search range must be a positive number of ms, got "
+                               f"{search_s * 1e3:g}")
+    robot = session.robot
+    if T_tip_camera is not None:
+        robot = replace(robot, T_tip_camera=np.asarray(T_tip_camera, float))
+    if robot.T_tip_camera is None:
+        raise CalibrationError(f"session '{session.folder}' has no hand-eye (T_tip_camera); calibrate it first "
+                               f"('lapreco calibrate handeye') and pass it with --hand-eye")
+    kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, robot.T_tip_camera, robot.T_world_base)
+    joints = JointTrack(np.array([j.t_ns for j in session.joint_samples], np.int64),
+                        np.array([j.q for j in session.joint_samples]))
+    obs = obs if obs is not None else track_session(session, config or PipelineConfig(), device)
+    return estimate_from_tracks(obs, kin, joints, session.meta.camera.K, session.frame_period_ns, search_s,
+                                wander_time_s=wander_time_s, where=f"session '{session.folder}'")
+
+
+def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, K: np.ndarray, period_ns: int,
+                         search_s: float = 1.0, model_backlash: bool = True, joint_sigma=None,
+                         wander_time_s: float = 0.0, wander_samples: int = WANDER_SAMPLES,
+                         where: str = "") -> OffsetEstimate:
+    """The uncertainty is a delete-a-block jackknife over time (``JACKKNIFE_BLOCK_S``). If the arm's joint
+    errors are known to wander slowly, ``wander_time_s`` (their time constant, s) and ``joint_sigma`` (1 sigma
+    per joint, SI; default: the pipeline's prior) add the fit's spread under ``wander_samples`` draws of such
+    wander, which a short session's jackknife cannot see. 0 (default) leaves that part out."""
+    if not (math.isfinite(wander_time_s) and wander_time_s >= 0):
+        raise CalibrationError(f"the joints' wander time constant must be >= 0 s, got {wander_time_s!r}")
+    if joint_sigma is None:
+        joint_sigma = _default_joint_sigma(joints.q.shape[1])
+    pairs = _frame_pairs(obs, K, PAIR_GAPS, MIN_COMMON_TRACKS)
+    if len(pairs.first) < 5:
+        raise CalibrationError(f"{where}: only {len(pairs.first)} frame pairs share {MIN_COMMON_TRACKS}+ tracks; "
+                               f"the time offset needs a moving camera over a textured scene")
+    model = _EpipolarModel(obs, kinematics, joints, K, pairs)
+    n = joints.q.shape[1]
+    zero_b = np.zeros(n)
+    period_s = period_ns * 1e-9
+    # the basin: a grid at half a frame period, then a tenth of one around its best point
     coarse = np.arange(-search_s, search_s + 1e-12, period_s / 2)
-    table = np.array([costs(o) for o in coarse])  # (offsets, pairs)
-    valid = ~np.any(np.isnan(table), axis=0)
-    table = table[:, valid]
-    best = coarse[int(np.argmin(table.mean(axis=1)))]
-    fine = np.arange(best - period_s, best + period_s + 1e-12, period_s / 20)
-    fine_table = np.array([costs(o) for o in fine])[:, valid]
+    coarse_cost = np.array([model.robust_cost(np.r_[o, zero_b]) for o in coarse])
+    best = coarse[int(np.argmin(coarse_cost))]
+    fine = np.arange(best - period_s, best + period_s + 1e-12, period_s / 10)
+    fine_cost = np.array([model.robust_cost(np.r_[o, zero_b]) for o in fine])
+    start = fine[int(np.argmin(fine_cost))]
+    free = n if model_backlash else 0
+    offset_s, backlash = _fit(model, start, free, period_s, where)
+    within_s = _jackknife_sigma(model, free, period_s, offset_s)
+    wander_s = _wander_sigma(model, np.r_[offset_s, backlash], free, np.asarray(joint_sigma, float), period_s,
+                             wander_time_s, wander_samples) if wander_samples > 0 and wander_time_s > 0 else 0.0
+    sigma_s = float(np.hypot(within_s, wander_s))
     grid = np.concatenate([coarse, fine])
     order = np.argsort(grid)
-    grid, all_costs = grid[order], np.concatenate([table, fine_table])[order]
+    params = np.r_[offset_s, backlash]
+    log.info("time offset %.1f ms +- %.1f ms from %d frame pairs; backlash %s", offset_s * 1e3, sigma_s * 1e3,
+             len(pairs.first), np.array2string(backlash, precision=5))
+    return OffsetEstimate(int(round(offset_s * 1e9)), int(round(sigma_s * 1e9)),
+                          float(np.median(model.pair_medians(np.r_[0.0, zero_b]))),
+                          float(np.median(model.pair_medians(params))), len(pairs.first), grid[order],
+                          np.concatenate([coarse_cost, fine_cost])[order], backlash)
 
-    fine_mask = (grid >= fine[0] - 1e-12) & (grid <= fine[-1] + 1e-12)
-    grid_f, costs_f = grid[fine_mask], all_costs[fine_mask]
 
-    def estimate(cols: np.ndarray) -> float:
-        curve = costs_f[:, cols].mean(axis=1)
-        k = int(np.clip(np.argmin(curve), 1, len(curve) - 2))
-        a, b, _ = np.polyfit(grid_f[k - 1:k + 2] - grid_f[k], curve[k - 1:k + 2], 2)
-        return float(grid_f[k] - b / (2 * a)) if a > 0 else float(grid_f[k])
+def _fit(model: _EpipolarModel, start_s: float, free: int, period_s: float, where: str = "",
+         pair_mask: np.ndarray | None = None, dq: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Offset (s) and backlash (per joint) by robust least squares from the grid's best offset."""
+    from scipy.optimize import least_squares
 
-    n = costs_f.shape[1]
-    offset = estimate(np.arange(n))
+    n = model.joints.q.shape[1]
+    keep = None if pair_mask is None else pair_mask[model.pairs.owner]
+
+    # unknowns from zero (least_squares sizes its first step by |x0|): the offset's change from the start, in
+    # ms, and the backlash in mrad (mm), so that the steps are alike
+    def fun(x: np.ndarray) -> np.ndarray:
+        r = model.residuals(np.r_[start_s + x[0] * 1e-3, x[1:] * 1e-3, np.zeros(n - free)], dq)
+        return r if keep is None else r[keep]
+
+    def jac(x: np.ndarray) -> np.ndarray:  # central differences with absolute steps (0.05 ms, 0.01 mrad)
+        columns = []
+        for k, h in enumerate(np.r_[0.05, np.full(free, 0.01)]):
+            step = np.zeros(len(x))
+            step[k] = h
+            columns.append((fun(x + step) - fun(x - step)) / (2 * h))
+        return np.column_stack(columns)
+
+    fit = least_squares(fun, np.zeros(1 + free), jac=jac, loss="cauchy", f_scale=CAUCHY_SCALE_PX, max_nfev=60)
+    offset_s, backlash = start_s + fit.x[0] * 1e-3, np.r_[fit.x[1:] * 1e-3, np.zeros(n - free)]
+    if abs(offset_s - start_s) > 2 * period_s:  # a fit that ran off its basin is no better than the grid
+        log.warning("%s: the refined offset left the grid's basin; keeping the grid's %.1f ms", where,
+                    start_s * 1e3)
+        return start_s, np.zeros(n)
+    return offset_s, backlash
+
+
+def _jackknife_sigma(model: _EpipolarModel, free: int, period_s: float, offset_s: float) -> float:
+    """The offset's standard error by a delete-a-block jackknife over time. The robot's joint wander is common
+    to every pair that touches a frame and lasts a fraction of a second, so the pairs are far from
+    independent: leaving out contiguous stretches of the session sees the spread that wander causes."""
+    t = (model.frame_t_ns - model.frame_t_ns[0]) * 1e-9
+    blocks = int(np.clip(round(t[-1] / JACKKNIFE_BLOCK_S), 4, 10))
+    edges = np.linspace(0.0, t[-1] + 1e-9, blocks + 1)
+    estimates = []
+    for b in range(blocks):
+        inside = (t >= edges[b]) & (t < edges[b + 1])
+        mask = ~(inside[model.pairs.first] | inside[model.pairs.second])
+        if mask.sum() < 5:
+            continue
+        estimates.append(_fit(model, offset_s, free, period_s, pair_mask=mask)[0])
+    k = len(estimates)
+    if k < 2:
+        return float("nan")
+    e = np.array(estimates)
+    return float(np.sqrt((k - 1) / k * np.sum((e - e.mean()) ** 2)))
+
+
+def _default_joint_sigma(n: int) -> np.ndarray:
+    from lapreco_hil.config import PriorConfig
+
+    sigma = np.asarray(PriorConfig().joint_sigma, float)
+    return sigma if sigma.shape == (n,) else np.full(n, float(np.max(sigma)))
+
+
+def _wander_sigma(model: _EpipolarModel, params: np.ndarray, free: int, joint_sigma: np.ndarray,
+                  period_s: float, wander_time_s: float, samples: int = WANDER_SAMPLES, seed: int = 0) -> float:
+    """The offset's spread under the robot's joint wander (an Ornstein-Uhlenbeck deflection of joint_sigma
+    per joint with time constant wander_time_s, as elastic joints wander): wander drawn at the frame times,
+    added to the readings, and the fit repeated. A shift and a slow wander look alike over a short session,
+    which the spread within the session (the jackknife) cannot see."""
+    n = model.joints.q.shape[1]
+    t = (model.frame_t_ns - model.frame_t_ns[0]) * 1e-9
+    a = np.exp(-np.diff(t, prepend=t[0]) / wander_time_s)
     rng = np.random.default_rng(seed)
-    boots = [estimate(rng.integers(0, n, n)) for _ in range(bootstrap)]
-    zero = costs(0.0)[valid]
-    at = costs(offset)[valid]
-    log.info("time offset %.1f ms +- %.1f ms from %d frame pairs", offset * 1e3, np.std(boots) * 1e3, n)
-    return OffsetEstimate(int(round(offset * 1e9)), int(round(np.std(boots) * 1e9)), float(np.median(zero)),
-                          float(np.median(at)), n, grid, all_costs.mean(axis=1))
+    shifts = []
+    for _ in range(samples):
+        dq = np.empty((len(t), n))
+        dq[0] = rng.standard_normal(n) * joint_sigma
+        for i in range(1, len(t)):
+            dq[i] = a[i] * dq[i - 1] + np.sqrt(1 - a[i] ** 2) * rng.standard_normal(n) * joint_sigma
+        shifts.append(_fit(model, params[0], free, period_s, dq=dq)[0])
+    return float(np.std(shifts))
+
+
+# --- online ------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class OffsetReading:
+    """The monitor's current view: the offset its window supports, how far that is from the applied one,
+    and whether that is beyond the threshold (only when the window has enough motion to tell)."""
+
+    offset_ns: int | None
+    drift_ns: int | None
+    drifted: bool
+    samples: int
+    motion_px_s: float  # RMS of the measured image motion in the window: too little and nothing is decided
+
+
+class TimeOffsetMonitor:
+    """The video-kinematics offset over a sliding window, for a live run.
+
+    Feed it, per frame, the image motion the tracker measured (``add_measured``: a 2-vector in px/s, e.g. the
+    median displacement of the tracks since the previous frame over the frame interval, stamped at the
+    middle of that interval, video clock) and, as the robot reports, the image motion its kinematics
+    predicts (``add_predicted``: the same quantity from the camera's FK velocity, stamped on the kinematics
+    clock). The offset is the shift that best lines the two motion signals up (least squares over a grid,
+    refined by a parabola); ``reading()`` says whether it is more than ``drift_threshold_ns`` from the
+    offset in use. Motion signals carry a shift in their changes, so the window must hold some
+    acceleration: a camera moving at constant speed (or not at all) gives no reading.
+    """
+
+    def __init__(self, applied_offset_ns: int = 0, window_s: float = 10.0, search_s: float = 0.5,
+                 step_s: float = 0.002, drift_threshold_ns: int = 20_000_000, min_samples: int = 50,
+                 min_motion_px_s: float = 5.0) -> None:
+        for name, v in (("window_s", window_s), ("search_s", search_s), ("step_s", step_s)):
+            if not (math.isfinite(v) and v > 0):
+                raise CalibrationError(f"TimeOffsetMonitor: {name} must be a positive number, got {v!r}")
+        self.applied_offset_ns = int(applied_offset_ns)
+        self.window_ns = int(window_s * 1e9)
+        self.search_s, self.step_s = search_s, step_s
+        self.drift_threshold_ns = int(drift_threshold_ns)
+        self.min_samples, self.min_motion_px_s = min_samples, min_motion_px_s
+        self._measured: deque[tuple[int, float, float]] = deque()
+        self._predicted: deque[tuple[int, float, float]] = deque()
+
+    def add_measured(self, t_video_ns: int, motion_px_s) -> None:
+        m = np.asarray(motion_px_s, float)
+        if m.shape == (2,) and np.all(np.isfinite(m)):
+            self._measured.append((int(t_video_ns), float(m[0]), float(m[1])))
+            self._trim()
+
+    def add_predicted(self, t_kinematics_ns: int, motion_px_s) -> None:
+        m = np.asarray(motion_px_s, float)
+        if m.shape == (2,) and np.all(np.isfinite(m)):
+            if self._predicted and t_kinematics_ns <= self._predicted[-1][0]:
+                return  # the kinematics clock only goes forward; a repeat or an old sample is dropped
+            self._predicted.append((int(t_kinematics_ns), float(m[0]), float(m[1])))
+            self._trim()
+
+    def _trim(self) -> None:
+        if self._measured:
+            newest = self._measured[-1][0]
+            while self._measured and self._measured[0][0] < newest - self.window_ns:
+                self._measured.popleft()
+            # predictions are kept for the window plus the search on either side
+            horizon = newest + self.applied_offset_ns - self.window_ns - int(2 * self.search_s * 1e9)
+            while len(self._predicted) > 2 and self._predicted[1][0] < horizon:
+                self._predicted.popleft()
+
+    def reading(self) -> OffsetReading:
+        meas = np.array(self._measured, float).reshape(-1, 3)
+        pred = np.array(self._predicted, float).reshape(-1, 3)
+        motion = float(np.sqrt(np.mean(np.sum(meas[:, 1:] ** 2, axis=1)))) if len(meas) else 0.0
+        if len(meas) < self.min_samples or len(pred) < 2 or motion < self.min_motion_px_s:
+            return OffsetReading(None, None, False, len(meas), motion)
+        base = self.applied_offset_ns * 1e-9
+        shifts = np.arange(base - self.search_s, base + self.search_s + 1e-12, self.step_s)
+        tv = (meas[:, 0] - pred[0, 0]) * 1e-9
+        tp = (pred[:, 0] - pred[0, 0]) * 1e-9
+        cost = np.full(len(shifts), np.nan)
+        for k, d in enumerate(shifts):
+            tk = tv + d
+            inside = (tk >= tp[0]) & (tk <= tp[-1])
+            if inside.sum() < self.min_samples:
+                continue
+            px = np.interp(tk[inside], tp, pred[:, 1])
+            py = np.interp(tk[inside], tp, pred[:, 2])
+            # the median of squared mismatches: a few frames of bad tracking do not move it
+            cost[k] = np.median((meas[inside, 1] - px) ** 2 + (meas[inside, 2] - py) ** 2)
+        if np.all(np.isnan(cost)):
+            return OffsetReading(None, None, False, len(meas), motion)
+        k = int(np.nanargmin(cost))
+        offset_s = shifts[k]
+        if 0 < k < len(shifts) - 1 and np.all(np.isfinite(cost[k - 1:k + 2])):
+            c0, c1, c2 = cost[k - 1:k + 2]
+            denom = c0 - 2 * c1 + c2
+            if denom > 0:
+                offset_s += 0.5 * self.step_s * (c0 - c2) / denom
+        offset_ns = int(round(offset_s * 1e9))
+        drift = offset_ns - self.applied_offset_ns
+        return OffsetReading(offset_ns, drift, abs(drift) > self.drift_threshold_ns, len(meas), motion)

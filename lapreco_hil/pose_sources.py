@@ -122,6 +122,10 @@ class RobotPoseSource:
 
     def __init__(self, robot, description: RobotDescription, prior: PriorConfig, offset_ns: int = 0) -> None:
         self.robot = robot
+        if description.T_tip_camera is None:
+            raise ConfigError(f"robot '{getattr(getattr(robot, 'url', None), 'raw', robot)}' has no hand-eye "
+                              f"(T_tip_camera; a calibration session has none): make one with 'lapreco calibrate "
+                              f"handeye SESSION --board ... --out handeye.yaml' and pass --hand-eye handeye.yaml")
         kin = CameraKinematics(str(urdf_path(description.urdf)), description.tip_frame, description.T_tip_camera,
                                description.T_world_base)
         self.pose_at = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,

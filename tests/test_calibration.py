@@ -145,7 +145,8 @@ def test_hand_eye_methods_and_refinement_against_truth():
     # the joint robust refinement is at least as good as the best closed-form method
     assert refined[0] <= best_rot * 1.05 and refined[1] <= best_trans * 1.05
     assert refined[0] < 0.2 and refined[1] < 0.5
-    assert result["warnings"] == []
+    # the only warning: Andreff's translation broke down on these data, left out of the methods' agreement
+    assert [w.split(" is far")[0] for w in result["warnings"]] == ["method andreff"]
 
 
 def test_hand_eye_warns_about_degenerate_motion():
@@ -191,11 +192,16 @@ def test_time_offset_is_recovered_within_one_frame(tmp_path, warp_cpu, capsys):
     session = tmp_path / "late"
     assert main(["sim-record", "--scene", "skull", "--frames", "80", "--resolution", "320x240", "--device", "cpu",
                  "--no-progress", "--kinematics-offset-ms", "80", "--out", str(session)]) == 0
-    assert main(["calibrate", "time-offset", str(session), "--search-ms", "300", "--apply",
-                 "--json", str(tmp_path / "t.json")]) == 0
+    # the simulated arm's joints wander with a 0.15 s time constant (simulators/robot.py); stated, as a user
+    # states their arm's, it widens the uncertainty to cover what that wander does to a 3 s session
+    assert main(["calibrate", "time-offset", str(session), "--search-ms", "300", "--apply", "--joint-wander-s",
+                 "0.15", "--json", str(tmp_path / "t.json")]) == 0
     est = json.loads((tmp_path / "t.json").read_text())
     print(capsys.readouterr().out)
     assert abs(est["offset_ms"] - 80.0) < 40.0  # one frame period at 25 fps
+    # the arm's joint wander moves a 3 s session's estimate by tens of ms (measured -22 ms here): the stated
+    # uncertainty must cover it (docs/calibration-handeye.md)
+    assert abs(est["offset_ms"] - 80.0) < 3 * est["sigma_ms"]
     assert est["median_sampson_px_at_offset"] < est["median_sampson_px_at_zero"]
     applied = json.loads((session / "session.json").read_text())["time_offset_ns"]
     assert abs(applied * 1e-6 - est["offset_ms"]) < 1e-3

@@ -3,24 +3,37 @@ ground truth)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+from lapreco_hil.app.handeye import recording_rig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.sessions.recorder import RecordStats, record
 from lapreco_hil.warp_device import resolve_device
-from lapreco_hil.app.run import rig_from
+
+
+@dataclass(frozen=True)
+class Recording:
+    stats: RecordStats
+    # no hand-eye was known: the session is a calibration session, for 'lapreco calibrate handeye'
+    calibration_only: bool
 
 
 def record_session(robot_url: str, grabber_url: str, out: str, *, seconds: float | None = None,
                    frames: int | None = None, camera_file: str | None = None, robot_model: str | None = None,
                    tip_frame: str | None = None, hand_eye_file: str | None = None, device: str = "auto",
-                   progress: bool = True) -> RecordStats:
-    """Record until the source ends, ``seconds`` of capture or ``frames`` frames."""
+                   progress: bool = True) -> Recording:
+    """Record until the source ends, ``seconds`` of capture or ``frames`` frames. A robot with a model but no
+    hand-eye records a calibration session (frames and joints, no T_tip_camera: the first step of a new
+    rig's bring-up, ``lapreco_hil.app.handeye``)."""
     context = DeviceContext(device=resolve_device(device))
     robot, grabber = open_robot(robot_url, context), open_grabber(grabber_url, context)
-    camera, description = rig_from(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
+    camera, description, calibration_only = recording_rig(robot, grabber, camera_file, hand_eye_file,
+                                                          robot_model, tip_frame)
     with robot, grabber:
-        return record(grabber, robot, out, seconds=seconds, max_frames=frames, camera=camera,
-                      description=description, source={"robot": robot_url, "grabber": grabber_url},
-                      progress=progress)
+        stats = record(grabber, robot, out, seconds=seconds, max_frames=frames, camera=camera,
+                       description=description, source={"robot": robot_url, "grabber": grabber_url},
+                       progress=progress)
+    return Recording(stats, calibration_only)
 
 
 def sim_url(scene: str, resolution: tuple[int, int], fps: float, seed: int, instrument: bool = False,

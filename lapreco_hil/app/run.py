@@ -9,15 +9,13 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from lapreco_hil.calib.files import read_camera_yaml, read_handeye_yaml
+from lapreco_hil.app.handeye import describe_rig, require_hand_eye
 from lapreco_hil.config import PipelineConfig
-from lapreco_hil.errors import ConfigError
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.outputs import check_output_dir, prepare_output_dir, write_outputs
 from lapreco_hil.pose_sources import RobotPoseSource
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.runtime.live import LiveRun
-from lapreco_hil.types import RobotDescription
 from lapreco_hil.warp_device import resolve_device
 
 log = logging.getLogger(__name__)
@@ -25,22 +23,10 @@ log = logging.getLogger(__name__)
 
 def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
              robot_model: str | None = None, tip_frame: str | None = None):
-    """Lens and robot description: from files where given, else from what the devices know."""
-    camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
-    if camera is None:
-        raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
-                          f"(from 'lapreco calibrate lens')")
-    description = robot.description
-    if hand_eye_file or robot_model or tip_frame:
-        he = read_handeye_yaml(hand_eye_file) if hand_eye_file else {}
-        base = description or RobotDescription("", "", None)
-        description = replace(base, urdf=robot_model or he.get("robot_model") or base.urdf,
-                              tip_frame=tip_frame or he.get("tip_frame") or base.tip_frame,
-                              T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
-    if description is None or not description.urdf or not description.tip_frame or description.T_tip_camera is None:
-        raise ConfigError(f"robot '{robot.url.raw}' has no robot model/hand-eye; pass --robot-model, --tip-frame "
-                          f"and --hand-eye handeye.yaml")
-    return camera, description
+    """Lens and robot description: from files where given, else from what the devices know. A rig without a
+    hand-eye cannot make camera poses: the ConfigError says the two commands that bring it up."""
+    camera, description = describe_rig(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
+    return camera, require_hand_eye(robot, grabber, description)
 
 
 def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str = "auto", device: str = "auto",

@@ -5,15 +5,12 @@ and prints."""
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 import numpy as np
 
-from lapreco_hil.calib.boards import parse_board
-from lapreco_hil.calib.files import read_camera_yaml, write_handeye_yaml
-from lapreco_hil.errors import CalibrationError
+from lapreco_hil.cli.args import non_negative, positive
 from lapreco_hil.outputs import write_json
 
 log = logging.getLogger(__name__)
@@ -55,16 +52,35 @@ def add_parsers(sub, positive_int) -> None:
     he.add_argument("--board", required=True, help="the board, as for 'calibrate lens'")
     he.add_argument("--camera", default=None, help="lens calibration (default: the session's camera)")
     he.add_argument("--stride", type=positive_int, default=5, help="use every Nth frame as a station (default 5)")
+    he.add_argument("--refine", default="poses", choices=("poses", "joints"),
+                    help="poses (default): free tip poses with a prior of a few mrad; joints: the joint errors "
+                         "are the unknowns, as --joint-wander-s and --backlash describe the arm")
+    he.add_argument("--joint-wander-s", type=non_negative, default=0.0,
+                    help="with --refine joints: how long a deflection of the links from their readings lasts "
+                         "(s; elastic joints, cable stretch); 0 (default): independent at every station")
+    he.add_argument("--backlash", type=backlash_list, default=None,
+                    help="with --refine joints: the half-play of each joint's transmission (rad or m), one value "
+                         "or one per joint, comma-separated; default: none")
     he.add_argument("--out", required=True, help="handeye.yaml to write (OpenCV FileStorage)")
     he.add_argument("--json", default=None, help="also write the report as JSON")
     he.set_defaults(func=cmd_handeye)
 
     to = cal_sub.add_parser("time-offset", help="offset between video and kinematics timestamps")
     to.add_argument("session", help="a session with joint readings over a textured scene, the camera moving")
-    to.add_argument("--search-ms", type=float, default=1000.0, help="search +- this many ms (default 1000)")
+    to.add_argument("--search-ms", type=positive, default=1000.0, help="search +- this many ms (default 1000)")
     to.add_argument("--apply", action="store_true", help="write the estimate into the session's time_offset_ns")
+    to.add_argument("--hand-eye", default=None, help="hand-eye (OpenCV YAML) in place of the session's own")
+    to.add_argument("--joint-wander-s", type=non_negative, default=0.0,
+                    help="the arm's joint-error time constant (s), if known: the uncertainty then adds the "
+                         "offset's spread under such wander of the pipeline's joint sigma; 0 (default): the "
+                         "uncertainty is the block jackknife alone")
     to.add_argument("--json", default=None, help="also write the report as JSON")
     to.set_defaults(func=cmd_time_offset)
+
+
+def backlash_list(text: str) -> tuple[float, ...]:
+    """An argparse type: comma-separated non-negative numbers (rad or m per joint)."""
+    return tuple(non_negative(v) for v in text.split(","))
 
 
 def _write_json(path: str | None, doc: dict) -> None:
@@ -115,75 +131,37 @@ def cmd_stereo(args) -> int:
 
 
 def cmd_handeye(args) -> int:
-    from lapreco_hil.calib.handeye import board_station, calibrate_hand_eye
-    from lapreco_hil.config import PriorConfig
-    from lapreco_hil.kinematics import CameraKinematics, PoseAtTime
-    from lapreco_hil.robot_models import urdf_path
-    from lapreco_hil.sessions import Session
+    from lapreco_hil.app.handeye import calibrate_hand_eye_session
 
-    session = Session(args.session)
-    if session.meta.pose_source != "joints":
-        raise CalibrationError(f"session '{args.session}' has camera poses, not joint readings; hand-eye "
-                               f"calibration needs the robot's kinematics")
-    board = parse_board(args.board)
-    camera = read_camera_yaml(args.camera) if args.camera else session.meta.camera
-    robot = session.robot
-    kin = CameraKinematics(str(urdf_path(robot.urdf)), robot.tip_frame, np.eye(4), robot.T_world_base)
-    prior = PriorConfig()
-    joints = PoseAtTime(kin, prior.joint_sigma, prior.floor_rot_sigma_rad, prior.floor_trans_sigma_m,
-                        capacity=max(4096, len(session.joint_samples)))
-    joints.extend(session.joint_samples)
-    stations = []
-    for i in range(0, len(session), args.stride):
-        if joints.no_pose_cause(int(session.frame_t_ns[i]) + session.meta.time_offset_ns) is not None:
-            continue  # no joint readings around this frame: its tip pose is unknown
-        frame = session.frame(i)
-        q = joints.q_at(frame.t_ns + session.meta.time_offset_ns)
-        st = board_station(f"frame {frame.seq}", frame.image, board, camera, kin.tip_pose(q))
-        if st is not None:
-            stations.append(st)
-    if len(stations) < 3:
-        raise CalibrationError(f"session '{args.session}': the board ({args.board}) was found in {len(stations)} "
-                               f"stations; at least 3 are needed")
-    result = calibrate_hand_eye(stations, camera)
-    X = result["T_tip_camera"]
-    write_handeye_yaml(args.out, X, tip_frame=robot.tip_frame,
-                       extra={"stations": len(stations),
-                              "rotation_rms_deg": result["refined"]["rotation_rms_deg"],
-                              "translation_rms_mm": result["refined"]["translation_rms_mm"]})
+    result = calibrate_hand_eye_session(args.session, args.board, args.out, camera_file=args.camera,
+                                        stride=args.stride, json_file=args.json, refinement=args.refine,
+                                        joint_wander_s=args.joint_wander_s, backlash=args.backlash)
     for name, m in result["methods"].items():
         print(f"  {name:<11} station consistency: rotation {m['rotation_rms_deg']:.3f} deg, "
               f"translation {m['translation_rms_mm']:.3f} mm")
     for name, why in result["failed_methods"].items():
         print(f"  {name:<11} failed: {why}")
-    ref = result["refined"]
-    print(f"  refined     station consistency: rotation {ref['rotation_rms_deg']:.3f} deg, translation "
-          f"{ref['translation_rms_mm']:.3f} mm; reprojection median "
-          f"{np.median(list(ref['reprojection_rms_px'].values())):.3f} px")
+    ref, agree = result["refined"], result["agreement"]
+    print(f"  refined ({result['refinement']}) station consistency: rotation {ref['rotation_rms_deg']:.3f} deg, "
+          f"translation {ref['translation_rms_mm']:.3f} mm; reprojection RMS {ref['reprojection_rms_px']:.3f} px")
+    print(f"  methods agree within {agree['rotation_deg']:.3f} deg / {agree['translation_mm']:.3f} mm")
     for w in result["warnings"]:
         print(f"  warning: {w}")
-    print(f"lapreco calibrate handeye: {len(stations)} stations; T_tip_camera written to {args.out}")
-    _write_json(args.json, result)
+    print(f"lapreco calibrate handeye: {result['stations']} stations; T_tip_camera written to {args.out}")
     return 0
 
 
 def cmd_time_offset(args) -> int:
-    from lapreco_hil.calib.time_offset import estimate_time_offset
-    from lapreco_hil.sessions import Session
-    from lapreco_hil.sessions.format import META_FILE
+    from lapreco_hil.app.handeye import estimate_session_time_offset
 
-    session = Session(args.session)
-    est = estimate_time_offset(session, search_s=args.search_ms / 1e3)
-    s = est.summary()
+    s = estimate_session_time_offset(args.session, args.search_ms, apply=args.apply, hand_eye_file=args.hand_eye,
+                                     json_file=args.json, joint_wander_s=args.joint_wander_s)
     print(f"lapreco calibrate time-offset: kinematics time = video time + {s['offset_ms']:.1f} ms "
           f"(+- {s['sigma_ms']:.1f} ms, {s['pairs']} frame pairs; median Sampson distance "
           f"{s['median_sampson_px_at_zero']:.3f} px at 0 -> {s['median_sampson_px_at_offset']:.3f} px)")
+    if not args.joint_wander_s:
+        print("  the uncertainty is a block jackknife over 1 s stretches: it assumes the joint errors are unrelated "
+              "that far apart; if the arm's joints wander slowly, give --joint-wander-s")
     if args.apply:
-        path = session.folder / META_FILE
-        doc = json.loads(path.read_text())
-        doc["time_offset_ns"] = est.offset_ns
-        doc.setdefault("source", {})["time_offset_estimate"] = s
-        write_json(path, doc)
-        print(f"  applied: {path} time_offset_ns = {est.offset_ns}")
-    _write_json(args.json, s)
+        print(f"  applied: {s['applied_to']} time_offset_ns = {round(s['offset_ms'] * 1e6)}")
     return 0

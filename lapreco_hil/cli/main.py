@@ -287,10 +287,14 @@ def _cmd_devices(args) -> int:
 def _cmd_record(args) -> int:
     from lapreco_hil.app.record import record_session
 
-    stats = record_session(args.robot, args.grabber, args.out, seconds=args.seconds, frames=args.frames,
-                           camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
-                           hand_eye_file=args.hand_eye, device=args.device, progress=not args.no_progress)
-    _print_record(args.out, stats)
+    from lapreco_hil.app.handeye import calibrate_next_step
+
+    recording = record_session(args.robot, args.grabber, args.out, seconds=args.seconds, frames=args.frames,
+                               camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
+                               hand_eye_file=args.hand_eye, device=args.device, progress=not args.no_progress)
+    _print_record(args.out, recording.stats)
+    if recording.calibration_only:
+        print(calibrate_next_step(args.out))
     return 0
 
 

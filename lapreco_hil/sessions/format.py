@@ -104,8 +104,9 @@ class SessionMeta:
         if self.robot is not None:
             doc["robot"] = {"urdf": self.robot.urdf, "tip_frame": self.robot.tip_frame,
                             "joint_names": list(self.joint_names), "joint_units": list(self.joint_units),
-                            "T_tip_camera": self.robot.T_tip_camera.tolist(),
                             "T_world_base": self.robot.T_world_base.tolist()}
+            if self.robot.T_tip_camera is not None:  # absent: a calibration session (no hand-eye yet)
+                doc["robot"]["T_tip_camera"] = self.robot.T_tip_camera.tolist()
         if self.pose_source == "camera_poses":
             doc["camera_poses"] = {"sigma_rotation_rad": self.pose_sigma.rotation_rad,
                                    "sigma_translation_m": self.pose_sigma.translation_m}
@@ -209,7 +210,8 @@ def meta_from_json(doc, source: str) -> SessionMeta:
             raise r._fail("joint_names", "must be a non-empty list of names")
         if len(joint_units) != len(joint_names) or not all(u in ("angle", "length") for u in joint_units):
             raise r._fail("joint_units", "must give 'angle' or 'length' for each joint in joint_names")
-        robot = RobotDescription(r.get("urdf", str), r.get("tip_frame", str), _check_rigid(r, "T_tip_camera"),
+        robot = RobotDescription(r.get("urdf", str), r.get("tip_frame", str),
+                                 _check_rigid(r, "T_tip_camera") if "T_tip_camera" in r.data else None,
                                  _check_rigid(r, "T_world_base") if "T_world_base" in r.data else np.eye(4))
     sigma = PoseSigma()
     if pose_source == "camera_poses" and "camera_poses" in f.data:

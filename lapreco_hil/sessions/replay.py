@@ -18,6 +18,8 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
+import numpy as np
+
 from lapreco_hil.drivers.grabber.base import Grabber
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
@@ -155,8 +157,9 @@ class ReplayRobot(RobotDriver):
                                f"'lapreco replay {url.name}'")
         self.description = self.session.robot
         meta = self.session.meta
+        # (only joint count and limits are read here; a calibration session has no hand-eye)
         kin = CameraKinematics(str(urdf_path(self.description.urdf)), self.description.tip_frame,
-                               self.description.T_tip_camera)
+                               np.eye(4) if self.description.T_tip_camera is None else self.description.T_tip_camera)
         if kin.n_joints != len(meta.joint_names):
             raise SessionError(f"session '{url.name}': joints.csv has {len(meta.joint_names)} joints, the robot "
                                f"model {kin.n_joints}")
