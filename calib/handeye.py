@@ -630,7 +630,7 @@ def tracked_stations(views: list[TrackedView], side: str, board: Board, camera: 
 
 
 def calibrate_tracked_hand_eye(views: list[TrackedView], board: Board, cameras: dict[str, CameraModel],
-                               **refine_options) -> dict:
+                               log_warnings: bool = True, **refine_options) -> dict:
     """Hand-eye of a tracked scope: per camera (``cameras``: one, or "left" and "right"), OpenCV's closed-form
     methods with their agreement and warnings; then the joint robust refinement (``refine_tracked``) of the
     first camera's hand-eye, the pattern on its marker and, with two cameras, the rig. The report: the
@@ -653,7 +653,7 @@ def calibrate_tracked_hand_eye(views: list[TrackedView], board: Board, cameras: 
         stations[side] = st
         warnings += [f"{side} camera: {w}" for w in side_warnings]
     for w in warnings:
-        log.warning("tracked hand-eye: %s", w)
+        (log.warning if log_warnings else log.debug)("tracked hand-eye: %s", w)
     X0 = per_camera[sides[0]]["methods"][per_camera[sides[0]]["initial_method"]]["T_tip_camera"]
     rig0 = None
     if len(sides) == 2:
@@ -707,7 +707,8 @@ def leave_one_view_out(views: list[TrackedView], board: Board, cameras: dict[str
         raise CalibrationError("the leave-one-view-out figure triangulates: it needs a stereo pair")
     per_view, all_d = {}, []
     for k, held in enumerate(views):
-        fit = calibrate_tracked_hand_eye(views[:k] + views[k + 1:], board, cameras, **refine_options)
+        fit = calibrate_tracked_hand_eye(views[:k] + views[k + 1:], board, cameras, log_warnings=False,
+                                         **refine_options)
         ids, pts = triangulate_view(held, fit["T_scopemarker_camera"], fit["T_left_right"], cameras)
         err = grid_error_mm(ids, pts, fit["T_boardmarker_pattern"], board)
         per_view[held.name] = err
