@@ -671,6 +671,8 @@ def triangulate_view(view: TrackedView, T_scopemarker_camera: np.ndarray, T_left
     """(ids, points (M, 3) in the board marker's frame, metres): the dots both cameras saw at this view,
     triangulated with the cameras placed by the TRACKER's pose and the hand-eye (no image-based pose)."""
     left, right = list(cameras)
+    if left not in view.detections or right not in view.detections:
+        raise CalibrationError(f"{view.name}: the pattern was not found in both cameras; nothing to triangulate")
     T_bm_l = view.T_boardmarker_scopemarker @ T_scopemarker_camera
     T_bm_r = T_bm_l @ T_left_right
     (pl, il), (pr, ir) = view.detections[left], view.detections[right]
@@ -702,11 +704,13 @@ def leave_one_view_out(views: list[TrackedView], board: Board, cameras: dict[str
     """The tracked hand-eye's accuracy on views it was not fitted to: for each view, calibrate (stereo) on the
     others, triangulate the held-out view's dots with the cameras placed by its tracker pose and that
     hand-eye, and compare with the grid placed by that calibration's T_boardmarker_pattern. Per held-out view
-    mean / RMS / max (mm), and over all dots of all held-out views."""
+    mean / RMS / max (mm), and over all dots of all held-out views. Views one camera missed are not held out."""
     if len(cameras) != 2:
         raise CalibrationError("the leave-one-view-out figure triangulates: it needs a stereo pair")
     per_view, all_d = {}, []
     for k, held in enumerate(views):
+        if not all(side in held.detections for side in cameras):
+            continue  # a view one camera missed has nothing to triangulate
         fit = calibrate_tracked_hand_eye(views[:k] + views[k + 1:], board, cameras, log_warnings=False,
                                          **refine_options)
         ids, pts = triangulate_view(held, fit["T_scopemarker_camera"], fit["T_left_right"], cameras)

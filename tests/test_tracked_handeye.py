@@ -147,6 +147,11 @@ def test_a_synthetic_tracked_scope_of_known_hand_eye_is_recovered():
     loo = leave_one_view_out(views, board, cameras)
     print({k: (round(v["mean_mm"], 2), round(v["offset_mm"], 2)) for k, v in loo["per_view"].items()})
     assert max(v["offset_mm"] for v in loo["per_view"].values()) < 0.5  # measured 0.05-0.38 (the tracker noise)
+    # a view the right camera missed: calibrated with its left camera, not held out, no triangulation
+    views[0] = TrackedView(views[0].name, views[0].T_boardmarker_scopemarker, {"left": views[0].detections["left"]})
+    assert len(leave_one_view_out(views, board, cameras)["per_view"]) == 11
+    with pytest.raises(CalibrationError, match="view 0: the pattern was not found in both cameras"):
+        triangulate_view(views[0], X, rig, cameras)
 
 
 def test_too_few_and_too_small_motions_are_warned():
