@@ -11,6 +11,10 @@ from PnP): A_i X C_i = T_base_board for every station.
    time constant and backlash as the caller states them (``refine_in_joint_space``).
 3. Consistency per station (the board pose each station implies, against their consensus) and warnings
    for motion that cannot determine X well.
+
+An optically tracked scope is the same problem with the tracker as the "robot" (the scope marker's pose in the
+board marker's frame): ``calibrate_tracked_hand_eye`` (one camera, or a stereo pair as one hand-eye plus the
+rig) and its held-out figure ``leave_one_view_out`` (docs/calibration-handeye.md).
 """
 
 from __future__ import annotations
@@ -576,8 +580,7 @@ def refine_tracked(stations: dict[str, list[Station]], cameras: dict[str, Camera
     if sigma_px is None:
         flat = [(s, cameras[side]) for side in sides for s in stations[side]]
         sigma_px = robust_pixel_scale([f[0] for f in flat], [f[1] for f in flat])
-    names = sorted({s.name for side in sides for s in stations[side]},
-                   key=lambda n: [s.name for side in sides for s in stations[side]].index(n))
+    names = list(dict.fromkeys(s.name for side in sides for s in stations[side]))  # the views, in order
     index = {n: i for i, n in enumerate(names)}
     tip = {s.name: s.T_base_tip for side in sides for s in stations[side]}
     graph = gtsam.NonlinearFactorGraph()

@@ -193,3 +193,33 @@ def test_tracker_files_and_command_errors_are_one_line(tmp_path, capsys):
     assert "10 --scope-poses, 10 --board-poses, 1 --left images" in err and len(err.strip().splitlines()) == 1
     assert main([*argv[:3], str(tmp_path / "none*.txt"), *argv[4:]]) == 2
     assert "matches no file" in capsys.readouterr().err
+
+
+def test_the_command_on_the_stored_dots(tmp_path, capsys, monkeypatch):
+    """The whole command with the board's detection replaced by the stored dots of the same images (the 20
+    views are 15 MB; the detection itself is tested on a real view in test_lens_model_choice.py)."""
+    import lapreco_hil.app.handeye_tracked as app
+    from lapreco_hil.calib.files import write_camera_yaml
+
+    dots = np.load(VIKING / "dots.npz")
+    monkeypatch.setattr(app, "detect_images", lambda paths, board: [
+        (dots[Path(p).stem + "_points"].astype(np.float64), dots[Path(p).stem + "_ids"].astype(np.int64))
+        for p in paths])
+    for side in SIDES:
+        write_camera_yaml(tmp_path / f"{side}.yaml", _owner_camera(side))
+    out = tmp_path / "handeye.yaml"
+    argv = ["calibrate", "handeye-tracked", "--scope-poses", str(VIKING / "calib.tracking.[0-9]*.txt"),
+            "--board-poses", str(VIKING / "calib.tracking.model.*.txt"),
+            "--left", *[f"left{i}.png" for i in range(10)], "--right", *[f"right{i}.png" for i in range(10)],
+            "--board", "viking", "--camera", str(tmp_path / "left.yaml"), "--camera-right",
+            str(tmp_path / "right.yaml"), "--out", str(out), "--json", str(tmp_path / "report.json")]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "methods agree within" in text and "held out calib.tracking.9.txt" in text
+    assert "leave-one-view-out: 3271 dots" in text and "rig: baseline 4.5" in text
+    written = read_handeye_yaml(out)
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("leave_one_view_out_mean_mm").real() <= 1.0
+    assert fs.getNode("T_left_right").mat().shape == (4, 4) and fs.getNode("T_boardmarker_pattern").mat()[3, 3] == 1
+    fs.release()
+    assert 0.25 < np.linalg.norm(written["T_tip_camera"][:3, 3]) < 0.30

@@ -68,13 +68,13 @@ def add_parsers(sub, positive_int) -> None:
     ht = cal_sub.add_parser("handeye-tracked",
                             help="an optically tracked scope's hand-eye (camera -> scope marker) and the board "
                                  "pattern on its marker, from tracked board views")
-    ht.add_argument("--scope-poses", nargs="+", required=True,
+    ht.add_argument("--scope-poses", nargs="+", metavar="FILE", required=True,
                     help="per view, the scope marker's 4x4 pose in the tracker's frame (text, mm); files or a "
                          "quoted glob, in view order (names sorted by their numbers)")
-    ht.add_argument("--board-poses", nargs="+", required=True,
+    ht.add_argument("--board-poses", nargs="+", metavar="FILE", required=True,
                     help="per view, the board marker's 4x4 pose in the tracker's frame (text, mm), likewise")
-    ht.add_argument("--left", nargs="+", required=True, help="per view, the (left) camera's image")
-    ht.add_argument("--right", nargs="+", default=None,
+    ht.add_argument("--left", nargs="+", metavar="IMAGE", required=True, help="per view, the (left) camera's image")
+    ht.add_argument("--right", nargs="+", metavar="IMAGE", default=None,
                     help="per view, the right camera's image (a stereo scope: one hand-eye plus the rig)")
     ht.add_argument("--board", required=True, help="the printed pattern, as for 'calibrate lens' (e.g. viking)")
     ht.add_argument("--camera", required=True, help="the (left) camera's lens (OpenCV YAML or ROS camera_info)")
