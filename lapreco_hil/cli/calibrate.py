@@ -1,4 +1,4 @@
-"""``lapreco calibrate lens|stereo|handeye|time-offset``: the calibration workflows, writing OpenCV YAML that
+"""``lapreco calibrate lens|stereo|handeye|handeye-tracked|time-offset``: the calibration workflows, writing OpenCV YAML that
 the rest of the app reads (``record``/``replay --camera``, ``--hand-eye``) and, for the time offset, the
 session's own ``time_offset_ns``. Lens and stereo run in ``lapreco_hil.app.calibrate``; this module parses
 and prints."""
@@ -64,6 +64,26 @@ def add_parsers(sub, positive_int) -> None:
     he.add_argument("--out", required=True, help="handeye.yaml to write (OpenCV FileStorage)")
     he.add_argument("--json", default=None, help="also write the report as JSON")
     he.set_defaults(func=cmd_handeye)
+
+    ht = cal_sub.add_parser("handeye-tracked",
+                            help="an optically tracked scope's hand-eye (camera -> scope marker) and the board "
+                                 "pattern on its marker, from tracked board views")
+    ht.add_argument("--scope-poses", nargs="+", metavar="FILE", required=True,
+                    help="per view, the scope marker's 4x4 pose in the tracker's frame (text, mm); files or a "
+                         "quoted glob, in view order (names sorted by their numbers)")
+    ht.add_argument("--board-poses", nargs="+", metavar="FILE", required=True,
+                    help="per view, the board marker's 4x4 pose in the tracker's frame (text, mm), likewise")
+    ht.add_argument("--left", nargs="+", metavar="IMAGE", required=True, help="per view, the (left) camera's image")
+    ht.add_argument("--right", nargs="+", metavar="IMAGE", default=None,
+                    help="per view, the right camera's image (a stereo scope: one hand-eye plus the rig)")
+    ht.add_argument("--board", required=True, help="the printed pattern, as for 'calibrate lens' (e.g. viking)")
+    ht.add_argument("--camera", required=True, help="the (left) camera's lens (OpenCV YAML or ROS camera_info)")
+    ht.add_argument("--camera-right", default=None, help="the right camera's lens, with --right")
+    ht.add_argument("--no-leave-one-out", action="store_true",
+                    help="skip the leave-one-view-out triangulation figure (stereo only; one calibration per view)")
+    ht.add_argument("--out", required=True, help="handeye.yaml to write (T_tip_camera = T_scopemarker_camera)")
+    ht.add_argument("--json", default=None, help="also write the report as JSON")
+    ht.set_defaults(func=cmd_handeye_tracked)
 
     to = cal_sub.add_parser("time-offset", help="offset between video and kinematics timestamps")
     to.add_argument("session", help="a session with joint readings over a textured scene, the camera moving")
@@ -148,6 +168,38 @@ def cmd_handeye(args) -> int:
     for w in result["warnings"]:
         print(f"  warning: {w}")
     print(f"lapreco calibrate handeye: {result['stations']} stations; T_tip_camera written to {args.out}")
+    return 0
+
+
+def cmd_handeye_tracked(args) -> int:
+    from lapreco_hil.app.handeye_tracked import calibrate_tracked
+
+    r = calibrate_tracked(args.scope_poses, args.board_poses, args.left, args.board, args.camera, args.out,
+                          right=args.right, camera_right_file=args.camera_right, json_file=args.json,
+                          leave_one_out=not args.no_leave_one_out)
+    for side, cam in r["per_camera"].items():
+        agree = cam["agreement"]
+        for name, m in cam["methods"].items():
+            print(f"  {side:<5} {name:<11} view consistency: rotation {m['rotation_rms_deg']:.3f} deg, "
+                  f"translation {m['translation_rms_mm']:.3f} mm")
+        for name, why in cam["failed_methods"].items():
+            print(f"  {side:<5} {name:<11} failed: {why}")
+        print(f"  {side:<5} methods agree within {agree['rotation_deg']:.3f} deg / {agree['translation_mm']:.3f} mm")
+    rms = ", ".join(f"{side} {v:.2f} px" for side, v in r["reprojection_rms_px"].items())
+    print(f"  refined: reprojection RMS {rms} (dot noise {r['sigma_px']:.2f} px, robust scale); tracker poses "
+          f"moved {r['tracker_correction_rms_deg']:.3f} deg / {r['tracker_correction_rms_mm']:.3f} mm RMS")
+    if r["T_left_right"] is not None:
+        print(f"  rig: baseline {np.linalg.norm(r['T_left_right'][:3, 3]) * 1e3:.2f} mm")
+    loo = r.get("leave_one_view_out")
+    if loo:
+        for name, e in loo["per_view"].items():
+            print(f"  held out {name}: {e['dots']} dots, mean {e['mean_mm']:.2f} mm, RMS {e['rms_mm']:.2f} mm, "
+                  f"max {e['max_mm']:.2f} mm, offset {e['offset_mm']:.2f} mm")
+        print(f"  leave-one-view-out: {loo['dots']} dots triangulated from tracker poses x hand-eye lie "
+              f"{loo['mean_mm']:.2f} mm (mean) / {loo['rms_mm']:.2f} mm (RMS) from the grid")
+    for w in r["warnings"]:
+        print(f"  warning: {w}")
+    print(f"lapreco calibrate handeye-tracked: {r['views']} views; T_scopemarker_camera written to {args.out}")
     return 0
 
 
