@@ -24,6 +24,7 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from lapreco_hil.errors import ProtocolError
 
@@ -34,10 +35,8 @@ PORT_OUT_OF_VOLUME = 0x40  # port status bit: outside the characterised volume (
 PORT_PARTIALLY_IN_VOLUME = 0x80
 REPLY_TRANSFORMS, REPLY_OUT_OF_VOLUME = 0x0001, 0x0800
 MAX_BX_BODY = 8192
-ERROR_CODES = {0x01: "invalid command", 0x02: "command too long", 0x03: "command too short",
-               0x04: "invalid CRC in the command", 0x05: "command timed out", 0x06: "bad COMM settings",
-               0x07: "incorrect number of parameters", 0x08: "invalid port handle", 0x0C: "not tracking",
-               0x2B: "invalid port handle"}
+ERROR_CODES = {0x01: "unknown command", 0x04: "bad CRC in the command", 0x0C: "not tracking",
+               0x2B: "bad port handle"}
 
 
 class ReplyCRCError(ProtocolError):
@@ -235,8 +234,6 @@ def pose_matrix(q: tuple[float, float, float, float], t_mm: tuple[float, float, 
     """4x4 T_tracker_marker in METRES from a scalar-first quaternion (normalised here: TX's 4-digit components
     are off unit length by up to ~1e-4) and a translation in millimetres. Raises ProtocolError on a zero or
     non-finite quaternion or translation."""
-    from scipy.spatial.transform import Rotation
-
     qv = np.asarray(q, np.float64)
     tv = np.asarray(t_mm, np.float64)
     norm = float(np.linalg.norm(qv))
