@@ -253,6 +253,8 @@ class NDITracker(TrackerDriver):
                                   f"port")
 
     def _connect(self) -> None:
+        import termios
+
         import serial
 
         self._ser = self._open_port()
@@ -288,7 +290,7 @@ class NDITracker(TrackerDriver):
             self.tools = tuple(self.tool_handles.values())
             self._command("TSTART:", INIT_TIMEOUT_S)
             self._last_frame.clear()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, termios.error) as exc:
             self._close_port()
             raise DeviceDisconnectedError(f"{self.device_name}: lost during bring-up ({exc})") from None
         except DeviceTimeoutError as exc:
@@ -354,6 +356,8 @@ class NDITracker(TrackerDriver):
         log.debug("%s", message)
 
     def _run(self) -> None:
+        import termios
+
         import serial
 
         period = 1.0 / self.rate_hz
@@ -373,7 +377,7 @@ class NDITracker(TrackerDriver):
                     self._note_lost("crc_errors", str(exc))
                 except ProtocolError as exc:
                     self._note_lost("errors", str(exc))
-                except (serial.SerialException, OSError) as exc:
+                except (serial.SerialException, OSError, termios.error) as exc:
                     self._count("disconnects")
                     self._last_fault = f"{self.device_name}: lost ({exc}); reconnecting"
                     log.warning("%s", self._last_fault)
