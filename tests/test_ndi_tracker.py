@@ -297,6 +297,22 @@ def test_unplugged_and_plugged_back_in_it_reconnects(wired):
     assert tracker.faults["disconnects"] >= 1
 
 
+def test_a_reconnect_keeps_the_passive_tools_the_device_still_holds(tmp_path):
+    rom = tmp_path / "8700339.rom"
+    rom.write_bytes(bytes(range(100)))
+    with NDITrackerEmulator(passive=[moving_pose(np.zeros(3))]) as emu:
+        with open_tracker(f"ndi://{emu.port}?rate=60&tools={rom}&{FAST}", DeviceContext()) as tracker:
+            tracker.read(timeout_s=1.0)
+            emu.disconnect()
+            wait_for(lambda: tracker.health.state is HealthState.DISCONNECTED)
+            emu.reconnect()  # the tracker kept its handles: no second PHRQ (it has no second tool to give)
+            wait_for(lambda: tracker.faults["reconnects"] == 1, timeout_s=5.0)
+            tracker.read()
+            samples = tracker.read(timeout_s=1.0)
+        assert emu.commands["PHRQ"] == 1 and emu.commands["PVWR"] == 2
+    assert samples and {s.tool for s in samples} == {"8700339"}
+
+
 @pytest.mark.parametrize("url, message", [
     ("ndi:///dev/x?colour=red", "unknown parameter 'colour' (known: baud, rate, tools, reply, "),
     ("ndi:///dev/x?reply=json", "reply must be one of bx, tx, got 'json'"),

@@ -13,6 +13,9 @@ in case it was tracking). Then ``INIT``, ``COMM`` to ``baud``, ``VER 4``, ``APIR
 enabled handles), ``TSTART``. A reader thread polls ``BX 0801`` (or ``TX 0801``) at ``rate``: transforms, and
 tools outside the characterised volume still reported with their out-of-volume flag. ``TSTOP`` on close.
 
+Each pose is stamped on the host clock (the run's ``clock_ns``) when its reply has arrived, minus nothing: the
+device's latency and the transfer are left in, for a time-offset fit to absorb.
+
 A reply with a bad CRC is a counted fault (``crc_errors``), never a pose; ``MISSING`` tools and out-of-volume
 poses are counted (``missing``, ``out_of_volume``) and mark the tracker degraded while they last; a repeated
 frame number (polled faster than the device measures) is not delivered twice.
@@ -274,7 +277,14 @@ class NDITracker(TrackerDriver):
             except NDIReplyError:
                 pass  # older firmware: no APIREV
             handles: dict[int, str] = {}
+            # a device taken on where it is (no RESET) still holds the handles this driver loaded before an unplug
+            earlier = {} if self.reset_seen else dict(self.tool_handles)
+            present = set(self._handles("00")) if earlier else set()
             for rom in self.config.tools:
+                kept = [h for h, name in earlier.items() if name == Path(rom).stem and h in present]
+                if kept:
+                    handles[kept[0]] = Path(rom).stem
+                    continue
                 handle = int(self._command("PHRQ:*********1****")[:2], 16)
                 self._upload_rom(handle, Path(rom).read_bytes())
                 handles[handle] = Path(rom).stem
@@ -309,7 +319,7 @@ class NDITracker(TrackerDriver):
             self._command(f"PVWR:{handle:02X}{address:04X}{chunk.hex().upper()}")
 
     def _handles(self, which: str) -> list[int]:
-        """PHSR's handles: 02 to initialise, 03 to enable, 04 enabled."""
+        """PHSR's handles: 00 all, 02 to initialise, 03 to enable, 04 enabled."""
         text = self._command(f"PHSR:{which}")
         try:
             n = int(text[:2], 16)
