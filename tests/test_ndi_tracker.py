@@ -248,6 +248,20 @@ def test_a_corrupted_reply_is_counted_and_no_pose_comes_from_it(reply, wired):
         assert dt < 9e-6 and dr < 3e-4, (s.tool, dt)
 
 
+def test_a_silent_tracker_goes_stale_with_counted_timeouts_and_recovers(wired):
+    emu, _ = wired
+    with open_tracker(f"ndi://{emu.port}?rate=40&{FAST}", DeviceContext()) as tracker:
+        tracker.read(timeout_s=1.0)
+        emu.faults.silent = True
+        wait_for(lambda: tracker.faults["timeouts"] >= 2)
+        health = tracker.health
+        emu.faults.silent = False
+        wait_for(lambda: tracker.health.state is HealthState.OK)
+        tracker.read()
+        assert tracker.read(timeout_s=1.0)
+    assert health.state is HealthState.STALE and "no BX reply within 0.3 s" in health.detail, health
+
+
 def test_the_reset_less_bring_up_finds_a_device_left_tracking_at_a_high_rate():
     # a previous session left the tracker at 921600 baud, tracking; the break cannot pass the pty, so no RESET
     pose = moving_pose(np.zeros(3))
