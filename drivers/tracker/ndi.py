@@ -94,9 +94,15 @@ class NDITracker(TrackerDriver):
         self.config = NDIConfig.from_url(url)
         if not url.name:
             raise url.error("give the serial port, e.g. ndi:///dev/ttyUSB0?tools=8700339.rom")
+        self._roms: list[tuple[str, bytes]] = []  # (tool name: the file's stem, contents), read once here
         for rom in self.config.tools:
-            if not Path(rom).is_file():
-                raise url.error(f"tool file '{rom}' does not exist (give .rom files that exist, or no tools=)")
+            try:
+                self._roms.append((Path(rom).stem, Path(rom).read_bytes()))
+            except OSError as exc:
+                reason = "does not exist" if not Path(rom).exists() else f"cannot be read ({exc.strerror})"
+                raise url.error(f"tool file '{rom}' {reason} (give .rom files that exist, or no tools=)") from None
+            if not self._roms[-1][1]:
+                raise url.error(f"tool file '{rom}' is empty (a tool definition .rom from NDI's tool software)")
         self.url = url
         self.port_path = url.name
         self.rate_hz = self.config.rate
@@ -149,7 +155,7 @@ class NDITracker(TrackerDriver):
         ser = self._ser
         ser.reset_input_buffer()  # a late reply to an earlier command must not pass for this one's
         ser.write(command_bytes(command))
-        return check_text_reply(self._read_line(timeout_s), f"{self.device_name}: {command}")
+        return check_text_reply(self._read_line(timeout_s), f"{self.device_name}: {command.split(':')[0]}")
 
     def _read_line(self, timeout_s: float | None, prefix: bytes = b"") -> bytes:
         ser = self._ser
@@ -280,14 +286,18 @@ class NDITracker(TrackerDriver):
             # a device taken on where it is (no RESET) still holds the handles this driver loaded before an unplug
             earlier = {} if self.reset_seen else dict(self.tool_handles)
             present = set(self._handles("00")) if earlier else set()
-            for rom in self.config.tools:
-                kept = [h for h, name in earlier.items() if name == Path(rom).stem and h in present]
+            for name, rom in self._roms:
+                kept = [h for h, known in earlier.items() if known == name and h in present]
                 if kept:
-                    handles[kept[0]] = Path(rom).stem
+                    handles[kept[0]] = name
                     continue
-                handle = int(self._command("PHRQ:*********1****")[:2], 16)
-                self._upload_rom(handle, Path(rom).read_bytes())
-                handles[handle] = Path(rom).stem
+                reply = self._command("PHRQ:*********1****")
+                try:
+                    handle = int(reply[:2], 16)
+                except ValueError:
+                    raise ProtocolError(f"{self.device_name}: PHRQ: malformed reply {reply[:40]!r}") from None
+                self._upload_rom(handle, rom)
+                handles[handle] = name
             for handle in self._handles("02"):
                 self._command(f"PINIT:{handle:02X}", INIT_TIMEOUT_S)
             for handle in self._handles("03"):
