@@ -83,7 +83,7 @@ def quaternion_scalar_first(R: np.ndarray) -> np.ndarray:
 class NDITrackerEmulator:
     def __init__(self, passive: list[PoseAt] = (), wired: list[PoseAt] = (), frame_rate_hz: float = 60.0,
                  clock_ns=time.monotonic_ns, link_dir: str | None = None, start_baud: int = 9600,
-                 start_tracking: bool = False, seed: int = 0) -> None:
+                 start_tracking: bool = False) -> None:
         self.passive = list(passive)
         self.frame_rate_hz = frame_rate_hz
         self.clock_ns = clock_ns
@@ -91,7 +91,6 @@ class NDITrackerEmulator:
         self.commands: collections.Counter[str] = collections.Counter()  # command name -> count received
         self.stats = {"bad_crc": 0, "wrong_baud_bytes": 0, "replies": 0}
         self.served: collections.deque[tuple[int, int, np.ndarray, bool]] = collections.deque(maxlen=100_000)
-        self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._t0 = clock_ns()
         self.baud = start_baud
