@@ -50,6 +50,8 @@ PORT_OCCUPIED, PORT_INITIALISED, PORT_ENABLED, PORT_OUT_OF_VOLUME = 0x01, 0x10, 
 COMM_RATES = {"0": 9600, "1": 14400, "2": 19200, "3": 38400, "4": 57600, "5": 115200, "6": 921600,
               "7": 1228739, "A": 230400}
 
+TERMIOS_RATES = {getattr(termios, n): int(n[1:]) for n in dir(termios) if n.startswith("B") and n[1:].isdigit()}
+
 
 @dataclass
 class NDIFaults:
@@ -165,11 +167,7 @@ class NDITrackerEmulator:
     # --- serving ----------------------------------------------------------------------------------------------
     def _line_baud(self) -> int | None:
         """The rate the driver set on the pty (None: one termios has no constant for)."""
-        speed = termios.tcgetattr(self._slave)[4]
-        for name in dir(termios):
-            if name.startswith("B") and name[1:].isdigit() and getattr(termios, name) == speed:
-                return int(name[1:])
-        return None
+        return TERMIOS_RATES.get(termios.tcgetattr(self._slave)[4])
 
     def _serve(self, master: int) -> None:
         buf = bytearray()
