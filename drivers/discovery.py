@@ -1,5 +1,5 @@
 """What devices this machine can see: every registered back-end looks for its own (serial ports, SocketCAN
-interfaces, V4L2 video devices, simulated scenes); see ``Device.discover``."""
+interfaces, V4L2 video devices, NDI trackers, simulated scenes); see ``Device.discover``."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ def discover() -> list[Discovery]:
     """What every registered back-end finds on this machine (``Discovery`` per back-end that looks), each
     back-end imported only now; a back-end that cannot be imported says so instead of raising."""
     real, simulated = [], []
-    for target in dict.fromkeys([*registry.ROBOT_BACKENDS.values(), *registry.GRABBER_BACKENDS.values()]):
+    for target in dict.fromkeys([*registry.ROBOT_BACKENDS.values(), *registry.GRABBER_BACKENDS.values(),
+                                   *registry.TRACKER_BACKENDS.values()]):
         try:
             cls = registry.import_backend(target)
             found, kind = cls.discover(), cls.clock_domain

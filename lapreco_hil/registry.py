@@ -41,6 +41,10 @@ GRABBER_BACKENDS = MappingProxyType({
     "v4l2": "lapreco_hil.drivers.grabber.v4l2:V4L2Grabber",
 })
 
+TRACKER_BACKENDS = MappingProxyType({
+    "ndi": "lapreco_hil.drivers.tracker.ndi:NDITracker",
+})
+
 HOST, SIMULATED, RECORDED = "host", "simulated", "recorded"
 
 
@@ -260,3 +264,8 @@ def open_grabber(url: str, context: DeviceContext):
     cls, parsed = _load(GRABBER_BACKENDS, "grabber", url)
     return _make(cls, parsed, context)
 
+
+def open_tracker(url: str, context: DeviceContext):
+    """An (unopened) TrackerDriver (optical / electromagnetic marker tracker) for the URL."""
+    cls, parsed = _load(TRACKER_BACKENDS, "tracker", url)
+    return _make(cls, parsed, context)

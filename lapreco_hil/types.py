@@ -31,6 +31,21 @@ class JointSample:
 
 
 @dataclass(frozen=True)
+class MarkerSample:
+    """One pose of a tracked tool (an optical or EM tracker's marker) in the tracker's frame: T_tracker_marker
+    4x4 in METRES (the device reports millimetres; drivers convert), the capture time (int ns, the run's clock),
+    a sequence number, the tool's name, its fit RMS error in mm as the device reports it, and whether the
+    device flagged it inside its characterised volume (False: still a pose, not a trusted one)."""
+
+    T_tracker_marker: np.ndarray
+    t_ns: int
+    seq: int
+    tool: str
+    rms_mm: float
+    in_volume: bool
+
+
+@dataclass(frozen=True)
 class JointLimits:
     lower: np.ndarray
     upper: np.ndarray
