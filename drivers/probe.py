@@ -1,6 +1,7 @@
-"""A look at a robot before recording with it: what each joint reads, raw (ticks, increments) and in SI with
-the joint map applied, against the joint limits. ``lapreco devices --probe URL`` prints it; a wrong joint map
-(a zero in the wrong place, a flipped sign) shows as readings beyond the limits, which the driver refuses."""
+"""A look at a device before recording with it. A robot: what each joint reads, raw (ticks, increments) and in
+SI with the joint map applied, against the joint limits; a wrong joint map (a zero in the wrong place, a flipped
+sign) shows as readings beyond the limits, which the driver refuses. A tracker: each tool's poses, how often it
+was missing or outside the measured volume. ``lapreco devices --probe URL`` prints either."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import time
 import numpy as np
 
 from lapreco_hil.drivers.robot.polling import PollingRobotDriver, RawReading
-from lapreco_hil.registry import DeviceContext, open_robot
-from lapreco_hil.types import JointSample
+from lapreco_hil.registry import DeviceContext, open_robot, open_tracker
+from lapreco_hil.types import JointSample, MarkerSample
 
 
 def probe_robot(url: str, context: DeviceContext, seconds: float) -> str:
@@ -75,6 +76,36 @@ def probe_robot(url: str, context: DeviceContext, seconds: float) -> str:
             lines.append(row + f"{f'[{limits.lower[i]:.4g}, {limits.upper[i]:.4g}]':>22}")
     if not samples and not raw:
         lines.append(f"no readings in {seconds:g} s")
+    lines.append(f"health: {health.state.value}{f' ({health.detail})' if health.detail else ''}")
+    counted = {k: v for k, v in faults.items() if v}
+    lines.append("faults: " + (", ".join(f"{k} {v}" for k, v in sorted(counted.items())) or "none"))
+    return "\n".join(lines)
+
+
+def probe_tracker(url: str, context: DeviceContext, seconds: float) -> str:
+    """Open the tracker at ``url``, read for ``seconds``, and describe each tool's poses (several lines of text)."""
+    tracker = open_tracker(url, context)
+    samples: list[MarkerSample] = []
+    with tracker:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            samples += tracker.read(timeout_s=min(0.1, left))
+        health, faults = tracker.health, dict(tracker.faults)
+    lines = [f"tracker {url}: {len(samples)} poses in {seconds:g} s"]
+    tools = sorted({s.tool for s in samples})
+    if tools:
+        lines.append(f"  {'tool':<16} {'poses':>6} {'rate Hz':>8} {'last position (mm)':>28} {'rms mm':>7} "
+                     f"{'outside volume':>14}")
+    for tool in tools:
+        mine = [s for s in samples if s.tool == tool]
+        span_s = (mine[-1].t_ns - mine[0].t_ns) * 1e-9
+        rate = (len(mine) - 1) / span_s if span_s > 0 else float("nan")
+        x, y, z = mine[-1].T_tracker_marker[:3, 3] * 1e3
+        outside = sum(not s.in_volume for s in mine)
+        lines.append(f"  {tool:<16} {len(mine):>6} {rate:>8.1f} {f'{x:.1f} {y:.1f} {z:.1f}':>28} "
+                     f"{mine[-1].rms_mm:>7.3f} {outside:>14}")
+    if not samples:
+        lines.append(f"no pose in {seconds:g} s: is a tool in view (or plugged in), and enabled?")
     lines.append(f"health: {health.state.value}{f' ({health.detail})' if health.detail else ''}")
     counted = {k: v for k, v in faults.items() if v}
     lines.append("faults: " + (", ".join(f"{k} {v}" for k, v in sorted(counted.items())) or "none"))

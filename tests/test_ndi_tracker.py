@@ -426,3 +426,25 @@ def test_random_bytes_in_a_bx_reply_give_a_typed_error_or_only_crc_valid_poses(d
     tracker._accept(reply, 1)  # poses from it (or counted errors), never an exception
     for s in tracker._new:
         assert np.all(np.isfinite(s.T_tracker_marker))
+
+
+def test_probe_of_a_tracker_shows_each_tool_its_rate_position_and_what_was_outside_the_volume():
+    from lapreco_hil.app.devices import probe
+
+    outside = moving_pose(np.zeros(3), in_volume=lambda t: False)
+    with NDITrackerEmulator(wired=[moving_pose(np.zeros(3)), outside]) as emu:
+        text = probe(f"ndi://{emu.port}?rate=60&{FAST}", 1.0, device="cpu")
+        served = [(handle, T) for handle, _frame, T, _in_volume in list(emu.served)]
+    lines = text.splitlines()
+    assert lines[0].startswith(f"tracker ndi://{emu.port}") and "poses in 1 s" in lines[0]
+    rows = {line.split()[0] + " " + line.split()[1]: line.split() for line in lines if line.startswith("  handle")}
+    assert set(rows) == {"handle 0A", "handle 0B"}
+    # poses and rate: about 60 Hz each; the last position shown is one the device served for that tool, in mm
+    for name, handle in (("handle 0A", 0x0A), ("handle 0B", 0x0B)):
+        n, rate = int(rows[name][2]), float(rows[name][3])
+        assert n > 20 and 30 < rate < 70
+        shown = np.array([float(v) for v in rows[name][4:7]])
+        gap_mm = min(np.abs(T[:3, 3] - shown).max() for h, T in served if h == handle)
+        assert gap_mm < 0.06  # printed to 0.1 mm
+    assert int(rows["handle 0A"][8]) == 0 and int(rows["handle 0B"][8]) == int(rows["handle 0B"][2])
+    assert "out_of_volume" in lines[-1]

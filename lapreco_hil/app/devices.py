@@ -1,8 +1,8 @@
-"""``lapreco devices``: what this machine sees, and a short probe of one robot."""
+"""``lapreco devices``: what this machine sees, and a short probe of one robot or tracker."""
 
 from __future__ import annotations
 
-from lapreco_hil.registry import DeviceContext
+from lapreco_hil.registry import TRACKER_BACKENDS, DeviceContext, parse_url
 from lapreco_hil.warp_device import resolve_device
 
 
@@ -14,7 +14,10 @@ def list_devices() -> str:
 
 
 def probe(url: str, seconds: float, device: str = "auto") -> str:
-    """Open the robot at ``url``, read it for ``seconds`` and say what it answered."""
-    from lapreco_hil.drivers.probe import probe_robot
+    """Open the robot (or tracker) at ``url``, read it for ``seconds`` and say what it answered."""
+    from lapreco_hil.drivers.probe import probe_robot, probe_tracker
 
-    return probe_robot(url, DeviceContext(device=resolve_device(device)), seconds)
+    context = DeviceContext(device=resolve_device(device))
+    if parse_url(url).scheme in TRACKER_BACKENDS:
+        return probe_tracker(url, context, seconds)
+    return probe_robot(url, context, seconds)
