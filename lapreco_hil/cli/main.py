@@ -48,7 +48,7 @@ def build_parser() -> ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     dev = sub.add_parser("devices", help="list the serial ports, CAN interfaces and video devices this machine sees")
-    dev.add_argument("--probe", metavar="URL", default=None, help="instead, open this robot URL and read it")
+    dev.add_argument("--probe", metavar="URL", default=None, help="instead, open this robot or tracker URL and read it")
     dev.add_argument("--seconds", type=positive, default=2.0, help="with --probe: read for this long (default 2)")
     dev.add_argument("--device", default="auto", help="with --probe: Warp device for simulated devices")
     dev.set_defaults(func=_cmd_devices)
