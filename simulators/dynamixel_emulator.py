@@ -18,16 +18,14 @@ from __future__ import annotations
 import logging
 import os
 import select
-import tempfile
 import threading
 import time
-import tty
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from lapreco_hil.drivers.robot.joint_map import JointMap
+from lapreco_hil.simulators.pty_emulator import PtyEmulator
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +61,7 @@ class DynamixelFaults:
     position_override: dict[int, int] = field(default_factory=dict)  # servo ID -> raw counts (e.g. off limits)
 
 
-class DynamixelChainEmulator:
+class DynamixelChainEmulator(PtyEmulator):
     def __init__(self, ids: list[int], joint_map: JointMap | None = None, joints_at=None, clock_ns=time.monotonic_ns,
                  link_dir: str | None = None, seed: int = 0, ticks_at=None) -> None:
         """``joint_map`` + ``joints_at(t_ns) -> SI joints``, or ``ticks_at(t_ns) -> raw Present Position ticks``."""
@@ -83,63 +81,8 @@ class DynamixelChainEmulator:
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._tick0 = clock_ns()
-        self._dir = Path(link_dir or tempfile.mkdtemp(prefix="lapreco-dxl-"))
-        self.port = str(self._dir / "ttyDXL0")
-        self._master = self._slave = -1
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__(link_dir, "lapreco-dxl-", "ttyDXL0", "dynamixel emulator")
         self._open_pty()
-
-    # --- the pseudo-terminal ------------------------------------------------------------------------------
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        tty.setraw(master)
-        self._master, self._slave = master, slave
-        tmp = self.port + ".tmp"
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-        os.symlink(os.ttyname(slave), tmp)
-        os.replace(tmp, self.port)  # the stable name, re-pointed on reconnect like udev's by-id links
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, args=(master,), name="dynamixel emulator", daemon=True)
-        self._thread.start()
-
-    def _close_pty(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = -1
-
-    def disconnect(self) -> None:
-        """The adapter is unplugged: the device node disappears and the driver's port fails."""
-        self._close_pty()
-        if os.path.lexists(self.port):
-            os.unlink(self.port)
-
-    def reconnect(self) -> None:
-        """Plugged back in: a new pty behind the same name."""
-        self._open_pty()
-
-    def close(self) -> None:
-        self.disconnect()
-        try:
-            self._dir.rmdir()
-        except OSError:
-            pass
-
-    def __enter__(self) -> "DynamixelChainEmulator":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # --- serving ----------------------------------------------------------------------------------------------
     def _serve(self, master: int) -> None:

@@ -29,19 +29,17 @@ import logging
 import os
 import select
 import struct
-import tempfile
 import termios
 import threading
 import time
-import tty
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.drivers.tracker.ndi_protocol import crc16_arc
+from lapreco_hil.simulators.pty_emulator import PtyEmulator
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +80,7 @@ def quaternion_scalar_first(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-class NDITrackerEmulator:
+class NDITrackerEmulator(PtyEmulator):
     def __init__(self, passive: list[PoseAt] = (), wired: list[PoseAt] = (), frame_rate_hz: float = 60.0,
                  clock_ns=time.monotonic_ns, link_dir: str | None = None, start_baud: int = 9600,
                  start_tracking: bool = False) -> None:
@@ -101,68 +99,13 @@ class NDITrackerEmulator:
         self.handles: dict[int, _Handle] = {}
         for i, pose_at in enumerate(wired):
             self.handles[0x0A + i] = _Handle(pose_at, True, initialised=start_tracking, enabled=start_tracking)
-        self._dir = Path(link_dir or tempfile.mkdtemp(prefix="lapreco-ndi-"))
-        self.port = str(self._dir / "ttyNDI0")
-        self._master = self._slave = -1
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__(link_dir, "lapreco-ndi-", "ttyNDI0", "ndi emulator")
         self._open_pty()
 
     @property
     def roms(self) -> dict[int, bytes]:
         """What PVWR uploaded, per passive handle."""
         return {h: bytes(t.rom) for h, t in self.handles.items() if not t.wired}
-
-    # --- the pseudo-terminal ------------------------------------------------------------------------------
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        tty.setraw(master)
-        self._master, self._slave = master, slave
-        tmp = self.port + ".tmp"
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
-        os.symlink(os.ttyname(slave), tmp)
-        os.replace(tmp, self.port)
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, args=(master,), name="ndi emulator", daemon=True)
-        self._thread.start()
-
-    def _close_pty(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = -1
-
-    def disconnect(self) -> None:
-        """The cable is pulled: the device node disappears and the driver's port fails."""
-        self._close_pty()
-        if os.path.lexists(self.port):
-            os.unlink(self.port)
-
-    def reconnect(self) -> None:
-        """Plugged back in: a new pty behind the same name (the device kept its state and its rate)."""
-        self._open_pty()
-
-    def close(self) -> None:
-        self.disconnect()
-        try:
-            self._dir.rmdir()
-        except OSError:
-            pass
-
-    def __enter__(self) -> "NDITrackerEmulator":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # --- serving ----------------------------------------------------------------------------------------------
     def _line_baud(self) -> int | None:
