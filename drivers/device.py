@@ -6,7 +6,7 @@ from __future__ import annotations
 import abc
 from collections import Counter
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Mapping, Protocol, TypeVar, runtime_checkable
 
 from lapreco_hil.drivers.health import Health
 
@@ -66,6 +66,32 @@ class Device(abc.ABC):
     def __exit__(self, *exc) -> None:
         self.close()
 
+
+
+Sample = TypeVar("Sample")
+
+
+class SampleStream(Device, Generic[Sample]):
+    """A device that delivers timestamped samples (a robot's joint readings, a tracker's tool poses). A back-end
+    implements ``_read``; ``read`` counts what it delivers (``readings_delivered``), so a caller can tell a device
+    that delivered nothing from one whose every reading was refused (see ``faults``)."""
+
+    _readings_delivered: int = 0
+
+    @abc.abstractmethod
+    def _read(self, timeout_s: float | None) -> list[Sample]:
+        """Samples captured since the last call, oldest first (blocks up to ``timeout_s`` for at least one)."""
+
+    def read(self, timeout_s: float | None = None) -> list[Sample]:
+        """Samples captured since the last call, oldest first (blocks up to ``timeout_s`` for at least one)."""
+        samples = self._read(timeout_s)
+        self._readings_delivered += len(samples)
+        return samples
+
+    @property
+    def readings_delivered(self) -> int:
+        """How many samples ``read`` has handed out since this object was made."""
+        return self._readings_delivered
 
 @runtime_checkable
 class FiniteSource(Protocol):

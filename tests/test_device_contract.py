@@ -269,6 +269,10 @@ def test_a_sim_robot_in_a_run_with_a_real_grabber_stamps_on_the_host_clock(link,
     timeline = robot._timeline
     assert len(samples) >= 10 and abs(samples[-1].t_ns - now) < 200_000_000  # host time, not simulated
     world = robot.world
-    for s in samples:  # the pose at a host stamp is the simulated arm's at the matching simulated time
-        q_motor = world.arm.motor_joints(world.seconds(timeline.to_sim(s.t_ns)))
-        assert np.all(np.abs(s.q - q_motor) < 2e-3), (s.q, q_motor)
+    # the pose at a host stamp is the simulated arm's at the matching simulated time; through the serial link the
+    # stamp and the device's reading lie the link's latency apart (a few ms on a pty, more on a loaded machine)
+    lag_s = np.linspace(-0.03, 0.03, 61) if link == "serial" else np.zeros(1)
+    for s in samples:
+        t_sim = world.seconds(timeline.to_sim(s.t_ns))
+        gap = min(np.abs(s.q - world.arm.motor_joints(t_sim - lag)).max() for lag in lag_s)
+        assert gap < 2e-3, (s.q, world.arm.motor_joints(t_sim))
