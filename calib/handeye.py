@@ -237,6 +237,19 @@ def _station_factor(K, station: Station, index: int, noise) -> gtsam.CustomFacto
     return gtsam.CustomFactor(noise, [T(index), X(0), B(0)], error)
 
 
+def _optimize(graph, values):
+    """Levenberg-Marquardt to a tight tolerance: the problems are small, the answer is the calibration."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(1e-10)
+    return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+
+
+def _rms_px(residuals: np.ndarray) -> float:
+    """The RMS image distance (px) of stacked (u, v) residuals."""
+    return float(np.sqrt(np.mean(residuals.reshape(-1, 2) ** 2) * 2))
+
+
 def refine(stations: list[Station], X0: np.ndarray, camera: CameraModel, sigma_px: float = 0.5,
            robot_rot_sigma: float = 0.003, robot_trans_sigma: float = 0.0005, cauchy_k: float = 2.0
            ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
@@ -255,16 +268,13 @@ def refine(stations: list[Station], X0: np.ndarray, camera: CameraModel, sigma_p
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
                                                gtsam.noiseModel.Isotropic.Sigma(2 * len(s.uv), sigma_px))
         graph.add(_station_factor(K, s, i, noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    params.setRelativeErrorTol(1e-10)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    result = _optimize(graph, values)
     X_ = result.atPose3(X(0)).matrix()
     B_ = result.atPose3(B(0)).matrix()
     per_station = {}
     for i, s in enumerate(stations):
         r = _reprojection(K, result.atPose3(T(i)), result.atPose3(X(0)), result.atPose3(B(0)), s.object_points, s.uv)
-        per_station[s.name] = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+        per_station[s.name] = _rms_px(r)
     return X_, B_, per_station
 
 
@@ -366,10 +376,7 @@ def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: Camer
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k),
                                                gtsam.noiseModel.Isotropic.Sigma(2 * len(s.uv), sigma_px))
         graph.add(_joint_station_factor(K, s, i, tip_pose, noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    params.setRelativeErrorTol(1e-10)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    result = _optimize(graph, values)
     X_ = result.atPose3(X(0)).matrix()
     B_ = result.atPose3(B(0)).matrix()
     per_station = {}
@@ -377,7 +384,7 @@ def refine_in_joint_space(stations: list[Station], X0: np.ndarray, camera: Camer
         side = np.zeros(len(sigma)) if s.side is None else s.side
         tip = _pose3(tip_pose(np.asarray(s.q, float) + result.atVector(Q(i)) + side * result.atVector(L(0))))
         r = _reprojection(K, tip, result.atPose3(X(0)), result.atPose3(B(0)), s.object_points, s.uv)
-        per_station[s.name] = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+        per_station[s.name] = _rms_px(r)
     return X_, B_, per_station
 
 
@@ -601,17 +608,14 @@ def refine_tracked(stations: dict[str, list[Station]], cameras: dict[str, Camera
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
                                                    gtsam.noiseModel.Isotropic.Sigma(2 * len(s.uv), sigma_px))
             graph.add(_tracked_factor(cameras[side].K, s, keys, noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    params.setRelativeErrorTol(1e-10)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    result = _optimize(graph, values)
     rig = result.atPose3(E(0)) if len(sides) == 2 else None
     per_view: dict[str, dict[str, float]] = {}
     for c, side in enumerate(sides):
         for s in stations[side]:
             poses = [result.atPose3(T(index[s.name])), result.atPose3(X(0)), result.atPose3(B(0))]
             r = _tracked_residual(cameras[side].K, poses + ([rig] if c == 1 else []), s.object_points, s.uv)
-            per_view.setdefault(side, {})[s.name] = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+            per_view.setdefault(side, {})[s.name] = _rms_px(r)
     tracker_moves = [pose_difference(tip[n], result.atPose3(T(i)).matrix()) for n, i in index.items()]
     return {"T_scopemarker_camera": result.atPose3(X(0)).matrix(),
             "T_boardmarker_pattern": result.atPose3(B(0)).matrix(),
