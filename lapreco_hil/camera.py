@@ -74,3 +74,36 @@ class CameraModel:
         r = int(round(self.fov_radius_px - margin_px))
         cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(r, 0), 255, -1)
         return mask
+
+
+@dataclass(frozen=True)
+class Rig:
+    """The cameras of a scope, rigidly mounted together: camera 0 is the reference (its pose is the rig's
+    pose, T_world_camera everywhere else); ``T_cam0_cam[k]`` maps points from camera k to camera 0 (identity
+    for k = 0). A stereo scope is a rig of two; its extrinsics are held by bundle adjustment within their
+    calibrated 1-sigma uncertainty (``sigma_rotation_rad``, ``sigma_translation_m``)."""
+
+    cameras: tuple[CameraModel, ...]
+    T_cam0_cam: tuple[np.ndarray, ...]
+    sigma_rotation_rad: float = 0.0005
+    sigma_translation_m: float = 0.0001
+
+    def __post_init__(self) -> None:
+        if len(self.cameras) != len(self.T_cam0_cam) or not self.cameras:
+            raise ValueError("a rig needs one T_cam0_cam per camera")
+        if not np.allclose(self.T_cam0_cam[0], np.eye(4)):
+            raise ValueError("T_cam0_cam of camera 0 must be the identity")
+
+    @staticmethod
+    def mono(camera: CameraModel) -> "Rig":
+        return Rig((camera,), (np.eye(4),))
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def is_stereo(self) -> bool:
+        return len(self.cameras) >= 2
+
+    def baseline_m(self, k: int = 1) -> float:
+        return float(np.linalg.norm(self.T_cam0_cam[k][:3, 3]))

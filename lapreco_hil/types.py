@@ -19,6 +19,16 @@ class Frame:
     # V4L2 buffer time, a real-time replay's or simulation's due time. The live latency starts here, so time
     # a frame spent queued in the grabber counts. (t_ns is the capture time on the session's clock.)
     host_ns: int | None = None
+    # the other cameras of a rig, captured at the same instant as ``image`` (camera 0): camera k's image is
+    # views[k - 1] (a stereo scope: one). Each keeps its own size; nothing is resampled.
+    views: tuple[np.ndarray, ...] = ()
+
+    @property
+    def n_cameras(self) -> int:
+        return 1 + len(self.views)
+
+    def image_of(self, camera: int) -> np.ndarray:
+        return self.image if camera == 0 else self.views[camera - 1]
 
 
 @dataclass(frozen=True)
@@ -84,6 +94,10 @@ class Observations:
     colors: np.ndarray  # (N, 3) uint8 RGB
     n_new: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
+    # which camera of the rig these pixels belong to (0: the reference camera)
+    camera: int = 0
+    # the front-end's funnel for this frame: counts per stage (see FUNNEL_STAGES), summed over a run
+    funnel: dict[str, int] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.track_ids.shape[0])
@@ -98,3 +112,24 @@ class RobotDescription:
     tip_frame: str
     T_tip_camera: np.ndarray
     T_world_base: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+# the tracking funnel, stage by stage: corners detected, tracks that LK followed, tracks left after the drift
+# check; then the mapper's: tracks that became triangulation candidates, points triangulated, final inliers
+FUNNEL_STAGES = ("corners", "after_lk", "after_drift_check", "candidates", "triangulated", "inliers")
+
+
+@dataclass(frozen=True)
+class FrameMotion:
+    """What the pose source says about the camera's motion into a new frame, for the front-end to start each
+    track where it should land rather than where it was (fast scope motion moves tissue 50-80 px a frame).
+
+    ``T_cur_prev`` maps points from the previous frame's camera to the new one's (undistorted pinhole cameras).
+    Tracks in ``track_ids`` have a known depth ``depth_m`` (z in the previous camera, metres: their landmark,
+    or the map's depth nearby); the others are searched along their epipolar line over ``depth_range_m``
+    (near, far), never started from the same pixel."""
+
+    T_cur_prev: np.ndarray
+    track_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    depth_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    depth_range_m: tuple[float, float] = (0.01, 0.3)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import abc
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.types import Frame
 from lapreco_hil.drivers.device import Device
 
@@ -23,6 +23,13 @@ class Grabber(Device):
     def camera(self) -> CameraModel | None:
         """The calibrated camera when the source knows it (simulator, session); None for a bare grabber."""
         return None
+
+    @property
+    def rig(self) -> Rig | None:
+        """All the cameras whose images a frame carries (``Frame.views``) with their extrinsics; a mono source
+        is a rig of one (its ``camera``). None when the camera is not known."""
+        camera = self.camera
+        return Rig.mono(camera) if camera is not None else None
 
     @property
     def ground_truth(self):

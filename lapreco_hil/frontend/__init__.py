@@ -8,14 +8,25 @@ from __future__ import annotations
 
 from typing import Protocol
 
+import numpy as np
+
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
-from lapreco_hil.types import Frame, Observations
+from lapreco_hil.types import Frame, FrameMotion, Observations
 
 
 class FrontEnd(Protocol):
-    def process(self, frame: Frame) -> Observations:
+    def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
+        """Track into ``frame`` (camera 0's image), each track started where ``motion`` predicts it (None: where
+        it was), and detect new corners; the observations carry this frame's funnel counts."""
+        ...
+
+    def match_view(self, image: np.ndarray, camera: CameraModel, T_other_this: np.ndarray,
+                   camera_index: int = 1) -> Observations:
+        """The current tracks found in another camera's simultaneous image (a stereo partner), searched along
+        their epipolar lines (``T_other_this`` maps this camera's points into the other's): undistorted pixels
+        of ``camera``'s pinhole K, the same track ids, ``camera=camera_index``."""
         ...
 
 
