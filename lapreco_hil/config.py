@@ -102,6 +102,9 @@ class MapperConfig:
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
     active_keyframes: int = ranged(400, ge=0)
+    # (near, far) metres: where tissue can be before the map knows (a track with no depth yet is searched along
+    # its epipolar line over this range)
+    scene_depth_m: tuple[float, float] = ranged((0.01, 0.3), gt=0.0)
     # a frame's pose is refined against at most this many of its landmarks, evenly spread (0 = all)
     resection_max_points: int = ranged(400, ge=0)
     retire_batch: int = ranged(100, ge=1)

@@ -33,14 +33,15 @@ def _percentiles_ms(values_s) -> dict:
 
 def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out_dir: Path, *, tracker: str,
                 device: str, truth: GroundTruth | None = None, progress: bool = True, total: int | None = None,
-                label: str = "frames", report_fields: dict | None = None) -> dict:
+                label: str = "frames", report_fields: dict | None = None, rig=None) -> dict:
     """Run ``grabber`` (opened) with pose source ``poses`` to its end, write the outputs into ``out_dir``
     (already prepared) and return the report."""
     from tqdm import tqdm
 
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, disable=not progress)
     with bar:
-        run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device)
+        run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device,
+                           rig=rig if rig is not None else grabber.rig)
     write_frame_timings(out_dir / "frame_timings.csv", run.map.frames, run.stage_s)
     metrics = {
         "frames": {"in": run.frames_in, "processed": run.frames_processed,

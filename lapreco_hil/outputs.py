@@ -119,7 +119,7 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
     write_points_ply(out_dir / "points.ply", points, colors)
     write_mesh_ply(out_dir / "mesh.ply", mesh)
     write_tum(out_dir / "trajectory.tum", np.array([f.t_ns for f in m.frames]), m.frame_poses)
-    cams = [(k.T_world_camera, k.refined) for k in m.keyframes]
+    cams = [(k.T_world_camera, k.refined) for k in m.keyframes if k.reference is None]
     picture = _render_picture(out_dir / "reconstruction.png", mesh, points, colors, cams, camera, config)
     output_s = time.perf_counter() - t1
 
@@ -144,6 +144,7 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "landmarks": m.stats["landmarks"],
         "inliers": m.stats["inliers"],
         "outliers": m.stats["outliers"],
+        "funnel": m.stats.get("funnel"),
         "observations": m.observations,
         "inlier_observations": m.inlier_observations,
         "mesh": {"points": int(mesh.n_points), "triangles": int(mesh.n_cells)},

@@ -11,11 +11,13 @@ import logging
 import time
 from dataclasses import dataclass
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import ReconstructionError
 from lapreco_hil.frontend import make_frontend
+from lapreco_hil.geometry import inv_T
 from lapreco_hil.mapping.mapper import Mapper, MapperSchedule, MapResult
+from lapreco_hil.mapping.prediction import MotionPredictor
 
 log = logging.getLogger(__name__)
 
@@ -32,11 +34,28 @@ class RunResult:
     without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
 
 
+def stereo_partners(frontend, frame, rig: Rig | None):
+    """A callable giving the frame's tracks as the rig's other cameras saw them (None for a mono frame): the
+    mapper calls it for keyframes only."""
+    if rig is None or not rig.is_stereo or not frame.views:
+        return None
+
+    def partners() -> list:
+        return [frontend.match_view(frame.image_of(k), rig.cameras[k], inv_T(rig.T_cam0_cam[k]), k)
+                for k in range(1, min(len(rig), frame.n_cameras))]
+
+    return partners
+
+
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
-                 progress=None, device: str | None = None) -> RunResult:
-    """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources)."""
+                 progress=None, device: str | None = None, rig: Rig | None = None,
+                 predict: bool = True) -> RunResult:
+    """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources).
+    ``rig``: the scope's cameras when it has more than one (``camera`` is its camera 0); ``predict``: start
+    each track where the pose source's motion says it lands (pose-predicted tracking)."""
     frontend = make_frontend(tracker, camera, config.tracker, device)
-    mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline())
+    mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline(), rig=rig)
+    predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict else None
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0
@@ -54,9 +73,10 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
             continue
         prior = poses.prior_at(frame.t_ns)
         t2 = time.perf_counter()
-        obs = frontend.process(frame)
+        motion = predictor.motion(prior.T_world_camera) if predictor is not None else None
+        obs = frontend.process(frame, motion)
         t3 = time.perf_counter()
-        mapper.add(obs, prior)
+        mapper.add(obs, prior, partners=stereo_partners(frontend, frame, mapper.rig))
         t4 = time.perf_counter()
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)

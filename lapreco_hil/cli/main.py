@@ -338,6 +338,14 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def print_funnel(command: str, report: dict) -> None:
+    """The tracking funnel, stage by stage, naming the stage that lost most of the points."""
+    if report.get("funnel"):
+        from lapreco_hil.funnel import Funnel
+
+        print(f"lapreco {command}: funnel: {Funnel(dict(report['funnel'])).summary()}")
+
+
 def _print_run(command: str, report: dict) -> None:
     acc = report.get("accuracy", {})
     pts = acc.get("points_to_surface", {})
@@ -348,6 +356,7 @@ def _print_run(command: str, report: dict) -> None:
                  f"{_fmt(acc.get('camera_raw_fk', {}).get('position_rms_mm'))} mm -> refined "
                  f"{_fmt(acc.get('camera_refined', {}).get('position_rms_mm'))} mm")
     print(line + f"; outputs in {report['out']}")
+    print_funnel(command, report)
 
 
 def _fmt(v) -> str:

@@ -17,6 +17,9 @@ def cmd_run(args) -> int:
     print(f"lapreco run: {f['in']} frames in, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
           f"p99 {lat.get('p99', float('nan')):.0f} ms; {report['inliers']} inlier points; outputs in {report['out']}")
+    from lapreco_hil.cli.main import print_funnel
+
+    print_funnel("run", report)
     return 0
 
 

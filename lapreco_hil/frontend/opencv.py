@@ -56,7 +56,7 @@ class OpenCVFrontEnd:
         inb = (pts[:, 0] >= 0) & (pts[:, 0] < self.camera.width) & (pts[:, 1] >= 0) & (pts[:, 1] < self.camera.height)
         return inb & (self.mask[yi, xi] > 0)
 
-    def process(self, frame: Frame) -> Observations:
+    def process(self, frame: Frame, motion=None) -> Observations:
         cfg = self.config
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)

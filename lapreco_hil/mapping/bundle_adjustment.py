@@ -31,6 +31,14 @@ class BAProblem:
     obs_pose: np.ndarray  # (O,) index into pose_ids
     obs_point: np.ndarray  # (O,) index into point_ids
     obs_uv: np.ndarray  # (O, 2) undistorted pixels
+    # (P,) bool: the pose has its own prior (a stereo partner has none: it is tied to its rig's reference
+    # camera by ``ties`` instead); None: every pose has one
+    has_prior: np.ndarray | None = None
+    # rig ties: (T, 2) pose indices (reference camera i, partner j), T_i_j (T, 4, 4) and its covariance
+    # (T, 6, 6), held within the calibrated uncertainty of the rig's extrinsics
+    tie_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    tie_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    tie_covs: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
 
 
 @dataclass
@@ -77,9 +85,12 @@ def _build(problem: BAProblem, noise: gtsam.noiseModel.Base):
         if p.fixed[i]:
             # a very tight prior rather than NonlinearEqualityPose3, which made LM much slower (docs/benchmarks.md)
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.poses[i]), _FIXED_NOISE))
-        else:
+        elif p.has_prior is None or p.has_prior[i]:
             graph.add(gtsam.PriorFactorPose3(key, pose3(p.prior_poses[i]),
                                              gtsam.noiseModel.Gaussian.Covariance(p.prior_covs[i])))
+    for (i, j), T_ij, cov in zip(p.tie_pairs.tolist(), p.tie_T, p.tie_covs):
+        graph.add(gtsam.BetweenFactorPose3(X(int(p.pose_ids[i])), X(int(p.pose_ids[j])), pose3(T_ij),
+                                           gtsam.noiseModel.Gaussian.Covariance(cov)))
     n_priors = graph.size()
     pose_keys = [X(int(pid)) for pid in p.pose_ids]
     point_keys = [L(int(lid)) for lid in p.point_ids]
@@ -169,8 +180,24 @@ def reprojection_residuals(K, poses, points, obs_pose, obs_point, obs_uv) -> np.
     return np.where(np.isfinite(e), e, np.inf)
 
 
+def redundancy(problem: BAProblem) -> float:
+    """The share of the residual components that the fit leaves free: (2 O - 3 N) / 2 O. Each landmark's three
+    coordinates absorb part of its own observations' noise, so the residuals of a fit are smaller than the
+    pixel noise by sqrt(redundancy): a point seen twice keeps a quarter of it. The scale is divided by it."""
+    n_components = 2 * len(problem.obs_pose)
+    free = n_components - 3 * len(problem.point_ids)
+    return max(free, 1) / max(n_components, 1)
+
+
+def pixel_sigma(problem: BAProblem, r: np.ndarray, schedule: RobustSchedule) -> float:
+    """The pixel-noise scale of residual vectors ``r`` (MAD, corrected for the fit's redundancy), kept between
+    the schedule's floor and ceiling."""
+    sigma = mad_sigma(r) / np.sqrt(redundancy(problem))
+    return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px))
+
+
 def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
-    """The seed's schedule: each stage re-estimates the MAD scale from the current residuals, whitens the
+    """The seed's schedule: each stage re-estimates the (redundancy-corrected) MAD scale from the current residuals, whitens the
     reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey). Observations beyond
     the last stage's threshold are the outliers (``stats['inlier_obs']``)."""
     t0 = time.perf_counter()
@@ -181,7 +208,7 @@ def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
     sigma = 1.0
     for n, stage in enumerate(schedule.stages):
         r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
-        sigma = min(mad_sigma(r, schedule.sigma_floor_px), schedule.sigma_ceiling_px)
+        sigma = pixel_sigma(p, r, schedule)
         noise = robust_pixel_noise(sigma, None if stage.loss == "none" else stage.loss, stage.k)
         graph, pose_keys, point_keys, _ = _build(p, noise)
         values = _values(p, poses, points)
@@ -198,7 +225,7 @@ def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
     r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
     residuals = np.linalg.norm(r, axis=1)
     residuals[~np.isfinite(residuals)] = np.inf
-    sigma_final = min(mad_sigma(r, schedule.sigma_floor_px), schedule.sigma_ceiling_px)
+    sigma_final = pixel_sigma(p, r, schedule)
     threshold = schedule.inlier_threshold_px(sigma_final)
     return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
                     {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,

@@ -23,6 +23,12 @@ class Keyframe:
     uv: np.ndarray
     colors: np.ndarray
     refined: bool = False
+    # a stereo partner's view: the id of its rig's reference keyframe (camera 0, taken at the same instant),
+    # the rig camera it is, and T_cam0_cam (its pixels are re-expressed with camera 0's K: one pinhole model
+    # for every view in triangulation and BA). None for a reference (camera 0) keyframe.
+    reference: int | None = None
+    camera: int = 0
+    T_cam0_cam: np.ndarray | None = None
 
 
 @dataclass(slots=True)

@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lapreco_hil.camera import Rig
 from lapreco_hil.config import MapperConfig
+from lapreco_hil.funnel import Funnel
 from lapreco_hil.geometry import inv_T, rigid
 from lapreco_hil.types import Observations, PosePrior
 from lapreco_hil.mapping import bundle_adjustment as ba
@@ -26,7 +28,7 @@ from lapreco_hil.mapping.archive import LandmarkArchive
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
-from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
 from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -114,9 +116,13 @@ def local_schedule(config: MapperConfig) -> RobustSchedule:
 
 
 class Mapper:
-    def __init__(self, K: np.ndarray, config: MapperConfig, schedule: MapperSchedule | None = None) -> None:
+    def __init__(self, K: np.ndarray, config: MapperConfig, schedule: MapperSchedule | None = None,
+                 rig: Rig | None = None) -> None:
         self.K = np.asarray(K, float)
         self.config = config
+        # a stereo scope: each keyframe's partner views join as keyframes of their own, tied to it
+        self.rig = rig if rig is not None and rig.is_stereo else None
+        self.funnel = Funnel()
         self.schedule = schedule if schedule is not None else MapperSchedule.offline()
         self.keyframes: list[Keyframe] = []
         self.frames: list[FrameRecord] = []
@@ -148,12 +154,16 @@ class Mapper:
         return self._local_ba_wanted
 
     # --- per frame -----------------------------------------------------------------------------------------
-    def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True, resect: bool = True) -> bool:
+    def add(self, obs: Observations, prior: PosePrior, local_ba: bool = True, resect: bool = True,
+            partners=None) -> bool:
         """Take one frame's observations and pose prior; returns True if it became a keyframe.
         A live run that is behind passes ``local_ba=False`` (this keyframe's local BA is deferred to the next)
         and ``resect=False`` (a non-keyframe takes its prior with the last keyframe's correction instead of a
-        pose refinement; ``finish`` refines every frame anyway)."""
-        is_kf = is_keyframe(self.keyframes[-1] if self.keyframes else None, obs, prior, self.K, self.config)
+        pose refinement; ``finish`` refines every frame anyway). With a stereo rig, ``partners`` gives the
+        frame's tracks as the other cameras saw them at the same instant (Observations with ``camera`` set, in
+        that camera's pinhole pixels), or a callable returning them, called only for a keyframe."""
+        self.funnel.add(obs.funnel)
+        is_kf = is_keyframe(self._last_reference(), obs, prior, self.K, self.config)
         if is_kf and len(self._untriangulated) >= 2:
             self._structure_step(None)  # no idle moment for two keyframes: the oldest one's points now
         record = FrameRecord(obs.frame_seq, obs.t_ns, prior.T_world_camera, prior.cov,
@@ -184,6 +194,9 @@ class Mapper:
             retirement.seen(tid, kf.id, seen[-1][0] if seen else None)
             seen.append((kf.id, uv))
         record.T_refined = kf.T_world_camera
+        if self.rig is not None and partners is not None:
+            for view in (partners() if callable(partners) else partners):
+                self._add_partner(kf, view)
         self._untriangulated.append(PendingStructure(kf.id, local_ba))
         if not self.schedule.defer_triangulation:
             self._triangulate_pending()
@@ -191,6 +204,47 @@ class Mapper:
         if cutoff is not None:
             self._retire(cutoff)
         return True
+
+    def _last_reference(self) -> Keyframe | None:
+        """The newest camera-0 keyframe (keyframes are chosen by the rig's reference camera)."""
+        for kf in reversed(self.keyframes):
+            if kf.reference is None:
+                return kf
+        return None
+
+    def _add_partner(self, kf: Keyframe, view: Observations) -> None:
+        """A stereo partner's view of keyframe ``kf``: a keyframe of its own at the rig's extrinsic from
+        ``kf``, its pixels re-expressed with camera 0's K, its tracks joined to the same track ids (their
+        points get depth from this very keyframe: the baseline is the parallax)."""
+        T_cam0_cam = self.rig.T_cam0_cam[view.camera]
+        K_cam = self.rig.cameras[view.camera].K
+        uv = view.uv
+        if len(uv):
+            rays = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_cam).T
+            uv = (rays @ self.K.T)[:, :2] / (rays @ self.K.T)[:, 2:3]
+        prior = PosePrior(rigid(kf.prior.T_world_camera @ T_cam0_cam), kf.prior.cov, kf.t_ns)
+        partner = Keyframe(len(self.keyframes), kf.frame_seq, kf.t_ns, prior,
+                           rigid(kf.T_world_camera @ T_cam0_cam), view.track_ids.copy(), uv,
+                           view.colors.copy(), reference=kf.id, camera=view.camera, T_cam0_cam=T_cam0_cam)
+        self.keyframes.append(partner)
+        for tid, p in zip(partner.track_ids.tolist(), partner.uv):
+            seen = self.tracks.get(tid)
+            if seen is None or self.retirement.is_retired(tid):
+                continue  # only the reference camera's tracks (the partner view adds their other eye)
+            self.retirement.seen(tid, partner.id, seen[-1][0])
+            seen.append((partner.id, p))
+
+    def track_depths(self, track_ids: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The depth (z in the camera at ``T_world_camera``) of each of ``track_ids`` that has a landmark:
+        (ids, depths) for pose-predicted tracking."""
+        T_cw = inv_T(T_world_camera)
+        ids = [t for t in np.asarray(track_ids).tolist() if t in self.landmarks]
+        if not ids:
+            return np.zeros(0, np.int64), np.zeros(0)
+        X = np.array([self.landmarks[t] for t in ids])
+        z = X @ T_cw[2, :3] + T_cw[2, 3]
+        keep = z > 0
+        return np.array(ids, np.int64)[keep], z[keep]
 
     def _triangulate_pending(self) -> None:
         while self._untriangulated:
@@ -319,9 +373,9 @@ class Mapper:
     def _predict_pose(self, prior: PosePrior) -> np.ndarray:
         """Start a new keyframe from its prior corrected like the previous keyframe (robot errors drift
         slowly, so the last correction is the best guess)."""
-        if not self.keyframes:
+        last = self._last_reference()
+        if last is None:
             return prior.T_world_camera.copy()
-        last = self.keyframes[-1]
         correction = last.T_world_camera @ inv_T(last.prior.T_world_camera)
         return rigid(correction @ prior.T_world_camera)
 
@@ -357,6 +411,7 @@ class Mapper:
         kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
         res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
+        self.funnel.add({"candidates": len(cands), "triangulated": int(res.valid.sum())})
         for n in np.flatnonzero(res.valid):
             t = cands[n]
             self.landmarks[t] = res.points[n]
@@ -417,19 +472,36 @@ class Mapper:
         index = np.zeros(len(self.keyframes), np.int64)
         index[kf_ids] = np.arange(len(kf_ids))
         chosen = [self.keyframes[k] for k in kf_ids.tolist()]
+        has_prior, tie_pairs, tie_T, tie_covs = self._rig_ties(chosen, index, kf_ids)
         return ba.BAProblem(
             K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
             fixed=kf_ids < first_active, prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
             prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
             points=np.array([landmarks[t] for t in point_ids.tolist()]),
-            obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs)
+            obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs, has_prior=has_prior,
+            tie_pairs=tie_pairs, tie_T=tie_T, tie_covs=tie_covs)
+
+    def _rig_ties(self, chosen: list[Keyframe], index: np.ndarray, kf_ids: np.ndarray):
+        """Which of a problem's poses have their own prior, and the ties of stereo partners to their reference
+        keyframes (the rig's extrinsic within its calibrated uncertainty). A partner whose reference is not
+        in the problem keeps a prior of its own (the reference's, carried through the extrinsic)."""
+        in_problem = set(kf_ids.tolist())
+        has_prior = np.array([k.reference is None or k.reference not in in_problem for k in chosen], bool)
+        ties = [(int(index[k.reference]), i) for i, k in enumerate(chosen)
+                if k.reference is not None and k.reference in in_problem]
+        if not ties:
+            return has_prior, np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6))
+        rig = self.rig
+        cov = np.diag([rig.sigma_rotation_rad**2] * 3 + [rig.sigma_translation_m**2] * 3)
+        tie_T = np.array([chosen[j].T_cam0_cam for _, j in ties])
+        return has_prior, np.array(ties, np.int64), tie_T, np.repeat(cov[None], len(ties), 0)
 
     def _local_scope(self) -> ProblemScope:
         """The newest ``window_keyframes`` keyframes and their landmarks, with every observation of those
         landmarks in the ``2 x window`` keyframes before the window. Those co-visible older keyframes join as
         free variables with their robot priors (a soft edge): holding them fixed would carry their errors
         into every later window; only retired ones stay fixed."""
-        n, w = len(self.keyframes), self.config.window_keyframes
+        n, w = len(self.keyframes), self.config.window_keyframes * (len(self.rig) if self.rig else 1)
         return ProblemScope(points_from=max(self.first_active, n - w), views_from=max(0, n - 3 * w))
 
     def _apply(self, problem: ba.BAProblem, result: ba.BAResult) -> None:
@@ -490,7 +562,7 @@ class Mapper:
             else:
                 r = ba.residual_vectors(problem.K, problem.poses, problem.points, problem.obs_pose,
                                         problem.obs_point, problem.obs_uv)
-                threshold = self.final_schedule.inlier_threshold_px(mad_sigma(r, cfg.sigma_floor_px))
+                threshold = self.final_schedule.inlier_threshold_px(ba.pixel_sigma(problem, r, self.final_schedule))
                 good = np.linalg.norm(r, axis=1) <= threshold
             ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids))
             in_problem = dict(zip(problem.point_ids.tolist(), ok))
@@ -503,8 +575,11 @@ class Mapper:
         colors, inlier = np.concatenate([acols, colors]), np.concatenate([ain, inlier])
         n_obs += self.archive.observations
         n_inlier_obs += self.archive.inlier_observations
+        self.funnel.counts["inliers"] = int(inlier.sum())
         stats = {
-            "keyframes": len(self.keyframes),
+            "keyframes": sum(1 for k in self.keyframes if k.reference is None),
+            "partner_views": sum(1 for k in self.keyframes if k.reference is not None),
+            "funnel": self.funnel.as_dict(),
             "retired_keyframes": self.first_active,
             "tracks": self.tracks_seen,
             "landmarks": int(len(ids)),

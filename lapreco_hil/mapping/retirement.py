@@ -83,7 +83,8 @@ class Retirement:
         """Times and corrections of the robot prior (T_refined @ T_prior^-1) of the keyframes an unsettled
         frame can lie between (frames before the first active keyframe are settled already), up to keyframe
         ``upto`` (all by default)."""
-        kfs = keyframes[max(0, self.first_active - 1):None if upto is None else upto + 1]
+        kfs = [k for k in keyframes[max(0, self.first_active - 1):None if upto is None else upto + 1]
+               if k.reference is None]  # a stereo partner moves with its reference (same time, same correction)
         return np.array([k.t_ns for k in kfs]), [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in kfs]
 
 

@@ -334,7 +334,7 @@ class WarpFrontEnd:
         for k in range(4):  # both buffer parities, eager then captured
             self.process(Frame(black, k, k))
 
-    def process(self, frame: Frame) -> Observations:
+    def process(self, frame: Frame, motion=None) -> Observations:
         with device_lock(self.device):
             return self._process(frame)
 
