@@ -58,7 +58,7 @@ class ExplodingFrontend:
     def __init__(self, after: int):
         self.n, self.after = 0, after
 
-    def process(self, frame):
+    def process(self, frame, motion=None):
         self.n += 1
         raise RuntimeError(f"front-end exploded on frame {frame.seq}")
 
@@ -90,7 +90,7 @@ def test_degrade_skips_failing_frames_and_counts_them(fast_session, tmp_path):
     class Flaky:
         n = 0
 
-        def process(self, frame):
+        def process(self, frame, motion=None):
             self.n += 1
             if self.n % 3 == 0:
                 raise RuntimeError("glitch")

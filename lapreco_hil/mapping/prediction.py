@@ -16,6 +16,46 @@ from lapreco_hil.types import FrameMotion
 NEAR_MARGIN, FAR_MARGIN = 0.5, 2.0
 
 
+def frame_motion(T_world_prev: np.ndarray, T_world_cur: np.ndarray, track_ids: np.ndarray, depth_m: np.ndarray,
+                 scene_depth_m: tuple[float, float]) -> FrameMotion:
+    """The motion from a frame at ``T_world_prev`` into one at ``T_world_cur`` (pose priors: the robot's relative
+    motion is good even where its absolute pose is not), with the depths known for ``track_ids``."""
+    return FrameMotion(inv_T(T_world_cur) @ T_world_prev, np.asarray(track_ids, np.int64), np.asarray(depth_m, float),
+                       depth_range(depth_m, scene_depth_m))
+
+
+def depth_range(depth: np.ndarray, scene_depth_m: tuple[float, float]) -> tuple[float, float]:
+    """The map's depth range (5th to 95th percentile, widened) once it has points, else the scene's."""
+    if len(depth) < 10:
+        return (float(scene_depth_m[0]), float(scene_depth_m[1]))
+    near, far = np.percentile(depth, [5, 95])
+    return float(max(near * NEAR_MARGIN, 1e-3)), float(far * FAR_MARGIN)
+
+
+class TrackPoints:
+    """The world points of tracks, as the mapper last sent them (live: the mapper runs in another process), for
+    the tracking stage's predictions. Bounded: only the tracks of the newest message are kept."""
+
+    def __init__(self) -> None:
+        self._ids = np.zeros(0, np.int64)
+        self._points = np.zeros((0, 3))
+
+    def update(self, ids: np.ndarray, points: np.ndarray) -> None:
+        order = np.argsort(ids)
+        self._ids, self._points = np.asarray(ids, np.int64)[order], np.asarray(points, float)[order]  # one swap
+
+    def depths(self, track_ids: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, z in the camera at ``T_world_camera``) of those of ``track_ids`` with a point in front of it."""
+        ids, points = self._ids, self._points
+        if not len(ids) or not len(track_ids):
+            return np.zeros(0, np.int64), np.zeros(0)
+        at = np.clip(np.searchsorted(ids, track_ids), 0, len(ids) - 1)
+        known = ids[at] == track_ids
+        T_cw = inv_T(T_world_camera)
+        z = points[at[known]] @ T_cw[2, :3] + T_cw[2, 3]
+        return np.asarray(track_ids)[known][z > 0], z[z > 0]
+
+
 class MotionPredictor:
     """FrameMotion for each new frame from the previous frame's pose and track depths (``mapper``: the
     mapper's ``frames`` and ``track_depths``) and the new frame's pose prior."""
@@ -31,14 +71,6 @@ class MotionPredictor:
         if not frames:
             return None
         prev = frames[-1]
-        T_cur_prev = inv_T(T_world_camera) @ prev.T_prior  # the robot's relative motion (its errors drift slowly)
         T_prev = prev.T_refined if prev.T_refined is not None else prev.T_prior
         ids, depth = self.mapper.track_depths(prev.track_ids, T_prev)
-        return FrameMotion(T_cur_prev, ids, depth, self.depth_range(depth))
-
-    def depth_range(self, depth: np.ndarray) -> tuple[float, float]:
-        """The map's depth range (5th to 95th percentile, widened) once it has points, else the scene's."""
-        if len(depth) < 10:
-            return self.scene_depth_m
-        near, far = np.percentile(depth, [5, 95])
-        return float(max(near * NEAR_MARGIN, 1e-3)), float(far * FAR_MARGIN)
+        return frame_motion(prev.T_prior, T_world_camera, ids, depth, self.scene_depth_m)

@@ -29,6 +29,7 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import ConfigError, LaprecoError, ReconstructionError
 from lapreco_hil.frontend import make_frontend
+from lapreco_hil.mapping.prediction import TrackPoints
 from lapreco_hil.runtime.coverage import ViewCoverage
 from lapreco_hil.runtime.health import HealthMonitor
 from lapreco_hil.runtime.messages import MapperFailed
@@ -70,8 +71,10 @@ class LiveRun:
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,
                                record_queue=rt.record_queue, recording=recording)
         coverage = ViewCoverage(camera, partial_below=rt.partial_view_below) if camera is not None else None
+        self.track_points = TrackPoints()  # the mapper's newest track points, for pose-predicted tracking
         self.tracking = Tracking(poses, self.links, self.metrics, self.latest, coverage, self.processes.submit,
-                                 device=device, degrade=on_stage_error == "degrade", recording=recording)
+                                 device=device, degrade=on_stage_error == "degrade", recording=recording,
+                                 track_points=self.track_points, scene_depth_m=config.mapper.scene_depth_m)
         self.tracking.frontend = frontend
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)
         self.health.add("grabber", lambda: grabber.health)
@@ -122,7 +125,7 @@ class LiveRun:
         sup.start_processes()
         stages = {"capture": self.capture.run, "tracking": self.tracking.run,
                   "results": Results(self.processes.done_q, self.processes.slot_freed, self.metrics, self.latest,
-                                     self.progress).run,
+                                     self.progress, track_points=self.track_points).run,
                   "surface": Surface(self.processes.snapshot, self.camera, self.config, self.out_dir, self.links,
                                      self.metrics, self.latest).run,
                   "health": lambda: self.health.run_until(self.links.finished)}

@@ -27,7 +27,7 @@ import traceback
 import numpy as np
 
 from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
-                                          MapperFailed, MapperReady, SlotFree)
+                                          MapperFailed, MapperReady, SlotFree, TrackPoints)
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +214,12 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 captured = keyframe_captured.pop(kf_id, None)
                 if captured is not None:
                     clock.add("keyframe_points_after_capture", (now - captured) * 1e-9)
+            if mapper.structured and mapper.frames:
+                ids = mapper.frames[-1].track_ids
+                if ids is not None:
+                    known = [t for t in ids.tolist() if t in mapper.landmarks]
+                    done_q.put(TrackPoints(np.array(known, np.int64),
+                                           np.array([mapper.landmarks[t] for t in known]).reshape(-1, 3)))
             mapper.structured.clear()
 
         def housekeeping() -> None:

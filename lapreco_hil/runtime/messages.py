@@ -2,7 +2,7 @@
 message, so each side matches on a type and reads named fields instead of positions in a tuple.
 
 main process -> mapper: ``SlotReady`` (a frame's observations wait in that shared-memory slot), ``EndOfFrames``
-mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``; on its pipe ``FinalMap`` or ``MapperFailed``
+mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``TrackPoints``; on its pipe ``FinalMap`` or ``MapperFailed``
 mapper -> BA worker: ``BAJob``, ``EndOfJobs``; BA worker -> mapper: ``BAResult``"""
 
 from __future__ import annotations
@@ -43,6 +43,15 @@ class FramePose:
     is_keyframe: bool
     local_ba_skipped: int
     resection_skipped: int
+
+
+@dataclass(frozen=True)
+class TrackPoints:
+    """The world points of the newest frame's tracks that have one, sent when new points were made: the
+    tracking stage predicts where each track lands in the next frame from them."""
+
+    track_ids: np.ndarray
+    points: np.ndarray
 
 
 @dataclass(frozen=True)

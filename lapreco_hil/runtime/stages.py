@@ -22,7 +22,8 @@ import numpy as np
 
 from lapreco_hil.errors import DeviceTimeoutError
 from lapreco_hil.runtime.health import Condition
-from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree
+from lapreco_hil.mapping.prediction import TrackPoints, frame_motion
+from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree, TrackPoints as TrackPointsMsg
 from lapreco_hil.runtime.metrics import LiveMetrics
 
 log = logging.getLogger(__name__)
@@ -123,12 +124,16 @@ class Tracking:
     prior, arrival_ns) -> bool`` hands a frame to the mapper."""
 
     def __init__(self, poses, links: StageLinks, metrics: LiveMetrics, latest: LatestView, coverage, submit, *,
-                 device: str, degrade: bool, recording: bool) -> None:
+                 device: str, degrade: bool, recording: bool, track_points: TrackPoints | None = None,
+                 scene_depth_m: tuple[float, float] = (0.01, 0.3)) -> None:
         self.poses, self.links, self.metrics, self.latest = poses, links, metrics, latest
         self.coverage, self.submit = coverage, submit
         self.device, self.degrade, self.recording = device, degrade, recording
+        # pose-predicted tracking: the mapper's track points (None: tracks start where they were)
+        self.track_points, self.scene_depth_m = track_points, scene_depth_m
         self.frontend = None
         self.tracks_lost = False
+        self._prev = None  # the last tracked frame's (prior T_world_camera, track ids)
 
     def run(self) -> None:
         if self.device and str(self.device).startswith("cuda"):
@@ -162,7 +167,7 @@ class Tracking:
             prior = self.poses.prior_at(frame.t_ns)
             t1 = time.perf_counter()
             try:
-                obs = self.frontend.process(frame)
+                obs = self.frontend.process(frame, self._motion(prior.T_world_camera))
             except Exception as exc:
                 if self.degrade:
                     m.add("tracking_errors")
@@ -170,6 +175,7 @@ class Tracking:
                     continue
                 raise
             t2 = time.perf_counter()
+            self._prev = (prior.T_world_camera, obs.track_ids)
             self.tracks_lost = len(obs) == 0
             self.coverage.update(obs.uv)
             m.time_stage("pose", t1 - t0)
@@ -179,6 +185,15 @@ class Tracking:
                 m.add("mapper_skipped")  # the mapper is a whole ring behind: this frame is not mapped
                 continue
             m.add("frames_tracked")
+
+    def _motion(self, T_world_camera):
+        """Where the tracks should land in this frame (FrameMotion), from the previous frame's pose and the
+        mapper's points; None for the first frame or without prediction."""
+        if self.track_points is None or self._prev is None:
+            return None
+        T_prev, ids = self._prev
+        known, depth = self.track_points.depths(ids, T_prev)
+        return frame_motion(T_prev, T_world_camera, known, depth, self.scene_depth_m)
 
     def front_end_health(self) -> Condition:
         """Tracks lost (smoke, blood, a lens against tissue), or spanning only part of the view."""
@@ -191,9 +206,11 @@ class Tracking:
 
 
 class Results:
-    def __init__(self, messages, slot_freed, metrics: LiveMetrics, latest: LatestView, progress=None) -> None:
+    def __init__(self, messages, slot_freed, metrics: LiveMetrics, latest: LatestView, progress=None,
+                 track_points: TrackPoints | None = None) -> None:
         self.messages, self.slot_freed = messages, slot_freed  # a queue of the mapper's messages
         self.metrics, self.latest, self.progress = metrics, latest, progress
+        self.track_points = track_points
 
     def run(self) -> None:
         m = self.metrics
@@ -213,6 +230,9 @@ class Results:
                 self.latest.refined(msg.seq, msg.T_world_camera)
                 if self.progress is not None:
                     self.progress.update(1)
+            elif isinstance(msg, TrackPointsMsg):
+                if self.track_points is not None:
+                    self.track_points.update(msg.track_ids, msg.points)
             elif not isinstance(msg, MapperReady):  # (MapperReady: when the start stopped waiting for it)
                 log.error("unexpected message from the mapper: %r", msg)
 
