@@ -145,6 +145,8 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "inliers": m.stats["inliers"],
         "outliers": m.stats["outliers"],
         "funnel": m.stats.get("funnel"),
+        # reprojection error of the inlier points in every view that saw them (px, after the final BA)
+        "reprojection": m.stats.get("reprojection"),
         "observations": m.observations,
         "inlier_observations": m.inlier_observations,
         "mesh": {"points": int(mesh.n_points), "triangles": int(mesh.n_cells)},

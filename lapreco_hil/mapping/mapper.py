@@ -553,18 +553,25 @@ class Mapper:
         inlier = np.zeros(len(ids), bool)
         n_obs = n_inlier_obs = 0
         threshold = float("nan")
+        reprojection = {}
         if problem is not None:
             if cfg.final_global_ba:
                 result = ba.solve_robust(problem, self.final_schedule)
                 self._apply(problem, result)
                 good = result.stats["inlier_obs"]
                 threshold = result.stats["inlier_threshold_px"]
+                e = result.residuals_px
             else:
                 r = ba.residual_vectors(problem.K, problem.poses, problem.points, problem.obs_pose,
                                         problem.obs_point, problem.obs_uv)
                 threshold = self.final_schedule.inlier_threshold_px(ba.pixel_sigma(problem, r, self.final_schedule))
-                good = np.linalg.norm(r, axis=1) <= threshold
+                e = np.linalg.norm(r, axis=1)
+                good = e <= threshold
             ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids))
+            kept = e[ok[problem.obs_point] & np.isfinite(e)]  # every view of the inlier points
+            if len(kept):
+                reprojection = {"median_px": float(np.median(kept)), "p95_px": float(np.percentile(kept, 95)),
+                                "observations": int(len(kept))}
             in_problem = dict(zip(problem.point_ids.tolist(), ok))
             inlier = np.array([in_problem.get(t, False) for t in ids.tolist()], bool)
             n_obs, n_inlier_obs = int(len(good)), int(good.sum())
@@ -591,6 +598,7 @@ class Mapper:
             "final_ba_s": time.perf_counter() - t0,
             "pixel_sigma_mad": self.last_sigma_px,
             "inlier_threshold_px": float(threshold) if problem is not None else None,
+            "reprojection": reprojection,
         }
         return MapResult(self.keyframes, self.frames, self._frame_poses(), ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
