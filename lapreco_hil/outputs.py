@@ -147,6 +147,8 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "funnel": m.stats.get("funnel"),
         # reprojection error of the inlier points in every view that saw them (px, after the final BA)
         "reprojection": m.stats.get("reprojection"),
+        # how far the image moved between frames (median track displacement per frame, px)
+        "image_motion_px": m.stats.get("image_motion_px"),
         "observations": m.observations,
         "inlier_observations": m.inlier_observations,
         "mesh": {"points": int(mesh.n_points), "triangles": int(mesh.n_cells)},

@@ -123,6 +123,7 @@ class Mapper:
         # a stereo scope: each keyframe's partner views join as keyframes of their own, tied to it
         self.rig = rig if rig is not None and rig.is_stereo else None
         self.funnel = Funnel()
+        self.image_motion_px: list[float] = []  # per frame: the median track displacement from the frame before
         self.schedule = schedule if schedule is not None else MapperSchedule.offline()
         self.keyframes: list[Keyframe] = []
         self.frames: list[FrameRecord] = []
@@ -163,6 +164,7 @@ class Mapper:
         frame's tracks as the other cameras saw them at the same instant (Observations with ``camera`` set, in
         that camera's pinhole pixels), or a callable returning them, called only for a keyframe."""
         self.funnel.add(obs.funnel)
+        self._measure_motion(obs)
         is_kf = is_keyframe(self._last_reference(), obs, prior, self.K, self.config)
         if is_kf and len(self._untriangulated) >= 2:
             self._structure_step(None)  # no idle moment for two keyframes: the oldest one's points now
@@ -204,6 +206,16 @@ class Mapper:
         if cutoff is not None:
             self._retire(cutoff)
         return True
+
+    def _measure_motion(self, obs: Observations) -> None:
+        """How far the image moved since the previous frame: the median displacement of the tracks both saw
+        (what a fast scope motion does to tracking: report.json's ``image_motion_px``)."""
+        prev = self.frames[-1] if self.frames else None
+        if prev is None or prev.track_ids is None or not len(obs):
+            return
+        _, ia, ib = np.intersect1d(prev.track_ids, obs.track_ids, assume_unique=True, return_indices=True)
+        if len(ia):
+            self.image_motion_px.append(float(np.median(np.linalg.norm(obs.uv[ib] - prev.uv[ia], axis=1))))
 
     def _last_reference(self) -> Keyframe | None:
         """The newest camera-0 keyframe (keyframes are chosen by the rig's reference camera)."""
@@ -599,6 +611,9 @@ class Mapper:
             "pixel_sigma_mad": self.last_sigma_px,
             "inlier_threshold_px": float(threshold) if problem is not None else None,
             "reprojection": reprojection,
+            "image_motion_px": ({"median": float(np.median(self.image_motion_px)),
+                                 "p95": float(np.percentile(self.image_motion_px, 95))} if self.image_motion_px
+                                else {}),
         }
         return MapResult(self.keyframes, self.frames, self._frame_poses(), ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
