@@ -233,6 +233,11 @@ class RobotPoseSource:
         """One console warning per cause of frames without a pose (call at the end of a run)."""
         self.without_pose.warn(self.pose_at.max_gap_ns)
 
+    @property
+    def time_offset_ns(self) -> int:
+        """The offset applied: joint time = frame time + this."""
+        return self.pose_at.offset_ns
+
     def prior_at(self, t_ns: int) -> PosePrior:
         """The prior at frame time ``t_ns``; NoPoseError when ``has_pose(t_ns)`` is False."""
         return self.pose_at.prior_at(t_ns)
@@ -278,6 +283,11 @@ class GivenPoseSource:
 
     def warn_without_pose(self) -> None:
         self.without_pose.warn(self.max_gap_ns)
+
+    @property
+    def time_offset_ns(self) -> int:
+        """The offset applied: pose time = frame time + this."""
+        return self.offset_ns
 
     def prior_at(self, t_ns: int) -> PosePrior:
         """The prior at frame time ``t_ns``; NoPoseError when ``has_pose(t_ns)`` is False."""

@@ -254,3 +254,47 @@ def test_hand_eye_refinement_options_are_checked(tmp_path, capsys):
     assert "add --refine joints" in capsys.readouterr().err
     assert main(["calibrate", "time-offset", str(tmp_path), "--joint-wander-s", "-1"]) == 2
     assert "--joint-wander-s" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("true_offset_ms", (0.0, 80.0, -200.0))
+def test_a_live_run_watches_the_time_offset_from_its_own_tracks(true_offset_ms):
+    """The tracking stage's watch: tracks measured at video times against the motion the pose source predicts
+    for them; a pose source whose clock runs ``true_offset_ms`` off the one applied (0) is caught."""
+    from lapreco_hil.geometry import inv_T, make_T
+    from lapreco_hil.mapping.prediction import frame_motion
+    from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
+    from lapreco_hil.types import Observations
+
+    rng = np.random.default_rng(2)
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    pts = np.column_stack([rng.uniform(-0.03, 0.03, 300), rng.uniform(-0.02, 0.02, 300), rng.uniform(0.07, 0.09, 300)])
+
+    def true_pose(t_s):  # a scan that speeds up and slows down (a shift shows in the changes of motion)
+        return make_T(np.eye(3), np.array([0.006 * np.sin(2 * np.pi * 0.35 * t_s),
+                                           0.004 * np.sin(2 * np.pi * 0.22 * t_s + 0.7), 0.0]))
+
+    def observe(t_s, seq):
+        T = inv_T(true_pose(t_s))
+        Xc = pts @ T[:3, :3].T + T[:3, 3]
+        uv = (Xc @ K.T)[:, :2] / Xc[:, 2:3] + rng.normal(0, 0.2, (len(pts), 2))
+        return Observations(seq, int(t_s * 1e9), np.arange(len(pts), dtype=np.int64), uv,
+                            np.zeros((len(pts), 3), np.uint8))
+
+    now = [0.0]
+    watch = TimeOffsetWatch(K, applied_offset_ns=0, clock=lambda: now[0])
+    offset_s = true_offset_ms * 1e-3
+    prior = lambda t_s: true_pose(t_s - offset_s)  # noqa: E731  (poses stamped on a clock offset_s ahead)
+    prev, T_prev = observe(0.0, 0), prior(0.0)
+    for k, t in enumerate(np.arange(0.04, 12.0, 0.04), start=1):
+        obs, T_cur = observe(t, k), prior(t)
+        Tc = inv_T(T_prev)
+        depth = pts @ Tc[2, :3] + Tc[2, 3]
+        watch.observe(prev, obs, frame_motion(T_prev, T_cur, prev.track_ids, depth, (0.01, 0.3)))
+        prev, T_prev = obs, T_cur
+    now[0] = 100.0
+    reading = watch.reading()
+    assert reading.offset_ns is not None
+    assert abs(reading.offset_ns * 1e-6 - true_offset_ms) < 10.0  # a quarter of the 40 ms frame period
+    health = watch.health()
+    assert health.ok == (abs(true_offset_ms) <= 20.0)
+    assert watch.summary()["drifted"] == (abs(true_offset_ms) > 20.0)

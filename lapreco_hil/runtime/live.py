@@ -35,6 +35,7 @@ from lapreco_hil.runtime.health import HealthMonitor
 from lapreco_hil.runtime.messages import MapperFailed
 from lapreco_hil.runtime.metrics import LiveMetrics
 from lapreco_hil.runtime.processes import MapperProcesses
+from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
 from lapreco_hil.runtime.stages import Capture, LatestView, Record, Results, StageLinks, Surface, Tracking
 from lapreco_hil.runtime.supervisor import Supervisor
 
@@ -71,10 +72,13 @@ class LiveRun:
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,
                                record_queue=rt.record_queue, recording=recording)
         coverage = ViewCoverage(camera, partial_below=rt.partial_view_below) if camera is not None else None
+        self.offset_watch = (TimeOffsetWatch(camera.K, poses.time_offset_ns)
+                             if camera is not None and hasattr(poses, "time_offset_ns") else None)
         self.track_points = TrackPoints()  # the mapper's newest track points, for pose-predicted tracking
         self.tracking = Tracking(poses, self.links, self.metrics, self.latest, coverage, self.processes.submit,
                                  device=device, degrade=on_stage_error == "degrade", recording=recording,
-                                 track_points=self.track_points, scene_depth_m=config.mapper.scene_depth_m)
+                                 track_points=self.track_points, scene_depth_m=config.mapper.scene_depth_m,
+                                 offset_watch=self.offset_watch)
         self.tracking.frontend = frontend
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)
         self.health.add("grabber", lambda: grabber.health)
@@ -85,6 +89,8 @@ class LiveRun:
             self.health.add("robot readings", lambda: poses.health)  # what the pose source refuses
         self.health.add("front-end", self.tracking.front_end_health)
         self.health.add("frame times", self.capture.frame_times_health)
+        if self.offset_watch is not None:
+            self.health.add("time offset", self.offset_watch.health)
 
     # --- read while the run goes (any thread) ------------------------------------------------------------------
     @property
@@ -188,4 +194,5 @@ class LiveRun:
         events = self.health.event_dicts()
         return self.metrics.report(wall_s=sup.wall_s, result=result, poses=self.poses, errors=sup.errors,
                                    disabled=self.links.disabled, interrupted=sup.interrupted, health_events=events,
-                                   health_event_count=self.health.event_count, health_counts=self.health.counts)
+                                   health_event_count=self.health.event_count, health_counts=self.health.counts,
+                                   time_offset=self.offset_watch.summary() if self.offset_watch is not None else None)

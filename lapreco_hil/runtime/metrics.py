@@ -42,7 +42,8 @@ class LiveMetrics:
         self.last_done_ns = done_ns
 
     def report(self, *, wall_s: float, result, poses, errors: dict, disabled: set, interrupted: bool,
-               health_events: list[dict], health_event_count: int, health_counts: dict) -> dict:
+               health_events: list[dict], health_event_count: int, health_counts: dict,
+               time_offset: dict | None = None) -> dict:
         """report.json's live fields."""
         c = dict(self.counts)
         lat_ms = np.array(self.latency_ns, float) * 1e-6
@@ -71,6 +72,8 @@ class LiveMetrics:
             if processed > 1 else 0.0,
             "latency_ms": {**pct, "note": "capture (the grabber's host-clock stamp, else frame in hand) -> refined pose available"},
             "stage_ms": stage_ms,
+            # the video-kinematics offset in use and what the run's own motion says it is (runtime/time_offset_watch)
+            "time_offset": time_offset,
             "queue_depth": {k: {"mean": float(np.mean(v)), "max": int(np.max(v))} for k, v in self.depth.items() if v},
             "live": {"local_ba_skipped": c.get("local_ba_skipped", 0),
                      "resection_skipped": c.get("resection_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),

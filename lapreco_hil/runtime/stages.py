@@ -125,15 +125,16 @@ class Tracking:
 
     def __init__(self, poses, links: StageLinks, metrics: LiveMetrics, latest: LatestView, coverage, submit, *,
                  device: str, degrade: bool, recording: bool, track_points: TrackPoints | None = None,
-                 scene_depth_m: tuple[float, float] = (0.01, 0.3)) -> None:
+                 scene_depth_m: tuple[float, float] = (0.01, 0.3), offset_watch=None) -> None:
         self.poses, self.links, self.metrics, self.latest = poses, links, metrics, latest
         self.coverage, self.submit = coverage, submit
         self.device, self.degrade, self.recording = device, degrade, recording
         # pose-predicted tracking: the mapper's track points (None: tracks start where they were)
         self.track_points, self.scene_depth_m = track_points, scene_depth_m
+        self.offset_watch = offset_watch  # the video-kinematics offset, watched (runtime/time_offset_watch.py)
         self.frontend = None
         self.tracks_lost = False
-        self._prev = None  # the last tracked frame's (prior T_world_camera, track ids)
+        self._prev = None  # the last tracked frame's (prior T_world_camera, observations)
 
     def run(self) -> None:
         if self.device and str(self.device).startswith("cuda"):
@@ -166,8 +167,9 @@ class Tracking:
                 continue
             prior = self.poses.prior_at(frame.t_ns)
             t1 = time.perf_counter()
+            motion = self._motion(prior.T_world_camera)
             try:
-                obs = self.frontend.process(frame, self._motion(prior.T_world_camera))
+                obs = self.frontend.process(frame, motion)
             except Exception as exc:
                 if self.degrade:
                     m.add("tracking_errors")
@@ -175,7 +177,9 @@ class Tracking:
                     continue
                 raise
             t2 = time.perf_counter()
-            self._prev = (prior.T_world_camera, obs.track_ids)
+            if self.offset_watch is not None and motion is not None:
+                self.offset_watch.observe(self._prev[1], obs, motion)
+            self._prev = (prior.T_world_camera, obs)
             self.tracks_lost = len(obs) == 0
             self.coverage.update(obs.uv)
             m.time_stage("pose", t1 - t0)
@@ -191,8 +195,8 @@ class Tracking:
         mapper's points; None for the first frame or without prediction."""
         if self.track_points is None or self._prev is None:
             return None
-        T_prev, ids = self._prev
-        known, depth = self.track_points.depths(ids, T_prev)
+        T_prev, prev = self._prev
+        known, depth = self.track_points.depths(prev.track_ids, T_prev)
         return frame_motion(T_prev, T_world_camera, known, depth, self.scene_depth_m)
 
     def front_end_health(self) -> Condition:
