@@ -19,7 +19,7 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, Observations
 from lapreco_hil.warp_device import device_lock
-from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.image import HIGHPASS_GAIN, LOG_OFFSET, shading_sigma_px
 from lapreco_hil.frontend.warp import corners, drift_check, lk, pyramid, tracks
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ class WarpFrontEnd:
         fov = cv2.remap(camera.fov_mask(margin_px=config.fov_margin_px), map_x, map_y, cv2.INTER_NEAREST,
                         borderValue=0)
         # the shading estimate (the log image blurred with sigma) is taken at half resolution, with sigma / 2
-        half_sigma = max(config.shading_sigma_px, 1.0) / 2.0
+        half_sigma = max(shading_sigma_px(config), 1.0) / 2.0
         radius = int(np.ceil(3 * half_sigma))
         g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / half_sigma) ** 2)
         self._half = ((W + 1) // 2, (H + 1) // 2)
@@ -138,10 +138,10 @@ class WarpFrontEnd:
         self._runs = [0, 0]
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
-        self._lit_min = float(np.log1p(config.min_brightness))
+        self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
         # the OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it
         # tracks: HIGHPASS_GAIN per unit of the log high-pass, or 255 for plain intensity in [0, 1]
-        self._lk_error_units = HIGHPASS_GAIN if config.shading_sigma_px > 0 else 255.0
+        self._lk_error_units = HIGHPASS_GAIN if shading_sigma_px(config) > 0 else 255.0
 
     @property
     def n_tracks(self) -> int:
@@ -184,7 +184,7 @@ class WarpFrontEnd:
         pyramid.blur_1d(self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp, dev)
         pyramid.blur_1d(self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit, dev)
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        pyramid.level0(self._log, self._half_lit, hw, hh, self.config.shading_sigma_px > 0, pyr, self._lit, dev)
+        pyramid.level0(self._log, self._half_lit, hw, hh, shading_sigma_px(self.config) > 0, pyr, self._lit, dev)
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
             pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
