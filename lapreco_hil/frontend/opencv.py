@@ -111,7 +111,7 @@ class OpenCVFrontEnd:
         self._last = (frame.seq, frame.t_ns)
         funnel = {"corners": n_new, "after_lk": n_lk, "after_drift_check": len(self._pts) - n_new}
         return Observations(frame.seq, frame.t_ns, self._ids.copy(), self._pts.astype(np.float64),
-                            _colors_at(color, self._pts), n_new,
+                            colors_at(color, self._pts), n_new,
                             {"undistort": t1 - t0, "track": t2 - t1, "drift_check": t_drift - t2,
                              "detect": t3 - t_drift}, funnel=funnel)
 
@@ -129,7 +129,7 @@ class OpenCVFrontEnd:
         uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float,
                                           self._pts.astype(np.float64), self.camera.K, camera.K,
                                           np.asarray(T_other_this, np.float64), self._depth_range, self._lk)
-        return Observations(seq, t_ns, self._ids[found].copy(), uv[found], _colors_at(color, uv[found]),
+        return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
 
     def _filter(self, keep: np.ndarray, positions: np.ndarray) -> None:
@@ -138,7 +138,7 @@ class OpenCVFrontEnd:
             self._ref, self._A = self._ref[keep], self._A[keep]
 
 
-def _colors_at(color: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def colors_at(color: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """RGB of an undistorted BGR image at the nearest pixel of each position."""
     h, w = color.shape[:2]
     xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
