@@ -177,3 +177,29 @@ def test_match_view_finds_the_left_tracks_in_the_right_image(warp_cpu, tracker):
     # colours come from the right image, at the matched pixels
     xi, yi = np.round(other.uv).astype(int).T
     np.testing.assert_array_equal(other.colors, right[yi, xi, ::-1])
+
+
+def test_warp_sweep_kernels_agree_with_the_numpy_sweep(warp_cpu):
+    """The Warp front-end's epipolar sweep (no depths given) starts each track where the numpy sweep of the
+    same tracker images puts it (both on pyramid level 1; the numpy sweep samples the line more finely)."""
+    left, _, K, _, _ = hamlyn()
+    left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
+    K = np.diag([2.0, 2.0, 1.0]) @ K
+    T, H = plane_motion(K, 0.08, 50.0, np.radians(3.0))
+    gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+    moved = warp_frame(gray, H)
+    fe = make_frontend("warp", camera(K, left), TrackerConfig(redetect_below=0.001), DEVICE)
+    obs0 = fe.process(Frame(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR), 0, 0))
+    prev_level0 = fe._pyr[fe._cur].numpy()[: 720 * 576].reshape(576, 720).copy()
+    fe.process(Frame(cv2.cvtColor(moved, cv2.COLOR_GRAY2BGR), 1, 1), FrameMotion(T, depth_range_m=(0.03, 0.3)))
+    cur_level0 = fe._pyr[fe._cur].numpy()[: 720 * 576].reshape(576, 720)
+    ours = fe._guess.numpy()[: len(obs0)]
+    ref = epipolar.sweep(prev_level0, cur_level0, obs0.uv, K, K, T, (0.03, 0.3))
+    truth = cv2.perspectiveTransform(obs0.uv.reshape(-1, 1, 2), H).reshape(-1, 2)
+    both = ref.found & np.isfinite(ours).all(axis=1)
+    assert both.sum() > 0.5 * len(obs0), (both.sum(), len(obs0))
+    # the same peak: within a couple of full-resolution pixels (a level-1 sample spacing); both near the truth
+    assert np.median(np.linalg.norm(ours[both] - ref.uv[both], axis=1)) < 2.0
+    assert np.median(np.linalg.norm(ours[both] - truth[both], axis=1)) < 2.0
+    # and they agree on which tracks have a clear match
+    assert np.mean(np.isfinite(ours).all(axis=1) == ref.found) > 0.8
