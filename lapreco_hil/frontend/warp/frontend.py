@@ -4,6 +4,10 @@ device, so on CUDA a frame is the grey conversion on the host, then one graph re
 stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
 tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours
 are read on the host from the frame in hand, at each track's position in the distorted frame.
+
+A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
+its kernels launch one by one (the pose is a kernel argument). ``match_view`` brings this frame's tracker image
+back once and matches on the host (``frontend.epipolar``).
 """
 
 from __future__ import annotations
@@ -353,8 +357,7 @@ class WarpFrontEnd:
     def _copy_results(self, out: tuple) -> None:
         cur = self._cur
         tracks.pack_results(self._pts[cur], self._ids[cur], self._count[cur], self._n_new, self._n_tracked,
-                            self._remap, *self._packed,
-                            self.device)
+                            self._remap, *self._packed, self.device)
         for dst, src in zip(out, self._packed):
             wp.copy(dst, src)
 
@@ -441,8 +444,7 @@ class WarpFrontEnd:
                             "lk": m["lk"] - m["prepare"], "drift_check": m["track"] - m["lk"],
                             "detect": t_end - m["track"]})
         self._last = (frame.seq, frame.t_ns, ids, uv)
-        funnel = {"corners": n_new, "after_lk": n_tracked,
-                  "after_drift_check": kept}
+        funnel = {"corners": n_new, "after_lk": n_tracked, "after_drift_check": kept}
         return Observations(frame.seq, frame.t_ns, ids, uv, colors, n_new, timings, funnel=funnel)
 
     def match_view(self, image: np.ndarray, camera: CameraModel, T_other_this: np.ndarray,
