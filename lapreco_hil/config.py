@@ -59,8 +59,9 @@ class TrackerConfig:
     fov_margin_px: float = ranged(12.0, ge=0.0)
     # re-detect when fewer than this share of max_features is alive
     redetect_below: float = ranged(0.9, ge=0.0, le=1.0)
-    # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did)
-    shading_sigma_px: float = ranged(6.0, ge=0.0)
+    # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did): the
+    # Gaussian's sigma in pixels of the coarsest pyramid level (x 2^pyramid_levels at full resolution)
+    shading_sigma_px: float = ranged(3.0, ge=0.0)
     # no new features where the local mean grey level is below this (0-255)
     min_brightness: float = ranged(20.0, ge=0.0, le=255.0)
     # Zinsser drift check: affine + gain/bias registration of each track's first patch

@@ -76,11 +76,11 @@ def test_undistortion_matches_cv2_remap(wp, rng):
 def test_shading_removal_matches_the_opencv_baseline(wp, rng):
     """Level 0 with shading removal is the OpenCV baseline's log high-pass (log - GaussianBlur(log, sigma)),
     though the Warp front-end takes the blur at half resolution."""
-    from lapreco_hil.frontend.opencv import remove_shading
-    from lapreco_hil.frontend.warp.pyramid import HIGHPASS_RANGE
+    from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET, remove_shading, shading_sigma_px
 
     cam = CameraModel(320, 240, 300.0, 300.0, 159.5, 119.5)
-    fe = frontend(cam, shading_sigma_px=6.0)
+    fe = frontend(cam, shading_sigma_px=0.75)  # on the coarsest of 3 levels: 6 px at full resolution
+    assert shading_sigma_px(fe.config) == 6.0
     yy, xx = np.mgrid[0:240, 0:320]
     shading = 0.35 + 0.65 * np.exp(-((xx - 150) ** 2 + (yy - 110) ** 2) / (2 * 90.0**2))  # a scope-tip light
     gray = (texture_u8(rng) * shading).astype(np.uint8)
@@ -94,7 +94,7 @@ def test_shading_removal_matches_the_opencv_baseline(wp, rng):
     assert 0.7 < ours[20:70, 250:300].std() / ours[90:140, 130:180].std() < 1.4
     # the full-resolution shading level is the blurred log image
     np.testing.assert_allclose(fe._lit.numpy()[20:-20, 20:-20],
-                               cv2.GaussianBlur(np.log1p(gray.astype(np.float32)), (0, 0), 6.0)[20:-20, 20:-20],
+                               cv2.GaussianBlur(np.log(gray.astype(np.float32) + LOG_OFFSET), (0, 0), 6.0)[20:-20, 20:-20],
                                atol=0.03)
 
 

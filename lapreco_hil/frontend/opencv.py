@@ -1,5 +1,6 @@
-"""The OpenCV front-end: undistort (remap), pyramidal Lucas-Kanade, Shi-Tomasi with a minimum distance to
-live tracks and the scope's field-of-view mask. It is the seed paper's CPU baseline."""
+"""The OpenCV front-end: undistort (remap), pyramidal Lucas-Kanade (started where the camera motion predicts,
+when it is known), Shi-Tomasi with a minimum distance to live tracks and the scope's field-of-view mask. It is
+the seed paper's CPU baseline."""
 
 from __future__ import annotations
 
@@ -10,24 +11,11 @@ import numpy as np
 
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
-from lapreco_hil.types import Frame, Observations
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.types import Frame, FrameMotion, Observations
+from lapreco_hil.frontend import epipolar
 from lapreco_hil.frontend.drift import AffineDriftCheck
-
-
-def remove_shading(gray: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Log-domain high-pass (float32): image = albedo x shading, and the scope-tip light makes the shading move
-    with the camera, which breaks brightness constancy and makes tracks drift. Subtracting the blurred log
-    image keeps the texture (albedo) and drops the smooth shading."""
-    log = np.log1p(gray.astype(np.float32))
-    return log - cv2.GaussianBlur(log, (0, 0), sigma_px)
-
-
-# 8-bit levels per unit of the log high-pass when the baseline tracks it as an 8-bit image
-HIGHPASS_GAIN = 96.0
-
-
-def to_u8(high: np.ndarray) -> np.ndarray:
-    return np.clip(high * HIGHPASS_GAIN + 128.0, 0, 255).astype(np.uint8)
+from lapreco_hil.frontend.image import tracker_image
 
 
 class OpenCVFrontEnd:
@@ -39,6 +27,10 @@ class OpenCVFrontEnd:
         # the mask in undistorted coordinates: a pixel is usable if its source lies inside the field of view
         self.mask = cv2.remap(fov, self._map_x, self._map_y, cv2.INTER_NEAREST, borderValue=0)
         self._prev: np.ndarray | None = None
+        self._prev_float: np.ndarray | None = None
+        self._last: tuple[int, int] = (0, 0)  # the last processed frame's (seq, t_ns)
+        self._depth_range = FrameMotion(np.eye(4)).depth_range_m  # the last motion's, for match_view
+        self._views: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}  # other cameras' undistortion maps
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._next_id = 0
@@ -46,9 +38,7 @@ class OpenCVFrontEnd:
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._A = np.zeros((0, 2, 2))
-        w = config.window_px
-        self._lk = dict(winSize=(w, w), maxLevel=config.pyramid_levels,
-                        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        self._lk = epipolar.lk_params(config.window_px, config.pyramid_levels)
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:
         xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.camera.width - 1)
@@ -56,24 +46,38 @@ class OpenCVFrontEnd:
         inb = (pts[:, 0] >= 0) & (pts[:, 0] < self.camera.width) & (pts[:, 1] >= 0) & (pts[:, 1] < self.camera.height)
         return inb & (self.mask[yi, xi] > 0)
 
-    def process(self, frame: Frame, motion=None) -> Observations:
+    def _predict(self, motion: FrameMotion, intensity: np.ndarray) -> np.ndarray:
+        """Where each track starts LK in the new frame (NaN: not found along its epipolar line, so lost)."""
+        self._depth_range = motion.depth_range_m
+        depth = epipolar.depths_for_tracks(self._pts.astype(np.float64), self._ids, motion.track_ids,
+                                           motion.depth_m, (self.camera.width, self.camera.height))
+        return epipolar.predict(self._pts.astype(np.float64), depth, self._prev_float, intensity, self.camera.K,
+                                np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
+
+    def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
         # too dark to carry texture (the cavity beyond the light's reach): no detections there
         lit = cv2.blur(gray, (15, 15)) >= cfg.min_brightness
-        if cfg.shading_sigma_px > 0:
-            intensity = remove_shading(gray, cfg.shading_sigma_px)
-            gray = to_u8(intensity)
-        else:
-            intensity = gray.astype(np.float32) / 255.0
+        gray, intensity = tracker_image(gray, cfg)
         t1 = time.perf_counter()
+        n_lk = 0
         if self._prev is not None and len(self._pts):
-            nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, self._pts.reshape(-1, 1, 2), None,
-                                                        **self._lk)
+            pts = self._pts.reshape(-1, 1, 2)
+            if motion is None:
+                nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, None, **self._lk)
+                predicted = np.ones(len(pts), bool)
+            else:
+                guess = self._predict(motion, intensity)
+                predicted = np.isfinite(guess).all(axis=1)
+                guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
+                nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess,
+                                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk)
             nxt = nxt.reshape(-1, 2)
-            keep = (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
+            keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
+            n_lk = int(keep.sum())
             self._filter(keep, nxt)
         t2 = time.perf_counter()
         if self.drift is not None and len(self._pts):
@@ -103,15 +107,51 @@ class OpenCVFrontEnd:
                     self._ref = np.vstack([self._ref, self.drift.reference_patches(intensity, corners)])
                     self._A = np.concatenate([self._A, np.repeat(np.eye(2)[None], n_new, 0)])
         t3 = time.perf_counter()
-        self._prev = gray
-        xi = np.clip(np.round(self._pts[:, 0]).astype(int), 0, self.camera.width - 1)
-        yi = np.clip(np.round(self._pts[:, 1]).astype(int), 0, self.camera.height - 1)
-        colors = color[yi, xi, ::-1].copy()
-        return Observations(frame.seq, frame.t_ns, self._ids.copy(), self._pts.astype(np.float64), colors, n_new,
+        self._prev, self._prev_float = gray, intensity
+        self._last = (frame.seq, frame.t_ns)
+        funnel = {"corners": n_new, "after_lk": n_lk, "after_drift_check": len(self._pts) - n_new}
+        return Observations(frame.seq, frame.t_ns, self._ids.copy(), self._pts.astype(np.float64),
+                            colors_at(color, self._pts), n_new,
                             {"undistort": t1 - t0, "track": t2 - t1, "drift_check": t_drift - t2,
-                             "detect": t3 - t_drift})
+                             "detect": t3 - t_drift}, funnel=funnel)
+
+    def match_view(self, image: np.ndarray, camera: CameraModel, T_other_this: np.ndarray,
+                   camera_index: int = 1) -> Observations:
+        """The live tracks of the last processed frame found in another camera's simultaneous image (see
+        ``epipolar.match_across``): undistorted pixels of ``camera``'s K, the same ids, its colours."""
+        seq, t_ns = self._last
+        empty = Observations(seq, t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8),
+                             camera=camera_index)
+        if self._prev is None or len(self._pts) == 0:
+            return empty
+        color = undistort_view(image, camera, self._views)
+        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config)
+        uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float,
+                                          self._pts.astype(np.float64), self.camera.K, camera.K,
+                                          np.asarray(T_other_this, np.float64), self._depth_range, self._lk)
+        return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
+                            camera=camera_index)
 
     def _filter(self, keep: np.ndarray, positions: np.ndarray) -> None:
         self._pts, self._ids = positions[keep], self._ids[keep]
         if self.drift is not None:
             self._ref, self._A = self._ref[keep], self._A[keep]
+
+
+def colors_at(color: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """RGB of an undistorted BGR image at the nearest pixel of each position."""
+    h, w = color.shape[:2]
+    xi = np.clip(np.round(pts[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(pts[:, 1]).astype(int), 0, h - 1)
+    return color[yi, xi, ::-1].copy()
+
+
+def undistort_view(image: np.ndarray, camera: CameraModel, maps: dict) -> np.ndarray:
+    """Another camera's BGR frame undistorted with its own model (its maps cached in ``maps``, by camera)."""
+    if image.ndim != 3 or image.shape[:2] != (camera.height, camera.width) or image.dtype != np.uint8:
+        raise ConfigError(f"view image is {image.shape} {image.dtype}; its camera is {camera.height}x"
+                         f"{camera.width}x3 uint8")
+    if camera not in maps:
+        maps[camera] = camera.undistort_maps()
+    map_x, map_y = maps[camera]
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR)

@@ -4,6 +4,10 @@ device, so on CUDA a frame is the grey conversion on the host, then one graph re
 stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
 tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours
 are read on the host from the frame in hand, at each track's position in the distorted frame.
+
+A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
+its kernels launch one by one (the pose is a kernel argument). ``match_view`` brings this frame's tracker image
+back once and matches on the host (``frontend.epipolar``).
 """
 
 from __future__ import annotations
@@ -17,10 +21,13 @@ import warp as wp
 
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
-from lapreco_hil.types import Frame, Observations
+from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock
-from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
-from lapreco_hil.frontend.warp import corners, drift_check, lk, pyramid, tracks
+from lapreco_hil.frontend import epipolar
+from lapreco_hil.frontend.image import HIGHPASS_GAIN, LOG_OFFSET, shading_sigma_px, to_u8, tracker_image
+from lapreco_hil.frontend.opencv import colors_at, undistort_view
+from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
+from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +67,7 @@ class WarpFrontEnd:
         fov = cv2.remap(camera.fov_mask(margin_px=config.fov_margin_px), map_x, map_y, cv2.INTER_NEAREST,
                         borderValue=0)
         # the shading estimate (the log image blurred with sigma) is taken at half resolution, with sigma / 2
-        half_sigma = max(config.shading_sigma_px, 1.0) / 2.0
+        half_sigma = max(shading_sigma_px(config), 1.0) / 2.0
         radius = int(np.ceil(3 * half_sigma))
         g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / half_sigma) ** 2)
         self._half = ((W + 1) // 2, (H + 1) // 2)
@@ -96,7 +103,15 @@ class WarpFrontEnd:
             self._residual = wp.zeros(n, dtype=float)
             self._slot = wp.zeros(n, dtype=wp.int32)
             # a frame's results, packed for their copies to the host (pack_results)
-            self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + 2, dtype=wp.int32))
+            self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + RESULT_HEADER, dtype=wp.int32))
+            # pose-predicted starts (FrameMotion): each slot's depth (<= 0: none), the start positions, the
+            # epipolar sweep's scratch, and whether LK starts from them (0 in every captured graph)
+            self._depth = wp.zeros(n, dtype=float)
+            self._guess = wp.zeros(n, dtype=wp.vec2)
+            self._use_guess = wp.zeros(1, dtype=wp.int32)
+            self._sweep_scores = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=float)
+            self._sweep_cand = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=wp.vec2)
+            self._n_tracked = wp.zeros(1, dtype=wp.int32)
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
             n_cells = self._grid[1] * self._grid[2]
@@ -121,7 +136,8 @@ class WarpFrontEnd:
             # each frame's results come back into pinned buffers (two copies inside the frame's graph, see
             # pack_results): the surviving tracks after tracking, all tracks after detection
             self._out_kept, self._out_all = ((wp.zeros(n, dtype=wp.vec4, pinned=pinned),
-                                              wp.zeros(n + 2, dtype=wp.int32, pinned=pinned)) for _ in range(2))
+                                              wp.zeros(n + RESULT_HEADER, dtype=wp.int32, pinned=pinned))
+                                             for _ in range(2))
         # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
         self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
@@ -138,10 +154,14 @@ class WarpFrontEnd:
         self._runs = [0, 0]
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
-        self._lit_min = float(np.log1p(config.min_brightness))
+        self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
         # the OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it
         # tracks: HIGHPASS_GAIN per unit of the log high-pass, or 255 for plain intensity in [0, 1]
-        self._lk_error_units = HIGHPASS_GAIN if config.shading_sigma_px > 0 else 255.0
+        self._lk_error_units = HIGHPASS_GAIN if shading_sigma_px(config) > 0 else 255.0
+        self._motion: FrameMotion | None = None  # this frame's, while it is processed
+        self._depth_range = FrameMotion(np.eye(4)).depth_range_m  # the last motion's, for match_view
+        self._last = (0, 0, np.zeros(0, np.int64), np.zeros((0, 2)))  # the last frame's seq, t_ns, ids, uv
+        self._views: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
     def n_tracks(self) -> int:
@@ -184,7 +204,7 @@ class WarpFrontEnd:
         pyramid.blur_1d(self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp, dev)
         pyramid.blur_1d(self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit, dev)
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        pyramid.level0(self._log, self._half_lit, hw, hh, self.config.shading_sigma_px > 0, pyr, self._lit, dev)
+        pyramid.level0(self._log, self._half_lit, hw, hh, shading_sigma_px(self.config) > 0, pyr, self._lit, dev)
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
             pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
@@ -199,8 +219,20 @@ class WarpFrontEnd:
         lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
                     self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
-                    self._lk_pts, self._status, self._error, self.device)
+                    self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device)
+        tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
         self._sync_for_profile("lk")
+
+    def _predict_kernels(self, motion: FrameMotion) -> None:
+        """Each track's start in this frame from the camera motion (projection at its depth or the epipolar
+        sweep on pyramid level 1), then LK starts there."""
+        offs, ws, hs = self._lv
+        level = min(epipolar.SWEEP_LEVEL, self.levels - 1)
+        prev, cur = 1 - self._cur, self._cur
+        predict.predict_starts(self._pyr[prev], self._pyr[cur], offs[level], ws[level], hs[level], level,
+                               self._pts[prev], self._count[prev], self._depth, self.camera.K,
+                               np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m, self._sweep_scores,
+                               self._sweep_cand, self._guess, self.device)
 
     def _keep_kernels(self) -> None:
         """The drift check (or LK's own verdict) and the field-of-view test, then compaction of the surviving
@@ -303,6 +335,8 @@ class WarpFrontEnd:
         wp.copy(self._frame, self._staging)
         self._sync_for_profile("upload")
         self._prepare_kernels()
+        if self._motion is not None:
+            self._predict_kernels(self._motion)
         self._sync_for_profile("prepare")
         if side is not None:
             side.wait_stream(main)
@@ -322,8 +356,8 @@ class WarpFrontEnd:
 
     def _copy_results(self, out: tuple) -> None:
         cur = self._cur
-        tracks.pack_results(self._pts[cur], self._ids[cur], self._count[cur], self._n_new, self._remap, *self._packed,
-                            self.device)
+        tracks.pack_results(self._pts[cur], self._ids[cur], self._count[cur], self._n_new, self._n_tracked,
+                            self._remap, *self._packed, self.device)
         for dst, src in zip(out, self._packed):
             wp.copy(dst, src)
 
@@ -334,18 +368,43 @@ class WarpFrontEnd:
         for k in range(4):  # both buffer parities, eager then captured
             self.process(Frame(black, k, k))
 
-    def process(self, frame: Frame, motion=None) -> Observations:
+    def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         with device_lock(self.device):
-            return self._process(frame)
+            return self._process(frame, motion)
 
-    def _process(self, frame: Frame) -> Observations:
+    def _set_motion(self, motion: FrameMotion | None) -> None:
+        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none) and the flag
+        that makes LK start from the predicted positions. Frames with a motion launch their kernels one by one
+        (the motion's pose is a kernel argument, so no captured graph replays them)."""
+        self._motion = motion
+        if motion is None:
+            return
+        self._depth_range = motion.depth_range_m
+        _, _, ids, uv = self._last
+        depth = epipolar.depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, (self.width, self.height))
+        slots = np.zeros(self.config.max_features, np.float32)
+        slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
+        self._depth.assign(slots)
+        self._use_guess.fill_(1)
+
+    def _process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         self._marks = {}
         t0 = time.perf_counter()
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
+        try:
+            self._set_motion(motion if self._n_tracks > 0 else None)
+            return self._process_frame(frame, t0, cur)
+        finally:
+            if self._motion is not None:
+                self._use_guess.fill_(0)
+                self._motion = None
+
+    def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
-        if self.device.is_cuda and self.use_graphs and not self.profile and self._runs[cur] >= 1:
+        if self.device.is_cuda and self.use_graphs and not self.profile and self._runs[cur] >= 1 and (
+                self._motion is None):
             if self._graphs[cur] is None:
                 try:
                     with wp.ScopedCapture(device=self.device) as capture:
@@ -354,7 +413,7 @@ class WarpFrontEnd:
                 except Exception as exc:  # e.g. a driver without conditional graph nodes (CUDA < 12.4)
                     log.warning("front-end: CUDA graph capture failed (%s); launching kernels one by one", exc)
                     self.use_graphs = False
-        if self.use_graphs and not self.profile and self._graphs[cur] is not None:
+        if self.use_graphs and not self.profile and self._graphs[cur] is not None and self._motion is None:
             wp.capture_launch(self._graphs[cur])
         else:
             self._frame_kernels()
@@ -365,17 +424,17 @@ class WarpFrontEnd:
         per_track, counts_ids = self._kept_np
         kept = int(counts_ids[0])
         kept_uv = per_track[:kept, :2].astype(np.float64)
-        kept_ids = counts_ids[2:2 + kept].astype(np.int64)
+        kept_ids = counts_ids[RESULT_HEADER:RESULT_HEADER + kept].astype(np.int64)
         kept_colors = self._colors_at(frame.image, per_track[:kept, 2:])
         if self._done is not None:
             wp.synchronize_event(self._done)  # an event on the frame's stream: cheaper than the whole device
         else:
             wp.synchronize_device(self.device)
         per_track, counts_ids = self._all_np
-        n, n_new = int(counts_ids[0]), int(counts_ids[1])
+        n, n_new, n_tracked = int(counts_ids[0]), int(counts_ids[1]), int(counts_ids[2])
         self._n_tracks = n
         uv = np.concatenate([kept_uv, per_track[kept:n, :2]])
-        ids = np.concatenate([kept_ids, counts_ids[2 + kept:2 + n]])
+        ids = np.concatenate([kept_ids, counts_ids[RESULT_HEADER + kept:RESULT_HEADER + n]])
         colors = np.concatenate([kept_colors, self._colors_at(frame.image, per_track[kept:n, 2:])])
         t_end = time.perf_counter()
         timings = {"total": t_end - t0}
@@ -384,4 +443,27 @@ class WarpFrontEnd:
             timings.update({"upload": m["upload"] - t0, "prepare": m["prepare"] - m["upload"],
                             "lk": m["lk"] - m["prepare"], "drift_check": m["track"] - m["lk"],
                             "detect": t_end - m["track"]})
-        return Observations(frame.seq, frame.t_ns, ids, uv, colors, n_new, timings)
+        self._last = (frame.seq, frame.t_ns, ids, uv)
+        funnel = {"corners": n_new, "after_lk": n_tracked, "after_drift_check": kept}
+        return Observations(frame.seq, frame.t_ns, ids, uv, colors, n_new, timings, funnel=funnel)
+
+    def match_view(self, image: np.ndarray, camera: CameraModel, T_other_this: np.ndarray,
+                   camera_index: int = 1) -> Observations:
+        """The live tracks of the last processed frame found in another camera's simultaneous image: this
+        frame's tracker image comes back from the device once, then the epipolar sweep, LK and the
+        forward-backward check of ``epipolar.match_across`` run on the host."""
+        seq, t_ns, ids, uv = self._last
+        if len(ids) == 0:
+            return Observations(seq, t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8),
+                                camera=camera_index)
+        with device_lock(self.device):
+            this = self._pyr[self._cur].numpy()[: self.width * self.height].reshape(self.height, self.width)
+        shading = shading_sigma_px(self.config) > 0
+        this_u8 = to_u8(this) if shading else np.clip(this * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        color = undistort_view(image, camera, self._views)
+        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config)
+        lk_params = epipolar.lk_params(self.config.window_px, self.config.pyramid_levels)
+        found_uv, found = epipolar.match_across(this_u8, this, other_u8, other_float, uv, self.camera.K, camera.K,
+                                                np.asarray(T_other_this, np.float64), self._depth_range, lk_params)
+        return Observations(seq, t_ns, ids[found].copy(), found_uv[found], colors_at(color, found_uv[found]),
+                            camera=camera_index)

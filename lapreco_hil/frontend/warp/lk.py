@@ -57,6 +57,7 @@ def _make_lk_track(cache: int):
                   cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                   hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
                   max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
+                  guess: wp.array(dtype=wp.vec2), use_guess: wp.array(dtype=wp.int32),
                   out_pts: wp.array(dtype=wp.vec2),
                   status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
         """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
@@ -75,8 +76,13 @@ def _make_lk_track(cache: int):
         r = float(win - 1) * 0.5
         inv_win = 1.0 / float(win)
         p0 = pts[f]
-        g = wp.vec2(0.0, 0.0)  # guess carried down the pyramid (current level units)
-        ok = int(1)
+        # the guess carried down the pyramid (current level units): from where the camera motion predicts the
+        # track when use_guess is set (NaN there: not found, the track is lost), else zero
+        q0 = guess[f]
+        use = use_guess[0] == 1
+        lost = use and (wp.isnan(q0[0]) or wp.isnan(q0[1]))
+        g = wp.where(use and not lost, (q0 - p0) / wp.pow(2.0, float(levels - 1)), wp.vec2(0.0, 0.0))
+        ok = wp.where(lost, 0, 1)
         abs_sum = float(0.0)  # the last iteration's sum of absolute differences over the window
         sums = int(0)  # block sums so far (their shared buffers alternate)
         eps2 = eps * eps
@@ -205,9 +211,11 @@ _lk_track = _make_lk_track((22 * 22 + LK_LANES - 1) // LK_LANES)
 
 def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array, offs: wp.array, ws: wp.array,
              hs: wp.array, levels: int, win: int, iterations: int, eps: float, min_eig: float, max_error: float,
-             pts: wp.array, count: wp.array, out_pts: wp.array, status: wp.array, error: wp.array, device) -> None:
+             pts: wp.array, count: wp.array, guess: wp.array, use_guess: wp.array, out_pts: wp.array,
+             status: wp.array, error: wp.array, device) -> None:
     """Track ``pts`` (the first ``count[0]`` of them; every slot is launched) from the ``prev`` pyramid into
-    ``cur``: ``out_pts``, ``status`` (1: tracked) and ``error`` (the window's mean absolute difference)."""
+    ``cur``, from ``guess`` where ``use_guess[0]`` is 1 (NaN: lost), else from where they were: ``out_pts``,
+    ``status`` (1: tracked) and ``error`` (the window's mean absolute difference)."""
     wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
         prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, iterations, eps, min_eig, max_error, pts, count,
-        out_pts, status, error], block_dim=LK_LANES, device=device)
+        guess, use_guess, out_pts, status, error], block_dim=LK_LANES, device=device)

@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import warp as wp
 
-from lapreco_hil.frontend.opencv import HIGHPASS_GAIN
+from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
 from lapreco_hil.frontend.warp.sampling import bilinear, clamped_px
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
-
-HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN  # what frontend.opencv.to_u8 keeps of the log high-pass
 
 
 @wp.func
@@ -24,7 +22,7 @@ def _grey(frame: wp.array2d(dtype=wp.uint8), x: int, y: int) -> float:
 def _undistort_log(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp.vec2),
                    log_out: wp.array2d(dtype=float)):
     """One resampling pass: undistorted pixel <- bilinear sample of the distorted grey frame (0-255) at the
-    precomputed map (outside the frame: 0, as cv2.remap's constant border), stored as log(1 + grey). The log
+    precomputed map (outside the frame: 0, as cv2.remap's constant border), stored as log(LOG_OFFSET + grey). The log
     is what the shading removal works on; plain intensity is recovered from it exactly enough (``level0``)."""
     y, x = wp.tid()
     m = remap[y, x]
@@ -39,7 +37,7 @@ def _undistort_log(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp
         top = _grey(frame, x0, y0) * (1.0 - fx) + _grey(frame, x0 + 1, y0) * fx
         bot = _grey(frame, x0, y0 + 1) * (1.0 - fx) + _grey(frame, x0 + 1, y0 + 1) * fx
         g = top * (1.0 - fy) + bot * fy
-    log_out[y, x] = wp.log(1.0 + g)
+    log_out[y, x] = wp.log(LOG_OFFSET + g)
 
 
 @wp.kernel
@@ -92,7 +90,7 @@ def _level0(log_img: wp.array2d(dtype=float), half_lit: wp.array(dtype=float), h
     if subtract != 0:
         v = wp.clamp(v - s, -HIGHPASS_RANGE, HIGHPASS_RANGE)
     else:
-        v = (wp.exp(v) - 1.0) / 255.0
+        v = (wp.exp(v) - LOG_OFFSET) / 255.0
     pyr[y * log_img.shape[1] + x] = v
 
 
@@ -151,7 +149,7 @@ def _sobel_levels(pyr: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.
 
 # --- host wrappers: a device and preallocated outputs --------------------------------------------------------
 def undistort_log(frame: wp.array, remap: wp.array, log_out: wp.array, device) -> None:
-    """``log_out`` (H, W) <- log(1 + grey) of the distorted ``frame`` resampled at ``remap``."""
+    """``log_out`` (H, W) <- log(LOG_OFFSET + grey) of the distorted ``frame`` resampled at ``remap``."""
     wp.launch(_undistort_log, dim=log_out.shape, inputs=[frame, remap, log_out], device=device)
 
 

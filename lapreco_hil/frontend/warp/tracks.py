@@ -10,6 +10,8 @@ from lapreco_hil.frontend.warp.sampling import in_view
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
 
+RESULT_HEADER = 3  # [count, n_new, n_tracked] before the ids in pack_results' integer buffer
+
 
 @wp.kernel
 def _lk_keep(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
@@ -55,16 +57,26 @@ def _count_kept(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32), 
 
 
 @wp.kernel
+def _count_tracked(pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
+                   count: wp.array(dtype=wp.int32), n_tracked: wp.array(dtype=wp.int32)):
+    """The funnel's count of tracks LK followed into the field of view (before the drift check)."""
+    f = wp.tid()
+    if f < count[0] and status[f] == 1 and in_view(mask, pts[f]):
+        wp.atomic_add(n_tracked, 0, 1)
+
+
+@wp.kernel
 def _pack_results(pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-                  n_new: wp.array(dtype=wp.int32), remap: wp.array2d(dtype=wp.vec2), out_f: wp.array(dtype=wp.vec4),
-                  out_i: wp.array(dtype=wp.int32)):
+                  n_new: wp.array(dtype=wp.int32), n_tracked: wp.array(dtype=wp.int32),
+                  remap: wp.array2d(dtype=wp.vec2), out_f: wp.array(dtype=wp.vec4), out_i: wp.array(dtype=wp.int32)):
     """The frame's results in two buffers, so two copies bring them to the host: per track (x, y, source x,
-    source y) and [count, n_new, ids...]. The source is where the track lies in the distorted frame (the
-    undistortion map, sampled bilinearly at its position): the host reads the track's colour there."""
+    source y) and [count, n_new, n_tracked, ids...]. The source is where the track lies in the distorted frame
+    (the undistortion map, sampled bilinearly at its position): the host reads the track's colour there."""
     t = wp.tid()
     if t == 0:
         out_i[0] = count[0]
         out_i[1] = n_new[0]
+        out_i[2] = n_tracked[0]
     if t >= count[0]:
         return
     h = remap.shape[0]
@@ -80,7 +92,7 @@ def _pack_results(pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32), c
     bot = remap[y0 + 1, x0] * (1.0 - fx) + remap[y0 + 1, x0 + 1] * fx
     src = top * (1.0 - fy) + bot * fy
     out_f[t] = wp.vec4(p[0], p[1], src[0], src[1])
-    out_i[2 + t] = ids[t]
+    out_i[RESULT_HEADER + t] = ids[t]
 
 
 @wp.kernel
@@ -120,8 +132,16 @@ def commit_new_tracks(taken: wp.array, count: wp.array, n_new: wp.array, next_id
     wp.launch(_commit_new_tracks, dim=1, inputs=[taken, count, n_new, next_id], device=device)
 
 
-def pack_results(pts: wp.array, ids: wp.array, count: wp.array, n_new: wp.array, remap: wp.array,
-                 out_f: wp.array, out_i: wp.array, device) -> None:
+def count_tracked(pts: wp.array, status: wp.array, mask: wp.array, count: wp.array, n_tracked: wp.array,
+                  device) -> None:
+    """``n_tracked[0]`` <- the tracks LK followed into the field of view."""
+    n_tracked.zero_()
+    wp.launch(_count_tracked, dim=pts.shape[0], inputs=[pts, status, mask, count, n_tracked], device=device)
+
+
+def pack_results(pts: wp.array, ids: wp.array, count: wp.array, n_new: wp.array, n_tracked: wp.array,
+                 remap: wp.array, out_f: wp.array, out_i: wp.array, device) -> None:
     """The frame's results into ``out_f`` (x, y, source x, source y per track) and ``out_i`` ([count, n_new,
-    ids...]), for two copies to the host."""
-    wp.launch(_pack_results, dim=pts.shape[0], inputs=[pts, ids, count, n_new, remap, out_f, out_i], device=device)
+    n_tracked, ids...]), for two copies to the host."""
+    wp.launch(_pack_results, dim=pts.shape[0], inputs=[pts, ids, count, n_new, n_tracked, remap, out_f, out_i],
+              device=device)

@@ -1,0 +1,204 @@
+"""Where a track should be in another view of the scene, given the camera motion between the views: its
+projection where its depth is known, else a search along its epipolar line (a depth sweep with ZNCC of a patch).
+Vectorised numpy/cv2, shared by the OpenCV front-end, both front-ends' ``match_view`` and the mapper; the Warp
+front-end runs the same steps in its kernels (``warp/predict.py``).
+
+All pixels are undistorted (ideal pinhole) pixels of the given K; ``T_dst_src`` maps points from the source
+camera to the destination camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+# the sweep: an 11 x 11 patch on pyramid level 1 (22 x 22 pixels of the full image), 32 to 96 inverse-depth
+# samples (about one per level pixel of the line), a match where ZNCC is above MIN_SCORE and the best score
+# away from it (beyond SECOND_RADIUS level pixels) is at least MARGIN lower
+SWEEP_PATCH_PX = 11
+SWEEP_LEVEL = 1
+MIN_SAMPLES, MAX_SAMPLES = 32, 96
+MIN_SCORE = 0.7
+MARGIN = 0.1
+SECOND_RADIUS = 2.5
+# tracks without a depth borrow the median depth of up to this many nearest tracks that have one, within
+# NEIGHBOUR_RADIUS of the image's larger side
+NEIGHBOURS = 6
+NEIGHBOUR_RADIUS = 0.15
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    uv: np.ndarray  # (N, 2) best position in the destination image (full-resolution pixels), NaN where not found
+    found: np.ndarray  # (N,) bool: clear best score
+    score: np.ndarray  # (N,) best ZNCC
+
+
+def project(uv: np.ndarray, depth: np.ndarray, K_src: np.ndarray, K_dst: np.ndarray,
+            T_dst_src: np.ndarray) -> np.ndarray:
+    """Pixels ``uv`` (N, 2) of the source camera at depth z ``depth`` (N,) -> pixels of the destination camera."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    rays = np.column_stack([(uv[:, 0] - K_src[0, 2]) / K_src[0, 0], (uv[:, 1] - K_src[1, 2]) / K_src[1, 1],
+                            np.ones(len(uv))])
+    p = rays * np.asarray(depth, np.float64).reshape(-1, 1) @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.column_stack([K_dst[0, 0] * p[:, 0] / z + K_dst[0, 2], K_dst[1, 1] * p[:, 1] / z + K_dst[1, 2]])
+    out[~(z > 1e-9)] = np.nan
+    return out
+
+
+def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray,
+                      image_size: tuple[int, int]) -> np.ndarray:
+    """Each track's depth: its own where ``known_ids`` has it, else the median of its nearest tracks' that have
+    one (the map's depth nearby), else NaN (to be searched along its epipolar line)."""
+    n = len(ids)
+    depth = np.full(n, np.nan)
+    if n == 0 or len(known_ids) == 0:
+        return depth
+    known_depth = np.asarray(known_depth, np.float64)
+    order = np.argsort(known_ids)
+    sorted_ids = np.asarray(known_ids)[order]
+    pos = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
+    hit = sorted_ids[pos] == ids
+    depth[hit] = known_depth[order[pos[hit]]]
+    depth[~(depth > 0)] = np.nan
+    has = np.isfinite(depth)
+    if has.any() and not has.all():
+        tree = cKDTree(uv[has])
+        k = min(NEIGHBOURS, int(has.sum()))
+        dist, idx = tree.query(uv[~has], k=k, distance_upper_bound=NEIGHBOUR_RADIUS * max(image_size))
+        dist, idx = dist.reshape(len(dist), k), idx.reshape(len(idx), k)
+        near = np.where(np.isfinite(dist), depth[has][np.minimum(idx, int(has.sum()) - 1)], np.nan)
+        with np.errstate(all="ignore"):
+            borrowed = np.nanmedian(np.where(np.isfinite(dist), near, np.nan), axis=1) if near.size else near
+        depth[~has] = borrowed
+    return depth
+
+
+def _patch_offsets(patch_px: int) -> np.ndarray:
+    r = (patch_px - 1) / 2
+    g = np.arange(patch_px, dtype=np.float32) - r
+    X, Y = np.meshgrid(g, g)
+    return np.column_stack([X.ravel(), Y.ravel()])
+
+
+def _level(image: np.ndarray, level: int) -> np.ndarray:
+    out = image.astype(np.float32)
+    for _ in range(level):
+        out = cv2.pyrDown(out)
+    return out
+
+
+def _zscore(patches: np.ndarray) -> np.ndarray:
+    z = patches - patches.mean(-1, keepdims=True)
+    return z / (np.sqrt((z * z).sum(-1, keepdims=True)) + 1e-6)
+
+
+def sweep(src_image: np.ndarray, dst_image: np.ndarray, uv: np.ndarray, K_src: np.ndarray, K_dst: np.ndarray,
+          T_dst_src: np.ndarray, depth_range_m: tuple[float, float], level: int = SWEEP_LEVEL,
+          patch_px: int = SWEEP_PATCH_PX, min_score: float = MIN_SCORE, margin: float = MARGIN) -> SweepResult:
+    """Each source pixel searched along its epipolar line in the destination image: inverse depth sampled
+    uniformly over ``depth_range_m`` (as many samples as the line's length in level pixels needs, 32 to 96),
+    ZNCC of a patch of the tracker images on pyramid ``level``, the best taken where it is clear. The result is
+    a starting point for LK, not a refined position."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    n = len(uv)
+    if n == 0:
+        return SweepResult(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
+    near, far = depth_range_m
+    scale = 1.0 / (1 << level)
+    src, dst = _level(src_image, level), _level(dst_image, level)
+    ends = np.stack([project(uv, np.full(n, near), K_src, K_dst, T_dst_src),
+                     project(uv, np.full(n, far), K_src, K_dst, T_dst_src)])
+    length = np.nan_to_num(np.linalg.norm(ends[0] - ends[1], axis=1) * scale, nan=np.inf)
+    s = int(np.clip(np.ceil(np.max(np.where(np.isfinite(length), length, 0.0))) + 1, MIN_SAMPLES, MAX_SAMPLES))
+    inv = np.linspace(1.0 / near, 1.0 / far, s)
+    cand = project(np.repeat(uv, s, 0), np.tile(1.0 / inv, n), K_src, K_dst, T_dst_src).reshape(n, s, 2)
+    off = _patch_offsets(patch_px)
+    # the source patches, then every candidate's: (n, P) and (n, s, P), bilinear, the border a constant
+    # outside the level (a patch off the image cannot match)
+    p0 = (uv * scale)[:, None, :]  # cv2.pyrDown's level pixel x sits on full-resolution pixel x / scale
+    ref = cv2.remap(src, (p0[..., 0] + off[None, :, 0]).astype(np.float32),
+                    (p0[..., 1] + off[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    c = cand * scale
+    cx = np.nan_to_num(c[..., 0], nan=-1e4).astype(np.float32)[..., None] + off[None, None, :, 0]
+    cy = np.nan_to_num(c[..., 1], nan=-1e4).astype(np.float32)[..., None] + off[None, None, :, 1]
+    h, w = dst.shape
+    patches = cv2.remap(dst, cx.reshape(n, -1), cy.reshape(n, -1),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(n, s, -1)
+    r = (patch_px - 1) / 2
+    inside = (c[..., 0] >= r) & (c[..., 1] >= r) & (c[..., 0] <= w - 1 - r) & (c[..., 1] <= h - 1 - r)
+    score = np.einsum("np,nsp->ns", _zscore(ref), _zscore(patches))
+    score[~inside] = -1.0
+    best = np.argmax(score, axis=1)
+    rows = np.arange(n)
+    best_score = score[rows, best]
+    best_c = c[rows, best]
+    apart = np.linalg.norm(c - best_c[:, None, :], axis=2) > SECOND_RADIUS
+    second = np.where(apart, score, -1.0).max(axis=1)
+    # a line shorter than the patch's reach has no second place to compare with: the best alone decides
+    short = length < SECOND_RADIUS
+    found = (best_score > min_score) & ((best_score - second > margin) | short)
+    out = cand[rows, best].copy()
+    out[~found] = np.nan
+    return SweepResult(out, found, best_score)
+
+
+def predict(uv: np.ndarray, depth: np.ndarray, prev_image: np.ndarray, cur_image: np.ndarray, K: np.ndarray,
+            T_cur_prev: np.ndarray, depth_range_m: tuple[float, float]) -> np.ndarray:
+    """Where each previous-frame track starts in the current frame: projected at its depth, or found by the
+    sweep where it has none; NaN where the sweep finds no clear match (the track is lost, never started from
+    the pixel it left)."""
+    guess = project(uv, np.nan_to_num(depth, nan=1.0), K, K, T_cur_prev)
+    unknown = ~np.isfinite(depth)
+    guess[unknown] = np.nan
+    if unknown.any():
+        guess[unknown] = sweep(prev_image, cur_image, uv[unknown], K, K, T_cur_prev, depth_range_m).uv
+    return guess
+
+
+# a match in another view must track back into this view within this many pixels
+FORWARD_BACKWARD_PX = 0.5
+
+
+def lk_params(window_px: int, levels: int) -> dict:
+    """cv2.calcOpticalFlowPyrLK's settings as the front-ends use them (OpenCV's default stopping criteria)."""
+    return dict(winSize=(window_px, window_px), maxLevel=levels,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+
+
+def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarray, other_float: np.ndarray,
+                 uv: np.ndarray, K_this: np.ndarray, K_other: np.ndarray, T_other_this: np.ndarray,
+                 depth_range_m: tuple[float, float], lk: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
+    sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
+    the track is. Tracker images of both views (8-bit for LK, float for the sweep). -> (uv in the other view,
+    found)."""
+    n = len(uv)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    res = sweep(this_float, other_float, uv, K_this, K_other, T_other_this, depth_range_m)
+    found = res.found.copy()
+    out = np.full((n, 2), np.nan)
+    if not found.any():
+        return out, found
+    p = uv[found].astype(np.float32).reshape(-1, 1, 2)
+    guess = res.uv[found].astype(np.float32).reshape(-1, 1, 2)
+    fwd, st, _ = cv2.calcOpticalFlowPyrLK(this_u8, other_u8, p, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                          **lk)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(other_u8, this_u8, fwd, p.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                            **lk)
+    fb = np.linalg.norm((back - p).reshape(-1, 2), axis=1)
+    h, w = other_u8.shape[:2]
+    q = fwd.reshape(-1, 2)
+    ok = ((st.ravel() == 1) & (st2.ravel() == 1) & (fb < FORWARD_BACKWARD_PX) & (q[:, 0] >= 0) & (q[:, 1] >= 0)
+          & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1))
+    idx = np.flatnonzero(found)
+    found[idx[~ok]] = False
+    out[idx[ok]] = q[ok]
+    return out, found

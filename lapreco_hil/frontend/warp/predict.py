@@ -1,0 +1,129 @@
+"""Where each track starts LK in a new frame when the camera motion is known (``FrameMotion``): its projection
+at its depth, or, without one, the best ZNCC match of its patch along its epipolar line (a sweep of inverse
+depth on pyramid level SWEEP_LEVEL). The same steps as ``frontend.epipolar`` (numpy), on the device."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from lapreco_hil.frontend import epipolar
+from lapreco_hil.frontend.warp.sampling import bilinear
+
+# nothing differentiates these kernels, so no adjoints: they only add compile time
+wp.set_module_options({"enable_backward": False})
+
+SWEEP_SAMPLES = 64
+SWEEP_PATCH = epipolar.SWEEP_PATCH_PX
+SWEEP_HALF = (SWEEP_PATCH - 1) // 2
+
+
+@wp.func
+def _project(K: wp.vec4, R: wp.mat33, t: wp.vec3, uv: wp.vec2, z: float) -> wp.vec2:
+    """Pixel uv at depth z of one pinhole camera -> pixel of the other (K: fx, fy, cx, cy); NaN behind it."""
+    ray = wp.vec3((uv[0] - K[2]) / K[0], (uv[1] - K[3]) / K[1], 1.0)
+    p = R * (ray * z) + t
+    if p[2] <= 1.0e-9:
+        return wp.vec2(wp.nan, wp.nan)
+    return wp.vec2(K[0] * p[0] / p[2] + K[2], K[1] * p[1] / p[2] + K[3])
+
+
+@wp.kernel
+def _predict(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), depth: wp.array(dtype=float),
+             K: wp.vec4, R: wp.mat33, t: wp.vec3, guess: wp.array(dtype=wp.vec2)):
+    """Tracks with a depth: their projection; the others NaN until the sweep finds them."""
+    f = wp.tid()
+    if f >= count[0]:
+        return
+    d = depth[f]
+    if d > 0.0:
+        guess[f] = _project(K, R, t, pts[f], d)
+    else:
+        guess[f] = wp.vec2(wp.nan, wp.nan)
+
+
+@wp.kernel
+def _sweep_scores(prev: wp.array(dtype=float), cur: wp.array(dtype=float), off: int, w: int, h: int, scale: float,
+                  pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), depth: wp.array(dtype=float),
+                  K: wp.vec4, R: wp.mat33, t: wp.vec3, inv_near: float, inv_far: float,
+                  scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2)):
+    """One thread per (track without depth, inverse-depth sample): ZNCC of the track's patch in the previous
+    level image against the current one at the sample's projection (-1 where the patch leaves the level)."""
+    f, s = wp.tid()
+    if f >= count[0] or depth[f] > 0.0:
+        return
+    inv = inv_near + (inv_far - inv_near) * float(s) / float(SWEEP_SAMPLES - 1)
+    c = _project(K, R, t, pts[f], 1.0 / inv)
+    cand[f, s] = c
+    q = c * scale
+    r = float(SWEEP_HALF)
+    if not (q[0] >= r and q[1] >= r and q[0] <= float(w - 1) - r and q[1] <= float(h - 1) - r):
+        scores[f, s] = -1.0
+        return
+    p = pts[f] * scale
+    sa = float(0.0)
+    sb = float(0.0)
+    saa = float(0.0)
+    sbb = float(0.0)
+    sab = float(0.0)
+    for j in range(SWEEP_PATCH):
+        for i in range(SWEEP_PATCH):
+            dx = float(i - SWEEP_HALF)
+            dy = float(j - SWEEP_HALF)
+            a = bilinear(prev, off, w, h, p[0] + dx, p[1] + dy)
+            b = bilinear(cur, off, w, h, q[0] + dx, q[1] + dy)
+            sa += a
+            sb += b
+            saa += a * a
+            sbb += b * b
+            sab += a * b
+    n = float(SWEEP_PATCH * SWEEP_PATCH)
+    va = saa - sa * sa / n
+    vb = sbb - sb * sb / n
+    scores[f, s] = (sab - sa * sb / n) / (wp.sqrt(wp.max(va * vb, 0.0)) + 1.0e-6)
+
+
+@wp.kernel
+def _sweep_pick(scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
+                depth: wp.array(dtype=float), scale: float, min_score: float, margin: float, radius: float,
+                guess: wp.array(dtype=wp.vec2)):
+    """Per track without depth: the best sample where it is clear (above min_score, and the best score more
+    than ``radius`` level pixels from it at least ``margin`` lower); else NaN (lost)."""
+    f = wp.tid()
+    if f >= count[0] or depth[f] > 0.0:
+        return
+    best = int(0)
+    for s in range(SWEEP_SAMPLES):
+        if scores[f, s] > scores[f, best]:
+            best = s
+    cb = cand[f, best]
+    second = float(-1.0)
+    for s in range(SWEEP_SAMPLES):
+        if wp.length(cand[f, s] - cb) * scale > radius:
+            second = wp.max(second, scores[f, s])
+    short = wp.length(cand[f, 0] - cand[f, SWEEP_SAMPLES - 1]) * scale < radius
+    b = scores[f, best]
+    if b > min_score and (b - second > margin or short):
+        guess[f] = cb
+    else:
+        guess[f] = wp.vec2(wp.nan, wp.nan)
+
+
+# --- host wrapper: a device and preallocated outputs ---------------------------------------------------------
+def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_w: int, level_h: int, level: int,
+                   pts: wp.array, count: wp.array, depth: wp.array, K, T_cur_prev, depth_range_m,
+                   scores: wp.array, cand: wp.array, guess: wp.array, device) -> None:
+    """``guess`` <- where each of the first ``count[0]`` tracks starts LK: projected at ``depth`` (> 0), else
+    swept along its epipolar line on pyramid ``level`` (``scores``, ``cand``: (n, SWEEP_SAMPLES) scratch);
+    NaN where the sweep finds no clear match. K is the 3x3 intrinsics of both frames (one camera)."""
+    Kv = wp.vec4(float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2]))
+    R = wp.mat33(*[float(v) for v in T_cur_prev[:3, :3].ravel()])
+    t = wp.vec3(*[float(v) for v in T_cur_prev[:3, 3]])
+    n = pts.shape[0]
+    wp.launch(_predict, dim=n, inputs=[pts, count, depth, Kv, R, t, guess], device=device)
+    scale = 1.0 / (1 << level)
+    near, far = depth_range_m
+    wp.launch(_sweep_scores, dim=(n, SWEEP_SAMPLES), inputs=[
+        prev_pyr, cur_pyr, level_off, level_w, level_h, scale, pts, count, depth, Kv, R, t, 1.0 / near, 1.0 / far,
+        scores, cand], device=device)
+    wp.launch(_sweep_pick, dim=n, inputs=[scores, cand, count, depth, scale, epipolar.MIN_SCORE, epipolar.MARGIN,
+                                           epipolar.SECOND_RADIUS, guess], device=device)
