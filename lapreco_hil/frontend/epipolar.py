@@ -172,6 +172,16 @@ def lk_params(window_px: int, levels: int) -> dict:
                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
 
 
+def tracks_back(cur_u8: np.ndarray, prev_u8: np.ndarray, cur_uv: np.ndarray, prev_uv: np.ndarray,
+                lk: dict) -> np.ndarray:
+    """Whether LK from ``cur_uv`` in the current image lands back within FORWARD_BACKWARD_PX of ``prev_uv`` in
+    the previous one (the forward-backward check of a match found across a wide baseline)."""
+    p = np.asarray(cur_uv, np.float32).reshape(-1, 1, 2)
+    q = np.asarray(prev_uv, np.float32).reshape(-1, 1, 2)
+    back, st, _ = cv2.calcOpticalFlowPyrLK(cur_u8, prev_u8, p, q.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    return (st.ravel() == 1) & (np.linalg.norm((back - q).reshape(-1, 2), axis=1) < FORWARD_BACKWARD_PX)
+
+
 def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarray, other_float: np.ndarray,
                  uv: np.ndarray, K_this: np.ndarray, K_other: np.ndarray, T_other_this: np.ndarray,
                  depth_range_m: tuple[float, float], lk: dict) -> tuple[np.ndarray, np.ndarray]:

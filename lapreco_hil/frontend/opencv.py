@@ -46,13 +46,15 @@ class OpenCVFrontEnd:
         inb = (pts[:, 0] >= 0) & (pts[:, 0] < self.camera.width) & (pts[:, 1] >= 0) & (pts[:, 1] < self.camera.height)
         return inb & (self.mask[yi, xi] > 0)
 
-    def _predict(self, motion: FrameMotion, intensity: np.ndarray) -> np.ndarray:
-        """Where each track starts LK in the new frame (NaN: not found along its epipolar line, so lost)."""
+    def _predict(self, motion: FrameMotion, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each track starts LK in the new frame (NaN: not found along its epipolar line, so lost), and
+        which were searched along their line (no depth known)."""
         self._depth_range = motion.depth_range_m
         depth = epipolar.depths_for_tracks(self._pts.astype(np.float64), self._ids, motion.track_ids,
                                            motion.depth_m, (self.camera.width, self.camera.height))
-        return epipolar.predict(self._pts.astype(np.float64), depth, self._prev_float, intensity, self.camera.K,
-                                np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
+        guess = epipolar.predict(self._pts.astype(np.float64), depth, self._prev_float, intensity, self.camera.K,
+                                 np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
+        return guess, ~np.isfinite(depth)
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
@@ -64,29 +66,42 @@ class OpenCVFrontEnd:
         gray, intensity = tracker_image(gray, cfg)
         t1 = time.perf_counter()
         n_lk = 0
+        searched = np.zeros(len(self._pts), bool)
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
                 nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, None, **self._lk)
                 predicted = np.ones(len(pts), bool)
             else:
-                guess = self._predict(motion, intensity)
+                guess, searched = self._predict(motion, intensity)
                 predicted = np.isfinite(guess).all(axis=1)
                 guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
                 nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess,
                                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk)
             nxt = nxt.reshape(-1, 2)
             keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
+            if searched.any():
+                # a match found along its epipolar line (a wide baseline) must track back to where it was
+                keep &= ~searched | epipolar.tracks_back(gray, self._prev, nxt, self._pts, self._lk)
             n_lk = int(keep.sum())
             self._filter(keep, nxt)
+            searched = searched[keep]
         t2 = time.perf_counter()
         if self.drift is not None and len(self._pts):
             gx = cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
             gy = cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
             reg = self.drift.register(intensity, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
+            positions = reg.positions.astype(np.float32)
             keep = reg.keep & self._inside(reg.positions)
-            self._filter(keep, reg.positions.astype(np.float32))
+            if searched.any():
+                # across a wide baseline the first patch's affine model no longer holds (perspective, the light):
+                # a match verified forward and backward starts a new reference here
+                positions[searched] = self._pts[searched]
+                keep[searched] = True
+                self._ref[searched] = self.drift.reference_patches(intensity, self._pts[searched])
+                self._A[searched] = np.eye(2)
+            self._filter(keep, positions)
         t_drift = time.perf_counter()
         n_new = 0
         if len(self._pts) < cfg.redetect_below * cfg.max_features:
