@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -15,6 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from fuzz_settings import FUZZ, mutated
+from hypothesis import given
+from hypothesis import strategies as st
 
 from lapreco_hil.camera import CameraModel, FieldOfView, Rig
 from lapreco_hil.errors import SessionError
@@ -417,3 +421,71 @@ def test_the_recorder_records_a_grabbers_rig_and_views(tmp_path):
     for i, f in enumerate(frames):
         got = s.frame(i)
         assert np.array_equal(got.image, f.image) and np.array_equal(got.views[0], f.views[0])
+
+
+# --- fuzzing: a mutated rig session is read or refused with one line ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def rig_session(tmp_path_factory) -> Path:
+    """A two-camera session whose right camera has a mask field of view (every fov form is reachable)."""
+    folder = tmp_path_factory.mktemp("rig") / "s"
+    mask = np.zeros((40, 80), np.uint8)
+    mask[5:35, 10:70] = 255
+    cv2.imwrite(str(folder.parent / "mask.png"), mask)
+    right = CameraModel(80, 40, 61.0, 60.5, 40.25, 19.75, fov=FieldOfView.mask(folder.parent / "mask.png"))
+    meta = SessionMeta(camera=LEFT, rig=Rig((LEFT, right), (np.eye(4), T_LEFT_RIGHT)), pose_source="camera_poses",
+                       length_unit="mm")
+    with SessionWriter(folder, meta) as w:
+        for f in stereo_frames(3):
+            w.add_frame(f)
+            w.add_camera_pose(f.t_ns, np.eye(4))
+    return folder
+
+
+@st.composite
+def _nested_mutation(draw, source):
+    """``source`` (JSON) with one value anywhere in it replaced."""
+    doc = json.loads(json.dumps(source))
+    node = doc
+    while True:
+        keys = list(node) if isinstance(node, dict) else list(range(len(node)))
+        key = draw(st.sampled_from(keys))
+        if isinstance(node[key], (dict, list)) and node[key] and draw(st.booleans()):
+            node = node[key]
+            continue
+        node[key] = draw(st.none() | st.booleans() | st.integers(-3, 3) | st.floats() | st.floats(-2.0, 2.0)
+                         | st.text(max_size=6) | st.lists(st.integers(-1, 2), max_size=4)
+                         | st.sampled_from(["left", "masks/right.png", "masks/../../x.png", "ellipse", 80, 40]))
+        return doc
+
+
+def _open_or_refuse(folder: Path) -> None:
+    try:
+        s = Session(folder)
+        for i in range(len(s)):
+            frame = s.frame(i)
+            assert frame.n_cameras == len(s.rig)
+            for k, cam in enumerate(s.rig.cameras):
+                assert frame.image_of(k).shape[:2] == (cam.height, cam.width)
+                assert cam.fov_mask(2.0).shape == (cam.height, cam.width)
+    except SessionError as exc:
+        assert "\n" not in str(exc) and str(folder) in str(exc), str(exc)
+
+
+@FUZZ
+@given(data=st.data())
+def test_mutated_rig_metadata_is_read_or_refused_clearly(rig_session, tmp_path_factory, data):
+    folder = tmp_path_factory.mktemp("fuzz") / "s"
+    shutil.copytree(rig_session, folder)
+    doc = json.loads((folder / "session.json").read_text())
+    (folder / "session.json").write_text(json.dumps(data.draw(_nested_mutation(doc))))
+    _open_or_refuse(folder)
+
+
+@FUZZ
+@given(data=st.data())
+def test_mutated_rig_frame_index_is_read_or_refused_clearly(rig_session, tmp_path_factory, data):
+    folder = tmp_path_factory.mktemp("fuzz") / "s"
+    shutil.copytree(rig_session, folder)
+    (folder / "frames.csv").write_bytes(data.draw(mutated((rig_session / "frames.csv").read_bytes())))
+    _open_or_refuse(folder)

@@ -289,7 +289,7 @@ def _fov(folder: Path):
             return FieldOfView.ellipse(e.get("cx", float), e.get("cy", float), _positive(e, "a"),
                                        _positive(e, "b"), e.get("angle_deg", float, 0.0))
         name = fov.get("mask", str)
-        where = f"{fov.source}: field '{fov._name('mask')}' = '{name}'"
+        where = f"{fov.source}: field '{fov._name('mask')}' = {name!r}"
         path = inside_session(folder, name, where)
         try:
             pixels = read_fov_mask(path)
@@ -315,7 +315,7 @@ def _rig(r: _Fields, length_scale: float, folder: Path) -> tuple[Rig, tuple[str,
         c = cams.sub(f"[{i}]")
         name = c.get("name", str)
         if not CAMERA_NAME.fullmatch(name) or name in names:
-            raise c._fail("name", f"is '{name}'; camera names must be distinct, 1-32 letters, digits, '_' or '-'")
+            raise c._fail("name", f"is {name!r}; camera names must be distinct, 1-32 letters, digits, '_' or '-'")
         names.append(name)
         cameras.append(_camera(c, _fov(folder)))
     T = r.elements("T_cam0_cam", n)
@@ -343,7 +343,7 @@ def inside_session(folder: Path, name: str, where: str) -> Path:
     root = folder.resolve()
     try:
         resolved = file.resolve()
-    except (OSError, RuntimeError) as exc:  # a symbolic-link loop
+    except (OSError, RuntimeError, ValueError) as exc:  # a symbolic-link loop, a NUL in the name
         raise SessionError(f"{where} cannot be resolved ({exc})") from None
     if not resolved.is_relative_to(root):
         raise SessionError(f"{where} leads outside the session folder (to '{resolved}'); paths must stay "
@@ -359,7 +359,7 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
     f = _Fields(doc, "", source)
     fmt = f.get("format", str)
     if fmt != FORMAT:
-        raise f._fail("format", f"is '{fmt}', expected '{FORMAT}'")
+        raise f._fail("format", f"is {fmt!r}, expected '{FORMAT}'")
     version = f.get("version", int)
     if version not in VERSIONS:
         raise SessionError(f"{source}: unknown session format version {version} (this lapreco reads versions "
@@ -367,11 +367,11 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
     units = f.sub("units")
     length, angle, time = units.get("length", str), units.get("angle", str), units.get("time", str)
     if length not in LENGTH_UNITS:
-        raise units._fail("length", f"is '{length}'; use one of {', '.join(LENGTH_UNITS)}")
+        raise units._fail("length", f"is {length!r}; use one of {', '.join(LENGTH_UNITS)}")
     if angle not in ANGLE_UNITS:
-        raise units._fail("angle", f"is '{angle}'; use one of {', '.join(ANGLE_UNITS)}")
+        raise units._fail("angle", f"is {angle!r}; use one of {', '.join(ANGLE_UNITS)}")
     if time not in TIME_UNITS:
-        raise units._fail("time", f"is '{time}'; timestamps must be integer nanoseconds ('ns')")
+        raise units._fail("time", f"is {time!r}; timestamps must be integer nanoseconds ('ns')")
 
     if version == 1:
         camera = _camera(f.sub("camera"), None)
@@ -384,7 +384,7 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
 
     pose_source = f.get("pose_source", str)
     if pose_source not in POSE_SOURCES:
-        raise f._fail("pose_source", f"is '{pose_source}'; use 'joints' or 'camera_poses'")
+        raise f._fail("pose_source", f"is {pose_source!r}; use 'joints' or 'camera_poses'")
     robot = None
     joint_names: tuple[str, ...] = ()
     joint_units: tuple[str, ...] = ()
