@@ -336,7 +336,7 @@ BAD = {
                                       "session.json", "field 'camera' is a version-1 field"),
     "wrong size view": (lambda f: cv2.imwrite(str(f / "frames" / "right" / "000002.png"),
                                               np.zeros((48, 64, 3), np.uint8)),
-                        "right/000002.png", "image is 64x48, the session's camera is 80x40"),
+                        "right/000002.png", "image is 64x48, the session's camera 'right' is 80x40"),
 }
 
 

@@ -157,11 +157,13 @@ class Session:
 
     def frame(self, i: int) -> Frame:
         """Frame i: camera 0's image, and the other cameras' in ``views`` (each at its own size)."""
-        images = tuple(self._image(path, cam) for path, cam in zip(self._files[i], self.meta.rig.cameras))
+        names = self.meta.camera_names if len(self.meta.rig) > 1 else ("",)
+        images = tuple(self._image(path, cam, name) for path, cam, name in
+                       zip(self._files[i], self.meta.rig.cameras, names))
         return Frame(image=images[0], t_ns=int(self.frame_t_ns[i]), seq=int(self.frame_seq[i]), views=images[1:])
 
     @staticmethod
-    def _image(path: Path, cam: CameraModel) -> np.ndarray:
+    def _image(path: Path, cam: CameraModel, name: str) -> np.ndarray:
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise SessionError(f"{path}: cannot decode the image (corrupt or not an image file)")
@@ -172,8 +174,9 @@ class Session:
         elif image.shape[2] == 4:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
         if image.shape[:2] != (cam.height, cam.width):
-            raise SessionError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the session's camera is "
-                               f"{cam.width}x{cam.height}")
+            which = f"camera '{name}'" if name else "camera"
+            raise SessionError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the session's {which} is "
+                               f"{cam.width}x{cam.height}; each image must have its camera's size")
         return image
 
     @property
