@@ -198,6 +198,20 @@ def test_the_documented_script_writes_the_hamlyn_pair_as_one_rig_frame(tmp_path)
     assert np.mean(depth_m > 0) > 0.95 and 0.03 < np.median(depth_m) < 0.12, np.median(depth_m)  # ~61 mm
 
 
+def test_the_documented_version_2_metadata_reads(tmp_path):
+    """The session.json example of docs/session-format.md is a valid version-2 document (its mask in place)."""
+    from lapreco_hil.sessions.format import meta_from_json
+
+    blocks = [b for b in re.findall(r"```json\n(.*?)```", DOC.read_text(), re.S) if '"version": 2' in b]
+    assert len(blocks) == 1
+    (tmp_path / "masks").mkdir()
+    cv2.imwrite(str(tmp_path / "masks" / "right.png"), np.full((288, 360), 255, np.uint8))
+    meta = meta_from_json(json.loads(blocks[0]), str(tmp_path / "session.json"), tmp_path)
+    assert meta.camera_names == ("left", "right") and meta.rig.cameras[1].fov.kind == "mask"
+    assert meta.rig.cameras[0].fov == FieldOfView.circle(180, 144, 170)
+    assert meta.rig.T_cam0_cam[1][0, 3] == pytest.approx(0.005520766)  # mm in the file, metres inside
+
+
 # --- field of view ----------------------------------------------------------------------------------------------
 
 def write_fov_session(folder: Path, fov_json: dict | None, mask: np.ndarray | None = None,
