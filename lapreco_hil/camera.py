@@ -7,12 +7,100 @@ p1 = t1, p2 = t2, s1 = p_x, s3 = p_y and s2 = s4 = 0 (its equations 1-4 written 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from lapreco_hil.errors import CalibrationError
+
 N_DIST = 12
+FOV_KINDS = ("circle", "ellipse", "mask")
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """The part of the distorted image the scope's optics light (outside it: black, no features). A circle
+    (centre, radius ``r``), an ellipse (centre, semi-axes ``a`` along ``angle_deg`` from the image x axis
+    towards y, and ``b``), or a mask image (``mask_file``: non-zero = inside, read on first use and kept).
+    Build one with :meth:`circle`, :meth:`ellipse` or :meth:`mask`; consumers call ``CameraModel.fov_mask``."""
+
+    kind: str
+    cx: float = 0.0
+    cy: float = 0.0
+    r: float = 0.0
+    a: float = 0.0
+    b: float = 0.0
+    angle_deg: float = 0.0
+    mask_file: str = ""
+    # the mask file's pixels once read (a mask camera is compared and hashed by its file name, not its pixels)
+    _loaded: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.kind not in FOV_KINDS:
+            raise ValueError(f"field of view kind '{self.kind}': use one of {', '.join(FOV_KINDS)}")
+
+    @staticmethod
+    def circle(cx: float, cy: float, r: float) -> "FieldOfView":
+        return FieldOfView("circle", float(cx), float(cy), r=float(r))
+
+    @staticmethod
+    def ellipse(cx: float, cy: float, a: float, b: float, angle_deg: float = 0.0) -> "FieldOfView":
+        return FieldOfView("ellipse", float(cx), float(cy), a=float(a), b=float(b), angle_deg=float(angle_deg))
+
+    @staticmethod
+    def mask(path, pixels: np.ndarray | None = None) -> "FieldOfView":
+        """A mask image file; ``pixels`` (bool, H x W), when the caller has already read and checked it."""
+        fov = FieldOfView("mask", mask_file=str(path))
+        if pixels is not None:
+            fov._loaded["inside"] = np.asarray(pixels, bool)
+        return fov
+
+    def inside(self) -> np.ndarray:
+        """A mask's pixels: bool H x W, True inside (read from ``mask_file`` once)."""
+        if "inside" not in self._loaded:
+            self._loaded["inside"] = read_fov_mask(self.mask_file)
+        return self._loaded["inside"]
+
+    def region(self, width: int, height: int, margin_px: float = 0.0) -> np.ndarray:
+        """uint8 mask (255 inside) of this region in a width x height image, shrunk by ``margin_px``
+        (a negative margin grows it)."""
+        mask = np.zeros((height, width), np.uint8)
+        if self.kind == "circle":
+            r = int(round(self.r - margin_px))
+            cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(r, 0), 255, -1)
+        elif self.kind == "ellipse":
+            # the implicit equation at pixel centres: exact, where cv2.ellipse would round centre and axes
+            a, b = self.a - margin_px, self.b - margin_px
+            if a > 0 and b > 0:
+                yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+                c, s = np.cos(np.radians(self.angle_deg)), np.sin(np.radians(self.angle_deg))
+                u = (xx - self.cx) * c + (yy - self.cy) * s
+                v = -(xx - self.cx) * s + (yy - self.cy) * c
+                mask[(u / a) ** 2 + (v / b) ** 2 <= 1.0] = 255
+        else:
+            inside = self.inside()
+            if inside.shape != (height, width):
+                raise CalibrationError(f"field-of-view mask '{self.mask_file}' is {inside.shape[1]}x"
+                                       f"{inside.shape[0]}, the camera is {width}x{height}; a mask must have "
+                                       f"its camera's size")
+            src = inside.astype(np.uint8)
+            if margin_px > 0:  # keep pixels farther than the margin from the nearest outside pixel
+                mask[cv2.distanceTransform(src, cv2.DIST_L2, 5) > margin_px] = 255
+            elif margin_px < 0:  # add outside pixels within -margin of the nearest inside pixel
+                mask[cv2.distanceTransform(1 - src, cv2.DIST_L2, 5) <= -margin_px] = 255
+            else:
+                mask[inside] = 255
+        return mask
+
+
+def read_fov_mask(path) -> np.ndarray:
+    """A field-of-view mask image as bool H x W (non-zero in any channel = inside)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise CalibrationError(f"field-of-view mask '{path}': missing or not an image; give a PNG of the "
+                               f"camera's size, non-zero inside the field of view")
+    return np.any(image != 0, axis=2) if image.ndim == 3 else image != 0
 
 
 @dataclass(frozen=True)
@@ -26,10 +114,18 @@ class CameraModel:
     dist: tuple[float, ...] = (0.0,) * N_DIST
     # the scope's circular field of view: radius in pixels about (cx, cy); 0 = none
     fov_radius_px: float = 0.0
+    # any other field of view (an off-centre circle, an ellipse, a mask); it overrides fov_radius_px. A circle
+    # about (cx, cy) is kept as fov_radius_px alone, so that both ways of giving it make equal cameras
+    fov: FieldOfView | None = None
 
     def __post_init__(self) -> None:
         if len(self.dist) != N_DIST:
             object.__setattr__(self, "dist", tuple(self.dist) + (0.0,) * (N_DIST - len(self.dist)))
+        fov = self.fov
+        if fov is not None and fov.kind == "circle":
+            object.__setattr__(self, "fov_radius_px", fov.r)  # consumers that know only a radius still see it
+            if (fov.cx, fov.cy) == (self.cx, self.cy):
+                object.__setattr__(self, "fov", None)
 
     @staticmethod
     def from_paper_model(width, height, fx, fy, cx, cy, k=(0.0, 0.0, 0.0), t=(0.0, 0.0), p=(0.0, 0.0),
@@ -65,15 +161,19 @@ class CameraModel:
         return cv2.initUndistortRectifyMap(self.K, self.dist_array, None, self.K, (self.width, self.height),
                                            cv2.CV_32FC1)
 
+    @property
+    def field_of_view(self) -> FieldOfView | None:
+        """The field of view as a region (``fov``, or the circle of ``fov_radius_px``); None: the whole image."""
+        if self.fov is not None:
+            return self.fov
+        return FieldOfView.circle(self.cx, self.cy, self.fov_radius_px) if self.fov_radius_px > 0 else None
+
     def fov_mask(self, margin_px: float = 0.0) -> np.ndarray:
-        """uint8 mask (255 inside) of the circular field of view in the distorted image."""
-        mask = np.zeros((self.height, self.width), np.uint8)
-        if self.fov_radius_px <= 0:
-            mask[:] = 255
-            return mask
-        r = int(round(self.fov_radius_px - margin_px))
-        cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(r, 0), 255, -1)
-        return mask
+        """uint8 mask (255 inside) of the field of view in the distorted image, shrunk by ``margin_px``."""
+        fov = self.field_of_view
+        if fov is None:
+            return np.full((self.height, self.width), 255, np.uint8)
+        return fov.region(self.width, self.height, margin_px)
 
 
 @dataclass(frozen=True)

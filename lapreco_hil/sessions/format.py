@@ -1,11 +1,14 @@
-"""The lapreco session format, version 1: metadata and the CSV tables (docs/session-format.md is the
-specification; this module is its one reader and writer of metadata).
+"""The lapreco session format, versions 1 and 2: metadata and the CSV tables (docs/session-format.md is the
+specification; this module is its one reader and writer of metadata). Version 1 holds one camera; version 2
+a rig of cameras (a stereo scope), each frame one image per camera.
 
 A session is a folder::
 
     session.json            metadata (this module: SessionMeta)
-    frames.csv              seq,t_ns,file            one row per frame, oldest first
+    frames.csv              seq,t_ns,file            one row per frame, oldest first (version 1)
+                            seq,t_ns,camera,file     one row per camera of each frame (version 2)
     frames/000000.png ...   lossless images (PNG; any format OpenCV reads losslessly)
+    masks/left.png          a camera's field-of-view mask (version 2, optional)
     joints.csv              seq,t_ns,<joint names>   when pose_source = "joints"
     robot.urdf              the robot model          when pose_source = "joints" (or a packaged name)
     camera_poses.csv        t_ns,tx,ty,tz,qx,qy,qz,qw  when pose_source = "camera_poses"
@@ -21,20 +24,25 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from lapreco_hil.camera import N_DIST, CameraModel
-from lapreco_hil.errors import SessionError
+from lapreco_hil.camera import N_DIST, CameraModel, FieldOfView, Rig, read_fov_mask
+from lapreco_hil.errors import CalibrationError, SessionError
 from lapreco_hil.types import RobotDescription
 
 FORMAT = "lapreco-session"
-VERSION = 1
+VERSION = 2  # the newest version this module reads and writes (a one-camera session is written as version 1)
+VERSIONS = (1, 2)
 META_FILE = "session.json"
 FRAMES_FILE = "frames.csv"
 FRAMES_DIR = "frames"
+MASKS_DIR = "masks"
+FRAME_COLUMNS = {1: ("seq", "t_ns", "file"), 2: ("seq", "t_ns", "camera", "file")}
+CAMERA_NAME = re.compile(r"[A-Za-z0-9_-]{1,32}")
 JOINTS_FILE = "joints.csv"
 CAMERA_POSES_FILE = "camera_poses.csv"
 TRUTH_SURFACE_FILE = "truth/surface.ply"
@@ -57,9 +65,13 @@ class PoseSigma:
     translation_m: float = 0.0005
 
 
+def default_camera_names(n: int) -> tuple[str, ...]:
+    return ("left", "right") if n == 2 else ("camera",) if n == 1 else tuple(f"cam{k}" for k in range(n))
+
+
 @dataclass(frozen=True)
 class SessionMeta:
-    camera: CameraModel
+    camera: CameraModel  # camera 0 of the rig (the one camera of a version-1 session)
     pose_source: str  # "joints" | "camera_poses"
     robot: RobotDescription | None = None  # urdf is relative to the session folder or a packaged name
     joint_names: tuple[str, ...] = ()
@@ -73,6 +85,28 @@ class SessionMeta:
     counts: dict = field(default_factory=dict)
     source: dict = field(default_factory=dict)  # free-form: what wrote it (devices, scene, seed)
     health: dict = field(default_factory=dict)  # informative: the devices' faults while recording
+    # every camera with its extrinsics (SI units); None: a rig of one, ``camera``
+    rig: Rig | None = None
+    camera_names: tuple[str, ...] = ()  # one per camera of the rig (default: left, right for a pair)
+    file_version: int = 0  # the version of the session.json it was read from (0: made in memory)
+
+    def __post_init__(self) -> None:
+        if self.rig is None:
+            object.__setattr__(self, "rig", Rig.mono(self.camera))
+        elif self.rig.cameras[0] != self.camera:
+            raise ValueError("SessionMeta: camera must be the rig's camera 0")
+        if not self.camera_names:
+            object.__setattr__(self, "camera_names", default_camera_names(len(self.rig)))
+        if len(self.camera_names) != len(self.rig) or len(set(self.camera_names)) != len(self.camera_names) \
+                or not all(CAMERA_NAME.fullmatch(n) for n in self.camera_names):
+            raise ValueError(f"SessionMeta: camera names {self.camera_names} must be one per camera, distinct, "
+                             f"of letters, digits, '_' and '-'")
+
+    @property
+    def version(self) -> int:
+        """The format version this metadata is written in: 1 for one camera whose field of view version 1
+        can hold (none, or a circle about the principal point); 2 otherwise."""
+        return 1 if len(self.rig) == 1 and self.camera.fov is None else 2
 
     @property
     def joint_scale(self) -> np.ndarray:
@@ -80,23 +114,40 @@ class SessionMeta:
         return np.array([LENGTH_UNITS[self.length_unit] if u == "length" else ANGLE_UNITS[self.angle_unit]
                          for u in self.joint_units])
 
-    def to_json(self) -> dict:
-        cam = self.camera
+    def to_json(self, folder: Path | None = None) -> dict:
+        """session.json's content; ``folder`` (the session's) is needed only for a camera with a mask
+        field of view, whose file must lie inside it."""
+        version = self.version
         doc: dict = {
             "format": FORMAT,
-            "version": VERSION,
+            "version": version,
             "units": {"length": self.length_unit, "angle": self.angle_unit, "time": "ns"},
             "time_base": "capture time in integer nanoseconds of one monotonic clock shared by frames, "
                          "joints and poses",
-            "camera": {"width": cam.width, "height": cam.height,
-                       "K": [[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]],
-                       "dist": list(cam.dist), "fov_radius_px": cam.fov_radius_px},
+        }
+        if version == 1:
+            doc["camera"] = {**_intrinsics_json(self.camera), "fov_radius_px": self.camera.fov_radius_px}
+        else:
+            scale = LENGTH_UNITS[self.length_unit]
+            cameras = []
+            for name, cam in zip(self.camera_names, self.rig.cameras):
+                entry = {"name": name, **_intrinsics_json(cam)}
+                if cam.field_of_view is not None:
+                    entry["fov"] = _fov_json(cam.field_of_view, folder)
+                cameras.append(entry)
+            T = [np.asarray(T, float).copy() for T in self.rig.T_cam0_cam]
+            for m in T:
+                m[:3, 3] /= scale
+            doc["rig"] = {"cameras": cameras, "T_cam0_cam": [m.tolist() for m in T],
+                          "sigma_rotation_rad": self.rig.sigma_rotation_rad,
+                          "sigma_translation_m": self.rig.sigma_translation_m}
+        doc.update({
             "pose_source": self.pose_source,
             "time_offset_ns": self.time_offset_ns,
             "complete": self.complete,
             "counts": self.counts,
             "source": self.source,
-        }
+        })
         if self.health:
             doc["health"] = self.health
         if self.nominal_fps:
@@ -113,6 +164,26 @@ class SessionMeta:
         return doc
 
 
+def _intrinsics_json(cam: CameraModel) -> dict:
+    return {"width": cam.width, "height": cam.height,
+            "K": [[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]], "dist": list(cam.dist)}
+
+
+def _fov_json(fov: FieldOfView, folder: Path | None) -> dict:
+    if fov.kind == "circle":
+        return {"circle": {"cx": fov.cx, "cy": fov.cy, "r": fov.r}}
+    if fov.kind == "ellipse":
+        return {"ellipse": {"cx": fov.cx, "cy": fov.cy, "a": fov.a, "b": fov.b, "angle_deg": fov.angle_deg}}
+    path = Path(fov.mask_file)
+    if folder is not None:
+        try:
+            path = path.resolve().relative_to(Path(folder).resolve())
+        except ValueError:
+            raise SessionError(f"field-of-view mask '{fov.mask_file}' is not inside the session folder "
+                               f"'{folder}'; copy it there (SessionWriter does)") from None
+    return {"mask": path.as_posix()}
+
+
 class _Fields:
     """Typed access to a JSON object, with errors that name the file and the field."""
 
@@ -122,6 +193,8 @@ class _Fields:
         self.data, self.where, self.source = data, where, source
 
     def _name(self, key: str) -> str:
+        if key.startswith("["):  # a list element: rig.cameras[1]
+            return f"{self.where}{key}"
         return f"{self.where}.{key}" if self.where else key
 
     def _fail(self, key: str, what: str) -> SessionError:
@@ -154,6 +227,14 @@ class _Fields:
     def sub(self, key: str) -> "_Fields":
         return _Fields(self.get(key, dict), self._name(key), self.source)
 
+    def elements(self, key: str, n: int | None = None) -> "_Fields":
+        """A JSON list as fields named ``key[i]`` (``n``: the length it must have)."""
+        value = self.get(key, list)
+        if not value or n is not None and len(value) != n:
+            raise self._fail(key, f"must be a list of {n if n is not None else 'one or more'} entries, "
+                                  f"got {len(value)}")
+        return _Fields({f"[{i}]": v for i, v in enumerate(value)}, self._name(key), self.source)
+
 
 def _check_rigid(f: _Fields, key: str) -> np.ndarray:
     T = f.matrix(key, (4, 4))
@@ -164,25 +245,8 @@ def _check_rigid(f: _Fields, key: str) -> np.ndarray:
     return T
 
 
-def meta_from_json(doc, source: str) -> SessionMeta:
-    f = _Fields(doc, "", source)
-    fmt = f.get("format", str)
-    if fmt != FORMAT:
-        raise f._fail("format", f"is '{fmt}', expected '{FORMAT}'")
-    version = f.get("version", int)
-    if version != VERSION:
-        raise SessionError(f"{source}: unknown session format version {version} (this lapreco reads version "
-                           f"{VERSION}); upgrade lapreco-hil or rewrite the session")
-    units = f.sub("units")
-    length, angle, time = units.get("length", str), units.get("angle", str), units.get("time", str)
-    if length not in LENGTH_UNITS:
-        raise units._fail("length", f"is '{length}'; use one of {', '.join(LENGTH_UNITS)}")
-    if angle not in ANGLE_UNITS:
-        raise units._fail("angle", f"is '{angle}'; use one of {', '.join(ANGLE_UNITS)}")
-    if time not in TIME_UNITS:
-        raise units._fail("time", f"is '{time}'; timestamps must be integer nanoseconds ('ns')")
-
-    cam = f.sub("camera")
+def _camera(cam: _Fields, fov_of) -> CameraModel:
+    """One camera's intrinsics (and, through ``fov_of(cam, width, height)``, its field of view)."""
     width, height = cam.get("width", int), cam.get("height", int)
     if not (1 <= width <= 16384 and 1 <= height <= 16384):
         raise cam._fail("width", f"and height ({width}x{height}) must be 1..16384")
@@ -193,12 +257,134 @@ def meta_from_json(doc, source: str) -> SessionMeta:
                                 f"s1 s2 s3 s4)")
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise cam._fail("K", "must have positive focal lengths")
-    camera = CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(float(v) for v in dist),
-                         cam.get("fov_radius_px", float, 0.0))
+    dist_t = tuple(float(v) for v in dist)
+    if fov_of is None:  # version 1: a circle about the principal point
+        return CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist_t,
+                           cam.get("fov_radius_px", float, 0.0))
+    return CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist_t,
+                       fov=fov_of(cam, width, height))
+
+
+def _positive(f: _Fields, key: str, default=...) -> float:
+    value = f.get(key, float, default)
+    if value <= 0:
+        raise f._fail(key, f"must be positive, got {value!r}")
+    return value
+
+
+def _fov(folder: Path):
+    def parse(cam: _Fields, width: int, height: int) -> FieldOfView | None:
+        if "fov" not in cam.data:
+            return None
+        fov = cam.sub("fov")
+        kinds = [k for k in ("circle", "ellipse", "mask") if k in fov.data]
+        if len(kinds) != 1 or len(fov.data) != 1:
+            raise cam._fail("fov", f"must hold exactly one of 'circle', 'ellipse' or 'mask', got "
+                                   f"{sorted(fov.data)}")
+        if kinds[0] == "circle":
+            c = fov.sub("circle")
+            return FieldOfView.circle(c.get("cx", float), c.get("cy", float), _positive(c, "r"))
+        if kinds[0] == "ellipse":
+            e = fov.sub("ellipse")
+            return FieldOfView.ellipse(e.get("cx", float), e.get("cy", float), _positive(e, "a"),
+                                       _positive(e, "b"), e.get("angle_deg", float, 0.0))
+        name = fov.get("mask", str)
+        where = f"{fov.source}: field '{fov._name('mask')}' = {name!r}"
+        path = inside_session(folder, name, where)
+        try:
+            pixels = read_fov_mask(path)
+        except CalibrationError:
+            raise SessionError(f"{where}: cannot decode the image (not a PNG?); give a PNG of the camera's "
+                               f"size, non-zero inside the field of view") from None
+        if pixels.shape != (height, width):
+            raise SessionError(f"{where}: the mask is {pixels.shape[1]}x{pixels.shape[0]}, the camera is "
+                               f"{width}x{height}; a mask must have its camera's size (see "
+                               f"docs/session-format.md)")
+        if not pixels.any():
+            raise SessionError(f"{where}: the mask is all zero (nothing inside the field of view); non-zero "
+                               f"pixels mark the inside")
+        return FieldOfView.mask(path, pixels)
+    return parse
+
+
+def _rig(r: _Fields, length_scale: float, folder: Path) -> tuple[Rig, tuple[str, ...]]:
+    cams = r.elements("cameras")
+    n = len(cams.data)
+    cameras, names = [], []
+    for i in range(n):
+        c = cams.sub(f"[{i}]")
+        name = c.get("name", str)
+        if not CAMERA_NAME.fullmatch(name) or name in names:
+            raise c._fail("name", f"is {name!r}; camera names must be distinct, 1-32 letters, digits, '_' or '-'")
+        names.append(name)
+        cameras.append(_camera(c, _fov(folder)))
+    T = r.elements("T_cam0_cam", n)
+    transforms = []
+    for i in range(n):
+        m = _check_rigid(T, f"[{i}]").copy()
+        if i == 0 and not np.allclose(m, np.eye(4), atol=1e-9):
+            raise T._fail("[0]", "must be the identity (camera 0 is the rig's reference)")
+        m[:3, 3] *= length_scale
+        transforms.append(m)
+    defaults = Rig.mono(cameras[0])
+    rig = Rig(tuple(cameras), tuple(transforms),
+              _positive(r, "sigma_rotation_rad", defaults.sigma_rotation_rad),
+              _positive(r, "sigma_translation_m", defaults.sigma_translation_m))
+    return rig, tuple(names)
+
+
+def inside_session(folder: Path, name: str, where: str) -> Path:
+    """The file a session names, checked: a relative path, inside the session folder (after following
+    symbolic links), and there. ``where`` starts the error (the file, line or field and the name)."""
+    if not name or Path(name).is_absolute() or name.startswith(("/", "\\")) or name[1:2] == ":":
+        raise SessionError(f"{where} is not a relative path; paths must be relative to the session folder "
+                           f"(e.g. frames/000000.png)")
+    file = folder / name
+    root = folder.resolve()
+    try:
+        resolved = file.resolve()
+    except (OSError, RuntimeError, ValueError) as exc:  # a symbolic-link loop, a NUL in the name
+        raise SessionError(f"{where} cannot be resolved ({exc})") from None
+    if not resolved.is_relative_to(root):
+        raise SessionError(f"{where} leads outside the session folder (to '{resolved}'); paths must stay "
+                           f"inside it")
+    if not resolved.is_file():
+        raise SessionError(f"{where} is missing")
+    return file
+
+
+def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
+    """Metadata from session.json's content; ``source`` names it in errors, ``folder`` is the session's
+    (default: the folder of ``source``), where version 2's mask files are read."""
+    f = _Fields(doc, "", source)
+    fmt = f.get("format", str)
+    if fmt != FORMAT:
+        raise f._fail("format", f"is {fmt!r}, expected '{FORMAT}'")
+    version = f.get("version", int)
+    if version not in VERSIONS:
+        raise SessionError(f"{source}: unknown session format version {version} (this lapreco reads versions "
+                           f"{', '.join(map(str, VERSIONS))}); upgrade lapreco-hil or rewrite the session")
+    units = f.sub("units")
+    length, angle, time = units.get("length", str), units.get("angle", str), units.get("time", str)
+    if length not in LENGTH_UNITS:
+        raise units._fail("length", f"is {length!r}; use one of {', '.join(LENGTH_UNITS)}")
+    if angle not in ANGLE_UNITS:
+        raise units._fail("angle", f"is {angle!r}; use one of {', '.join(ANGLE_UNITS)}")
+    if time not in TIME_UNITS:
+        raise units._fail("time", f"is {time!r}; timestamps must be integer nanoseconds ('ns')")
+
+    if version == 1:
+        camera = _camera(f.sub("camera"), None)
+        rig, names = Rig.mono(camera), ()
+    else:
+        if "camera" in f.data:
+            raise f._fail("camera", "is a version-1 field; a version-2 session gives its cameras in 'rig'")
+        rig, names = _rig(f.sub("rig"), LENGTH_UNITS[length], folder or Path(source).parent)
+        camera = rig.cameras[0]
 
     pose_source = f.get("pose_source", str)
     if pose_source not in POSE_SOURCES:
-        raise f._fail("pose_source", f"is '{pose_source}'; use 'joints' or 'camera_poses'")
+        raise f._fail("pose_source", f"is {pose_source!r}; use 'joints' or 'camera_poses'")
     robot = None
     joint_names: tuple[str, ...] = ()
     joint_units: tuple[str, ...] = ()
@@ -225,7 +411,8 @@ def meta_from_json(doc, source: str) -> SessionMeta:
                        joint_units=joint_units, pose_sigma=sigma, time_offset_ns=f.get("time_offset_ns", int, 0),
                        length_unit=length, angle_unit=angle, nominal_fps=fps,
                        complete=f.get("complete", bool, True), counts=f.get("counts", dict, {}),
-                       source=f.get("source", dict, {}), health=f.get("health", dict, {}))
+                       source=f.get("source", dict, {}), health=f.get("health", dict, {}), rig=rig,
+                       camera_names=names, file_version=version)
 
 
 def read_meta(folder: Path) -> SessionMeta:
@@ -243,7 +430,7 @@ def read_meta(folder: Path) -> SessionMeta:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SessionError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
-    return meta_from_json(doc, str(path))
+    return meta_from_json(doc, str(path), folder)
 
 
 # --- CSV tables ---------------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.errors import ConfigError, DeviceError
 from lapreco_hil.robot_models import urdf_path
 from lapreco_hil.types import RobotDescription
@@ -84,13 +84,16 @@ class DeviceWatch:
 
 def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames: int | None = None,
            camera: CameraModel | None = None, description: RobotDescription | None = None,
-           source: dict | None = None, progress: bool = True, with_truth: bool = True) -> RecordStats:
+           source: dict | None = None, progress: bool = True, with_truth: bool = True,
+           rig: Rig | None = None) -> RecordStats:
     """Record until the grabber ends, ``seconds`` of capture time have passed, ``max_frames`` were written,
-    or Ctrl-C; the session is closed (complete) in every case. ``camera``/``description`` override what the
-    devices know (a real grabber does not know its lens: pass the calibration)."""
+    or Ctrl-C; the session is closed (complete) in every case. ``camera``/``rig``/``description`` override
+    what the devices know (a real grabber does not know its lens: pass the calibration); ``camera`` replaces
+    camera 0 of the grabber's rig. A grabber whose frames carry ``views`` (a stereo scope) is recorded as a
+    version-2 session of its rig."""
     from tqdm import tqdm
 
-    camera = camera or grabber.camera
+    camera = camera or (rig.cameras[0] if rig is not None else None) or grabber.camera
     if camera is None:
         raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
                           f"(from 'lapreco calibrate lens')")
@@ -99,7 +102,7 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
         raise ConfigError(f"robot '{robot.url.raw}' has no robot model/hand-eye; pass --robot-model and "
                           f"--hand-eye handeye.yaml")
     truth = grabber.ground_truth if with_truth else None
-    meta = session_meta_for(grabber, robot, camera, description, source)
+    meta = session_meta_for(grabber, robot, camera, description, source, rig)
     stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
     bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
     wall0 = time.perf_counter()
@@ -179,11 +182,22 @@ def _no_joints_message(url: str, out: str, stats: RecordStats, delivered: int | 
 
 
 def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDescription,
-                     source: dict | None = None) -> SessionMeta:
-    return SessionMeta(camera=camera, pose_source="joints", robot=description,
+                     source: dict | None = None, rig: Rig | None = None) -> SessionMeta:
+    """The metadata of a recording: ``rig`` when given, else the grabber's rig with ``camera`` as its camera 0
+    (a rig of one, ``camera``, when the grabber knows no rig or a rig of one)."""
+    rig = rig or recorded_rig(grabber.rig, camera)
+    return SessionMeta(camera=rig.cameras[0], rig=rig, pose_source="joints", robot=description,
                        joint_names=tuple(robot.info.joint_names),
                        joint_units=_joint_units(description, len(robot.info.joint_names)),
                        nominal_fps=grabber.nominal_fps, source=source or {})
+
+
+def recorded_rig(grabber_rig: Rig | None, camera: CameraModel) -> Rig:
+    """The grabber's rig with ``camera`` (a calibration given for camera 0) in place of its camera 0."""
+    if grabber_rig is None or len(grabber_rig) == 1:
+        return Rig.mono(camera)
+    return Rig((camera, *grabber_rig.cameras[1:]), grabber_rig.T_cam0_cam, grabber_rig.sigma_rotation_rad,
+               grabber_rig.sigma_translation_m)
 
 
 def _joint_units(description: RobotDescription, n: int) -> tuple[str, ...]:

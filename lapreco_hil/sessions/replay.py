@@ -1,5 +1,7 @@
 """Sessions as devices: ``replay://<session folder>?pace=afap|realtime[&queue=N]`` for a grabber and a robot.
 
+The grabber reports the session's rig and delivers every camera's image of a frame (``Frame.views``).
+
 A real-time replay plays the frames at their recorded rate and, like a frame grabber, holds at most ``queue``
 of them (default 4, as the V4L2 driver's): a reader more than that many frames behind loses the oldest,
 and the sequence numbers show the gap. ``pace=afap`` hands every frame on as fast as it is read.
@@ -85,6 +87,11 @@ class ReplayGrabber(Grabber):
     @property
     def camera(self):
         return self.session.meta.camera
+
+    @property
+    def rig(self):
+        """The session's cameras: a version-2 session's frames carry the other cameras' images in ``views``."""
+        return self.session.meta.rig
 
     @property
     def ground_truth(self):

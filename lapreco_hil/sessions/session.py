@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.errors import SessionError
 from lapreco_hil.geometry import SampledPoses
 from lapreco_hil.ground_truth import GroundTruth
@@ -59,46 +60,110 @@ class Session:
                             "rest is missing (an incomplete copy?)", self.folder, fmt.META_FILE, name, n,
                             key.replace("_", " "), recorded)
 
+    # --- the cameras ----------------------------------------------------------------------------------------
+    @property
+    def rig(self) -> Rig:
+        """Every camera of the session with its extrinsics (a version-1 session: a rig of one)."""
+        return self.meta.rig
+
+    @property
+    def camera(self) -> CameraModel:
+        """Camera 0, the rig's reference (the session's one camera in version 1)."""
+        return self.meta.camera
+
     # --- frames ---------------------------------------------------------------------------------------------
     def _read_frames(self) -> None:
         path = self.folder / fmt.FRAMES_FILE
-        rows, truncated = fmt.read_rows(path, ("seq", "t_ns", "file"))
+        version = self.meta.file_version or self.meta.version
+        rows, truncated = fmt.read_rows(path, fmt.FRAME_COLUMNS[version])
         if truncated:
             self.truncated.append(fmt.FRAMES_FILE)
-        self.frame_seq = np.array([fmt.parse_int(path, i + 2, "seq", r[0]) for i, r in enumerate(rows)], np.int64)
-        self.frame_t_ns = np.array([fmt.parse_int(path, i + 2, "t_ns", r[1]) for i, r in enumerate(rows)],
-                                   np.int64)
-        if not rows:
+        if version == 1:
+            groups = [[(i + 2, r[0], r[1], "0", r[2])] for i, r in enumerate(rows)]
+        else:
+            groups = self._rig_frames(path, rows, truncated)
+        if not groups:
             raise SessionError(f"{path}: no frames")
-        fmt.check_increasing(path, self.frame_t_ns)
-        fmt.check_increasing(path, self.frame_seq, "seq")
-        self.frame_files = [self._frame_file(path, i + 2, r[2]) for i, r in enumerate(rows)]
+        first = [g[0] for g in groups]
+        self.frame_seq = np.array([fmt.parse_int(path, ln, "seq", seq) for ln, seq, *_ in first], np.int64)
+        self.frame_t_ns = np.array([fmt.parse_int(path, ln, "t_ns", t) for ln, _, t, *_ in first], np.int64)
+        self._check_increasing(path, [g[0][0] for g in groups])
+        # per frame, each camera's image file (camera k: files[i][k])
+        self._files = [tuple(self._frame_file(path, ln, name) for ln, *_, name in
+                             sorted(g, key=lambda row: int(row[3]))) for g in groups]
+        self.frame_files = [f[0] for f in self._files]
+
+    def _check_increasing(self, path: Path, lines: list[int]) -> None:
+        for what, values in (("t_ns", self.frame_t_ns), ("seq", self.frame_seq)):
+            bad = np.flatnonzero(np.diff(values) <= 0)
+            if bad.size:
+                i = int(bad[0]) + 1
+                raise SessionError(f"{path}: line {lines[i]}: {what} {values[i]} does not increase (previous "
+                                   f"frame {values[i - 1]}); {what} must be strictly increasing")
+
+    def _rig_frames(self, path: Path, rows: list[list[str]], truncated: bool) -> list[list[tuple]]:
+        """Version 2: the rows of one frame (consecutive, the same seq and t_ns, one per camera), grouped as
+        [(line, seq, t_ns, camera, file), ...]."""
+        n, names = len(self.meta.rig), self.meta.camera_names
+        groups: list[list[tuple]] = []
+        for i, (seq, t_ns, camera, name) in enumerate(rows):
+            lineno = i + 2
+            k = fmt.parse_int(path, lineno, "camera", camera)
+            if not 0 <= k < n:
+                raise SessionError(f"{path}: line {lineno}: column 'camera' = {k} is out of range; the rig has "
+                                   f"{n} camera{'s' if n > 1 else ''} (0..{n - 1}, session.json's rig.cameras)")
+            group = groups[-1] if groups else None
+            if group is not None and group[0][1] == seq:
+                if group[0][2] != t_ns:
+                    raise SessionError(f"{path}: line {lineno}: t_ns {t_ns} differs from line {group[0][0]}'s "
+                                       f"{group[0][2]} for the same seq {seq}; the cameras of a frame share its "
+                                       f"capture time")
+                twice = [ln for ln, *_, c, _ in group if int(c) == k]
+                if twice:
+                    raise SessionError(f"{path}: line {lineno}: camera {k} ({names[k]}) appears twice for seq "
+                                       f"{seq} (lines {twice[0]} and {lineno}); give one row per camera")
+                group.append((lineno, seq, t_ns, str(k), name))
+            else:
+                if group is not None:
+                    self._check_complete(path, group)
+                groups.append([(lineno, seq, t_ns, str(k), name)])
+        if groups and len(groups[-1]) < n:
+            if truncated or not self.meta.complete:
+                # the writer appends a frame's rows together: a frame cut short by a crash is unfinished
+                log.warning("%s: the last frame (seq %s) lacks %d of its %d images (a recording cut short); it "
+                            "is left out", path, groups[-1][0][1], n - len(groups[-1]), n)
+                groups.pop()
+            else:
+                self._check_complete(path, groups[-1])
+        return groups
+
+    def _check_complete(self, path: Path, group: list[tuple]) -> None:
+        n, names = len(self.meta.rig), self.meta.camera_names
+        if len(group) < n:
+            have = {int(row[3]) for row in group}
+            missing = [k for k in range(n) if k not in have]
+            lines = f"line {group[0][0]}" if len(group) == 1 else f"lines {group[0][0]}-{group[-1][0]}"
+            raise SessionError(f"{path}: {lines}: seq {group[0][1]} has no image for camera "
+                               f"{', '.join(f'{k} ({names[k]})' for k in missing)}; every frame needs one row "
+                               f"per camera of the rig, with the same seq and t_ns, on consecutive lines")
 
     def _frame_file(self, table: Path, lineno: int, name: str) -> Path:
         """The frame file a row names, checked: relative, inside the session folder (after following
         symbolic links), and there."""
-        where = f"{table}: line {lineno}: frame file '{name}'"
-        if not name or Path(name).is_absolute() or name.startswith(("/", "\\")) or name[1:2] == ":":
-            raise SessionError(f"{where} is not a relative path; frame paths must be relative to the session "
-                               f"folder (e.g. frames/000000.png)")
-        file = self.folder / name
-        root = self.folder.resolve()
-        try:
-            resolved = file.resolve()
-        except (OSError, RuntimeError) as exc:  # a symbolic-link loop
-            raise SessionError(f"{where} cannot be resolved ({exc})") from None
-        if not resolved.is_relative_to(root):
-            raise SessionError(f"{where} leads outside the session folder (to '{resolved}'); frame paths must "
-                               f"stay inside it")
-        if not resolved.is_file():
-            raise SessionError(f"{where} is missing")
-        return file
+        return fmt.inside_session(self.folder, name, f"{table}: line {lineno}: frame file '{name}'")
 
     def __len__(self) -> int:
         return len(self.frame_t_ns)
 
     def frame(self, i: int) -> Frame:
-        path = self.frame_files[i]
+        """Frame i: camera 0's image, and the other cameras' in ``views`` (each at its own size)."""
+        names = self.meta.camera_names if len(self.meta.rig) > 1 else ("",)
+        images = tuple(self._image(path, cam, name) for path, cam, name in
+                       zip(self._files[i], self.meta.rig.cameras, names))
+        return Frame(image=images[0], t_ns=int(self.frame_t_ns[i]), seq=int(self.frame_seq[i]), views=images[1:])
+
+    @staticmethod
+    def _image(path: Path, cam: CameraModel, name: str) -> np.ndarray:
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise SessionError(f"{path}: cannot decode the image (corrupt or not an image file)")
@@ -108,11 +173,11 @@ class Session:
             image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         elif image.shape[2] == 4:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-        cam = self.meta.camera
         if image.shape[:2] != (cam.height, cam.width):
-            raise SessionError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the session's camera is "
-                               f"{cam.width}x{cam.height}")
-        return Frame(image=image, t_ns=int(self.frame_t_ns[i]), seq=int(self.frame_seq[i]))
+            which = f"camera '{name}'" if name else "camera"
+            raise SessionError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, the session's {which} is "
+                               f"{cam.width}x{cam.height}; each image must have its camera's size")
+        return image
 
     @property
     def frame_period_ns(self) -> int:

@@ -1,7 +1,7 @@
 """Writing a session while capturing, crash-safe.
 
 Each frame is encoded to a temporary file and renamed into place before its row is appended to
-frames.csv, and every table is flushed to the OS after each frame: a process killed at any moment (kill -9)
+frames.csv (a rig's frame: all its cameras' images first, then all their rows at once), and every table is flushed to the OS after each frame: a process killed at any moment (kill -9)
 leaves a session whose complete rows all point at complete files. (Flushing to the OS survives a killed
 process; ``fsync_every`` also survives a power cut, at a cost in throughput.)
 
@@ -25,7 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lapreco_hil.errors import OutputError, SessionError
+from lapreco_hil.camera import FieldOfView, Rig
+from lapreco_hil.errors import CalibrationError, OutputError, SessionError
 from lapreco_hil.geometry import tum_values
 from lapreco_hil.types import Frame, JointSample
 from lapreco_hil.sessions import format as fmt
@@ -38,7 +39,11 @@ def _write_json_atomic(path: Path, doc: dict) -> None:
 
 
 class SessionWriter:
-    """Opens a new session folder and appends to it. Use as a context manager; ``close`` marks it complete."""
+    """Opens a new session folder and appends to it. Use as a context manager; ``close`` marks it complete.
+
+    A rig of more than one camera (``meta.rig``), or a field of view that version 1 cannot hold, is written
+    as version 2: each frame's ``views`` beside its image, each camera's images at their own size in
+    ``frames/<camera name>/``; a one-camera session is written as version 1."""
 
     def __init__(self, folder: str | Path, meta: fmt.SessionMeta, urdf_file: str | Path | None = None,
                  png_compression: int = 1, fsync_every: int = 0, workers: int | None = None) -> None:
@@ -55,24 +60,50 @@ class SessionWriter:
                 raise SessionError("a session with pose_source 'joints' needs a robot description and its URDF")
             shutil.copyfile(urdf_file, self.folder / "robot.urdf")
             meta = replace(meta, robot=replace(meta.robot, urdf="robot.urdf"))
+        self.version = meta.version
+        if self.version == 2:
+            meta = self._copy_masks(meta)
+            for name in meta.camera_names:
+                (self.folder / fmt.FRAMES_DIR / name).mkdir(exist_ok=True)
         self.meta = meta
         # Huffman-only deflate: faster than level 1 and smaller on noisy video
         self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression),
                      cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
         self.workers = workers or max(1, min(8, os.cpu_count() or 1))
         self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="session-png")
-        self._pending: collections.deque[tuple[Future, str]] = collections.deque()
+        self._pending: collections.deque[tuple[list[Future], str]] = collections.deque()
         self._fsync_every = fsync_every
         self.n_frames = self.n_queued = self.n_joints = self.n_poses = self.n_truth = self.n_events = 0
         self.last_skipped_joints = ""  # why the last joint sample was not recorded (names the joint and value)
         self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
-        _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json())
-        self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, ("seq", "t_ns", "file"))}
+        _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json(self.folder))
+        self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, fmt.FRAME_COLUMNS[self.version])}
         if meta.pose_source == "joints":
             self._tables["joints"] = self._open_table(fmt.JOINTS_FILE, ("seq", "t_ns", *meta.joint_names))
         else:
             self._tables["poses"] = self._open_table(fmt.CAMERA_POSES_FILE, fmt.POSE_COLUMNS)
         self.closed = False
+
+    def _copy_masks(self, meta: fmt.SessionMeta) -> fmt.SessionMeta:
+        """The cameras' mask files copied into masks/ (a session holds everything it names)."""
+        cameras = []
+        for name, cam in zip(meta.camera_names, meta.rig.cameras):
+            if cam.fov is not None and cam.fov.kind == "mask":
+                try:
+                    inside = cam.fov.inside()
+                except CalibrationError as exc:
+                    raise SessionError(f"camera '{name}': {exc}") from None
+                if inside.shape != (cam.height, cam.width):
+                    raise SessionError(f"camera '{name}': field-of-view mask '{cam.fov.mask_file}' is "
+                                       f"{inside.shape[1]}x{inside.shape[0]}, the camera is {cam.width}x"
+                                       f"{cam.height}; a mask must have its camera's size")
+                target = self.folder / fmt.MASKS_DIR / f"{name}.png"
+                target.parent.mkdir(exist_ok=True)
+                cv2.imwrite(str(target), inside.astype(np.uint8) * 255)
+                cam = replace(cam, fov=FieldOfView.mask(target, inside))
+            cameras.append(cam)
+        rig = Rig(tuple(cameras), meta.rig.T_cam0_cam, meta.rig.sigma_rotation_rad, meta.rig.sigma_translation_m)
+        return replace(meta, camera=cameras[0], rig=rig)
 
     def _open_table(self, name: str, header) -> object:
         path = self.folder / name
@@ -93,35 +124,49 @@ class SessionWriter:
         if self._last_frame_t is not None and frame.t_ns <= self._last_frame_t:
             raise SessionError(f"frame seq {frame.seq}: capture time {frame.t_ns} ns is not after the previous "
                                f"frame's {self._last_frame_t} ns; not recorded")
-        cam = self.meta.camera
-        if frame.image.shape[:2] != (cam.height, cam.width):
-            raise SessionError(f"frame seq {frame.seq} is {frame.image.shape[1]}x{frame.image.shape[0]}, the "
-                               f"session's camera is {cam.width}x{cam.height}")
-        name = f"{fmt.FRAMES_DIR}/{self.n_queued:06d}.png"
+        rig = self.meta.rig
+        if frame.n_cameras != len(rig):
+            raise SessionError(f"frame seq {frame.seq} carries {frame.n_cameras} image(s) (Frame.views), the "
+                               f"session's rig has {len(rig)} camera(s); record with the grabber's rig")
+        for k, cam in enumerate(rig.cameras):
+            image = frame.image_of(k)
+            if image.shape[:2] != (cam.height, cam.width):
+                which = "" if len(rig) == 1 else f"camera {k} ({self.meta.camera_names[k]}) of "
+                raise SessionError(f"{which}frame seq {frame.seq} is {image.shape[1]}x{image.shape[0]}, the "
+                                   f"session's camera is {cam.width}x{cam.height}")
+        if self.version == 1:
+            names = [f"{fmt.FRAMES_DIR}/{self.n_queued:06d}.png"]
+            rows = f"{frame.seq},{frame.t_ns},{names[0]}\n"
+        else:
+            names = [f"{fmt.FRAMES_DIR}/{c}/{self.n_queued:06d}.png" for c in self.meta.camera_names]
+            rows = "".join(f"{frame.seq},{frame.t_ns},{k},{name}\n" for k, name in enumerate(names))
         self.n_queued += 1
         self._last_frame_t = frame.t_ns
         while len(self._pending) >= 2 * self.workers:
             self._drain(block_on_oldest=True)
-        self._pending.append((self._pool.submit(self._encode, frame, self.folder / name),
-                              f"{frame.seq},{frame.t_ns},{name}\n"))
+        futures = [self._pool.submit(self._encode, frame.image_of(k), frame.seq, self.folder / name)
+                   for k, name in enumerate(names)]
+        self._pending.append((futures, rows))
         self._drain()
 
-    def _encode(self, frame: Frame, final: Path) -> None:
-        ok, buf = cv2.imencode(".png", frame.image, self._png)
+    def _encode(self, image: np.ndarray, seq: int, final: Path) -> None:
+        ok, buf = cv2.imencode(".png", image, self._png)
         if not ok:
-            raise OutputError(f"cannot encode frame seq {frame.seq} as PNG")
+            raise OutputError(f"cannot encode frame seq {seq} as PNG")
         tmp = final.with_name(final.name + ".tmp")
         with open(tmp, "wb") as fh:
             fh.write(buf.tobytes())
         os.replace(tmp, final)
 
     def _drain(self, block_on_oldest: bool = False, all_: bool = False) -> None:
-        """Append the rows of finished frames, oldest first, stopping at the first unfinished one."""
+        """Append the rows of finished frames (every camera's image in place), oldest first, stopping at the
+        first unfinished one."""
         wrote = False
-        while self._pending and (self._pending[0][0].done() or block_on_oldest or all_):
-            future, row = self._pending.popleft()
-            future.result()  # re-raises an encoding or disk error here, in the recording thread
-            self._tables["frames"].write(row)
+        while self._pending and (all(f.done() for f in self._pending[0][0]) or block_on_oldest or all_):
+            futures, rows = self._pending.popleft()
+            for future in futures:
+                future.result()  # re-raises an encoding or disk error here, in the recording thread
+            self._tables["frames"].write(rows)  # one write: a frame's rows are appended together
             self.n_frames += 1
             wrote = True
             block_on_oldest = False
@@ -219,4 +264,4 @@ class SessionWriter:
         counts = {"frames": self.n_frames, "joint_samples": self.n_joints, "camera_poses": self.n_poses,
                   "true_camera_poses": self.n_truth, "events": self.n_events}
         self.meta = replace(self.meta, complete=True, counts=counts)
-        _write_json_atomic(self.folder / fmt.META_FILE, self.meta.to_json())
+        _write_json_atomic(self.folder / fmt.META_FILE, self.meta.to_json(self.folder))
