@@ -223,3 +223,18 @@ def test_a_pair_in_two_modes_is_refused():
                                "/dev/video1": ScriptedCapture(t0, [0], size=(32, 24))}))
     with pytest.raises(DeviceError, match="run in different modes"):
         g.open()
+
+
+def test_a_mono_grabber_takes_its_camera_from_a_camera_file(tmp_path):
+    camera = CameraModel(64, 48, 50.0, 51.0, 32.0, 24.0, (-0.2, 0.05))
+    write_camera_yaml(tmp_path / "camera.yaml", camera)
+    cap = ScriptedCapture(time.monotonic_ns(), [0] * 2, size=(64, 48))
+    g = open_grabber(f"v4l2:///dev/video0?calib={tmp_path / 'camera.yaml'}", _context({"/dev/video0": cap}))
+    assert g.camera == camera and len(g.rig) == 1
+    with g:
+        f = g.read(timeout_s=2.0)
+    assert f.views == () and f.image.shape == (48, 64, 3)
+    small = ScriptedCapture(time.monotonic_ns(), [0] * 2, size=(32, 24))
+    g = open_grabber(f"v4l2:///dev/video0?calib={tmp_path / 'camera.yaml'}", _context({"/dev/video0": small}))
+    with pytest.raises(CalibrationError, match="calibrated at 64x48 but .* delivers 32x24"):
+        g.open()
