@@ -40,7 +40,8 @@ from lapreco_hil.types import Frame, JointSample, RobotDescription
 from lapreco_hil.simulators.world import SCENES, SimSettings, SimWorld
 from lapreco_hil.simulators.world.world import T0_NS, stereo_rig
 
-_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed", "optics": "optics_deg"}  # URL parameter -> SimSettings field
+# URL parameter -> SimSettings field
+_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed", "optics": "optics_deg"}
 LINKS = ("direct", "serial", "canopen")
 PACES = ("afap", "realtime")
 

@@ -444,8 +444,8 @@ class V4L2Grabber(Grabber):
                 while pending and pending[-1][1] - pending[0][1] > self.pair_wait_ns:
                     pending.popleft()
                     self._stats[key] += 1
-        for (image0, t0, seq0), (image1, _, _) in pairs:
-            self._put(Frame(image=image0, t_ns=t0, seq=seq0, host_ns=t0, views=(image1,)))
+            for (image0, t0, seq0), (image1, _, _) in pairs:  # (under the lock: both readers deliver)
+                self._put(Frame(image=image0, t_ns=t0, seq=seq0, host_ns=t0, views=(image1,)))
 
     def _put(self, frame: Frame) -> None:
         self._last_arrival_ns = self._clock()
