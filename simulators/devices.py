@@ -2,6 +2,13 @@
 
 ``sim://<scene>?width=640&height=480&fps=25&seed=0&device=cpu&frames=150&pace=afap|realtime&speed=0.2``
 A robot and a grabber with the same scene name, opened in the same DeviceContext, share one world.
+``optics=0|30`` is the scope's viewing angle (default 30: an angled scope).
+
+``stereo=1&baseline_mm=5`` on the grabber makes it a stereo scope: camera 1 (right) sits ``baseline_mm`` to
+the right of camera 0 along camera 0's x axis (an angled scope tilts both), is rendered by the same renderer,
+and its image is ``Frame.views[0]``; ``right_focal_scale`` makes its focal lengths differ from the left's, as a
+real pair's do. Camera 0 stays the world's true camera: the robot's pose, the hand-eye and the ground truth
+refer to it. Rendering takes twice as long; the mono path is unchanged.
 
 ``link=serial|canopen`` on the robot puts the real driver in between: the simulated arm's encoder-side
 joints drive a device emulator (a Dynamixel chain on a pseudo-terminal, CiA 402 nodes on a python-can
@@ -19,6 +26,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
 
 from lapreco_hil.drivers.device import Discovery, FoundDevice
 from lapreco_hil.drivers.grabber.base import Grabber
@@ -30,9 +38,10 @@ from lapreco_hil.registry import HOST, DeviceContext, DeviceURL, URLConfig, pars
 from lapreco_hil.types import Frame, JointSample, RobotDescription
 
 from lapreco_hil.simulators.world import SCENES, SimSettings, SimWorld
-from lapreco_hil.simulators.world.world import T0_NS
+from lapreco_hil.simulators.world.world import T0_NS, stereo_rig
 
-_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed"}  # URL parameter -> SimSettings field
+# URL parameter -> SimSettings field
+_FIELDS = {"rate": "robot_rate_hz", "speed": "clock_speed", "optics": "optics_deg"}
 LINKS = ("direct", "serial", "canopen")
 PACES = ("afap", "realtime")
 
@@ -49,6 +58,8 @@ class SimWorldConfig(URLConfig):
     rate: float = url_param(SimSettings.robot_rate_hz, low=0.1, high=10_000.0, unit="Hz", help="robot readings")
     speed: float | None = url_param(None, low=1e-3, high=100.0, help="simulated time flows at this x real time")
     instrument: bool = url_param(False, parse=parse_bool, help="a moving instrument in view")
+    optics: float = url_param(SimSettings.optics_deg, low=0.0, high=70.0, unit="deg",
+                              help="the scope's viewing angle from its shaft (0 or 30 typical)")
 
     def world_params(self, url: DeviceURL) -> dict:
         """The world parameters the URL gives (the others keep the world's defaults)."""
@@ -68,6 +79,9 @@ class SimRobotConfig(SimWorldConfig):
 class SimGrabberConfig(SimWorldConfig):
     frames: int | None = url_param(None, low=0, help="end after this many frames")
     pace: str | None = url_param(None, choices=PACES, help="afap (default on the simulated clock) or realtime")
+    stereo: bool = url_param(False, parse=parse_bool, help="a stereo scope: the right view in Frame.views")
+    baseline_mm: float = url_param(5.0, low=0.5, high=30.0, unit="mm", help="stereo baseline (4-5.5 mm typical)")
+    right_focal_scale: float = url_param(1.0, low=0.8, high=1.25, help="right camera's focal lengths / left's")
 
 
 def _world_for(url: DeviceURL, params: dict, context: DeviceContext) -> SimWorld:
@@ -261,7 +275,12 @@ class SimGrabber(Grabber):
         config = SimGrabberConfig.from_url(url)
         self.url = url
         self.config = config
+        stereo_only = [k for k in ("baseline_mm", "right_focal_scale") if k in url.query]
+        if stereo_only and not config.stereo:
+            raise url.error(f"{stereo_only[0]}= describes a stereo scope; add stereo=1")
         self.world = _world_for(url, config.world_params(url), context)
+        self._rig = stereo_rig(self.world.camera, config.baseline_mm * 1e-3, config.right_focal_scale) \
+            if config.stereo else None
         self.max_frames = config.frames
         self.realtime = config.pace == "realtime"
         self._context = context
@@ -277,6 +296,18 @@ class SimGrabber(Grabber):
     @property
     def camera(self):
         return self.world.camera
+
+    @property
+    def rig(self):
+        """Camera 0 is the world's true camera (its poses are the ground truth, the hand-eye is to it); a stereo
+        scope's camera 1 is rendered by the same renderer at T_cam0_cam1."""
+        return self._rig if self._rig is not None else super().rig
+
+    def _render(self, t_ns: int, seq: int) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        if self._rig is None:
+            return self.world.render(t_ns, seq)[0], ()
+        images = [image for image, _ in self.world.render_rig(t_ns, seq, self._rig)]
+        return images[0], tuple(images[1:])
 
     @property
     def nominal_fps(self) -> float:
@@ -307,9 +338,9 @@ class SimGrabber(Grabber):
         t_sim = self.frame_time_ns(seq)
         t_host = timeline.to_host(t_sim)
         timeline.sleep_until(t_host)
-        image, _ = self.world.render(t_sim, seq)
+        image, views = self._render(t_sim, seq)
         self._seq += 1
-        return Frame(image=image, t_ns=t_host, seq=seq, host_ns=t_host)
+        return Frame(image=image, t_ns=t_host, seq=seq, host_ns=t_host, views=views)
 
     def read(self, timeout_s: float | None = None) -> Frame | None:
         if self._timeline is not None:
@@ -332,10 +363,10 @@ class SimGrabber(Grabber):
             delay = due_ns * 1e-9 - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-        image, _ = self.world.render(t_ns, seq)
+        image, views = self._render(t_ns, seq)
         self.world.advance_to(t_ns + int(self.world.settings.delivery_latency_s * 1e9))
         self._seq += 1
-        return Frame(image=image, t_ns=t_ns, seq=seq, host_ns=due_ns)
+        return Frame(image=image, t_ns=t_ns, seq=seq, host_ns=due_ns, views=views)
 
     @property
     def health(self) -> Health:

@@ -66,7 +66,9 @@ class LiveRun:
         self.stop = self.links.stop  # set by the caller (Ctrl-C) or on a fatal error
         self.latest = LatestView()
         use_worker = rt.ba_worker == "on" or (rt.ba_worker == "auto" and (os.cpu_count() or 1) >= 4)
-        self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker)
+        rig = getattr(grabber, "rig", None)  # the ring's slots hold each of the rig's cameras' observations of a frame
+        self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker,
+                                         cameras=len(rig) if rig is not None else 1)
         self.supervisor = Supervisor(self.processes, self.links, self.metrics, on_stage_error=on_stage_error)
         recording = recorder is not None
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,

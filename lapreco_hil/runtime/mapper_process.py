@@ -162,7 +162,7 @@ class _BAClient:
 
 def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str, max_points: int, snap_lock,
                 K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn, parent_pid: int,
-                ba_jobs_q=None, ba_results_q=None) -> None:
+                ba_jobs_q=None, ba_results_q=None, ring_cameras: int = 1) -> None:
     """Process body: take SlotReady messages until EndOfFrames, then finish the map and send it (FinalMap, or
     MapperFailed). With BA queues, local BA goes to the worker; without, it runs here (deferred while frames
     wait)."""
@@ -171,7 +171,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle: it ends the run cleanly
-    ring = ObservationRing(ring_slots, max_tracks, name=ring_name)
+    ring = ObservationRing(ring_slots, max_tracks, name=ring_name, cameras=ring_cameras)
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None

@@ -24,9 +24,10 @@ log = logging.getLogger(__name__)
 
 
 class MapperProcesses:
-    def __init__(self, K, config, *, use_ba_worker: bool) -> None:
+    def __init__(self, K, config, *, use_ba_worker: bool, cameras: int = 1) -> None:
         self.K, self.config, self.rt = K, config, config.runtime
         self.use_ba_worker = use_ba_worker
+        self.cameras = cameras  # the rig's cameras: each frame's slot holds the observations of each
         self.ring: ObservationRing | None = None
         self.snapshot: MapSnapshot | None = None
         self.mapper: mp.Process | None = None
@@ -49,7 +50,7 @@ class MapperProcesses:
         unlink_leftovers()
         ctx = mp.get_context("spawn")
         rt = self.rt
-        self.ring = ObservationRing(rt.mapper_slots, rt.max_tracks)
+        self.ring = ObservationRing(rt.mapper_slots, rt.max_tracks, cameras=self.cameras)
         snap_lock = ctx.Lock()
         self.snapshot = MapSnapshot(rt.max_landmarks, snap_lock)
         self.ready_q, self.done_q = ctx.Queue(), ctx.Queue()
@@ -65,7 +66,7 @@ class MapperProcesses:
             target=mapper_main, name="lapreco mapper", daemon=True,
             args=(self.ring.name, rt.mapper_slots, rt.max_tracks, self.snapshot.name, rt.max_landmarks, snap_lock,
                   self.K, self.config.mapper, rt.mapper_backlog_skip_ba, self.ready_q, self.done_q, send, parent,
-                  self.ba_jobs, self.ba_results))
+                  self.ba_jobs, self.ba_results), kwargs={"ring_cameras": self.cameras})
         self.mapper.start()
         send.close()  # the mapper holds the sending end; a dead mapper then reads as EOF here
 
@@ -79,14 +80,14 @@ class MapperProcesses:
             except queue.Empty:
                 continue
 
-    def submit(self, obs, prior, arrival_ns: int) -> bool:
-        """Hand one frame's observations to the mapper; False when no slot is free (the mapper is a whole ring
-        behind)."""
+    def submit(self, obs, prior, arrival_ns: int, views=()) -> bool:
+        """Hand one frame's observations to the mapper (camera 0's, and ``views``: those of the rig's other
+        cameras); False when no slot is free (the mapper is a whole ring behind)."""
         try:
             slot = self.free_slots.popleft()
         except IndexError:
             return False
-        self.ring.write(slot, obs, prior, arrival_ns)
+        self.ring.write(slot, obs, prior, arrival_ns, views)
         with self._submit_lock:
             self.ready_q.put(SlotReady(slot))
         return True

@@ -1,6 +1,6 @@
-"""Shared memory between the tracking thread and the mapper process: a ring of observation slots (tracks and
-pose prior of one frame each) and a snapshot of the map (landmarks) for the live surface. Only small control
-messages (slot numbers, refined poses) go through multiprocessing queues.
+"""Shared memory between the tracking thread and the mapper process: a ring of observation slots (the tracks
+each camera of the rig saw and the pose prior, one frame each) and a snapshot of the map (landmarks) for the live
+surface. Only small control messages (slot numbers, refined poses) go through multiprocessing queues.
 
 Segments are named ``lapreco_<owner pid>_<random>``: a run killed outright (kill -9, out of memory) cannot
 unlink its own, and multiprocessing's resource tracker may have been killed with it, so the next run
@@ -13,10 +13,11 @@ import os
 import secrets
 from multiprocessing import shared_memory
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
-from lapreco_hil.types import Observations, PosePrior
+from lapreco_hil.types import FUNNEL_STAGES, Observations, PosePrior
 
 log = logging.getLogger(__name__)
 PREFIX = "lapreco_"
@@ -75,12 +76,21 @@ def _segment(name: str | None, size: int) -> shared_memory.SharedMemory:
 
 
 class ObservationRing:
-    HEADER = 4  # seq, t_ns, n tracks, arrival (monotonic ns)
-    PRIOR = 16 + 36  # T_world_camera, covariance
+    """Slots of one frame each: its pose prior and what the front-end saw in each camera of the rig (camera 0's
+    observations, then a stereo partner's, found in ``Frame.views``), sized at start for the rig's ``cameras``.
+    A slot keeps, per camera, the tracks (the strongest ``max_tracks``), the new-track count and the funnel."""
 
-    def __init__(self, slots: int, max_tracks: int, name: str | None = None) -> None:
-        self.slots, self.max_tracks = slots, max_tracks
-        self._slot_bytes = 8 * self.HEADER + 8 * self.PRIOR + 8 * max_tracks + 16 * max_tracks + 3 * max_tracks
+    HEADER = 4  # seq, t_ns, cameras written, arrival (monotonic ns)
+    PRIOR = 16 + 36  # T_world_camera, covariance
+    VIEW_HEADER = 3 + len(FUNNEL_STAGES)  # camera index, n tracks, n new, the funnel's counts
+
+    def __init__(self, slots: int, max_tracks: int, name: str | None = None, cameras: int = 1) -> None:
+        if cameras < 1:
+            raise ValueError("an observation ring needs at least one camera")
+        self.slots, self.max_tracks, self.cameras = slots, max_tracks, cameras
+        self._view_bytes = 8 * self.VIEW_HEADER + 8 * max_tracks + 16 * max_tracks + 3 * max_tracks
+        self._view_bytes = (self._view_bytes + 7) // 8 * 8
+        self._slot_bytes = 8 * self.HEADER + 8 * self.PRIOR + cameras * self._view_bytes
         self._slot_bytes = (self._slot_bytes + 63) // 64 * 64
         size = self._slot_bytes * slots
         self.shm = _segment(name, size)
@@ -90,36 +100,68 @@ class ObservationRing:
     def name(self) -> str:
         return self.shm.name
 
-    def _views(self, slot: int):
+    def _header(self, slot: int):
         off = slot * self._slot_bytes
-        buf, m = self.shm.buf, self.max_tracks
+        buf = self.shm.buf
         header = np.ndarray((self.HEADER,), np.int64, buf, off)
-        off += 8 * self.HEADER
-        prior = np.ndarray((self.PRIOR,), np.float64, buf, off)
-        off += 8 * self.PRIOR
+        prior = np.ndarray((self.PRIOR,), np.float64, buf, off + 8 * self.HEADER)
+        return header, prior
+
+    def _view(self, slot: int, camera: int):
+        off = slot * self._slot_bytes + 8 * self.HEADER + 8 * self.PRIOR + camera * self._view_bytes
+        buf, m = self.shm.buf, self.max_tracks
+        head = np.ndarray((self.VIEW_HEADER,), np.int64, buf, off)
+        off += 8 * self.VIEW_HEADER
         ids = np.ndarray((m,), np.int64, buf, off)
         off += 8 * m
         uv = np.ndarray((m, 2), np.float64, buf, off)
         off += 16 * m
         colors = np.ndarray((m, 3), np.uint8, buf, off)
-        return header, prior, ids, uv, colors
+        return head, ids, uv, colors
 
-    def write(self, slot: int, obs: Observations, prior: PosePrior, arrival_ns: int) -> int:
-        """Copies the observation into the slot (the strongest ``max_tracks`` if there are more)."""
-        header, pr, ids, uv, colors = self._views(slot)
+    def _write_view(self, slot: int, k: int, obs: Observations) -> int:
+        head, ids, uv, colors = self._view(slot, k)
         n = min(len(obs), self.max_tracks)
-        header[:] = (obs.frame_seq, obs.t_ns, n, arrival_ns)
-        pr[:16] = prior.T_world_camera.ravel()
-        pr[16:] = prior.cov.ravel()
+        head[:3] = (obs.camera, n, obs.n_new)
+        head[3:] = [obs.funnel.get(stage, 0) for stage in FUNNEL_STAGES]
         ids[:n], uv[:n], colors[:n] = obs.track_ids[:n], obs.uv[:n], obs.colors[:n]
         return n
 
+    def _read_view(self, slot: int, k: int, seq: int, t_ns: int) -> Observations:
+        head, ids, uv, colors = self._view(slot, k)
+        camera, n, n_new = (int(v) for v in head[:3])
+        funnel = {stage: int(v) for stage, v in zip(FUNNEL_STAGES, head[3:]) if v}
+        return Observations(seq, t_ns, ids[:n].copy(), uv[:n].copy(), colors[:n].copy(), n_new=n_new,
+                            camera=camera, funnel=funnel)
+
+    def write(self, slot: int, obs: Observations, prior: PosePrior, arrival_ns: int,
+              views: Sequence[Observations] = ()) -> int:
+        """Copies camera 0's observations (the strongest ``max_tracks`` if there are more) and those of the
+        rig's other cameras in the same frame (``views``) into the slot; returns camera 0's count."""
+        if 1 + len(views) > self.cameras:
+            raise ValueError(f"a frame with {1 + len(views)} cameras' observations; the ring was sized for "
+                             f"{self.cameras}")
+        header, pr = self._header(slot)
+        header[:] = (obs.frame_seq, obs.t_ns, 1 + len(views), arrival_ns)
+        pr[:16] = prior.T_world_camera.ravel()
+        pr[16:] = prior.cov.ravel()
+        n = self._write_view(slot, 0, obs)
+        for k, view in enumerate(views, start=1):
+            self._write_view(slot, k, view)
+        return n
+
     def read(self, slot: int) -> tuple[Observations, PosePrior, int]:
-        header, pr, ids, uv, colors = self._views(slot)
-        seq, t_ns, n, arrival = (int(v) for v in header)
-        obs = Observations(seq, t_ns, ids[:n].copy(), uv[:n].copy(), colors[:n].copy())
+        """Camera 0's observations, the pose prior, the frame's arrival time."""
+        header, pr = self._header(slot)
+        seq, t_ns, _, arrival = (int(v) for v in header)
         prior = PosePrior(pr[:16].reshape(4, 4).copy(), pr[16:].reshape(6, 6).copy(), t_ns)
-        return obs, prior, arrival
+        return self._read_view(slot, 0, seq, t_ns), prior, arrival
+
+    def read_views(self, slot: int) -> tuple[Observations, ...]:
+        """The observations of the rig's other cameras written with the slot's frame (none for a mono one)."""
+        header, _ = self._header(slot)
+        seq, t_ns, written = int(header[0]), int(header[1]), int(header[2])
+        return tuple(self._read_view(slot, k, seq, t_ns) for k in range(1, written))
 
     def close(self) -> None:
         self.shm.close()

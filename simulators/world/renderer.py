@@ -257,9 +257,20 @@ class Renderer:
                                         dtype=wp.vec3)
             self._mat_u = wp.array(np.array([T[:3, :3] @ u for _, u, _ in planar], np.float32), dtype=wp.vec3)
             self._mat_v = wp.array(np.array([T[:3, :3] @ v for _, _, v in planar], np.float32), dtype=wp.vec3)
-            self._dist = wp.array(np.asarray(camera.dist, np.float32), dtype=float)
-            self._image = wp.zeros((camera.height, camera.width, 3), dtype=wp.uint8)
-            self._depth = wp.zeros((camera.height, camera.width), dtype=float)
+        # per camera (a stereo scope's second camera renders the same scene): its coefficients and output buffers
+        self._targets: dict[CameraModel, tuple] = {}
+        self._own_target = self._target(camera)
+
+    def _target(self, camera: CameraModel) -> tuple:
+        """(distortion coefficients, image, depth) device buffers of a camera, made on its first use."""
+        target = self._targets.get(camera)
+        if target is None:
+            with wp.ScopedDevice(self.device):
+                target = (wp.array(np.asarray(camera.dist, np.float32), dtype=float),
+                          wp.zeros((camera.height, camera.width, 3), dtype=wp.uint8),
+                          wp.zeros((camera.height, camera.width), dtype=float))
+            self._targets[camera] = target
+        return target
 
     def move_vertices(self, start: int, vertices: np.ndarray, normals: np.ndarray) -> None:
         """Replace vertices ``start:`` (a rigid part that moves, e.g. an instrument) and refit the BVH."""
@@ -274,15 +285,18 @@ class Renderer:
         self._normals[start:].assign(np.ascontiguousarray(normals, np.float32))
         self._mesh.refit()
 
-    def render(self, T_world_camera: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """(BGR uint8 image, depth along the optical axis in metres, 0 where nothing was hit)."""
+    def render(self, T_world_camera: np.ndarray, seed: int = 0,
+               camera: CameraModel | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(BGR uint8 image, depth along the optical axis in metres, 0 where nothing was hit) seen by ``camera``
+        (default: the renderer's) at ``T_world_camera``."""
         from lapreco_hil.warp_device import device_lock
 
         with device_lock(self.device):
-            return self._render(T_world_camera, seed)
+            return self._render(T_world_camera, seed, camera or self.camera)
 
-    def _render(self, T_world_camera: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        cam, light = self.camera, self.lighting
+    def _render(self, T_world_camera: np.ndarray, seed: int, cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+        light = self.lighting
+        dist, image, depth = self._own_target if cam is self.camera else self._target(cam)
         R = T_world_camera[:3, :3].astype(np.float32)
         t = T_world_camera[:3, 3].astype(np.float32)
         wp.launch(
@@ -292,14 +306,14 @@ class Renderer:
                 self._mesh.id, self._normals, self._indices, self._tri_material, self._tex, self._lv_off,
                 self._lv_w, self._lv_h, self._mat_levels, self._mat_texel, self._mat_ks, self._mat_sh,
                 self._mat_planar, self._mat_origin, self._mat_u, self._mat_v,
-                wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy), self._dist, wp.mat33(*R.ravel()), wp.vec3(*t),
+                wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy), dist, wp.mat33(*R.ravel()), wp.vec3(*t),
                 float(cam.fov_radius_px), light.light_w, light.ambient, light.noise_read, light.noise_shot,
-                int(seed), self._image, self._depth,
+                int(seed), image, depth,
             ],
             device=self.device,
         )
         # on the CPU device .numpy() is a view of the buffer the next render overwrites: hand out copies
-        return self._image.numpy().copy(), self._depth.numpy().copy()
+        return image.numpy().copy(), depth.numpy().copy()
 
 
 def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:

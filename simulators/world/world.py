@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.geometry import make_T, rot_x, transform_points
 from lapreco_hil.kinematics import CameraKinematics
 from lapreco_hil.robot_models import urdf_path
@@ -40,6 +40,16 @@ def thirty_degree_optics(angle_deg: float = 30.0) -> np.ndarray:
     return make_T(rot_x(np.deg2rad(angle_deg)), [0.0, -0.0015, 0.0])
 
 
+def stereo_rig(camera: CameraModel, baseline_m: float, right_focal_scale: float = 1.0) -> Rig:
+    """A stereo scope's two cameras: camera 1 sits ``baseline_m`` to the right of camera 0 (x in camera 0's
+    frame), looking the same way (an angled scope tilts both along one axis), with camera 0's lens except for
+    its focal lengths scaled by ``right_focal_scale`` (real pairs differ by a fraction of a percent)."""
+    right = CameraModel(camera.width, camera.height, camera.fx * right_focal_scale, camera.fy * right_focal_scale,
+                        camera.cx, camera.cy, camera.dist, camera.fov_radius_px)
+    T_cam0_cam1 = make_T(np.eye(3), [baseline_m, 0.0, 0.0])
+    return Rig((camera, right), (np.eye(4), T_cam0_cam1))
+
+
 @dataclass(frozen=True)
 class SimSettings:
     scene: str = "skull"
@@ -48,6 +58,7 @@ class SimSettings:
     fps: float = 25.0
     robot_rate_hz: float = 200.0
     hfov_deg: float = 70.0
+    optics_deg: float = 30.0  # the scope's viewing angle from its shaft (0: forward-viewing, 30: angled)
     seed: int = 0
     device: str | None = None
     delivery_latency_s: float = 0.02  # frame transfer: robot samples up to capture + this are available
@@ -66,7 +77,7 @@ class SimWorld:
         self.settings = settings
         self.scene = build_scene(settings.scene, seed=settings.seed)
         self.camera = default_camera(settings.width, settings.height, settings.hfov_deg)
-        self.T_tip_camera = thirty_degree_optics()
+        self.T_tip_camera = thirty_degree_optics(settings.optics_deg)
         self.robot_model = "ecm"
         self.tip_frame = "ecm_tip"
         self.kinematics = CameraKinematics(str(urdf_path(self.robot_model)), self.tip_frame, self.T_tip_camera)
@@ -119,12 +130,26 @@ class SimWorld:
     def true_camera_pose(self, t_ns: int) -> np.ndarray:
         return self.kinematics.camera_pose(self.arm.true_joints(self.seconds(t_ns)))
 
-    def render(self, t_ns: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    def _move_instrument(self, t_ns: int) -> None:
         if self._instrument is not None:
             start, iv, inormals = self._instrument
             T = self.T_world_scene @ instrument_pose(self.seconds(t_ns))
             self.renderer.move_vertices(start, transform_points(T, iv), inormals @ T[:3, :3].T)
-        return self.renderer.render(self.true_camera_pose(t_ns), seed=self.settings.seed * 1_000_003 + seq)
+
+    def _noise_seed(self, seq: int, camera: int = 0) -> int:
+        return self.settings.seed * 1_000_003 + seq + camera * 500_009
+
+    def render(self, t_ns: int, seq: int) -> tuple[np.ndarray, np.ndarray]:
+        self._move_instrument(t_ns)
+        return self.renderer.render(self.true_camera_pose(t_ns), seed=self._noise_seed(seq))
+
+    def render_rig(self, t_ns: int, seq: int, rig: Rig) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(image, depth) of every camera of a rig whose camera 0 is the true camera, at one instant; camera 0's
+        is what ``render`` gives, each other camera's sensor noise is its own."""
+        self._move_instrument(t_ns)
+        T_world_cam0 = self.true_camera_pose(t_ns)
+        return [self.renderer.render(T_world_cam0 @ T_cam0_cam, seed=self._noise_seed(seq, k), camera=camera)
+                for k, (camera, T_cam0_cam) in enumerate(zip(rig.cameras, rig.T_cam0_cam))]
 
     def surface_mesh(self):
         """The ground-truth surface in the world frame, as a pyvista PolyData (metres)."""
