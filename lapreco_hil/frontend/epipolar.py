@@ -163,7 +163,7 @@ def predict(uv: np.ndarray, depth: np.ndarray, prev_image: np.ndarray, cur_image
 
 
 # a match in another view must track back into this view within this many pixels
-FORWARD_BACKWARD_PX = 0.5
+FORWARD_BACKWARD_PX = 1.0
 
 
 def lk_params(window_px: int, levels: int) -> dict:
