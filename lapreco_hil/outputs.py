@@ -141,6 +141,8 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "stage_ms": stage_ms,
         "tracks": m.stats["tracks"],
         "keyframes": m.stats["keyframes"],
+        # a stereo scope's other cameras' views of the keyframes, each tied to its keyframe by the rig
+        "partner_views": m.stats.get("partner_views", 0),
         "landmarks": m.stats["landmarks"],
         "inliers": m.stats["inliers"],
         "outliers": m.stats["outliers"],

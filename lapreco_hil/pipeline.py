@@ -14,8 +14,7 @@ from dataclasses import dataclass
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import ReconstructionError
-from lapreco_hil.frontend import make_frontend
-from lapreco_hil.geometry import inv_T
+from lapreco_hil.frontend import make_frontend, partner_views
 from lapreco_hil.mapping.mapper import Mapper, MapperSchedule, MapResult
 from lapreco_hil.mapping.prediction import MotionPredictor
 
@@ -32,19 +31,6 @@ class RunResult:
     latency_s: list[float]
     frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
     without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
-
-
-def stereo_partners(frontend, frame, rig: Rig | None):
-    """A callable giving the frame's tracks as the rig's other cameras saw them (None for a mono frame): the
-    mapper calls it for keyframes only."""
-    if rig is None or not rig.is_stereo or not frame.views:
-        return None
-
-    def partners() -> list:
-        return [frontend.match_view(frame.image_of(k), rig.cameras[k], inv_T(rig.T_cam0_cam[k]), k)
-                for k in range(1, min(len(rig), frame.n_cameras))]
-
-    return partners
 
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
@@ -76,7 +62,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         motion = predictor.motion(prior.T_world_camera) if predictor is not None else None
         obs = frontend.process(frame, motion)
         t3 = time.perf_counter()
-        mapper.add(obs, prior, partners=stereo_partners(frontend, frame, mapper.rig))
+        mapper.add(obs, prior, partners=partner_views(frontend, frame, mapper.rig))
         t4 = time.perf_counter()
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)

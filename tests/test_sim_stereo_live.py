@@ -43,7 +43,7 @@ class RecordingFrontEnd:
     def __init__(self):
         self.frames = []
 
-    def process(self, frame):
+    def process(self, frame, motion=None):
         self.frames.append(frame)
         return Observations(frame.seq, frame.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8))
 
@@ -54,7 +54,7 @@ def test_stereo_frames_reach_the_front_end_with_their_views_bit_exact(warp_cpu):
     links, metrics = StageLinks(), LiveMetrics()
     submitted = []
     tracking = Tracking(AlwaysPosed(), links, metrics, LatestView(), Coverage(),
-                        lambda obs, prior, arrival: submitted.append(obs) or True, device=warp_cpu, degrade=False,
+                        lambda obs, prior, arrival, views=(): submitted.append(obs) or True, device=warp_cpu, degrade=False,
                         recording=False)
     tracking.frontend = RecordingFrontEnd()
     with twin, grabber:
@@ -136,3 +136,17 @@ def test_the_live_run_sizes_the_ring_from_the_grabber_s_rig(warp_cpu):
         grabber = open_grabber(url + f"&device={warp_cpu}", DeviceContext())
         live = LiveRun(grabber, AlwaysPosed(), grabber.camera, PipelineConfig(), tracker="opencv", device=warp_cpu)
         assert live.processes.cameras == cameras
+
+
+@pytest.mark.slow
+def test_a_live_stereo_demo_maps_with_its_partner_views(tmp_path, warp_cpu):
+    """End to end through the live runtime: the right image's matches reach the mapper process through the ring
+    and become partner views tied to their keyframes, with points from the first keyframe on."""
+    from lapreco_hil.app.demo import run_demo
+
+    report = run_demo("skull", frames=24, resolution=(320, 240), out=str(tmp_path / "out"), device=warp_cpu,
+                      tracker="opencv", progress=False, runtime="live", stereo_baseline_mm=5.0)
+    assert report["partner_views"] >= 1
+    assert report["partner_views"] <= report["keyframes"]
+    assert report["inliers"] >= 100
+    assert report["accuracy"]["points_to_surface"]["rms_mm"] < 2.0

@@ -20,9 +20,11 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
              out: str = "lapreco-demo", device: str = "auto", tracker: str = "auto",
              config_path: str | None = None, seed: int = 0, progress: bool = True,
              drift_check: bool | None = None, robot_link: str = "direct", sim_speed: float = 0.2,
-             instrument: bool = False, runtime: str = "live", view_every: float = 0.0) -> dict:
+             instrument: bool = False, runtime: str = "live", view_every: float = 0.0,
+             stereo_baseline_mm: float | None = None) -> dict:
     """``robot_link`` 'serial' or 'canopen' reads the simulated robot through the real driver and a device
-    emulator; the simulated clock then flows at ``sim_speed`` x real time so the driver can poll it."""
+    emulator; the simulated clock then flows at ``sim_speed`` x real time so the driver can poll it.
+    ``stereo_baseline_mm``: a stereo scope with this baseline (None: mono)."""
     config = load_config(config_path)
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
@@ -32,9 +34,10 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
     url = sim_url(scene, resolution, fps, seed, instrument, robot_link, sim_speed)
     context = DeviceContext(device=device)
     robot = open_robot(url + f"&link={robot_link}", context)
-    grabber = open_grabber(url + f"&frames={frames}", context)
+    stereo = f"&stereo=1&baseline_mm={stereo_baseline_mm}" if stereo_baseline_mm else ""
+    grabber = open_grabber(url + f"&frames={frames}" + stereo, context)
     fields = {"command": "demo", "scene": scene, "robot_link": robot_link, "instrument": instrument,
-              "runtime": runtime}
+              "runtime": runtime, "stereo_baseline_mm": stereo_baseline_mm}
     if runtime == "live":
         if view_every:
             config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))

@@ -23,6 +23,8 @@ def build_parser() -> ArgumentParser:
                                         "against ground truth")
     demo.add_argument("--scene", default="skull", help="skull | liver | apple | uterus | board (default: skull)")
     demo.add_argument("--frames", type=positive_int, default=150, help="frames to simulate (default: 150)")
+    demo.add_argument("--stereo", type=positive, default=None, metavar="BASELINE_MM",
+                      help="a stereo scope with this baseline in mm (4-5.5 typical); default: mono")
     demo.add_argument("--resolution", type=resolution, default=(640, 480), help="WxH (default: 640x480)")
     demo.add_argument("--fps", type=positive, default=25.0, help="simulated frame rate, > 0 (default: 25)")
     demo.add_argument("--out", default="lapreco-demo", help="output folder (default: ./lapreco-demo)")
@@ -333,7 +335,8 @@ def _cmd_demo(args) -> int:
                       out=args.out, device=args.device, tracker=args.tracker, config_path=args.config,
                       seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check,
                       robot_link=args.robot_link, sim_speed=args.sim_speed, instrument=args.instrument,
-                      runtime="sequential" if args.sequential else "live", view_every=args.view_every)
+                      runtime="sequential" if args.sequential else "live", view_every=args.view_every,
+                      stereo_baseline_mm=args.stereo)
     _print_run("demo", report)
     return 0
 

@@ -10,9 +10,10 @@ from typing import Protocol
 
 import numpy as np
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
+from lapreco_hil.geometry import inv_T
 from lapreco_hil.types import Frame, FrameMotion, Observations
 
 
@@ -53,3 +54,16 @@ def make_frontend(name: str, camera: CameraModel, config: TrackerConfig, device:
 
         return WarpFrontEnd(camera, config, device)
     raise ConfigError(f"unknown tracker '{name}' (known: opencv, warp)")
+
+
+def partner_views(frontend, frame, rig: Rig | None):
+    """A callable giving the frame's tracks as the rig's other cameras saw them (None for a mono frame): the
+    mapper calls it for keyframes only."""
+    if rig is None or not rig.is_stereo or not frame.views:
+        return None
+
+    def partners() -> list:
+        return [frontend.match_view(frame.image_of(k), rig.cameras[k], inv_T(rig.T_cam0_cam[k]), k)
+                for k in range(1, min(len(rig), frame.n_cameras))]
+
+    return partners

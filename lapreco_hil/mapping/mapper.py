@@ -123,6 +123,7 @@ class Mapper:
         # a stereo scope: each keyframe's partner views join as keyframes of their own, tied to it
         self.rig = rig if rig is not None and rig.is_stereo else None
         self.funnel = Funnel()
+        self._tried: set[int] = set()  # tracks tried for a point (active ones: let go at retirement)
         self.image_motion_px: list[float] = []  # per frame: the median track displacement from the frame before
         self.schedule = schedule if schedule is not None else MapperSchedule.offline()
         self.keyframes: list[Keyframe] = []
@@ -323,12 +324,15 @@ class Mapper:
                                     np.array([uv for _, _, uv in obs]))
             sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else self.config.sigma_floor_px
             good = np.linalg.norm(r, axis=1) <= self.final_schedule.inlier_threshold_px(sigma)
-            inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids))
+            obs_kf = np.array([k for k, _, _ in obs], np.int64)
+            inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids),
+                                         self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum())
             self.archive.add(np.array(with_point, np.int64), points,
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
             self.archive.inlier_observations += int(good.sum())
         for t in retired:
+            self._tried.discard(t)
             del self.tracks[t]
             self.landmarks.pop(t, None)
             self.landmark_colors.pop(t, None)
@@ -339,14 +343,25 @@ class Mapper:
         log.debug("retired keyframes before %d: %d landmarks archived, %d active", cutoff, len(with_point),
                   len(self.landmarks))
 
-    def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int) -> np.ndarray:
-        """A landmark is an inlier with enough inlier observations, making up enough of its observations."""
+    def _is_reference(self, kf_ids: np.ndarray) -> np.ndarray:
+        """Whether each keyframe is a reference (camera 0) view, not a stereo partner."""
+        return np.array([self.keyframes[k].reference is None for k in np.asarray(kf_ids).tolist()], bool)
+
+    def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int,
+                       reference_obs: np.ndarray | None = None, n_reference_views: int | None = None) -> np.ndarray:
+        """A landmark is an inlier with enough inlier observations, making up enough of its observations; with a
+        stereo rig, in at least two of the reference camera's keyframes too (where there are two): a stereo match
+        seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch."""
         cfg = self.config
         counts = np.bincount(obs_point[good], minlength=n_points)
         totals = np.bincount(obs_point, minlength=n_points)
         # a point cannot be seen more often than there are keyframes (a two-view stereo pair: 2)
         min_obs = min(cfg.min_inlier_observations, n_views)
-        return (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
+        ok = (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
+        if self.rig is not None and reference_obs is not None:
+            in_reference = np.bincount(obs_point[good & reference_obs], minlength=n_points)
+            ok &= in_reference >= min(2, int(n_reference_views))
+        return ok
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The map as it stands, for the live surface: archived inliers, then every active landmark."""
@@ -423,7 +438,9 @@ class Mapper:
         kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
         res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
-        self.funnel.add({"candidates": len(cands), "triangulated": int(res.valid.sum())})
+        first_try = [t not in self._tried for t in cands]  # the funnel counts tracks, not attempts
+        self._tried.update(cands)
+        self.funnel.add({"candidates": sum(first_try), "triangulated": int(res.valid.sum())})
         for n in np.flatnonzero(res.valid):
             t = cands[n]
             self.landmarks[t] = res.points[n]
@@ -579,7 +596,9 @@ class Mapper:
                 threshold = self.final_schedule.inlier_threshold_px(ba.pixel_sigma(problem, r, self.final_schedule))
                 e = np.linalg.norm(r, axis=1)
                 good = e <= threshold
-            ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids))
+            reference_pose = self._is_reference(problem.pose_ids)
+            ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids),
+                                     reference_pose[problem.obs_pose], int(reference_pose.sum()))
             kept = e[ok[problem.obs_point] & np.isfinite(e)]  # every view of the inlier points
             if len(kept):
                 reprojection = {"median_px": float(np.median(kept)), "p95_px": float(np.percentile(kept, 95)),

@@ -67,8 +67,9 @@ class LiveRun:
         self.latest = LatestView()
         use_worker = rt.ba_worker == "on" or (rt.ba_worker == "auto" and (os.cpu_count() or 1) >= 4)
         rig = getattr(grabber, "rig", None)  # the ring's slots hold each of the rig's cameras' observations of a frame
+        stereo = rig if rig is not None and rig.is_stereo else None
         self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker,
-                                         cameras=len(rig) if rig is not None else 1)
+                                         cameras=len(rig) if rig is not None else 1, rig=stereo)
         self.supervisor = Supervisor(self.processes, self.links, self.metrics, on_stage_error=on_stage_error)
         recording = recorder is not None
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,
@@ -80,7 +81,7 @@ class LiveRun:
         self.tracking = Tracking(poses, self.links, self.metrics, self.latest, coverage, self.processes.submit,
                                  device=device, degrade=on_stage_error == "degrade", recording=recording,
                                  track_points=self.track_points, scene_depth_m=config.mapper.scene_depth_m,
-                                 offset_watch=self.offset_watch)
+                                 offset_watch=self.offset_watch, rig=stereo)
         self.tracking.frontend = frontend
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)
         self.health.add("grabber", lambda: grabber.health)

@@ -162,7 +162,7 @@ class _BAClient:
 
 def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str, max_points: int, snap_lock,
                 K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn, parent_pid: int,
-                ba_jobs_q=None, ba_results_q=None, ring_cameras: int = 1) -> None:
+                ba_jobs_q=None, ba_results_q=None, ring_cameras: int = 1, rig=None) -> None:
     """Process body: take SlotReady messages until EndOfFrames, then finish the map and send it (FinalMap, or
     MapperFailed). With BA queues, local BA goes to the worker; without, it runs here (deferred while frames
     wait)."""
@@ -175,7 +175,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
         worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
-        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None))
+        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None), rig=rig)
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
@@ -280,7 +280,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             resect = backlog == 0  # behind: a frame between keyframes takes its corrected prior for now
             in_flight = worker is not None and worker.in_flight is not None
             t = time.perf_counter()
-            is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect)
+            views = ring.read_views(slot.slot) if ring_cameras > 1 else ()
+            is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect, partners=views or None)
             clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
             if is_kf:
                 keyframe_captured[len(mapper.keyframes) - 1] = arrival_ns

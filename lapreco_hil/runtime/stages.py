@@ -23,6 +23,7 @@ import numpy as np
 from lapreco_hil.errors import DeviceTimeoutError
 from lapreco_hil.runtime.health import Condition
 from lapreco_hil.mapping.prediction import TrackPoints, frame_motion
+from lapreco_hil.frontend import partner_views
 from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree, TrackPoints as TrackPointsMsg
 from lapreco_hil.runtime.metrics import LiveMetrics
 
@@ -125,13 +126,14 @@ class Tracking:
 
     def __init__(self, poses, links: StageLinks, metrics: LiveMetrics, latest: LatestView, coverage, submit, *,
                  device: str, degrade: bool, recording: bool, track_points: TrackPoints | None = None,
-                 scene_depth_m: tuple[float, float] = (0.01, 0.3), offset_watch=None) -> None:
+                 scene_depth_m: tuple[float, float] = (0.01, 0.3), offset_watch=None, rig=None) -> None:
         self.poses, self.links, self.metrics, self.latest = poses, links, metrics, latest
         self.coverage, self.submit = coverage, submit
         self.device, self.degrade, self.recording = device, degrade, recording
         # pose-predicted tracking: the mapper's track points (None: tracks start where they were)
         self.track_points, self.scene_depth_m = track_points, scene_depth_m
         self.offset_watch = offset_watch  # the video-kinematics offset, watched (runtime/time_offset_watch.py)
+        self.rig = rig  # a stereo scope: every frame's tracks are also found in the other cameras' images
         self.frontend = None
         self.tracks_lost = False
         self._prev = None  # the last tracked frame's (prior T_world_camera, observations)
@@ -185,7 +187,8 @@ class Tracking:
             m.time_stage("pose", t1 - t0)
             m.time_stage("frontend", t2 - t1)
             self.latest.tracked(frame, prior.T_world_camera)
-            if not self.submit(obs, prior, arrival):
+            views = partner_views(self.frontend, frame, self.rig)
+            if not self.submit(obs, prior, arrival, views() if views is not None else ()):
                 m.add("mapper_skipped")  # the mapper is a whole ring behind: this frame is not mapped
                 continue
             m.add("frames_tracked")
