@@ -48,6 +48,18 @@ def ranged(default, *, ge: float | None = None, gt: float | None = None, le: flo
 
 
 @dataclass(frozen=True)
+class FewViewsConfig:
+    """A sequence of at most ``frames`` frames (a calibrated stereo pair written as two frames, a v2 session of
+    one rig frame) has no temporal tracking to sustain and each view is all there is: corners are detected
+    denser there (the cost is a few milliseconds once, not per frame of a long run)."""
+
+    frames: int = ranged(8, ge=0)  # 0: never
+    max_features: int = ranged(4000, ge=1)
+    min_distance_px: float = ranged(3.0, ge=0.0)
+    quality_level: float = ranged(0.001, gt=0.0, le=1.0)
+
+
+@dataclass(frozen=True)
 class TrackerConfig:
     max_features: int = ranged(800, ge=1)
     min_distance_px: float = ranged(8.0, ge=0.0)
@@ -68,6 +80,17 @@ class TrackerConfig:
     drift_check: bool = True
     drift_patch_px: int = ranged(13, ge=3)
     drift_max_residual: float = ranged(0.75, gt=0.0)
+    few_views: FewViewsConfig = field(default_factory=FewViewsConfig)
+
+    def for_frames(self, frames: int | None) -> "TrackerConfig":
+        """This configuration for a sequence of ``frames`` frames (None: unknown, a live run): denser corners
+        for a few views (``few_views``)."""
+        few = self.few_views
+        if frames is None or frames > few.frames:
+            return self
+        return dataclasses.replace(self, max_features=max(self.max_features, few.max_features),
+                                   min_distance_px=min(self.min_distance_px, few.min_distance_px),
+                                   quality_level=min(self.quality_level, few.quality_level))
 
 
 @dataclass(frozen=True)

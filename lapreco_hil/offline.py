@@ -4,7 +4,9 @@ this."""
 
 from __future__ import annotations
 
+import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,8 @@ from lapreco_hil.config import PipelineConfig
 from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.outputs import write_outputs
 from lapreco_hil.pipeline import run_sequence
+
+log = logging.getLogger(__name__)
 
 
 def write_frame_timings(path: Path, frames, stage_s: dict) -> None:
@@ -38,6 +42,13 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
     (already prepared) and return the report."""
     from tqdm import tqdm
 
+    tracker_config = config.tracker.for_frames(total)
+    if tracker_config is not config.tracker:
+        log.info("%d frames: few views, corners detected denser (up to %d, %.1f px apart)", total,
+                 tracker_config.max_features, tracker_config.min_distance_px)
+        config = replace(config, tracker=tracker_config)
+        report_fields = {**(report_fields or {}), "few_views": {"frames": total, "max_features": tracker_config.max_features,
+                                                                "min_distance_px": tracker_config.min_distance_px}}
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, disable=not progress)
     with bar:
         run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device,
