@@ -186,12 +186,13 @@ def step_for_speed(kind: str, sign: float, angle: float, speed_px: float, K: np.
         return median_displacement(K, T_prev_ref, _unit_step(kind, sign, angle, a, K, T_prev_ref, depth_m), size,
                                    depth_m)
 
-    # zoom cannot go through the plane; the others are capped at a generous size
-    hi = 0.9 if (kind == "zoom" and sign > 0) else 1.0
+    # zooming in cannot go through the plane; zooming out moves points at most their distance from the centre
+    hi = {"zoom": 0.9 if sign > 0 else 50.0}.get(kind, 1.0)
     lo = 0.0
     if disp(hi) < speed_px:
-        raise ConfigError(f"a {kind} step cannot move the image by {speed_px:g} px per frame at this size; "
-                          "ask for a lower --speeds value")
+        log.warning("a %s step moves this %dx%d image by at most %.0f px; using that instead of %g px", kind,
+                    *size, disp(hi), speed_px)
+        return _unit_step(kind, sign, angle, hi, K, T_prev_ref, depth_m)
     for _ in range(50):
         mid = 0.5 * (lo + hi)
         if disp(mid) < speed_px:
