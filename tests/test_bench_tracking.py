@@ -188,3 +188,15 @@ def test_bench_tracking_refuses_bad_arguments_in_one_line(argv, message, capsys)
     assert main(["bench", "tracking", *argv]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"lapreco: error: {message}"), lines
+
+
+@pytest.mark.parametrize("predict,modes", [("off", ["off"]), ("on", ["depth", "epipolar"]),
+                                           ("both", ["off", "depth", "epipolar"])])
+def test_bench_tracking_runs_the_prediction_modes_asked_for(predict, modes, monkeypatch):
+    from lapreco_hil.app.bench import bench_tracking
+
+    seen = {}
+    monkeypatch.setattr(tb, "run", lambda trackers, devices, speeds, predict_modes, frames: seen.update(
+        trackers=trackers, devices=devices, speeds=speeds, modes=predict_modes, frames=frames) or {})
+    bench_tracking(("opencv",), "cpu", [0, 20], frames=5, predict=predict)
+    assert seen == {"trackers": ["opencv"], "devices": ["cpu"], "speeds": [0.0, 20.0], "modes": modes, "frames": 5}
