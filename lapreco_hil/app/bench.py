@@ -126,3 +126,25 @@ def bench_session(resolutions=((640, 480), (1920, 1080)), frames: int = 60) -> d
     from lapreco_hil.bench.session import run
 
     return run(list(resolutions), frames=frames)
+
+
+def bench_tracking(trackers=("warp", "opencv"), device: str = "all", speeds=(0.0, 10.0, 20.0, 40.0, 60.0, 80.0),
+                   frames: int = 32, predict: str = "off") -> dict:
+    """The front-ends on real laparoscopic frames moved by known plane homographies: error against the truth,
+    share within 1 px, survival, tracks per frame. ``device``: cpu, cuda, or all (the CPU and, when Warp sees
+    one, CUDA). ``predict``: off, on (a perfect pose source: with each track's depth, and with only a depth
+    range), or both."""
+    from lapreco_hil.bench.tracking import run
+    from lapreco_hil.errors import ConfigError
+    from lapreco_hil.warp_device import init_warp
+
+    if device == "all":
+        devices = ["cpu"] + (["cuda:0"] if init_warp().is_cuda_available() else [])
+    elif device in ("cpu", "cuda"):
+        devices = [resolve_device(device)]
+    else:
+        raise ConfigError(f"--device {device}: expected cpu, cuda or all")
+    modes = {"off": ["off"], "on": ["depth", "epipolar"], "both": ["off", "depth", "epipolar"]}
+    if predict not in modes:
+        raise ConfigError(f"--predict {predict}: expected on, off or both")
+    return run(list(trackers), devices, [float(s) for s in speeds], modes[predict], frames=frames)

@@ -74,6 +74,20 @@ non_negative = number(ge=0.0)  # periods where 0 means off
 finite = number()  # signed offsets (ms)
 
 
+def number_list(*, ge: float | None = None, gt: float | None = None, le: float | None = None):
+    """An argparse type: comma-separated finite numbers, each in the range of ``number``."""
+    one = number(ge=ge, gt=gt, le=le)
+
+    def parse(text: str) -> list[float]:
+        items = [t.strip() for t in text.split(",")]
+        if not all(items):
+            raise argparse.ArgumentTypeError(f"'{text}' must be comma-separated numbers, e.g. 0,20,40")
+        return [one(t) for t in items]
+
+    parse.__name__ = "number list"
+    return parse
+
+
 def resolution(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))

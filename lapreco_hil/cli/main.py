@@ -8,7 +8,8 @@ import sys
 
 from lapreco_hil import __version__
 from lapreco_hil.errors import LaprecoError
-from lapreco_hil.cli.args import ArgumentParser, finite, non_negative, positive, positive_int, resolution, seed
+from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative, number_list, positive, positive_int,
+                                  resolution, seed)
 
 _positive_int = positive_int  # the calibration parsers take it as an argument
 
@@ -143,6 +144,19 @@ def build_parser() -> ArgumentParser:
     bench_fe.add_argument("--frames", type=positive_int, default=40)
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
+    bench_t = bench_sub.add_parser("tracking", help="the front-ends on real frames moved by known homographies: "
+                                                    "error, share within 1 px, survival")
+    bench_t.add_argument("--tracker", choices=("warp", "opencv", "all"), default="all")
+    bench_t.add_argument("--device", choices=("cpu", "cuda", "all"), default="all",
+                         help="Warp device (default all: the CPU, and CUDA when there is one); OpenCV runs on the CPU")
+    bench_t.add_argument("--speeds", type=number_list(ge=0.0), default=[0.0, 10.0, 20.0, 40.0, 60.0, 80.0],
+                         help="median image motion, px per frame, comma-separated (default 0,10,20,40,60,80)")
+    bench_t.add_argument("--frames", type=integer(ge=2), default=32, help="frames per speed and real frame (default 32)")
+    bench_t.add_argument("--predict", choices=("on", "off", "both"), default="off",
+                         help="start tracks where a perfect pose source predicts them (on: with each track's depth, "
+                              "and with only a depth range; both: also off) (default off)")
+    bench_t.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_t.set_defaults(func=_cmd_bench_tracking)
     bench_p = bench_sub.add_parser("pipeline", help="the live runtime in real time: sustained fps, drops, latency")
     bench_p.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
     bench_p.add_argument("--resolution", type=resolution, default=None,
@@ -239,6 +253,17 @@ def _cmd_bench_frontend(args) -> int:
     from lapreco_hil.bench.frontend import format_table
 
     result = bench_frontend(args.device, args.resolution, args.features, frames=args.frames)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def _cmd_bench_tracking(args) -> int:
+    from lapreco_hil.app.bench import bench_tracking
+    from lapreco_hil.bench.tracking import format_table
+
+    trackers = ("warp", "opencv") if args.tracker == "all" else (args.tracker,)
+    result = bench_tracking(trackers, args.device, args.speeds, frames=args.frames, predict=args.predict)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
