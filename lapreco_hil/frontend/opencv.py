@@ -94,13 +94,15 @@ class OpenCVFrontEnd:
             self._A = reg.A
             positions = reg.positions.astype(np.float32)
             keep = reg.keep & self._inside(reg.positions)
-            if searched.any():
-                # across a wide baseline the first patch's affine model no longer holds (perspective, the light):
-                # a match verified forward and backward starts a new reference here
-                positions[searched] = self._pts[searched]
-                keep[searched] = True
-                self._ref[searched] = self.drift.reference_patches(intensity, self._pts[searched])
-                self._A[searched] = np.eye(2)
+            anew = searched & ~keep
+            if anew.any():
+                # across a wide baseline the first patch's affine model may no longer hold (perspective, the
+                # light): a match verified forward and backward that the drift check refused starts a new
+                # reference where LK put it
+                positions[anew] = self._pts[anew]
+                keep[anew] = self._inside(self._pts[anew])
+                self._ref[anew] = self.drift.reference_patches(intensity, self._pts[anew])
+                self._A[anew] = np.eye(2)
             self._filter(keep, positions)
         t_drift = time.perf_counter()
         n_new = 0

@@ -226,6 +226,43 @@ def sample_patches(img: wp.array, w: int, h: int, pts: wp.array, count: wp.array
               inputs=[img, w, h, pts, count, taken, patches, A, steps], device=device)
 
 
+@wp.kernel
+def _reanchor(img: wp.array(dtype=float), w: int, h: int, searched: wp.array(dtype=wp.int32),
+              at_lk: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
+              pts: wp.array(dtype=wp.vec2), patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
+              keep: wp.array(dtype=wp.int32)):
+    """A track matched across a wide baseline (``searched``) that the drift check refused keeps LK's position and
+    starts a new reference patch there with an identity warp: the first patch's affine model may not hold
+    across such a change. (One the drift check kept keeps its refined position.)"""
+    t, k = wp.tid()
+    if t >= count[0] or searched[t] == 0:
+        return
+    q = at_lk[t]
+    c = q + _patch_offset(k)
+    patches[t, k] = bilinear(img, 0, w, h, c[0], c[1])
+    if k == 0:
+        pts[t] = q
+        A[t] = wp.identity(n=2, dtype=float)
+        keep[t] = wp.where(in_view(mask, q), 1, 0)
+
+
+@wp.kernel
+def _refused_only(keep: wp.array(dtype=wp.int32), searched: wp.array(dtype=wp.int32)):
+    """Of the searched tracks, only those the drift check refused are anchored anew."""
+    t = wp.tid()
+    if keep[t] != 0:
+        searched[t] = 0
+
+
+def reanchor(img: wp.array, w: int, h: int, searched: wp.array, at_lk: wp.array, count: wp.array, mask: wp.array,
+             pts: wp.array, patches: wp.array, A: wp.array, keep: wp.array, device) -> None:
+    """After the drift check: the ``searched`` tracks it refused take their LK positions ``at_lk``, a new first
+    patch from ``img`` and an identity warp, and are kept if inside the field of view."""
+    wp.launch(_refused_only, dim=pts.shape[0], inputs=[keep, searched], device=device)  # (before keep changes)
+    wp.launch(_reanchor, dim=(pts.shape[0], PATCH * PATCH),
+              inputs=[img, w, h, searched, at_lk, count, mask, pts, patches, A, keep], device=device)
+
+
 def drift_check(img: wp.array, gx: wp.array, gy: wp.array, w: int, h: int, patches: wp.array, A: wp.array,
                 pts: wp.array, status: wp.array, mask: wp.array, count: wp.array, iterations: int,
                 max_residual: float, max_stretch: float, max_correction: float, keep: wp.array,

@@ -112,6 +112,14 @@ class WarpFrontEnd:
             self._sweep_scores = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=float)
             self._sweep_cand = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=wp.vec2)
             self._n_tracked = wp.zeros(1, dtype=wp.int32)
+            # the forward-backward check of tracks found along their epipolar line: LK back, its verdict, and
+            # the positions LK gave (the drift check moves them; a verified wide-baseline match keeps LK's)
+            self._back_pts = wp.zeros(n, dtype=wp.vec2)
+            self._back_status = wp.zeros(n, dtype=wp.int32)
+            self._back_error = wp.zeros(n, dtype=float)
+            self._searched = wp.zeros(n, dtype=wp.int32)
+            self._at_lk = wp.zeros(n, dtype=wp.vec2)
+            self._one = wp.ones(1, dtype=wp.int32)
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
             n_cells = self._grid[1] * self._grid[2]
@@ -221,6 +229,15 @@ class WarpFrontEnd:
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device)
         tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
+        if self._motion is not None:
+            # LK back into the previous image from where the swept tracks landed
+            lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
+                        self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                        cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
+                        self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device)
+            predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
+                                     self._count[prev], self._status, self._searched, self.device)
+            wp.copy(self._at_lk, self._lk_pts)
         self._sync_for_profile("lk")
 
     def _predict_kernels(self, motion: FrameMotion) -> None:
@@ -246,6 +263,10 @@ class WarpFrontEnd:
                 self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
                 self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
                 cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev)
+            if self._motion is not None:
+                drift_check.reanchor(self._pyr[cur], self.width, self.height, self._searched, self._at_lk,
+                                     self._count[prev], self._mask, self._lk_pts, self._patches[prev], self._A[prev],
+                                     self._keep, dev)
         else:
             tracks.lk_keep(self._lk_pts, self._status, self._mask, self._count[prev], self._keep, dev)
         tracks.compact_tracks(

@@ -108,7 +108,30 @@ def _sweep_pick(scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2)
         guess[f] = wp.vec2(wp.nan, wp.nan)
 
 
-# --- host wrapper: a device and preallocated outputs ---------------------------------------------------------
+@wp.kernel
+def _forward_backward(depth: wp.array(dtype=float), prev_pts: wp.array(dtype=wp.vec2), back: wp.array(dtype=wp.vec2),
+                      back_status: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), max_px: float,
+                      status: wp.array(dtype=wp.int32), searched: wp.array(dtype=wp.int32)):
+    """A track found along its epipolar line (no depth) stays only if LK back from where it landed returns
+    within ``max_px`` of where it was; ``searched`` marks those that stay (their drift reference starts anew)."""
+    f = wp.tid()
+    searched[f] = 0
+    if f >= count[0] or depth[f] > 0.0 or status[f] == 0:
+        return
+    if back_status[f] == 0 or wp.length(back[f] - prev_pts[f]) >= max_px:
+        status[f] = 0
+    else:
+        searched[f] = 1
+
+
+# --- host wrappers: a device and preallocated outputs --------------------------------------------------------
+def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_status: wp.array, count: wp.array,
+                     status: wp.array, searched: wp.array, device) -> None:
+    """``status`` <- 0 for swept tracks that fail the forward-backward check; ``searched`` <- 1 for those kept."""
+    wp.launch(_forward_backward, dim=depth.shape[0], inputs=[depth, prev_pts, back, back_status, count,
+                                                              float(epipolar.FORWARD_BACKWARD_PX), status, searched],
+              device=device)
+
 def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_w: int, level_h: int, level: int,
                    pts: wp.array, count: wp.array, depth: wp.array, K, T_cur_prev, depth_range_m,
                    scores: wp.array, cand: wp.array, guess: wp.array, device) -> None:
