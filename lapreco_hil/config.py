@@ -126,6 +126,10 @@ class MapperConfig:
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
     active_keyframes: int = ranged(400, ge=0)
+    # a map of at most this many instants (reference keyframes) keeps its poses as given: two views cannot tell a
+    # calibrated relative pose's error from the images' own systematic errors (a lens model's residual, an
+    # interlaced sensor's rows), and hundreds of points would turn the pair to fit the latter
+    hold_poses_up_to_views: int = ranged(2, ge=0)
     # (near, far) metres: where tissue can be before the map knows (a track with no depth yet is searched along
     # its epipolar line over this range)
     scene_depth_m: tuple[float, float] = ranged((0.01, 0.3), gt=0.0)

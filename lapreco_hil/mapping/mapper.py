@@ -504,11 +504,17 @@ class Mapper:
         has_prior, tie_pairs, tie_T, tie_covs = self._rig_ties(chosen, index, kf_ids)
         return ba.BAProblem(
             K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
-            fixed=kf_ids < first_active, prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
+            fixed=(kf_ids < first_active) | self._poses_held(),
+            prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
             prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
             points=np.array([landmarks[t] for t in point_ids.tolist()]),
             obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs, has_prior=has_prior,
             tie_pairs=tie_pairs, tie_T=tie_T, tie_covs=tie_covs)
+
+    def _poses_held(self) -> bool:
+        """Whether the map is too few instants for bundle adjustment to move its poses
+        (``hold_poses_up_to_views``): its points are refined, its poses stay as given."""
+        return sum(1 for k in self.keyframes if k.reference is None) <= self.config.hold_poses_up_to_views
 
     def _rig_ties(self, chosen: list[Keyframe], index: np.ndarray, kf_ids: np.ndarray):
         """Which of a problem's poses have their own prior, and the ties of stereo partners to their reference
