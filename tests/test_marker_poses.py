@@ -218,13 +218,15 @@ def test_record_with_the_ndi_emulator_follows_the_true_camera_and_replays(tmp_pa
 
 @pytest.fixture
 def wired():
-    """An Aurora-like emulator: the scope's sensor (handle 0A) moving, out of the volume when asked."""
-    state = {"outside": False}
+    """An Aurora-like emulator: the scope's sensor (handle 0A) moving, out of the volume when asked (``outside``,
+    or for the measurements numbered in ``outside_range``)."""
+    state = {"outside": False, "outside_range": range(0), "n": 0}
 
     def scope(t_ns: int):
         s = t_ns * 1e-9
         T = make_T(Rotation.from_euler("z", 0.7 * s).as_matrix(), [30.0 * np.sin(s), 0.0, -1200.0])
-        return T, not state["outside"]
+        state["n"] += 1
+        return T, not state["outside"] and state["n"] not in state["outside_range"]
 
     emu = NDITrackerEmulator(wired=[scope], frame_rate_hz=60)
     yield emu, state
@@ -276,7 +278,7 @@ def test_high_rms_samples_are_refused_and_counted(wired):
     assert lenient.rejected == 0 and len(lenient.track) == 2
 
 
-def test_a_scope_tool_the_tracker_lacks_or_no_pose_of_it_is_a_clear_error(wired, tmp_path, warp_cpu):
+def test_a_scope_tool_the_tracker_lacks_or_no_pose_of_it_is_a_clear_error(wired, tmp_path, warp_cpu, capsys):
     emu, state = wired
     grabber_url = "sim://skull?width=320&height=240&fps=15&frames=4"
     assert main(["record", "--marker", f"ndi://{emu.port}?{FAST}", "--grabber", grabber_url, "--tool", "nope",
@@ -285,15 +287,15 @@ def test_a_scope_tool_the_tracker_lacks_or_no_pose_of_it_is_a_clear_error(wired,
     emu.faults.missing = True
     assert main(["record", "--marker", f"ndi://{emu.port}?{FAST}", "--grabber", grabber_url,
                  "--out", str(tmp_path / "b"), "--device", warp_cpu, "--no-progress"]) == 2
-    assert Session(tmp_path / "b").meta.complete  # the frames are kept
+    assert fmt.read_meta(tmp_path / "b").complete  # the frames are kept
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "has no tool 'nope'; its tools: handle 0A" in err[0], err
+    assert "delivered no pose of the scope's tool 'handle 0A' during" in err[1] and "missing" in err[1], err
 
 
 def test_lapreco_record_marker_writes_marker_poses_and_events_and_says_what_next(wired, tmp_path, warp_cpu, capsys):
     emu, state = wired
-    state["outside"] = True  # out of the volume at first: recorded with the flag, counted in events.csv
-    import threading
-
-    threading.Timer(0.3, lambda: state.update(outside=False)).start()
+    state["outside_range"] = range(10, 20)  # out of the volume a while: recorded with the flag, counted in events
     assert main(["record", "--marker", f"ndi://{emu.port}?rate=60&{FAST}", "--grabber",
                  "sim://skull?width=320&height=240&fps=10&frames=20", "--out", str(tmp_path / "rec"), "--device",
                  warp_cpu, "--no-progress"]) == 0
@@ -330,18 +332,24 @@ def test_run_with_a_marker_maps_the_tracked_scope_live(tmp_path, warp_cpu, monke
     holder = {}
 
     def scope_mm(t_ns: int):
-        grabber = holder.get("grabber")
-        if grabber is None:
+        if not holder.get("open"):  # the grabber lays simulated time on the host clock when it opens
             return None
-        T = marker_pose(grabber.ground_truth.camera_pose(t_ns), np.eye(4))
+        T = marker_pose(holder["grabber"].ground_truth.camera_pose(t_ns), np.eye(4))
         T[:3, 3] *= 1e3
         return T, True
 
     real_open_grabber = app_run.open_grabber
 
     def keep(url, context):  # the test's emulator needs the run's grabber for the true poses
-        holder["grabber"] = real_open_grabber(url, context)
-        return holder["grabber"]
+        grabber = holder["grabber"] = real_open_grabber(url, context)
+        real_open = grabber.open
+
+        def open_and_say_so():
+            real_open()
+            holder["open"] = True
+
+        grabber.open = open_and_say_so
+        return grabber
 
     monkeypatch.setattr(app_run, "open_grabber", keep)
     with NDITrackerEmulator(wired=[scope_mm], frame_rate_hz=60) as emu:

@@ -57,8 +57,8 @@ def record_tracked_session(marker_url: str, grabber_url: str, out: str, *, tool:
     context = DeviceContext(device=resolve_device(device))
     tracker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
     camera = read_camera_yaml(camera_file) if camera_file else None
-    # the grabber first: a simulated one lays its time on the host clock when it opens, before the first pose
-    with grabber, tracker:
+    # the tracker first: its bring-up takes a while, and a grabber does not hold the frames that pass meanwhile
+    with tracker, grabber:
         setup = tracker_setup(scope_tool(tracker, tool), hand_eye_file)
         stats = record_tracked(grabber, tracker, out, setup, seconds=seconds, max_frames=frames, camera=camera,
                                source={"tracker": marker_url, "grabber": grabber_url}, progress=progress)

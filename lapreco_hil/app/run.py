@@ -59,7 +59,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         if camera is None:
             raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
                               f"(from 'lapreco calibrate lens')")
-        first, second = grabber, marker  # a simulated grabber lays its time on the host clock when it opens
+        first, second = marker, grabber  # the tracker's bring-up first: frames passing meanwhile would be lost
     bar = tqdm(total=total, desc=f"live {Path(out).name}", unit="frame", file=sys.stderr, disable=not progress)
     recorder = None
     with first, second, bar:
