@@ -250,14 +250,16 @@ class PoseTrack:
     """Camera poses T_world_camera at strictly increasing times, growing as they come: the pose at a time is
     interpolated on SE(3) between the two around it (as ``geometry.SampledPoses``), and only where they are at
     most ``max_gap_ns`` apart (``no_pose_cause``). The gap limit is ``max_gap_periods`` median periods of the
-    recent poses, or ``fixed_gap_ns`` (a table known in full)."""
+    recent poses, or ``fixed_gap_ns`` (a table known in full). A live track holds at most twice ``capacity``
+    poses (the oldest half is dropped); a table's (``capacity`` None) holds them all."""
 
     period_window = 256  # recent intervals kept for the median period
-    capacity = 4096  # the oldest half is dropped when twice this many are held (a long live run)
 
-    def __init__(self, max_gap_periods: float = MAX_GAP_PERIODS, fixed_gap_ns: float | None = None) -> None:
+    def __init__(self, max_gap_periods: float = MAX_GAP_PERIODS, fixed_gap_ns: float | None = None,
+                 capacity: int | None = None) -> None:
         self.max_gap_periods = max_gap_periods
         self.fixed_gap_ns = fixed_gap_ns
+        self.capacity = capacity
         self._times: list[int] = []
         self._poses: list[np.ndarray] = []
         self._intervals: collections.deque[int] = collections.deque(maxlen=self.period_window)
@@ -270,7 +272,7 @@ class PoseTrack:
             self._intervals.append(t_ns - self._times[-1])
         self._times.append(int(t_ns))
         self._poses.append(np.asarray(T_world_camera, float))
-        if len(self._times) > 2 * self.capacity:
+        if self.capacity is not None and len(self._times) > 2 * self.capacity:
             del self._times[: self.capacity]
             del self._poses[: self.capacity]
         return True
@@ -395,6 +397,7 @@ class MarkerPoseSource(GivenPoseSource):
     degraded_for_s = 0.25
     sample_wait_s = 0.1
     refusal_warning_every_s = 1.0
+    live_capacity = 4096  # poses kept live (twice this at most): minutes at a tracker's 40-60 Hz
     what = "marker pose"
 
     def __init__(self, setup, tracker=None, table=None, T_marker_camera: np.ndarray | None = None,
@@ -408,7 +411,8 @@ class MarkerPoseSource(GivenPoseSource):
                               f"--out handeye.yaml' and pass --hand-eye handeye.yaml")
         self.setup, self.tracker, self.tool = setup, tracker, setup.tool
         self.T_marker_camera = T_mc
-        self._setup(setup.sigma.rotation_rad, setup.sigma.translation_m, offset_ns, PoseTrack(max_gap_periods))
+        self._setup(setup.sigma.rotation_rad, setup.sigma.translation_m, offset_ns,
+                    PoseTrack(max_gap_periods, capacity=None if table is not None else self.live_capacity))
         self.rejected = 0
         self.rejected_by_cause: dict[str, int] = {}
         self.other_tools = 0  # samples of other tools (a board's marker): not the scope's, not refused

@@ -23,7 +23,6 @@ from lapreco_hil.registry import DeviceContext, open_grabber, open_tracker
 from lapreco_hil.sessions import format as fmt
 from lapreco_hil.sessions.session import Session
 from lapreco_hil.simulators.ndi_emulator import NDITrackerEmulator
-from lapreco_hil.types import MarkerSample
 
 FAST = "reset_wait_ms=100&timeout_ms=300"
 # the scope's marker sits 12 cm up the shaft from the lens, turned; the tracker stands 1.5 m from the world origin
@@ -36,10 +35,15 @@ def marker_pose(T_world_camera: np.ndarray, T_world_tracker=T_WORLD_TRACKER) -> 
     return inv_T(T_world_tracker) @ T_world_camera @ inv_T(T_MARKER_CAMERA)
 
 
-def marker_row(t_ns: int, tool: str, T: np.ndarray, rms: float = 0.2, inside: int = 1, scale: float = 1.0) -> str:
+def pose_cells(T: np.ndarray, scale: float = 1.0) -> str:
+    """tx,ty,tz,qx,qy,qz,qw with the translation in a unit of ``scale`` metres."""
     v = tum_values(T)
     v[:3] = [x / scale for x in v[:3]]
-    return f"{t_ns},{tool}," + ",".join(f"{x:.12g}" for x in v) + f",{rms},{inside}\n"
+    return ",".join(f"{x:.12g}" for x in v)
+
+
+def marker_row(t_ns: int, tool: str, T: np.ndarray, rms: float = 0.2, inside: int = 1, scale: float = 1.0) -> str:
+    return f"{t_ns},{tool},{pose_cells(T, scale)},{rms},{inside}\n"
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +74,8 @@ def tracked_copy(src, dst, *, hand_eye: bool, unit: str = "mm") -> None:
         if isinstance(T, list):
             for row in T[:3]:
                 row[3] /= scale
-    doc.update({"pose_source": "marker_poses", "tracker": tracker, "counts": {}, "units": {**doc["units"], "length": unit}})
+    doc.update({"pose_source": "marker_poses", "tracker": tracker, "counts": {},
+                "units": {**doc["units"], "length": unit}})
     (dst / "session.json").write_text(json.dumps(doc))
     t, T_true = fmt.read_pose_table(src / "truth" / "camera_poses.csv", 1.0)
     rows = []
@@ -86,8 +91,7 @@ def tracked_copy(src, dst, *, hand_eye: bool, unit: str = "mm") -> None:
         import pyvista as pv
 
         (dst / "truth" / "camera_poses.csv").write_text(",".join(fmt.POSE_COLUMNS) + "\n" + "".join(
-            marker_row(int(ti), "", Ti, scale=scale).replace(",,", ",")[: -len(",0.2,1\n")] + "\n"
-            for ti, Ti in zip(t, T_true)))
+            f"{int(ti)},{pose_cells(Ti, scale)}\n" for ti, Ti in zip(t, T_true)))
         pv.read(str(src / fmt.TRUTH_SURFACE_FILE)).scale(1 / scale).save(str(dst / fmt.TRUTH_SURFACE_FILE))
 
 
@@ -276,6 +280,18 @@ def test_high_rms_samples_are_refused_and_counted(wired):
     lenient = MarkerPoseSource(fmt.TrackerSetup("handle 0A", np.eye(4)), table=fmt.MarkerTable(
         np.array([1, 2]), ("handle 0A",) * 2, np.stack([np.eye(4)] * 2), np.array([0.2, 0.2]), np.array([True] * 2)))
     assert lenient.rejected == 0 and len(lenient.track) == 2
+
+
+def test_a_long_marker_table_keeps_its_first_poses():
+    """A session's table is held whole (a live track drops its oldest half past a capacity; a table must not:
+    ten minutes at 60 Hz are 36000 samples, and the first frames need the first ones)."""
+    n = 20_000
+    t = np.arange(n, dtype=np.int64) * 16_666_667
+    poses = np.stack([make_T(np.eye(3), [i * 1e-5, 0.0, 0.0]) for i in range(n)])
+    table = fmt.MarkerTable(t, ("s",) * n, poses, np.full(n, 0.2), np.ones(n, bool))
+    source = MarkerPoseSource(fmt.TrackerSetup("s", np.eye(4)), table=table)
+    assert source.has_pose(int(t[1]) + 5) and source.has_pose(int(t[-2]))
+    np.testing.assert_allclose(source.prior_at(int(t[1])).T_world_camera[0, 3], 1e-5)
 
 
 def test_a_scope_tool_the_tracker_lacks_or_no_pose_of_it_is_a_clear_error(wired, tmp_path, warp_cpu, capsys):
