@@ -407,8 +407,9 @@ class MarkerPoseSource(GivenPoseSource):
         T_mc = setup.T_marker_camera if T_marker_camera is None else np.asarray(T_marker_camera, float)
         if T_mc is None:
             raise ConfigError(f"the tracked scope (tool '{setup.tool}') has no hand-eye (T_marker_camera; a "
-                              f"calibration session has none): make one with 'lapreco calibrate handeye-tracked ... "
-                              f"--out handeye.yaml' and pass --hand-eye handeye.yaml")
+                              f"calibration session has none): make one with 'lapreco calibrate handeye-tracked "
+                              f"--session S --board-tool TOOL --board BOARD --out handeye.yaml' and pass --hand-eye "
+                              f"handeye.yaml")
         self.setup, self.tracker, self.tool = setup, tracker, setup.tool
         self.T_marker_camera = T_mc
         self._setup(setup.sigma.rotation_rad, setup.sigma.translation_m, offset_ns,

@@ -176,6 +176,44 @@ def test_bad_tracker_fields_name_the_field(skull_session, tmp_path):
             Session(session)
 
 
+def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cpu, capsys):
+    """The next step after ``lapreco record --marker`` without a hand-eye: the simulated ChArUco board scene, the
+    scope's and the board marker's poses made from the true camera and board poses; the hand-eye comes back."""
+    from lapreco_hil.app.record import sim_record
+    from lapreco_hil.calib.files import read_handeye_yaml
+    from lapreco_hil.calib.handeye import pose_difference
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+    src, cal = tmp_path / "src", tmp_path / "cal"
+    sim_record("board", str(src), frames=60, resolution=(480, 360), device=warp_cpu, progress=False)
+    world = SimWorld(SimSettings(scene="board", width=480, height=360, device=warp_cpu))
+    T_world_pattern = world.T_world_scene @ world.scene.board[1]
+    T_boardmarker_pattern = make_T(Rotation.from_euler("x", 0.4).as_matrix(), [0.05, 0.0, -0.01])
+    T_tracker_boardmarker = inv_T(T_WORLD_TRACKER) @ T_world_pattern @ inv_T(T_boardmarker_pattern)
+    cal.mkdir()
+    shutil.copytree(src / "frames", cal / "frames")
+    shutil.copy(src / "frames.csv", cal / "frames.csv")
+    doc = json.loads((src / "session.json").read_text())
+    doc.pop("robot")
+    doc.update(pose_source="marker_poses", tracker={"tool": "scope"}, counts={})
+    (cal / "session.json").write_text(json.dumps(doc))
+    t, T_true = fmt.read_pose_table(src / "truth" / "camera_poses.csv", 1.0)
+    (cal / "marker_poses.csv").write_text(",".join(fmt.MARKER_COLUMNS) + "\n" + "".join(
+        marker_row(int(ti), "scope", marker_pose(Ti)) + marker_row(int(ti), "board", T_tracker_boardmarker)
+        for ti, Ti in zip(t, T_true)))
+    board = "charuco:10x7:0.004:0.003:DICT_5X5_100"
+    assert main(["calibrate", "handeye-tracked", "--session", str(cal), "--board-tool", "board", "--board", board,
+                 "--stride", "3", "--out", str(tmp_path / "handeye.yaml")]) == 0
+    rot_deg, trans_mm = pose_difference(read_handeye_yaml(tmp_path / "handeye.yaml")["T_tip_camera"],
+                                        T_MARKER_CAMERA)
+    # 2.4 s of the scan (under 10 deg of rotation between views): measured 0.37 deg / 0.71 mm
+    assert rot_deg < 1.0 and trans_mm < 2.0, (rot_deg, trans_mm)
+    capsys.readouterr()
+    assert main(["calibrate", "handeye-tracked", "--session", str(cal), "--board-tool", "scope", "--board", board,
+                 "--out", str(tmp_path / "x.yaml")]) == 2
+    assert "--board-tool 'scope' is the scope's tool" in capsys.readouterr().err
+
+
 # --- live: the NDI emulator on a pty ---------------------------------------------------------------------------
 
 def test_record_with_the_ndi_emulator_follows_the_true_camera_and_replays(tmp_path, warp_cpu):
@@ -317,6 +355,7 @@ def test_lapreco_record_marker_writes_marker_poses_and_events_and_says_what_next
                  warp_cpu, "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "marker poses" in out and "is a calibration session" in out and "--hand-eye handeye.yaml" in out
+    assert f"lapreco calibrate handeye-tracked --session {tmp_path / 'rec'} --board-tool TOOL" in out
     s = Session(tmp_path / "rec")
     rows = (tmp_path / "rec" / fmt.MARKER_POSES_FILE).read_text().splitlines()
     assert rows[0] == ",".join(fmt.MARKER_COLUMNS) and len(rows) - 1 == len(s.markers) >= 2 * len(s)

@@ -320,10 +320,10 @@ def _cmd_record_tracked(args) -> int:
           f"scope's tool; {st.capture_span_s:.2f} s of capture) in {st.wall_s:.1f} s = {st.frames_per_s:.1f} "
           f"frames/s; stopped by {st.stopped_by}; session in {args.out}")
     if recording.calibration_only:
-        print(f"no hand-eye: {args.out} is a calibration session (marker poses, no T_marker_camera); 'lapreco "
-              f"calibrate handeye-tracked' does not read sessions yet: it takes per-view pose files (--scope-poses, "
-              f"--board-poses) and images; once you have handeye.yaml, replay it with 'lapreco replay {args.out} "
-              f"--hand-eye handeye.yaml'")
+        print(f"no hand-eye: {args.out} is a calibration session (marker poses, no T_marker_camera); next: lapreco "
+              f"calibrate handeye-tracked --session {args.out} --board-tool TOOL --board BOARD --out handeye.yaml "
+              f"(TOOL: the board marker's tool, recorded with the scope's; BOARD: the board in view), then pass "
+              f"--hand-eye handeye.yaml")
     return 0
 
 
