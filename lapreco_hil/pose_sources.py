@@ -1,5 +1,6 @@
-"""Where camera-pose priors come from: a robot's joint readings through its kinematics, or camera poses
-given directly (an external optical tracker, a calibrated stereo rig). Both answer ``has_pose(t_ns)`` and
+"""Where camera-pose priors come from: a robot's joint readings through its kinematics, camera poses given
+directly (a calibrated stereo rig, poses computed elsewhere), or a tracked scope's marker poses (an optical /
+EM tracker) with its hand-eye. All answer ``has_pose(t_ns)`` and
 ``prior_at(t_ns)``.
 
 A frame gets a pose only when two samples around its time bracket it, no further apart than
@@ -10,6 +11,8 @@ cause (``without_pose``) and ``warn_without_pose()`` logs one warning per cause 
 
 from __future__ import annotations
 
+import bisect
+import collections
 import logging
 import time
 from collections.abc import Mapping
@@ -19,12 +22,12 @@ import numpy as np
 
 from lapreco_hil.config import PriorConfig
 from lapreco_hil.errors import ConfigError
-from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS, NO_POSE_CAUSES, SampledPoses, \
-    max_gap_ns, no_pose_cause
+from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP, MAX_GAP_PERIODS, NO_POSE_CAUSES, \
+    interpolate_pose, max_gap_ns, no_pose_cause
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.kinematics import CameraKinematics, NoPoseError, PoseAtTime, prismatic_joints
 from lapreco_hil.robot_models import urdf_path
-from lapreco_hil.types import PosePrior, RobotDescription
+from lapreco_hil.types import MarkerSample, PosePrior, RobotDescription
 
 log = logging.getLogger(__name__)
 
@@ -243,6 +246,70 @@ class RobotPoseSource:
         return self.pose_at.prior_at(t_ns)
 
 
+class PoseTrack:
+    """Camera poses T_world_camera at strictly increasing times, growing as they come: the pose at a time is
+    interpolated on SE(3) between the two around it (as ``geometry.SampledPoses``), and only where they are at
+    most ``max_gap_ns`` apart (``no_pose_cause``). The gap limit is ``max_gap_periods`` median periods of the
+    recent poses, or ``fixed_gap_ns`` (a table known in full). A live track holds at most twice ``capacity``
+    poses (the oldest half is dropped); a table's (``capacity`` None) holds them all."""
+
+    period_window = 256  # recent intervals kept for the median period
+
+    def __init__(self, max_gap_periods: float = MAX_GAP_PERIODS, fixed_gap_ns: float | None = None,
+                 capacity: int | None = None) -> None:
+        self.max_gap_periods = max_gap_periods
+        self.fixed_gap_ns = fixed_gap_ns
+        self.capacity = capacity
+        self._times: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._intervals: collections.deque[int] = collections.deque(maxlen=self.period_window)
+
+    def add(self, t_ns: int, T_world_camera: np.ndarray) -> bool:
+        """Append a pose; False (not added) when its time is not after the last one's."""
+        if self._times and t_ns <= self._times[-1]:
+            return False
+        if self._times:
+            self._intervals.append(t_ns - self._times[-1])
+        self._times.append(int(t_ns))
+        self._poses.append(np.asarray(T_world_camera, float))
+        if self.capacity is not None and len(self._times) > 2 * self.capacity:
+            del self._times[: self.capacity]
+            del self._poses[: self.capacity]
+        return True
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    @property
+    def t_ns(self) -> np.ndarray:
+        return np.asarray(self._times, np.int64)
+
+    @property
+    def last_time_ns(self) -> int | None:
+        return self._times[-1] if self._times else None
+
+    @property
+    def max_gap_ns(self) -> float:
+        if self.fixed_gap_ns is not None:
+            return self.fixed_gap_ns
+        if not self._intervals:
+            return float("inf")
+        return self.max_gap_periods * float(np.median(self._intervals))
+
+    def no_pose_cause(self, t_ns: int) -> str | None:
+        return no_pose_cause(self._times, t_ns, self.max_gap_ns)
+
+    def __call__(self, t_ns: int) -> np.ndarray:
+        times = self._times
+        i = bisect.bisect_right(times, t_ns)
+        if i == 0:
+            return self._poses[0]
+        if i >= len(times):
+            return self._poses[-1]
+        s = (t_ns - times[i - 1]) / (times[i] - times[i - 1])
+        return interpolate_pose(self._poses[i - 1], self._poses[i], s)
+
+
 class GivenPoseSource:
     """Camera poses T_world_camera known at times (an optical tracker): interpolated on SE(3) at frame
     times, with a fixed diagonal covariance. A frame outside the poses' span, or in a gap longer than
@@ -253,28 +320,39 @@ class GivenPoseSource:
     rejected = 0
     rejected_by_cause: Mapping[str, int] = MappingProxyType({})
     last_refusal = ""
+    what = "camera pose"  # the kind of sample, in warnings and errors
 
     def __init__(self, t_ns: np.ndarray, poses: np.ndarray, sigma_rotation_rad: float, sigma_translation_m: float,
                  offset_ns: int = 0, max_gap_periods: float = MAX_GAP_PERIODS) -> None:
         if len(t_ns) == 0:
             raise ConfigError("no camera poses given")
-        self.poses = SampledPoses(np.asarray(t_ns, np.int64), np.asarray(poses, float))
+        t = np.asarray(t_ns, np.int64)
+        self._setup(sigma_rotation_rad, sigma_translation_m, offset_ns,
+                    PoseTrack(max_gap_periods, fixed_gap_ns=max_gap_ns(t, max_gap_periods)))
+        for ti, T in zip(t, np.asarray(poses, float)):
+            self.track.add(int(ti), T)
+
+    def _setup(self, sigma_rotation_rad: float, sigma_translation_m: float, offset_ns: int, track: PoseTrack) -> None:
+        self.track = track
         self.offset_ns = offset_ns
-        self.max_gap_ns = max_gap_ns(self.poses.t_ns, max_gap_periods)
         self.cov = np.diag([sigma_rotation_rad**2] * 3 + [sigma_translation_m**2] * 3)
-        self.without_pose = FramesWithoutPose("camera pose")
+        self.without_pose = FramesWithoutPose(self.what)
+
+    @property
+    def max_gap_ns(self) -> float:
+        return self.track.max_gap_ns
 
     def poll(self) -> list:
         return []
 
     def no_pose_cause(self, t_ns: int) -> str | None:
         """Why frame time ``t_ns`` has no pose (geometry.NO_POSE_CAUSES), or None when it has one."""
-        return no_pose_cause(self.poses.t_ns, t_ns + self.offset_ns, self.max_gap_ns)
+        return self.track.no_pose_cause(t_ns + self.offset_ns)
 
     def has_pose(self, t_ns: int | None = None) -> bool:
         """Whether frame time ``t_ns`` has a pose; a frame that has none is counted by cause."""
         if t_ns is None:
-            return True
+            return len(self.track) > 0
         self.without_pose.seen(t_ns)
         cause = self.no_pose_cause(t_ns)
         if cause is not None:
@@ -294,6 +372,162 @@ class GivenPoseSource:
         cause = self.no_pose_cause(t_ns)
         if cause is not None:
             raise NoPoseError(f"no camera pose at video time {t_ns} ns ({cause.replace('_', ' ')} of the given "
-                              f"camera poses)", cause)
-        T = self.poses(t_ns + self.offset_ns)
+                              f"{self.what}s)", cause)
+        T = self.track(t_ns + self.offset_ns)
         return PosePrior(T_world_camera=T.copy(), cov=self.cov.copy(), t_ns=t_ns)
+
+
+# why a marker sample is refused (the keys of rejected_by_cause)
+OUT_OF_VOLUME, RMS_ABOVE_LIMIT, NON_FINITE, TIME_NOT_FORWARD = ("out_of_volume", "rms_above_limit", "non_finite",
+                                                                "time did not move forward")
+
+
+class MarkerPoseSource(GivenPoseSource):
+    """A tracked scope (an optical / EM tracker's marker on it): T_world_camera = T_world_tracker @
+    T_tracker_marker(t + offset) @ T_marker_camera, from the scope's tool's samples only, interpolated on SE(3)
+    as GivenPoseSource does, with the session's (or default) pose sigmas as the prior.
+
+    Live it polls a TrackerDriver (``tracker``); offline it reads a session's marker table (``table``). A sample
+    outside the tracker's characterised volume, with a marker-fit RMS above ``setup.max_rms_mm``, non-finite,
+    or not after the last one is refused and counted by cause (``rejected_by_cause``), warned about (rate
+    limited), and shown in ``health`` as degraded while refusals keep coming; the tool's MISSING replies are the
+    driver's ``faults['missing']`` (``tracker_faults``). Like a robot's, a live frame newer than the newest sample
+    waits up to ``sample_wait_s`` for the one after it."""
+
+    degraded_for_s = 0.25
+    sample_wait_s = 0.1
+    refusal_warning_every_s = 1.0
+    live_capacity = 4096  # poses kept live (twice this at most): minutes at a tracker's 40-60 Hz
+    what = "marker pose"
+
+    def __init__(self, setup, tracker=None, table=None, T_marker_camera: np.ndarray | None = None,
+                 offset_ns: int = 0, max_gap_periods: float = MAX_GAP_PERIODS) -> None:
+        if (tracker is None) == (table is None):
+            raise ValueError("MarkerPoseSource: give a tracker (live) or a marker table (offline), not both")
+        T_mc = setup.T_marker_camera if T_marker_camera is None else np.asarray(T_marker_camera, float)
+        if T_mc is None:
+            raise ConfigError(f"the tracked scope (tool '{setup.tool}') has no hand-eye (T_marker_camera; a "
+                              f"calibration session has none): make one with 'lapreco calibrate handeye-tracked "
+                              f"--session S --board-tool TOOL --board BOARD --out handeye.yaml' and pass --hand-eye "
+                              f"handeye.yaml")
+        self.setup, self.tracker, self.tool = setup, tracker, setup.tool
+        self.T_marker_camera = T_mc
+        self._setup(setup.sigma.rotation_rad, setup.sigma.translation_m, offset_ns,
+                    PoseTrack(max_gap_periods, capacity=None if table is not None else self.live_capacity))
+        self.rejected = 0
+        self.rejected_by_cause: dict[str, int] = {}
+        self.other_tools = 0  # samples of other tools (a board's marker): not the scope's, not refused
+        self._last_refusal = ""
+        self._last_refusal_wall = -float("inf")
+        self._warn_refusal = RateLimitedWarning(log, self.refusal_warning_every_s)
+        self._taken: list = []  # read while a frame waited for a sample; handed on by the next poll()
+        self._stalled = False
+        if table is not None:
+            self._take([MarkerSample(T, int(t), i, tool, float(rms), bool(inside)) for i, (t, tool, T, rms, inside)
+                        in enumerate(zip(table.t_ns, table.tools, table.poses, table.rms_mm, table.in_volume))])
+            if not len(self.track):
+                causes = ", ".join(f"{n} {c}" for c, n in sorted(self.rejected_by_cause.items())) or "no rows"
+                raise ConfigError(f"no usable pose of the scope's tool '{self.tool}' in the marker table ({causes}); "
+                                  f"last refused: {self._last_refusal or '-'}")
+            self.track.fixed_gap_ns = max_gap_ns(self.track.t_ns, max_gap_periods)
+
+    # --- taking samples ---------------------------------------------------------------------------------------
+    def _refusal(self, s) -> tuple[str, str] | None:
+        T = np.asarray(s.T_tracker_marker, float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.isfinite(s.rms_mm):
+            return NON_FINITE, f"tool '{s.tool}' at {s.t_ns} ns: a non-finite pose or RMS"
+        if not s.in_volume:
+            return OUT_OF_VOLUME, f"tool '{s.tool}' at {s.t_ns} ns is outside the tracker's characterised volume"
+        if s.rms_mm > self.setup.max_rms_mm:
+            return RMS_ABOVE_LIMIT, (f"tool '{s.tool}' at {s.t_ns} ns: marker fit RMS {s.rms_mm:.3g} mm above "
+                                     f"the limit {self.setup.max_rms_mm:.3g} mm")
+        last = self.track.last_time_ns
+        if last is not None and s.t_ns <= last:
+            return TIME_NOT_FORWARD, f"time {s.t_ns} ns is not after the last sample's {last} ns"
+        return None
+
+    def _take(self, samples) -> list:
+        """Accept the scope's good samples into the track (composed to camera poses); returns the accepted."""
+        good = []
+        for s in samples:
+            if s.tool != self.tool:
+                self.other_tools += 1
+                continue
+            refusal = self._refusal(s)
+            if refusal is not None:
+                cause, message = refusal
+                self.rejected += 1
+                self.rejected_by_cause[cause] = self.rejected_by_cause.get(cause, 0) + 1
+                self._last_refusal, self._last_refusal_wall = message, time.monotonic()
+                if self.tracker is not None:  # (offline, the counts are in the report)
+                    self._warn_refusal("marker sample refused (%s): %s; %d refused so far", cause, message,
+                                       self.rejected)
+                continue
+            self.track.add(s.t_ns, self.setup.T_world_tracker @ np.asarray(s.T_tracker_marker, float)
+                           @ self.T_marker_camera)
+            good.append(s)
+        if good:
+            self._stalled = False
+            if self.without_pose.unsettled:
+                self.without_pose.resolve_after_last(self.no_pose_cause)
+        return good
+
+    def poll(self) -> list:
+        """Take the tracker's new samples (refusing what cannot be a pose); returns every sample read, of every
+        tool and refused or not: a live run records what the device said, and a replay judges it again."""
+        if self.tracker is None:
+            return []
+        new = self.tracker.read(timeout_s=0.0)
+        self._take(new)
+        out, self._taken = self._taken + new, []
+        return out
+
+    def _wait_for_sample_after(self, t_pose_ns: int) -> None:
+        if self._stalled:
+            return
+        deadline = time.monotonic() + self.sample_wait_s
+        while self.track.last_time_ns < t_pose_ns:  # (called after the first sample: there is a last one)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self._stalled = True
+                return
+            new = self.tracker.read(timeout_s=min(left, 0.01))
+            self._taken.extend(new)
+            if not self._take(new) and not new:
+                time.sleep(min(left, 0.002))
+
+    def has_pose(self, t_ns: int | None = None) -> bool:
+        """Whether frame time ``t_ns`` has a pose (two accepted samples bracket it, within the gap limit); a
+        frame that has none is counted by cause. Without a time: whether any sample was accepted."""
+        if t_ns is None or self.tracker is None or not len(self.track):
+            return super().has_pose(t_ns)
+        self.without_pose.seen(t_ns)
+        cause = self.no_pose_cause(t_ns)
+        t_pose = t_ns + self.offset_ns
+        if cause == AFTER_LAST and t_pose - self.track.last_time_ns <= self.max_gap_ns:
+            self._wait_for_sample_after(t_pose)
+            cause = self.no_pose_cause(t_ns)
+        if cause is not None:
+            self.without_pose.add(cause, t_ns)
+        return cause is None
+
+    # --- what the run reports ----------------------------------------------------------------------------------
+    @property
+    def last_refusal(self) -> str:
+        """Why the newest refused sample was refused ("" before any refusal)."""
+        return self._last_refusal
+
+    @property
+    def tracker_faults(self) -> dict[str, int]:
+        """The driver's own counts (``missing``: replies without the tool, ``out_of_volume``, lost replies)."""
+        return {k: int(v) for k, v in dict(self.tracker.faults).items() if v} if self.tracker is not None else {}
+
+    @property
+    def health(self) -> Health:
+        if time.monotonic() - self._last_refusal_wall < self.degraded_for_s:
+            return Health(HealthState.DEGRADED, f"{self.rejected} marker samples refused; last: {self._last_refusal}")
+        if self.tracker is not None:
+            h = self.tracker.health
+            if h is not None and h.state is not HealthState.OK:
+                return Health(h.state, f"tracker: {h.detail}")
+        return Health(HealthState.OK)

@@ -134,6 +134,9 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
         raise CalibrationError("--joint-wander-s and --backlash describe the arm for the joint-space refinement; "
                                "add --refine joints")
     session = Session(session_dir)
+    if session.meta.pose_source == "marker_poses":
+        raise CalibrationError(f"session '{session_dir}' follows a tracked scope (marker poses), not a robot; its "
+                               f"hand-eye comes from 'lapreco calibrate handeye-tracked' (per-view pose files)")
     if session.meta.pose_source != "joints":
         raise CalibrationError(f"session '{session_dir}' has camera poses, not joint readings; hand-eye "
                                f"calibration needs the robot's kinematics")

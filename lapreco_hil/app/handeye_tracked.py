@@ -118,6 +118,59 @@ def calibrate_tracked(scope_poses: list[str], board_poses: list[str], left: list
                                    leave_one_out)
 
 
+def tracked_views_from_session(session_dir: str, board, board_tool: str, stride: int = 5) -> tuple[list, dict]:
+    """(TrackedViews, cameras) from a tracked-scope session (pose_source "marker_poses", e.g. a calibration
+    session from ``lapreco record --marker``): every ``stride``-th frame whose time both the scope's tool and
+    ``board_tool`` bracket with accepted samples (in the volume, within the RMS limit; interpolated on SE(3) with
+    the gap rule), with the board detected in each camera's image (a stereo rig's first two: left, right)."""
+    from lapreco_hil.calib.handeye import TrackedView
+    from lapreco_hil.pose_sources import PoseTrack
+    from lapreco_hil.sessions import Session
+
+    session = Session(session_dir)
+    meta = session.meta
+    if meta.pose_source != "marker_poses":
+        raise CalibrationError(f"session '{session_dir}' has {meta.pose_source.replace('_', ' ')}, not a tracker's "
+                               f"marker poses; record one with 'lapreco record --marker ...'")
+    table, tracker = session.markers, meta.tracker
+    if board_tool == tracker.tool:
+        raise CalibrationError(f"--board-tool '{board_tool}' is the scope's tool (session.json's tracker.tool); "
+                               f"give the board's")
+    tracks = {}
+    for tool in (tracker.tool, board_tool):
+        track = PoseTrack()
+        for t, name, T, rms, inside in zip(table.t_ns, table.tools, table.poses, table.rms_mm, table.in_volume):
+            if name == tool and inside and rms <= tracker.max_rms_mm:
+                track.add(int(t), T)
+        if len(track) < 2:
+            raise CalibrationError(f"session '{session_dir}': {len(track)} usable poses of tool '{tool}' (in the "
+                                   f"volume, RMS within {tracker.max_rms_mm} mm); tools in marker_poses.csv: "
+                                   f"{', '.join(sorted(set(table.tools)))}")
+        tracks[tool] = track
+    cameras = dict(zip(("left", "right"), meta.rig.cameras[:2]))
+    views = []
+    for i in range(0, len(session), stride):
+        t = int(session.frame_t_ns[i]) + meta.time_offset_ns
+        if any(track.no_pose_cause(t) is not None for track in tracks.values()):
+            continue
+        T_bm_sm = np.linalg.inv(tracks[board_tool](t)) @ tracks[tracker.tool](t)
+        frame = session.frame(i)
+        found = {side: board.detect(frame.image_of(k)) for k, side in enumerate(cameras)}
+        views.append(TrackedView(f"frame {frame.seq}", T_bm_sm, {s: d for s, d in found.items() if d is not None}))
+    if not views:
+        raise CalibrationError(f"session '{session_dir}': no frame has poses of both the scope's tool "
+                               f"'{tracker.tool}' and the board's '{board_tool}' around it")
+    return views, cameras
+
+
+def calibrate_tracked_session(session_dir: str, board_spec: str, board_tool: str, out: str, stride: int = 5,
+                              json_file: str | None = None, leave_one_out: bool = True) -> dict:
+    """``lapreco calibrate handeye-tracked --session S --board-tool NAME``: the tracked hand-eye from a session's
+    frames and marker poses (the lenses: the session's cameras)."""
+    views, cameras = tracked_views_from_session(session_dir, parse_board(board_spec), board_tool, stride)
+    return calibrate_tracked_views(views, board_spec, cameras, out, json_file, leave_one_out)
+
+
 def calibrate_tracked_views(views: list, board_spec: str, cameras: dict, out: str, json_file: str | None = None,
                             leave_one_out: bool = True) -> dict:
     """Calibrate from TrackedViews (detections already made), write ``out`` (and the JSON report); the report."""

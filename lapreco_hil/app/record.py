@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from lapreco_hil.app.handeye import recording_rig
-from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
-from lapreco_hil.sessions.recorder import RecordStats, record
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot, open_tracker
+from lapreco_hil.sessions.recorder import RecordStats, record, record_tracked, scope_tool
 from lapreco_hil.warp_device import resolve_device
 
 
@@ -34,6 +34,35 @@ def record_session(robot_url: str, grabber_url: str, out: str, *, seconds: float
                        description=description, source={"robot": robot_url, "grabber": grabber_url},
                        progress=progress)
     return Recording(stats, calibration_only)
+
+
+def tracker_setup(tool: str, hand_eye_file: str | None = None, max_rms_mm: float | None = None):
+    """The tracked scope's TrackerSetup: its tool, and the hand-eye T_marker_camera from a hand-eye file (the
+    'T_tip_camera' that 'lapreco calibrate handeye-tracked' writes for the scope's marker), or none."""
+    from lapreco_hil.calib.files import read_handeye_yaml
+    from lapreco_hil.sessions.format import DEFAULT_MAX_RMS_MM, TrackerSetup
+
+    T_marker_camera = read_handeye_yaml(hand_eye_file)["T_tip_camera"] if hand_eye_file else None
+    return TrackerSetup(tool, T_marker_camera, max_rms_mm=max_rms_mm or DEFAULT_MAX_RMS_MM)
+
+
+def record_tracked_session(marker_url: str, grabber_url: str, out: str, *, tool: str | None = None,
+                           seconds: float | None = None, frames: int | None = None, camera_file: str | None = None,
+                           hand_eye_file: str | None = None, device: str = "auto",
+                           progress: bool = True) -> Recording:
+    """``lapreco record --marker``: frames and the tracker's marker poses (every tool's; ``tool``: the
+    scope's, default the tracker's only one). Without ``hand_eye_file`` a calibration session."""
+    from lapreco_hil.calib.files import read_camera_yaml
+
+    context = DeviceContext(device=resolve_device(device))
+    tracker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
+    camera = read_camera_yaml(camera_file) if camera_file else None
+    # the tracker first: its bring-up takes a while, and a grabber does not hold the frames that pass meanwhile
+    with tracker, grabber:
+        setup = tracker_setup(scope_tool(tracker, tool), hand_eye_file)
+        stats = record_tracked(grabber, tracker, out, setup, seconds=seconds, max_frames=frames, camera=camera,
+                               source={"tracker": marker_url, "grabber": grabber_url}, progress=progress)
+    return Recording(stats, setup.T_marker_camera is None)
 
 
 def sim_url(scene: str, resolution: tuple[int, int], fps: float, seed: int, instrument: bool = False,

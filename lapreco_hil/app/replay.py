@@ -11,7 +11,7 @@ from lapreco_hil.errors import CalibrationError
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.offline import reconstruct
 from lapreco_hil.outputs import check_output_dir, prepare_output_dir
-from lapreco_hil.pose_sources import GivenPoseSource, RobotPoseSource
+from lapreco_hil.pose_sources import GivenPoseSource, MarkerPoseSource, RobotPoseSource
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.warp_device import resolve_device
 
@@ -43,6 +43,12 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
         if hand_eye_file:
             description = replace(description, T_tip_camera=read_handeye_yaml(hand_eye_file)["T_tip_camera"])
         poses = RobotPoseSource(robot, description, config.prior, offset_ns=offset_ns)
+    elif meta.pose_source == "marker_poses":
+        robot = None
+        # the hand-eye file's T_tip_camera is the scope marker's (calibrate handeye-tracked writes it so)
+        T_marker_camera = read_handeye_yaml(hand_eye_file)["T_tip_camera"] if hand_eye_file else None
+        poses = MarkerPoseSource(meta.tracker, table=grabber.session.markers, T_marker_camera=T_marker_camera,
+                                 offset_ns=offset_ns)
     else:
         if hand_eye_file:
             raise CalibrationError(f"session '{session}' gives camera poses directly; a hand-eye does not apply")
@@ -55,6 +61,9 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
               "session_complete": meta.complete, "pace": "realtime" if realtime else "afap",
               # tables shorter than session.json's counts (Session.shortfall): {table: {recorded, found}}
               "session_shortfall": grabber.session.shortfall}
+    if meta.pose_source == "marker_poses":
+        fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
+                       "marker_samples_refused_by_cause": dict(poses.rejected_by_cause)})
     with grabber:
         if robot is not None:
             robot.open()

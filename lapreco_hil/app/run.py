@@ -11,10 +11,11 @@ from pathlib import Path
 
 from lapreco_hil.app.handeye import describe_rig, require_hand_eye
 from lapreco_hil.config import PipelineConfig
+from lapreco_hil.errors import ConfigError
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.outputs import check_output_dir, prepare_output_dir, write_outputs
-from lapreco_hil.pose_sources import RobotPoseSource
-from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
+from lapreco_hil.pose_sources import MarkerPoseSource, RobotPoseSource
+from lapreco_hil.registry import DeviceContext, open_grabber, open_robot, open_tracker
 from lapreco_hil.runtime.live import LiveRun
 from lapreco_hil.warp_device import resolve_device
 
@@ -32,10 +33,13 @@ def rig_from(robot, grabber, camera_file: str | None = None, hand_eye_file: str 
 def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str = "auto", device: str = "auto",
              camera=None, description=None, record: str | None = None, seconds: float | None = None,
              progress: bool = True, total: int | None = None, report_fields: dict | None = None,
-             on_stage_error: str = "stop", write: bool = True, on_live=None) -> dict:
+             on_stage_error: str = "stop", write: bool = True, on_live=None, marker=None,
+             tracker_setup=None) -> dict:
     """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers. ``write=False``
     (benchmarks) returns the live metrics and map statistics without writing files or rendering;
-    ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler)."""
+    ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler). A tracked scope
+    instead of a robot: ``robot`` None, ``marker`` an unopened TrackerDriver and ``tracker_setup`` (a
+    TrackerSetup with the hand-eye; its tool None: the tracker's only one)."""
     from tqdm import tqdm
 
     from lapreco_hil.sessions.recorder import session_meta_for
@@ -46,14 +50,30 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     config = _live_view_if_renderable(config)
     device = resolve_device(device)
     tracker = resolve_tracker(tracker, device)
-    if camera is None or description is None:
-        camera, description = rig_from(robot, grabber)
-    poses = RobotPoseSource(robot, description, config.prior)
+    if marker is None:
+        if camera is None or description is None:
+            camera, description = rig_from(robot, grabber)
+        poses = RobotPoseSource(robot, description, config.prior)
+        first, second = robot, grabber
+    else:
+        if camera is None:
+            raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
+                              f"(from 'lapreco calibrate lens')")
+        first, second = marker, grabber  # the tracker's bring-up first: frames passing meanwhile would be lost
     bar = tqdm(total=total, desc=f"live {Path(out).name}", unit="frame", file=sys.stderr, disable=not progress)
     recorder = None
-    with robot, grabber, bar:
+    with first, second, bar:
+        if marker is not None:
+            from lapreco_hil.sessions.recorder import scope_tool
+
+            tracker_setup = replace(tracker_setup, tool=scope_tool(marker, tracker_setup.tool))
+            poses = MarkerPoseSource(tracker_setup, tracker=marker)
         out_dir = prepare_output_dir(out)  # only once the devices are open: a run that never starts leaves nothing
-        if record:
+        if record and marker is not None:
+            from lapreco_hil.sessions.recorder import tracked_session_meta
+
+            recorder = SessionWriter(record, tracked_session_meta(grabber, camera, tracker_setup))
+        elif record:
             recorder = SessionWriter(record, session_meta_for(grabber, robot, camera, description),
                                      urdf_path(description.urdf))
         try:
@@ -66,6 +86,10 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             if recorder is not None:
                 recorder.close()
     fields = {"command": "run", **(report_fields or {}), "runtime": "live"}
+    if marker is not None:
+        fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
+                       "marker_samples_refused_by_cause": dict(poses.rejected_by_cause),
+                       "tracker_faults": poses.tracker_faults})
     if not write:
         return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")}}
     if record:
@@ -102,19 +126,47 @@ def stop_on_signals() -> None:
     signal.signal(signal.SIGTERM, stop)
 
 
-def run(robot_url: str, grabber_url: str, out: str, *, config_path: str | None = None, record: str | None = None,
-        seconds: float | None = None, view_every: float = 0.0, tracker: str = "auto", device: str = "auto",
-        camera_file: str | None = None, robot_model: str | None = None, tip_frame: str | None = None,
-        hand_eye_file: str | None = None, progress: bool = True) -> dict:
-    """``lapreco run``: devices by URL, the rig from files or the devices, live until the end; the report."""
+def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str | None = None,
+        record: str | None = None, seconds: float | None = None, view_every: float = 0.0, tracker: str = "auto",
+        device: str = "auto", camera_file: str | None = None, robot_model: str | None = None,
+        tip_frame: str | None = None, hand_eye_file: str | None = None, progress: bool = True,
+        marker_url: str | None = None, tool: str | None = None) -> dict:
+    """``lapreco run``: devices by URL (a robot, or a tracker ``marker_url`` following the scope's marker, with
+    its hand-eye), the rig from files or the devices, live until the end; the report."""
     from lapreco_hil.config import load_config
 
+    if (robot_url is None) == (marker_url is None):
+        raise ConfigError("lapreco run: give exactly one pose source: --robot URL (a robot holding the scope) or "
+                          "--marker URL (a tracker following the scope's marker, e.g. ndi:///dev/ttyUSB0), "
+                          f"{'not both' if robot_url else 'got neither'}")
     config = load_config(config_path)
     if view_every:
         config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))
     context = DeviceContext(device=resolve_device(device))
+    if marker_url is not None:
+        return _run_tracked(marker_url, grabber_url, out, config, context, tool=tool, hand_eye_file=hand_eye_file,
+                            camera_file=camera_file, record=record, seconds=seconds, tracker=tracker,
+                            device=device, progress=progress)
     robot, grabber = open_robot(robot_url, context), open_grabber(grabber_url, context)
     camera, description = rig_from(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
     return run_live(robot, grabber, config, out, tracker=tracker, device=device, camera=camera,
                     description=description, record=record, seconds=seconds, progress=progress,
                     report_fields={"robot": robot_url, "grabber": grabber_url})
+
+
+def _run_tracked(marker_url: str, grabber_url: str, out: str, config: PipelineConfig, context: DeviceContext, *,
+                 tool: str | None, hand_eye_file: str | None, camera_file: str | None, record: str | None,
+                 seconds: float | None, tracker: str, device: str, progress: bool) -> dict:
+    """``lapreco run --marker``: the scope's pose from a tracker and the hand-eye T_marker_camera."""
+    from lapreco_hil.app.record import tracker_setup
+    from lapreco_hil.calib.files import read_camera_yaml
+
+    if not hand_eye_file:
+        raise ConfigError(f"lapreco run --marker {marker_url}: the scope's hand-eye is missing (T_marker_camera): "
+                          f"pass --hand-eye handeye.yaml (from 'lapreco calibrate handeye-tracked')")
+    setup = tracker_setup(tool, hand_eye_file)
+    marker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
+    camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
+    return run_live(None, grabber, config, out, tracker=tracker, device=device, camera=camera, record=record,
+                    seconds=seconds, progress=progress, marker=marker, tracker_setup=setup,
+                    report_fields={"marker": marker_url, "grabber": grabber_url, "hand_eye_file": hand_eye_file})

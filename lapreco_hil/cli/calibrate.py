@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from lapreco_hil.cli.args import non_negative, positive
+from lapreco_hil.errors import CalibrationError
 from lapreco_hil.outputs import write_json
 
 log = logging.getLogger(__name__)
@@ -68,16 +69,23 @@ def add_parsers(sub, positive_int) -> None:
     ht = cal_sub.add_parser("handeye-tracked",
                             help="an optically tracked scope's hand-eye (camera -> scope marker) and the board "
                                  "pattern on its marker, from tracked board views")
-    ht.add_argument("--scope-poses", nargs="+", metavar="FILE", required=True,
+    ht.add_argument("--session", default=None,
+                    help="instead of the files below, a tracked-scope session ('lapreco record --marker', "
+                         "marker_poses.csv) looking at the board; needs --board-tool")
+    ht.add_argument("--board-tool", default=None, help="with --session: the board marker's tool name")
+    ht.add_argument("--stride", type=positive_int, default=5,
+                    help="with --session: use every Nth frame as a view (default 5)")
+    ht.add_argument("--scope-poses", nargs="+", metavar="FILE", default=None,
                     help="per view, the scope marker's 4x4 pose in the tracker's frame (text, mm); files or a "
                          "quoted glob, in view order (names sorted by their numbers)")
-    ht.add_argument("--board-poses", nargs="+", metavar="FILE", required=True,
+    ht.add_argument("--board-poses", nargs="+", metavar="FILE", default=None,
                     help="per view, the board marker's 4x4 pose in the tracker's frame (text, mm), likewise")
-    ht.add_argument("--left", nargs="+", metavar="IMAGE", required=True, help="per view, the (left) camera's image")
+    ht.add_argument("--left", nargs="+", metavar="IMAGE", default=None, help="per view, the (left) camera's image")
     ht.add_argument("--right", nargs="+", metavar="IMAGE", default=None,
                     help="per view, the right camera's image (a stereo scope: one hand-eye plus the rig)")
     ht.add_argument("--board", required=True, help="the printed pattern, as for 'calibrate lens' (e.g. viking)")
-    ht.add_argument("--camera", required=True, help="the (left) camera's lens (OpenCV YAML or ROS camera_info)")
+    ht.add_argument("--camera", default=None, help="the (left) camera's lens (OpenCV YAML or ROS camera_info); "
+                                                   "with --session the session's")
     ht.add_argument("--camera-right", default=None, help="the right camera's lens, with --right")
     ht.add_argument("--no-leave-one-out", action="store_true",
                     help="skip the leave-one-view-out triangulation figure (stereo only; one calibration per view)")
@@ -172,11 +180,24 @@ def cmd_handeye(args) -> int:
 
 
 def cmd_handeye_tracked(args) -> int:
-    from lapreco_hil.app.handeye_tracked import calibrate_tracked
+    from lapreco_hil.app.handeye_tracked import calibrate_tracked, calibrate_tracked_session
 
-    r = calibrate_tracked(args.scope_poses, args.board_poses, args.left, args.board, args.camera, args.out,
-                          right=args.right, camera_right_file=args.camera_right, json_file=args.json,
-                          leave_one_out=not args.no_leave_one_out)
+    files = {"--scope-poses": args.scope_poses, "--board-poses": args.board_poses, "--left": args.left,
+             "--camera": args.camera, "--right": args.right, "--camera-right": args.camera_right}
+    if args.session:
+        given = [k for k, v in files.items() if v]
+        if given or not args.board_tool:
+            raise CalibrationError(f"with --session give --board-tool (the board marker's tool) and no per-view "
+                                   f"files{' (got ' + ', '.join(given) + ')' if given else ''}")
+        r = calibrate_tracked_session(args.session, args.board, args.board_tool, args.out, stride=args.stride,
+                                      json_file=args.json, leave_one_out=not args.no_leave_one_out)
+    else:
+        missing = [k for k in ("--scope-poses", "--board-poses", "--left", "--camera") if not files[k]]
+        if missing:
+            raise CalibrationError(f"give {', '.join(missing)} (per-view files), or --session S --board-tool NAME")
+        r = calibrate_tracked(args.scope_poses, args.board_poses, args.left, args.board, args.camera, args.out,
+                              right=args.right, camera_right_file=args.camera_right, json_file=args.json,
+                              leave_one_out=not args.no_leave_one_out)
     for side, cam in r["per_camera"].items():
         agree = cam["agreement"]
         for name, m in cam["methods"].items():

@@ -7,7 +7,7 @@ import logging
 import sys
 
 from lapreco_hil import __version__
-from lapreco_hil.errors import LaprecoError
+from lapreco_hil.errors import ConfigError, LaprecoError
 from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative, number_list, positive, positive_int,
                                   resolution, seed)
 
@@ -56,8 +56,13 @@ def build_parser() -> ArgumentParser:
     dev.add_argument("--device", default="auto", help="with --probe: Warp device for simulated devices")
     dev.set_defaults(func=_cmd_devices)
 
-    rec = sub.add_parser("record", help="record frames and joint readings from devices into a session")
-    rec.add_argument("--robot", required=True, help="robot URL, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4 or sim://skull")
+    rec = sub.add_parser("record", help="record frames and joint readings (or a tracked scope's marker poses) from "
+                                        "devices into a session")
+    source = rec.add_mutually_exclusive_group(required=True)
+    source.add_argument("--robot", help="robot URL, e.g. serial:///dev/ttyUSB0?ids=1,2,3,4 or sim://skull")
+    source.add_argument("--marker", help="instead of a robot, a tracker following the scope's marker, e.g. "
+                                         "ndi:///dev/ttyUSB0?tools=8700339.rom")
+    rec.add_argument("--tool", default=None, help="with --marker: the scope's tool (default: the tracker's only one)")
     rec.add_argument("--grabber", required=True, help="grabber URL, e.g. v4l2:///dev/video0 or sim://skull")
     rec.add_argument("--out", required=True, help="new session folder")
     rec.add_argument("--seconds", type=positive, default=None, help="stop after this much capture time (s, > 0)")
@@ -65,7 +70,8 @@ def build_parser() -> ArgumentParser:
     rec.add_argument("--camera", default=None, help="lens calibration (OpenCV YAML) when the grabber has none")
     rec.add_argument("--robot-model", default=None, help="packaged robot model name or URDF path")
     rec.add_argument("--tip-frame", default=None, help="the URDF link that holds the scope")
-    rec.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera)")
+    rec.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera; with "
+                                                      "--marker the scope marker's, T_marker_camera)")
     rec.add_argument("--device", default="auto", help="Warp device for simulated devices: auto | cpu | cuda")
     rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec.set_defaults(func=_cmd_record)
@@ -316,12 +322,35 @@ def _cmd_record(args) -> int:
 
     from lapreco_hil.app.handeye import calibrate_next_step
 
+    if args.marker:
+        return _cmd_record_tracked(args)
     recording = record_session(args.robot, args.grabber, args.out, seconds=args.seconds, frames=args.frames,
                                camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
                                hand_eye_file=args.hand_eye, device=args.device, progress=not args.no_progress)
     _print_record(args.out, recording.stats)
     if recording.calibration_only:
         print(calibrate_next_step(args.out))
+    return 0
+
+
+def _cmd_record_tracked(args) -> int:
+    from lapreco_hil.app.record import record_tracked_session
+
+    if args.robot_model or args.tip_frame:
+        raise ConfigError("--robot-model and --tip-frame describe a robot; with --marker give --tool (the scope's "
+                          "tool) and --hand-eye")
+    recording = record_tracked_session(args.marker, args.grabber, args.out, tool=args.tool, seconds=args.seconds,
+                                       frames=args.frames, camera_file=args.camera, hand_eye_file=args.hand_eye,
+                                       device=args.device, progress=not args.no_progress)
+    st = recording.stats
+    print(f"lapreco record: {st.frames} frames and {st.marker_samples} marker poses ({st.scope_samples} of the "
+          f"scope's tool; {st.capture_span_s:.2f} s of capture) in {st.wall_s:.1f} s = {st.frames_per_s:.1f} "
+          f"frames/s; stopped by {st.stopped_by}; session in {args.out}")
+    if recording.calibration_only:
+        print(f"no hand-eye: {args.out} is a calibration session (marker poses, no T_marker_camera); next: lapreco "
+              f"calibrate handeye-tracked --session {args.out} --board-tool TOOL --board BOARD --out handeye.yaml "
+              f"(TOOL: the board marker's tool, recorded with the scope's; BOARD: the board in view), then pass "
+              f"--hand-eye handeye.yaml")
     return 0
 
 

@@ -12,7 +12,7 @@ def cmd_run(args) -> int:
     report = run(args.robot, args.grabber, args.out, config_path=args.config, record=args.record,
                  seconds=args.seconds, view_every=args.view_every, tracker=args.tracker, device=args.device,
                  camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
-                 hand_eye_file=args.hand_eye, progress=not args.no_progress)
+                 hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool)
     f, lat = report["frames"], report["latency_ms"]
     print(f"lapreco run: {f['in']} frames in, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
@@ -25,7 +25,11 @@ def cmd_run(args) -> int:
 
 def add_parser(sub) -> None:
     run = sub.add_parser("run", help="the live pipeline on devices until the source ends, --seconds, or Ctrl-C")
-    run.add_argument("--robot", required=True, help="robot URL (serial://, canopen://, sim://, replay://)")
+    # exactly one of --robot / --marker (checked by app.run, which says so in one line)
+    run.add_argument("--robot", default=None, help="robot URL (serial://, canopen://, sim://, replay://)")
+    run.add_argument("--marker", default=None, help="instead of a robot, a tracker following the scope's marker "
+                                                    "(ndi://...; needs --hand-eye)")
+    run.add_argument("--tool", default=None, help="with --marker: the scope's tool (default: the tracker's only one)")
     run.add_argument("--grabber", required=True, help="grabber URL (v4l2://, sim://, replay://)")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="pipeline configuration (TOML)")
@@ -39,6 +43,7 @@ def add_parser(sub) -> None:
     run.add_argument("--camera", default=None, help="lens calibration (OpenCV YAML) when the grabber has none")
     run.add_argument("--robot-model", default=None, help="packaged robot model name or URDF path")
     run.add_argument("--tip-frame", default=None, help="the URDF link that holds the scope")
-    run.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera)")
+    run.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera; with "
+                                                      "--marker the scope marker's)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)

@@ -12,6 +12,7 @@ A session is a folder::
     joints.csv              seq,t_ns,<joint names>   when pose_source = "joints"
     robot.urdf              the robot model          when pose_source = "joints" (or a packaged name)
     camera_poses.csv        t_ns,tx,ty,tz,qx,qy,qz,qw  when pose_source = "camera_poses"
+    marker_poses.csv        t_ns,tool,tx,ty,tz,qx,qy,qz,qw,rms_mm,in_volume  when pose_source = "marker_poses"
     truth/surface.ply       optional ground truth, world frame
     truth/camera_poses.csv  optional ground truth, same columns as camera_poses.csv
     events.csv              t_ns,device,event,detail  device faults and health changes while recording
@@ -53,8 +54,13 @@ EVENT_COLUMNS = ("t_ns", "device", "event", "detail")
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 TIME_UNITS = ("ns",)
-POSE_SOURCES = ("joints", "camera_poses")
+POSE_SOURCES = ("joints", "camera_poses", "marker_poses")
 POSE_COLUMNS = ("t_ns", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+MARKER_POSES_FILE = "marker_poses.csv"
+# T_tracker_marker of every tracked tool (the scope's and any other), with the device's quality fields
+MARKER_COLUMNS = ("t_ns", "tool", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "rms_mm", "in_volume")
+TOOL_NAME = re.compile(r"[^,\r\n\"]{1,64}")
+DEFAULT_MAX_RMS_MM = 1.0  # a marker fit worse than this is refused (a Polaris's typical RMS is 0.1-0.3 mm)
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,33 @@ class PoseSigma:
     translation_m: float = 0.0005
 
 
+@dataclass(frozen=True)
+class TrackerSetup:
+    """How a tracked scope's marker poses become camera poses (session.json's ``tracker``):
+    T_world_camera = T_world_tracker @ T_tracker_marker @ T_marker_camera, for the tool ``tool``. Without
+    ``T_marker_camera`` (the hand-eye) the session is a calibration session. Translations in metres."""
+
+    tool: str
+    T_marker_camera: np.ndarray | None = None
+    T_world_tracker: np.ndarray = field(default_factory=lambda: np.eye(4))
+    sigma: PoseSigma = field(default_factory=PoseSigma)
+    max_rms_mm: float = DEFAULT_MAX_RMS_MM
+
+
+@dataclass(frozen=True)
+class MarkerTable:
+    """marker_poses.csv read: per row its time, tool, T_tracker_marker (metres), RMS (mm) and volume flag."""
+
+    t_ns: np.ndarray  # (N,) int64, increasing per tool
+    tools: tuple[str, ...]
+    poses: np.ndarray  # (N, 4, 4)
+    rms_mm: np.ndarray  # (N,)
+    in_volume: np.ndarray  # (N,) bool
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
 def default_camera_names(n: int) -> tuple[str, ...]:
     return ("left", "right") if n == 2 else ("camera",) if n == 1 else tuple(f"cam{k}" for k in range(n))
 
@@ -72,7 +105,7 @@ def default_camera_names(n: int) -> tuple[str, ...]:
 @dataclass(frozen=True)
 class SessionMeta:
     camera: CameraModel  # camera 0 of the rig (the one camera of a version-1 session)
-    pose_source: str  # "joints" | "camera_poses"
+    pose_source: str  # "joints" | "camera_poses" | "marker_poses"
     robot: RobotDescription | None = None  # urdf is relative to the session folder or a packaged name
     joint_names: tuple[str, ...] = ()
     joint_units: tuple[str, ...] = ()  # per joint: "angle" (revolute) or "length" (prismatic)
@@ -89,6 +122,7 @@ class SessionMeta:
     rig: Rig | None = None
     camera_names: tuple[str, ...] = ()  # one per camera of the rig (default: left, right for a pair)
     file_version: int = 0  # the version of the session.json it was read from (0: made in memory)
+    tracker: TrackerSetup | None = None  # pose_source "marker_poses": the tool, hand-eye and tracker placement
 
     def __post_init__(self) -> None:
         if self.rig is None:
@@ -161,7 +195,42 @@ class SessionMeta:
         if self.pose_source == "camera_poses":
             doc["camera_poses"] = {"sigma_rotation_rad": self.pose_sigma.rotation_rad,
                                    "sigma_translation_m": self.pose_sigma.translation_m}
+        if self.tracker is not None:
+            doc["tracker"] = _tracker_json(self.tracker, LENGTH_UNITS[self.length_unit])
         return doc
+
+
+def _tracker_json(tracker: TrackerSetup, scale: float) -> dict:
+    def in_unit(T: np.ndarray) -> list:
+        m = np.asarray(T, float).copy()
+        m[:3, 3] /= scale
+        return m.tolist()
+
+    doc = {"tool": tracker.tool, "T_world_tracker": in_unit(tracker.T_world_tracker),
+           "sigma_rotation_rad": tracker.sigma.rotation_rad, "sigma_translation_m": tracker.sigma.translation_m,
+           "max_rms_mm": tracker.max_rms_mm}
+    if tracker.T_marker_camera is not None:  # absent: a calibration session (no hand-eye yet)
+        doc["T_marker_camera"] = in_unit(tracker.T_marker_camera)
+    return doc
+
+
+def _tracker(t: "_Fields", scale: float) -> TrackerSetup:
+    tool = t.get("tool", str)
+    if not TOOL_NAME.fullmatch(tool):
+        raise t._fail("tool", f"is {tool!r}; give the scope's tool name as marker_poses.csv's 'tool' column "
+                              f"has it (1-64 characters, no comma or quote)")
+
+    def rigid_in_metres(key: str) -> np.ndarray:
+        m = _check_rigid(t, key).copy()
+        m[:3, 3] *= scale
+        return m
+
+    default = PoseSigma()
+    sigma = PoseSigma(_positive(t, "sigma_rotation_rad", default.rotation_rad),
+                      _positive(t, "sigma_translation_m", default.translation_m))
+    return TrackerSetup(tool, rigid_in_metres("T_marker_camera") if "T_marker_camera" in t.data else None,
+                        rigid_in_metres("T_world_tracker") if "T_world_tracker" in t.data else np.eye(4), sigma,
+                        _positive(t, "max_rms_mm", DEFAULT_MAX_RMS_MM))
 
 
 def _intrinsics_json(cam: CameraModel) -> dict:
@@ -384,7 +453,7 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
 
     pose_source = f.get("pose_source", str)
     if pose_source not in POSE_SOURCES:
-        raise f._fail("pose_source", f"is {pose_source!r}; use 'joints' or 'camera_poses'")
+        raise f._fail("pose_source", f"is {pose_source!r}; use 'joints', 'camera_poses' or 'marker_poses'")
     robot = None
     joint_names: tuple[str, ...] = ()
     joint_units: tuple[str, ...] = ()
@@ -406,13 +475,14 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
                           p.get("sigma_translation_m", float, sigma.translation_m))
         if sigma.rotation_rad <= 0 or sigma.translation_m <= 0:
             raise p._fail("sigma_rotation_rad", "and sigma_translation_m must be positive")
+    tracker = _tracker(f.sub("tracker"), LENGTH_UNITS[length]) if pose_source == "marker_poses" else None
     fps = f.get("nominal_fps", float, None)
     return SessionMeta(camera=camera, pose_source=pose_source, robot=robot, joint_names=joint_names,
                        joint_units=joint_units, pose_sigma=sigma, time_offset_ns=f.get("time_offset_ns", int, 0),
                        length_unit=length, angle_unit=angle, nominal_fps=fps,
                        complete=f.get("complete", bool, True), counts=f.get("counts", dict, {}),
                        source=f.get("source", dict, {}), health=f.get("health", dict, {}), rig=rig,
-                       camera_names=names, file_version=version)
+                       camera_names=names, file_version=version, tracker=tracker)
 
 
 def read_meta(folder: Path) -> SessionMeta:
@@ -514,3 +584,43 @@ def read_pose_table(path: Path, length_scale: float) -> tuple[np.ndarray, np.nda
         poses[i, :3, 3] *= length_scale
     check_increasing(path, t)
     return t, poses
+
+
+def read_marker_table(path: Path, length_scale: float) -> tuple[MarkerTable, bool]:
+    """marker_poses.csv (MARKER_COLUMNS; translations to metres) and whether an unfinished last row was left out.
+    Times must increase per tool (several tools may share a reply's time)."""
+    from lapreco_hil.geometry import pose_from_tum
+
+    rows, truncated = read_rows(path, MARKER_COLUMNS)
+    n = len(rows)
+    t = np.empty(n, np.int64)
+    poses, rms, inside = np.empty((n, 4, 4)), np.empty(n), np.empty(n, bool)
+    tools: list[str] = []
+    last: dict[str, tuple[int, int]] = {}  # tool -> (its last t_ns, line)
+    for i, r in enumerate(rows):
+        lineno = i + 2
+        t[i] = parse_int(path, lineno, "t_ns", r[0])
+        tool = r[1]
+        if not TOOL_NAME.fullmatch(tool):
+            raise SessionError(f"{path}: line {lineno}: column 'tool' = '{tool}' is not a tool name (1-64 "
+                               f"characters, no comma or quote)")
+        vals = [parse_float(path, lineno, c, v) for c, v in zip(MARKER_COLUMNS[2:9], r[2:9])]
+        try:
+            poses[i] = pose_from_tum(vals)
+        except ValueError as exc:
+            raise SessionError(f"{path}: line {lineno}: {exc}") from None
+        poses[i, :3, 3] *= length_scale
+        rms[i] = parse_float(path, lineno, "rms_mm", r[9])
+        if rms[i] < 0:
+            raise SessionError(f"{path}: line {lineno}: column 'rms_mm' = '{r[9]}' is negative")
+        if r[10] not in ("0", "1"):
+            raise SessionError(f"{path}: line {lineno}: column 'in_volume' = '{r[10]}' must be 1 (inside the "
+                               f"tracker's characterised volume) or 0")
+        inside[i] = r[10] == "1"
+        if tool in last and t[i] <= last[tool][0]:
+            raise SessionError(f"{path}: line {lineno}: t_ns {t[i]} of tool '{tool}' does not increase (its "
+                               f"previous row, line {last[tool][1]}: {last[tool][0]}); each tool's timestamps "
+                               f"must be strictly increasing")
+        last[tool] = (int(t[i]), lineno)
+        tools.append(tool)
+    return MarkerTable(t, tuple(tools), poses, rms, inside), truncated

@@ -13,7 +13,7 @@ from lapreco_hil.errors import ConfigError, DeviceError
 from lapreco_hil.robot_models import urdf_path
 from lapreco_hil.types import RobotDescription
 from lapreco_hil.drivers.health import HealthState
-from lapreco_hil.sessions.format import EVENTS_FILE, SessionMeta
+from lapreco_hil.sessions.format import EVENTS_FILE, SessionMeta, TrackerSetup
 from lapreco_hil.sessions.writer import SessionWriter
 
 log = logging.getLogger(__name__)
@@ -29,6 +29,9 @@ class RecordStats:
     stopped_by: str
     robot_faults: dict = field(default_factory=dict)  # the robot driver's fault counts at the end
     events: int = 0  # rows of events.csv: faults and health changes seen while recording
+    marker_samples: int = 0  # rows of marker_poses.csv (every tool's), in a tracked-scope session
+    scope_samples: int = 0  # of them, the scope's tool's
+    tracker_faults: dict = field(default_factory=dict)  # the tracker driver's fault counts at the end
 
     @property
     def frames_per_s(self) -> float:
@@ -179,6 +182,105 @@ def _no_joints_message(url: str, out: str, stats: RecordStats, delivered: int | 
                 f"limits, units)")
     return (f"record: robot '{url}' delivered no readings during {stats.frames} frames ({faults}"
             f"{'; last: ' + last if last else ''}); {kept}; {probe}")
+
+
+def tracked_session_meta(grabber, camera: CameraModel, setup: TrackerSetup, source: dict | None = None,
+                         rig: Rig | None = None) -> SessionMeta:
+    """The metadata of a tracked-scope recording (pose_source "marker_poses"); ``setup.T_marker_camera`` None
+    makes a calibration session."""
+    rig = rig or recorded_rig(grabber.rig, camera)
+    return SessionMeta(camera=rig.cameras[0], rig=rig, pose_source="marker_poses", tracker=setup,
+                       nominal_fps=grabber.nominal_fps, source=source or {})
+
+
+def scope_tool(tracker, tool: str | None) -> str:
+    """The scope's tool among an open tracker's: the one named, or the tracker's only one."""
+    tools = tuple(tracker.tools)
+    if tool is None:
+        if len(tools) == 1:
+            return tools[0]
+        raise ConfigError(f"tracker '{tracker.url.raw}' tracks {len(tools)} tools ({', '.join(tools) or 'none'}); "
+                          f"say which one is on the scope with --tool NAME")
+    if tool not in tools:
+        raise ConfigError(f"tracker '{tracker.url.raw}' has no tool '{tool}'; its tools: {', '.join(tools) or 'none'} "
+                          f"(a passive tool is named after its .rom file, a wired one 'handle 0A')")
+    return tool
+
+
+def record_tracked(grabber, tracker, out: str, setup: TrackerSetup, *, seconds: float | None = None,
+                   max_frames: int | None = None, camera: CameraModel | None = None, source: dict | None = None,
+                   progress: bool = True, with_truth: bool = True, rig: Rig | None = None) -> RecordStats:
+    """Record frames and every tool's marker poses (``tracker``: an OPEN TrackerDriver; ``setup.tool`` is the
+    scope's) into a marker_poses session, as ``record`` does a robot's joints: events.csv gets the tracker's
+    faults and health changes. A tracker that delivered no pose of the scope's tool is a DeviceError after the
+    session is closed (its frames are kept)."""
+    from tqdm import tqdm
+
+    camera = camera or (rig.cameras[0] if rig is not None else None) or grabber.camera
+    if camera is None:
+        raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
+                          f"(from 'lapreco calibrate lens')")
+    truth = grabber.ground_truth if with_truth else None
+    meta = tracked_session_meta(grabber, camera, setup, source, rig)
+    stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
+    bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
+    wall0 = time.perf_counter()
+    tracker_name, grabber_name = f"tracker {tracker.url.raw}", f"grabber {grabber.url.raw}"
+    seen_tools: collections.Counter[str] = collections.Counter()
+
+    def take(samples) -> None:
+        seen_tools.update(s.tool for s in samples)
+        stats.skipped_joint_samples += writer.add_marker_samples(samples)
+
+    with SessionWriter(out, meta) as writer, bar:
+        if truth is not None and truth.surface is not None:
+            writer.set_truth_surface(truth.surface)
+        watch = DeviceWatch(writer, {tracker_name: tracker, grabber_name: grabber})
+        first_t = last_t = None
+        try:
+            while True:
+                frame = grabber.read(timeout_s=1.0)
+                if frame is None:
+                    break
+                take(tracker.read(timeout_s=0.0))
+                writer.add_frame(frame)
+                if truth is not None and truth.camera_pose is not None:
+                    writer.add_true_pose(frame.t_ns, truth.camera_pose(frame.t_ns))
+                first_t = frame.t_ns if first_t is None else first_t
+                last_t = frame.t_ns
+                stats.capture_span_s = (frame.t_ns - first_t) * 1e-9
+                watch.check(frame.t_ns)
+                bar.update(1)
+                if max_frames is not None and writer.n_queued >= max_frames:
+                    stats.stopped_by = "frame count"
+                    break
+                if seconds is not None and stats.capture_span_s >= seconds:
+                    stats.stopped_by = "duration"
+                    break
+            take(tracker.read(timeout_s=FINAL_READING_WAIT_S))  # the poses just after the last frame
+        except KeyboardInterrupt:
+            stats.stopped_by = "interrupted"
+        if last_t is not None:
+            watch.check(last_t)
+        stats.tracker_faults = {k: int(v) for k, v in dict(tracker.faults).items() if v}
+        writer.set_health({"tracker_faults": stats.tracker_faults, "marker_samples_by_tool": dict(seen_tools),
+                           "marker_samples_not_recorded": stats.skipped_joint_samples,
+                           "last_tracker_problem": watch.last_problem.get(tracker_name, ""),
+                           "events": writer.n_events})
+    stats.frames, stats.marker_samples = writer.n_frames, writer.n_markers
+    stats.scope_samples, stats.events = seen_tools.get(setup.tool, 0), writer.n_events
+    stats.wall_s = time.perf_counter() - wall0
+    if stats.tracker_faults:
+        log.warning("record: tracker %s: faults during the recording: %s (each one in %s/%s)", tracker.url.raw,
+                    ", ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())), out, EVENTS_FILE)
+    if stats.frames and not stats.scope_samples:
+        faults = "; ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())) or "no faults counted"
+        others = ", ".join(f"{t} {n}" for t, n in sorted(seen_tools.items())) or "none"
+        raise DeviceError(f"record: tracker '{tracker.url.raw}' delivered no pose of the scope's tool "
+                          f"'{setup.tool}' during {stats.frames} frames (poses of other tools: {others}; {faults}); "
+                          f"the frames are saved in {out}, but a replay needs the scope's poses; next: check the "
+                          f"marker is in view with 'lapreco devices --probe {tracker.url.raw}'")
+    return stats
 
 
 def session_meta_for(grabber, robot, camera: CameraModel, description: RobotDescription,

@@ -160,8 +160,8 @@ class ReplayRobot(RobotDriver):
         self.url = url
         self.session, self.clock = _shared(url, context)
         if self.session.meta.pose_source != "joints":
-            raise SessionError(f"session '{url.name}' carries camera poses, not joint readings; replay it with "
-                               f"'lapreco replay {url.name}'")
+            raise SessionError(f"session '{url.name}' carries {self.session.meta.pose_source.replace('_', ' ')}, not "
+                               f"joint readings; replay it with 'lapreco replay {url.name}'")
         self.description = self.session.robot
         meta = self.session.meta
         # (only joint count and limits are read here; a calibration session has no hand-eye)

@@ -32,8 +32,11 @@ class Session:
         self.joint_samples: list[JointSample] = []
         self.pose_t_ns = np.zeros(0, np.int64)
         self.poses = np.zeros((0, 4, 4))
+        self.markers: fmt.MarkerTable | None = None  # pose_source "marker_poses": every tool's rows
         if self.meta.pose_source == "joints":
             self._read_joints()
+        elif self.meta.pose_source == "marker_poses":
+            self._read_markers()
         else:
             self.pose_t_ns, self.poses = fmt.read_pose_table(self.folder / fmt.CAMERA_POSES_FILE,
                                                              fmt.LENGTH_UNITS[self.meta.length_unit])
@@ -50,6 +53,8 @@ class Session:
         found = {"frames": (fmt.FRAMES_FILE, len(self.frame_t_ns))}
         if self.meta.pose_source == "joints":
             found["joint_samples"] = (fmt.JOINTS_FILE, len(self.joint_samples))
+        elif self.meta.pose_source == "marker_poses":
+            found["marker_poses"] = (fmt.MARKER_POSES_FILE, len(self.markers))
         else:
             found["camera_poses"] = (fmt.CAMERA_POSES_FILE, len(self.pose_t_ns))
         for key, (name, n) in found.items():
@@ -203,6 +208,17 @@ class Session:
         if not rows:
             raise SessionError(f"{path}: no joint samples")
         fmt.check_increasing(path, t)
+
+    def _read_markers(self) -> None:
+        path = self.folder / fmt.MARKER_POSES_FILE
+        self.markers, truncated = fmt.read_marker_table(path, fmt.LENGTH_UNITS[self.meta.length_unit])
+        if truncated:
+            self.truncated.append(fmt.MARKER_POSES_FILE)
+        tool = self.meta.tracker.tool
+        if tool not in self.markers.tools:
+            found = sorted(set(self.markers.tools))
+            raise SessionError(f"{path}: no row of the scope's tool '{tool}' (session.json's tracker.tool); the "
+                               f"table has {', '.join(repr(t) for t in found) if found else 'no rows'}")
 
     @property
     def robot(self) -> RobotDescription:

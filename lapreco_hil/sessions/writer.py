@@ -74,12 +74,18 @@ class SessionWriter:
         self._pending: collections.deque[tuple[list[Future], str]] = collections.deque()
         self._fsync_every = fsync_every
         self.n_frames = self.n_queued = self.n_joints = self.n_poses = self.n_truth = self.n_events = 0
+        self.n_markers = 0
+        self._last_marker_t: dict[str, int] = {}  # tool -> its last recorded time
         self.last_skipped_joints = ""  # why the last joint sample was not recorded (names the joint and value)
         self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
         _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json(self.folder))
         self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, fmt.FRAME_COLUMNS[self.version])}
         if meta.pose_source == "joints":
             self._tables["joints"] = self._open_table(fmt.JOINTS_FILE, ("seq", "t_ns", *meta.joint_names))
+        elif meta.pose_source == "marker_poses":
+            if meta.tracker is None:
+                raise SessionError("a session with pose_source 'marker_poses' needs a tracker setup (its tool)")
+            self._tables["markers"] = self._open_table(fmt.MARKER_POSES_FILE, fmt.MARKER_COLUMNS)
         else:
             self._tables["poses"] = self._open_table(fmt.CAMERA_POSES_FILE, fmt.POSE_COLUMNS)
         self.closed = False
@@ -173,7 +179,7 @@ class SessionWriter:
         if wrote:
             self._flush()
 
-    def add_joints(self, samples: list[JointSample]) -> int:
+    def _add_joint_samples(self, samples: list[JointSample]) -> int:
         """Append the samples that are valid and newer than the last one; returns how many were skipped."""
         fh = self._tables["joints"]
         scale = self.meta.joint_scale
@@ -199,6 +205,38 @@ class SessionWriter:
         if self._last_joint_t is not None and t_ns <= self._last_joint_t:
             return f"time {t_ns} ns is not after the last recorded sample's {self._last_joint_t} ns"
         return ""
+
+    def add_marker_samples(self, samples) -> int:
+        """Append MarkerSamples (every tool's, with their quality fields: refusing is the pose source's job);
+        a non-finite pose or a time not after the tool's last one is skipped. Returns how many were skipped."""
+        fh = self._tables["markers"]
+        scale = fmt.LENGTH_UNITS[self.meta.length_unit]
+        skipped = 0
+        for s in samples:
+            T = np.asarray(s.T_tracker_marker, float)
+            last = self._last_marker_t.get(s.tool)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not fmt.TOOL_NAME.fullmatch(s.tool):
+                skipped += 1
+                self.last_skipped_joints = f"tool '{s.tool}': not a finite 4x4 pose"
+                continue
+            if last is not None and s.t_ns <= last:
+                skipped += 1
+                self.last_skipped_joints = f"tool '{s.tool}': time {s.t_ns} ns is not after its last {last} ns"
+                continue
+            v = tum_values(T)
+            v[:3] = [x / scale for x in v[:3]]
+            fh.write(f"{s.t_ns},{s.tool}," + ",".join(f"{x:.9g}" for x in v)
+                     + f",{float(s.rms_mm):.6g},{int(bool(s.in_volume))}\n")
+            self._last_marker_t[s.tool] = s.t_ns
+            self.n_markers += 1
+        return skipped
+
+    def add_joints(self, samples: list) -> int:
+        """Append pose samples: joint readings, or in a marker_poses session the tracker's MarkerSamples (the
+        live runtime's Record stage hands whatever its pose source polled here); returns how many were skipped."""
+        if "markers" in self._tables:
+            return self.add_marker_samples(samples)
+        return self._add_joint_samples(samples)
 
     def add_event(self, t_ns: int, device: str, event: str, detail: str = "") -> None:
         """One row of events.csv: a device fault or health change noticed at session time ``t_ns``."""
@@ -262,6 +300,7 @@ class SessionWriter:
             os.fsync(fh.fileno())
             fh.close()
         counts = {"frames": self.n_frames, "joint_samples": self.n_joints, "camera_poses": self.n_poses,
+                  **({"marker_poses": self.n_markers} if "markers" in self._tables else {}),
                   "true_camera_poses": self.n_truth, "events": self.n_events}
         self.meta = replace(self.meta, complete=True, counts=counts)
         _write_json_atomic(self.folder / fmt.META_FILE, self.meta.to_json(self.folder))
