@@ -3,6 +3,7 @@ report.json, all in one folder, written from a finished map by :func:`write_outp
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -103,6 +104,8 @@ def _json_default(o):
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
+    if dataclasses.is_dataclass(o) and not isinstance(o, type):
+        return dataclasses.asdict(o)  # a configuration section
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
