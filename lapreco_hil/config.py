@@ -80,6 +80,8 @@ class TrackerConfig:
     drift_check: bool = True
     drift_patch_px: int = ranged(13, ge=3)
     drift_max_residual: float = ranged(0.75, gt=0.0)
+    # start each track where the pose source's motion says it lands (FrameMotion); off: where it was
+    predict: bool = True
     few_views: FewViewsConfig = field(default_factory=FewViewsConfig)
 
     def for_frames(self, frames: int | None) -> "TrackerConfig":

@@ -41,7 +41,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     each track where the pose source's motion says it lands (pose-predicted tracking)."""
     frontend = make_frontend(tracker, camera, config.tracker, device)
     mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline(), rig=rig)
-    predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict else None
+    predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict and config.tracker.predict else None
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0

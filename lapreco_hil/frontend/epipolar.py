@@ -28,6 +28,9 @@ SECOND_RADIUS = 2.5
 # NEIGHBOUR_RADIUS of the image's larger side
 NEIGHBOURS = 6
 NEIGHBOUR_RADIUS = 0.15
+# a track whose whole epipolar segment (over the depth range) stays within this many pixels of its middle needs
+# no search: LK starts at the middle (a slow frame: the robot's small motion is no reason to re-match a track)
+SHORT_LINE_PX = 10.0
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,26 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
         with np.errstate(all="ignore"):
             borrowed = np.nanmedian(np.where(np.isfinite(dist), near, np.nan), axis=1) if near.size else near
         depth[~has] = borrowed
+    return depth
+
+
+def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,
+                       depth_range_m: tuple[float, float]) -> np.ndarray:
+    """``depth`` with the tracks that have none but whose epipolar segment is short (SHORT_LINE_PX) given the
+    depth of its middle (the inverse-depth midpoint of the range): they start LK there, unsearched."""
+    depth = np.array(depth, np.float64)
+    unknown = ~np.isfinite(depth)
+    if not unknown.any():
+        return depth
+    near, far = depth_range_m
+    a = project(uv[unknown], np.full(unknown.sum(), near), K, K, T_cur_prev)
+    b = project(uv[unknown], np.full(unknown.sum(), far), K, K, T_cur_prev)
+    mid = 2.0 / (1.0 / near + 1.0 / far)
+    c = project(uv[unknown], np.full(unknown.sum(), mid), K, K, T_cur_prev)
+    reach = np.maximum(np.linalg.norm(a - c, axis=1), np.linalg.norm(b - c, axis=1))
+    short = np.isfinite(reach) & (reach <= SHORT_LINE_PX)
+    idx = np.flatnonzero(unknown)[short]
+    depth[idx] = mid
     return depth
 
 

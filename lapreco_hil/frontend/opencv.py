@@ -52,6 +52,8 @@ class OpenCVFrontEnd:
         self._depth_range = motion.depth_range_m
         depth = epipolar.depths_for_tracks(self._pts.astype(np.float64), self._ids, motion.track_ids,
                                            motion.depth_m, (self.camera.width, self.camera.height))
+        depth = epipolar.settle_short_lines(self._pts.astype(np.float64), depth, self.camera.K,
+                                            np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         guess = epipolar.predict(self._pts.astype(np.float64), depth, self._prev_float, intensity, self.camera.K,
                                  np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         return guess, ~np.isfinite(depth)

@@ -80,7 +80,8 @@ class LiveRun:
         self.track_points = TrackPoints()  # the mapper's newest track points, for pose-predicted tracking
         self.tracking = Tracking(poses, self.links, self.metrics, self.latest, coverage, self.processes.submit,
                                  device=device, degrade=on_stage_error == "degrade", recording=recording,
-                                 track_points=self.track_points, scene_depth_m=config.mapper.scene_depth_m,
+                                 track_points=self.track_points if config.tracker.predict else None,
+                                 scene_depth_m=config.mapper.scene_depth_m,
                                  offset_watch=self.offset_watch, rig=stereo)
         self.tracking.frontend = frontend
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)

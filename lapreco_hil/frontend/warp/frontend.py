@@ -403,6 +403,8 @@ class WarpFrontEnd:
         self._depth_range = motion.depth_range_m
         _, _, ids, uv = self._last
         depth = epipolar.depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, (self.width, self.height))
+        depth = epipolar.settle_short_lines(np.asarray(uv, np.float64), depth, self.camera.K,
+                                            np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         slots = np.zeros(self.config.max_features, np.float32)
         slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
         self._depth.assign(slots)
