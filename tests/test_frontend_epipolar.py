@@ -153,8 +153,8 @@ def test_sweep_finds_the_stereo_partner_along_the_epipolar_line():
 
 
 def rectified_dy(uv_left, uv_right, K_left, K_right, T):
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(K_left, np.zeros(5), K_right, np.zeros(5), (360, 288), T[:3, :3],
-                                           T[:3, 3])
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K_left, np.zeros(5), K_right, np.zeros(5), (360, 288),
+                                           np.ascontiguousarray(T[:3, :3]), T[:3, 3].reshape(3, 1).copy())
     ul = cv2.undistortPoints(uv_left.reshape(-1, 1, 2), K_left, np.zeros(5), R=R1, P=P1).reshape(-1, 2)
     ur = cv2.undistortPoints(uv_right.reshape(-1, 1, 2), K_right, np.zeros(5), R=R2, P=P2).reshape(-1, 2)
     return np.abs(ul[:, 1] - ur[:, 1])

@@ -296,5 +296,5 @@ def test_a_live_run_watches_the_time_offset_from_its_own_tracks(true_offset_ms):
     assert reading.offset_ns is not None
     assert abs(reading.offset_ns * 1e-6 - true_offset_ms) < 10.0  # a quarter of the 40 ms frame period
     health = watch.health()
-    assert health.ok == (abs(true_offset_ms) <= 20.0)
-    assert watch.summary()["drifted"] == (abs(true_offset_ms) > 20.0)
+    assert health.ok == (abs(true_offset_ms) <= 50.0)
+    assert watch.summary()["drifted"] == (abs(true_offset_ms) > 50.0)

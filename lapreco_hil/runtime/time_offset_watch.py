@@ -17,6 +17,9 @@ from lapreco_hil.types import FrameMotion, Observations
 
 # how often the window is searched (a search over +-0.5 s takes milliseconds: never per frame)
 READING_PERIOD_S = 2.0
+# a drift beyond this is reported: geared joints' backlash alone reads as ~20 ms of delay in the image motion
+# (docs/calibration-handeye.md), and the slips worth a warning are tens to thousands of milliseconds
+DRIFT_THRESHOLD_NS = 50_000_000
 
 
 class TimeOffsetWatch:
@@ -24,7 +27,8 @@ class TimeOffsetWatch:
                  clock=time.monotonic) -> None:
         self.K = np.asarray(K, float)
         self.applied_offset_ns = int(applied_offset_ns)
-        self.monitor = monitor if monitor is not None else TimeOffsetMonitor(applied_offset_ns=applied_offset_ns)
+        self.monitor = monitor if monitor is not None else TimeOffsetMonitor(
+            applied_offset_ns=applied_offset_ns, drift_threshold_ns=DRIFT_THRESHOLD_NS)
         self.clock = clock
         self._reading = OffsetReading(None, None, False, 0, 0.0)
         self._next_reading = 0.0
