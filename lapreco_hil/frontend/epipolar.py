@@ -30,7 +30,7 @@ NEIGHBOURS = 6
 NEIGHBOUR_RADIUS = 0.15
 # a track whose whole epipolar segment (over the depth range) stays within this many pixels of its middle needs
 # no search: LK starts at the middle (a slow frame: the robot's small motion is no reason to re-match a track)
-SHORT_LINE_PX = 10.0
+SHORT_LINE_PX = 20.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +80,27 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
             borrowed = np.nanmedian(np.where(np.isfinite(dist), near, np.nan), axis=1) if near.size else near
         depth[~has] = borrowed
     return depth
+
+
+# a frame whose tracks the motion moves less than this (median) is tracked as without one: LK's own reach covers
+# it, and the robot's noise in a small motion only moves the starts about (docs/frontend-real-frames.md)
+SMALL_MOTION_PX = 8.0
+
+
+def motion_is_small(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray, image_size: tuple[int, int]) -> bool:
+    """Whether ``motion`` moves the tracks at ``uv`` (ids ``ids``) with a depth (their own or their neighbours')
+    by less than SMALL_MOTION_PX (median). With fewer than 10 such tracks it cannot tell: False (each track is
+    then predicted, or searched along its line, on its own)."""
+    if len(uv) == 0:
+        return True
+    depth = depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, image_size)
+    known = np.isfinite(depth)
+    if known.sum() < 10:
+        return False
+    moved = np.linalg.norm(project(uv[known], depth[known], K, K, np.asarray(motion.T_cur_prev, np.float64))
+                           - uv[known], axis=1)
+    moved = moved[np.isfinite(moved)]
+    return bool(len(moved)) and float(np.median(moved)) < SMALL_MOTION_PX
 
 
 def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,

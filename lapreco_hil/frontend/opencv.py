@@ -60,6 +60,9 @@ class OpenCVFrontEnd:
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
+        if motion is not None and epipolar.motion_is_small(self._pts.astype(np.float64), self._ids, motion,
+                                                           self.camera.K, (self.camera.width, self.camera.height)):
+            motion = None
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)

@@ -416,6 +416,11 @@ class WarpFrontEnd:
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
         try:
+            if motion is not None and self._n_tracks > 0:
+                _, _, ids, uv = self._last
+                if epipolar.motion_is_small(np.asarray(uv, np.float64), ids, motion, self.camera.K,
+                                            (self.width, self.height)):
+                    motion = None  # (the frame's captured graph replays, as without a motion)
             self._set_motion(motion if self._n_tracks > 0 else None)
             return self._process_frame(frame, t0, cur)
         finally:
