@@ -106,7 +106,9 @@ def motion_is_small(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray, imag
 def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,
                        depth_range_m: tuple[float, float]) -> np.ndarray:
     """``depth`` with the tracks that have none but whose epipolar segment is short (SHORT_LINE_PX) given the
-    depth of its middle (the inverse-depth midpoint of the range): they start LK there, unsearched."""
+    range's far depth: they start LK at the segment's far end, unsearched (where the map knows no depth yet the
+    range runs from a centimetre, so its middle is far nearer than tissue usually is; LK's reach covers the
+    segment)."""
     depth = np.array(depth, np.float64)
     unknown = ~np.isfinite(depth)
     if not unknown.any():
@@ -119,7 +121,7 @@ def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_p
     reach = np.maximum(np.linalg.norm(a - c, axis=1), np.linalg.norm(b - c, axis=1))
     short = np.isfinite(reach) & (reach <= SHORT_LINE_PX)
     idx = np.flatnonzero(unknown)[short]
-    depth[idx] = mid
+    depth[idx] = far
     return depth
 
 
