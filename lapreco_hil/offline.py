@@ -47,8 +47,9 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
         log.info("%d frames: few views, corners detected denser (up to %d, %.1f px apart)", total,
                  tracker_config.max_features, tracker_config.min_distance_px)
         config = replace(config, tracker=tracker_config)
-        report_fields = {**(report_fields or {}), "few_views": {"frames": total, "max_features": tracker_config.max_features,
-                                                                "min_distance_px": tracker_config.min_distance_px}}
+        few = {"frames": total, "max_features": tracker_config.max_features,
+               "min_distance_px": tracker_config.min_distance_px}
+        report_fields = {**(report_fields or {}), "few_views": few}
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, disable=not progress)
     with bar:
         run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device,

@@ -87,20 +87,24 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
 SMALL_MOTION_PX = 8.0
 
 
-def motion_is_small(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray, image_size: tuple[int, int]) -> bool:
-    """Whether ``motion`` moves the tracks at ``uv`` (ids ``ids``) with a depth (their own or their neighbours')
-    by less than SMALL_MOTION_PX (median). With fewer than 10 such tracks it cannot tell: False (each track is
-    then predicted, or searched along its line, on its own)."""
-    if len(uv) == 0:
-        return True
+def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
+                 image_size: tuple[int, int]) -> np.ndarray | None:
+    """Each track's depth for its start in the new frame: its own or its neighbours' (``depths_for_tracks``), the
+    far end of a short epipolar segment (``settle_short_lines``), else NaN (searched along its line). None when
+    the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10 of them): the
+    frame is then tracked as without a motion."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
     depth = depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, image_size)
+    T = np.asarray(motion.T_cur_prev, np.float64)
     known = np.isfinite(depth)
-    if known.sum() < 10:
-        return False
-    moved = np.linalg.norm(project(uv[known], depth[known], K, K, np.asarray(motion.T_cur_prev, np.float64))
-                           - uv[known], axis=1)
-    moved = moved[np.isfinite(moved)]
-    return bool(len(moved)) and float(np.median(moved)) < SMALL_MOTION_PX
+    if len(uv) == 0:
+        return None
+    if known.sum() >= 10:
+        moved = np.linalg.norm(project(uv[known], depth[known], K, K, T) - uv[known], axis=1)
+        moved = moved[np.isfinite(moved)]
+        if len(moved) and float(np.median(moved)) < SMALL_MOTION_PX:
+            return None
+    return settle_short_lines(uv, depth, K, T, motion.depth_range_m)
 
 
 def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,

@@ -46,23 +46,20 @@ class OpenCVFrontEnd:
         inb = (pts[:, 0] >= 0) & (pts[:, 0] < self.camera.width) & (pts[:, 1] >= 0) & (pts[:, 1] < self.camera.height)
         return inb & (self.mask[yi, xi] > 0)
 
-    def _predict(self, motion: FrameMotion, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _predict(self, motion: FrameMotion, depth: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each track starts LK in the new frame (NaN: not found along its epipolar line, so lost), and
         which were searched along their line (no depth known)."""
         self._depth_range = motion.depth_range_m
-        depth = epipolar.depths_for_tracks(self._pts.astype(np.float64), self._ids, motion.track_ids,
-                                           motion.depth_m, (self.camera.width, self.camera.height))
-        depth = epipolar.settle_short_lines(self._pts.astype(np.float64), depth, self.camera.K,
-                                            np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         guess = epipolar.predict(self._pts.astype(np.float64), depth, self._prev_float, intensity, self.camera.K,
                                  np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         return guess, ~np.isfinite(depth)
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
-        if motion is not None and epipolar.motion_is_small(self._pts.astype(np.float64), self._ids, motion,
-                                                           self.camera.K, (self.camera.width, self.camera.height)):
-            motion = None
+        depth = (epipolar.start_depths(self._pts, self._ids, motion, self.camera.K,
+                                       (self.camera.width, self.camera.height)) if motion is not None else None)
+        if depth is None:
+            motion = None  # a small motion: tracked as without one
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
@@ -78,7 +75,7 @@ class OpenCVFrontEnd:
                 nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, None, **self._lk)
                 predicted = np.ones(len(pts), bool)
             else:
-                guess, searched = self._predict(motion, intensity)
+                guess, searched = self._predict(motion, depth, intensity)
                 predicted = np.isfinite(guess).all(axis=1)
                 guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
                 nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess,

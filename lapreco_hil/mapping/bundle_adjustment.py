@@ -197,9 +197,9 @@ def pixel_sigma(problem: BAProblem, r: np.ndarray, schedule: RobustSchedule) -> 
 
 
 def solve_robust(problem: BAProblem, schedule: RobustSchedule) -> BAResult:
-    """The seed's schedule: each stage re-estimates the (redundancy-corrected) MAD scale from the current residuals, whitens the
-    reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey). Observations beyond
-    the last stage's threshold are the outliers (``stats['inlier_obs']``)."""
+    """The seed's schedule: each stage re-estimates the (redundancy-corrected) MAD scale from the current
+    residuals, whitens the reprojection errors with it and runs LM under its m-estimator (Cauchy, then Tukey).
+    Observations beyond the last stage's threshold are the outliers (``stats['inlier_obs']``)."""
     t0 = time.perf_counter()
     p = problem
     poses, points = p.poses.copy(), p.points.copy()

@@ -360,7 +360,7 @@ class Mapper:
         ok = (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
         if self.rig is not None and reference_obs is not None:
             in_reference = np.bincount(obs_point[good & reference_obs], minlength=n_points)
-            ok &= in_reference >= min(2, int(n_reference_views))
+            ok &= in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))
         return ok
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:

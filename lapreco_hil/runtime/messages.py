@@ -2,7 +2,8 @@
 message, so each side matches on a type and reads named fields instead of positions in a tuple.
 
 main process -> mapper: ``SlotReady`` (a frame's observations wait in that shared-memory slot), ``EndOfFrames``
-mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``TrackPoints``; on its pipe ``FinalMap`` or ``MapperFailed``
+mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``TrackPoints``; on its pipe ``FinalMap`` or
+``MapperFailed``
 mapper -> BA worker: ``BAJob``, ``EndOfJobs``; BA worker -> mapper: ``BAResult``"""
 
 from __future__ import annotations

@@ -393,7 +393,7 @@ class WarpFrontEnd:
         with device_lock(self.device):
             return self._process(frame, motion)
 
-    def _set_motion(self, motion: FrameMotion | None) -> None:
+    def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
         """The frame's motion to the device: each slot's depth (its own, its neighbours', or none) and the flag
         that makes LK start from the predicted positions. Frames with a motion launch their kernels one by one
         (the motion's pose is a kernel argument, so no captured graph replays them)."""
@@ -401,10 +401,6 @@ class WarpFrontEnd:
         if motion is None:
             return
         self._depth_range = motion.depth_range_m
-        _, _, ids, uv = self._last
-        depth = epipolar.depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, (self.width, self.height))
-        depth = epipolar.settle_short_lines(np.asarray(uv, np.float64), depth, self.camera.K,
-                                            np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m)
         slots = np.zeros(self.config.max_features, np.float32)
         slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
         self._depth.assign(slots)
@@ -416,12 +412,12 @@ class WarpFrontEnd:
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
         try:
+            depth = None
             if motion is not None and self._n_tracks > 0:
                 _, _, ids, uv = self._last
-                if epipolar.motion_is_small(np.asarray(uv, np.float64), ids, motion, self.camera.K,
-                                            (self.width, self.height)):
-                    motion = None  # (the frame's captured graph replays, as without a motion)
-            self._set_motion(motion if self._n_tracks > 0 else None)
+                depth = epipolar.start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
+            # (a small motion: the frame's captured graph replays, as without a motion)
+            self._set_motion(motion if depth is not None else None, depth)
             return self._process_frame(frame, t0, cur)
         finally:
             if self._motion is not None:
