@@ -39,12 +39,11 @@ class TimeOffsetWatch:
         if dt_s <= 0 or not len(motion.track_ids):
             return
         common, ia, ib = np.intersect1d(prev.track_ids, obs.track_ids, assume_unique=True, return_indices=True)
-        depth_of = dict(zip(motion.track_ids.tolist(), motion.depth_m.tolist()))
-        has = np.array([t in depth_of for t in common.tolist()], bool)
-        if has.sum() < 10:
+        _, ic, idep = np.intersect1d(common, motion.track_ids, assume_unique=True, return_indices=True)
+        if len(ic) < 10:
             return
-        uv0, uv1 = prev.uv[ia[has]], obs.uv[ib[has]]
-        z = np.array([depth_of[t] for t in common[has].tolist()])
+        uv0, uv1 = prev.uv[ia[ic]], obs.uv[ib[ic]]
+        z = np.asarray(motion.depth_m, float)[idep]
         rays = np.column_stack([uv0, np.ones(len(uv0))]) @ np.linalg.inv(self.K).T
         X = rays * z[:, None] @ motion.T_cur_prev[:3, :3].T + motion.T_cur_prev[:3, 3]
         ok = X[:, 2] > 0
