@@ -264,7 +264,8 @@ class Surface:
             while not self.links.stop.wait(0.02) and not self.links.finished.is_set():
                 now = time.monotonic()
                 if now >= next_mesh:
-                    next_mesh = now + rt.surface_period_s
+                    # until the first mesh exists, look again soon: the view should show it as soon as there is one
+                    next_mesh = now + (rt.surface_period_s if self.mesh is not None else min(rt.surface_period_s, 0.1))
                     v, pts, cols = self.snapshot.read()
                     if v != version and len(pts) >= 4:
                         t0 = time.perf_counter()
