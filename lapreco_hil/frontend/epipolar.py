@@ -9,6 +9,8 @@ camera to the destination camera.
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 
 import cv2
@@ -76,7 +78,8 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
         dist, idx = tree.query(uv[~has], k=k, distance_upper_bound=NEIGHBOUR_RADIUS * max(image_size))
         dist, idx = dist.reshape(len(dist), k), idx.reshape(len(idx), k)
         near = np.where(np.isfinite(dist), depth[has][np.minimum(idx, int(has.sum()) - 1)], np.nan)
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a track with no neighbour in reach: NaN, searched
             borrowed = np.nanmedian(np.where(np.isfinite(dist), near, np.nan), axis=1) if near.size else near
         depth[~has] = borrowed
     return depth
