@@ -10,7 +10,6 @@ camera to the destination camera.
 from __future__ import annotations
 
 import warnings
-
 from dataclasses import dataclass
 
 import cv2
