@@ -117,6 +117,7 @@ class RobotPoseSource:
     has no pose, and later frames do not wait again until the robot delivers (a stream that ended costs one
     wait, not one per frame)."""
 
+    source = "robot"  # what delivers the samples, in the live run's health lines and report
     limit_margin_rad = 0.05
     limit_margin_m = 0.005
     degraded_for_s = 0.25
@@ -321,6 +322,7 @@ class GivenPoseSource:
     rejected_by_cause: Mapping[str, int] = MappingProxyType({})
     last_refusal = ""
     what = "camera pose"  # the kind of sample, in warnings and errors
+    source = "camera poses"  # what delivers them, in the live run's health lines and report
 
     def __init__(self, t_ns: np.ndarray, poses: np.ndarray, sigma_rotation_rad: float, sigma_translation_m: float,
                  offset_ns: int = 0, max_gap_periods: float = MAX_GAP_PERIODS) -> None:
@@ -394,6 +396,7 @@ class MarkerPoseSource(GivenPoseSource):
     driver's ``faults['missing']`` (``tracker_faults``). Like a robot's, a live frame newer than the newest sample
     waits up to ``sample_wait_s`` for the one after it."""
 
+    source = "tracker"
     degraded_for_s = 0.25
     sample_wait_s = 0.1
     refusal_warning_every_s = 1.0

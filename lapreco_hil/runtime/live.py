@@ -90,7 +90,8 @@ class LiveRun:
         if robot is not None:
             self.health.add("robot", lambda: robot.health)
         if hasattr(poses, "health"):
-            self.health.add("robot readings", lambda: poses.health)  # what the pose source refuses
+            # what the pose source refuses ("robot readings", "tracker readings")
+            self.health.add(f"{getattr(poses, 'source', 'robot')} readings", lambda: poses.health)
         self.health.add("front-end", self.tracking.front_end_health)
         self.health.add("frame times", self.capture.frame_times_health)
         if self.offset_watch is not None:
@@ -172,6 +173,7 @@ class LiveRun:
         m, poses = self.metrics, self.poses
         frames_in, without_pose = m.get("frames_in"), m.get("frames_without_pose")
         rejected = poses.rejected
+        source = getattr(poses, "source", "robot")
         if frames_in == 0:
             return (f"no frame came from the grabber ({m.get('capture_timeouts')} read timeouts); check the grabber "
                     "URL and cable, or run 'lapreco devices --probe URL'")
@@ -180,12 +182,13 @@ class LiveRun:
             causes = ", ".join(f"{n} {cause}" for cause, n in sorted(poses.rejected_by_cause.items(),
                                                                      key=lambda kv: -kv[1]))
             last = poses.last_refusal
-            parts.append(f"the robot delivered {rejected} readings that were refused ({causes})"
+            parts.append(f"the {source} delivered {rejected} readings that were refused ({causes})"
                          + (f"; last refused: {last}" if last else ""))
             parts.append("check the robot model and its joint limits against the robot: "
-                         "'lapreco devices --probe URL' shows what it reads")
+                         "'lapreco devices --probe URL' shows what it reads" if source == "robot" else
+                         f"check the {source}: 'lapreco devices --probe URL' shows what it reads")
         elif without_pose:
-            parts.append("the robot delivered no reading; check the robot URL and link, or run "
+            parts.append(f"the {source} delivered no reading; check its URL and link, or run "
                          "'lapreco devices --probe URL'")
         else:
             parts.append(f"{m.get('dropped_capture')} dropped at capture, {m.get('bad_timestamps')} with bad time "

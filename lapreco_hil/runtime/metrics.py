@@ -63,6 +63,8 @@ class LiveMetrics:
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0),
                        "mapper_skipped": c.get("mapper_skipped", 0), "tracking_errors": c.get("tracking_errors", 0),
                        "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0)},
+            # the pose source's samples refused (the keys keep their first name: a tracker's refusals are here too)
+            "pose_source": getattr(poses, "source", "robot"),
             "robot_samples_rejected": poses.rejected,  # (a given-pose source refuses nothing)
             "robot_samples_rejected_by_cause": dict(poses.rejected_by_cause),
             # what the robot driver counted on its link (lost readings, reconnects, device faults)
