@@ -27,7 +27,7 @@ import traceback
 import numpy as np
 
 from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
-                                          MapperFailed, MapperReady, SlotFree, TrackPoints)
+                                          MapperFailed, MapperReady, NewTrackPoints, SlotFree)
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +218,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 ids = mapper.frames[-1].track_ids
                 if ids is not None:
                     known = [t for t in ids.tolist() if t in mapper.landmarks]
-                    done_q.put(TrackPoints(np.array(known, np.int64),
+                    done_q.put(NewTrackPoints(np.array(known, np.int64),
                                            np.array([mapper.landmarks[t] for t in known]).reshape(-1, 3)))
             mapper.structured.clear()
 

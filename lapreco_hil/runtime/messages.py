@@ -2,7 +2,7 @@
 message, so each side matches on a type and reads named fields instead of positions in a tuple.
 
 main process -> mapper: ``SlotReady`` (a frame's observations wait in that shared-memory slot), ``EndOfFrames``
-mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``TrackPoints``; on its pipe ``FinalMap`` or
+mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``NewTrackPoints``; on its pipe ``FinalMap`` or
 ``MapperFailed``
 mapper -> BA worker: ``BAJob``, ``EndOfJobs``; BA worker -> mapper: ``BAResult``"""
 
@@ -47,7 +47,7 @@ class FramePose:
 
 
 @dataclass(frozen=True)
-class TrackPoints:
+class NewTrackPoints:
     """The world points of the newest frame's tracks that have one, sent when new points were made: the
     tracking stage predicts where each track lands in the next frame from them."""
 

@@ -24,7 +24,7 @@ from lapreco_hil.errors import DeviceTimeoutError
 from lapreco_hil.runtime.health import Condition
 from lapreco_hil.mapping.prediction import TrackPoints, frame_motion
 from lapreco_hil.frontend import partner_views
-from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, SlotFree, TrackPoints as TrackPointsMsg
+from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, NewTrackPoints, SlotFree
 from lapreco_hil.runtime.metrics import LiveMetrics
 
 log = logging.getLogger(__name__)
@@ -237,7 +237,7 @@ class Results:
                 self.latest.refined(msg.seq, msg.T_world_camera)
                 if self.progress is not None:
                     self.progress.update(1)
-            elif isinstance(msg, TrackPointsMsg):
+            elif isinstance(msg, NewTrackPoints):
                 if self.track_points is not None:
                     self.track_points.update(msg.track_ids, msg.points)
             elif not isinstance(msg, MapperReady):  # (MapperReady: when the start stopped waiting for it)
