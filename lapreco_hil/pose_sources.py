@@ -104,6 +104,20 @@ class RateLimitedWarning:
         return True
 
 
+def wait_for_sample_after(newest_ns, t_ns: int, wait_s: float, read_some) -> bool:
+    """A live frame newer than the newest sample waits for the one after it: ``read_some(timeout_s)`` reads
+    (returning whether anything came) until ``newest_ns()`` reaches ``t_ns`` or ``wait_s`` passes. False when
+    the time passed (called after the first sample: there is a newest one)."""
+    deadline = time.monotonic() + wait_s
+    while newest_ns() < t_ns:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return False
+        if not read_some(min(left, 0.01)):
+            time.sleep(min(left, 0.002))  # (a reader that returns at once, without waiting)
+    return True
+
+
 class RobotPoseSource:
     """Joint samples from a RobotDriver -> FK of the camera at frame times, with the Jacobian covariance.
 
@@ -193,18 +207,14 @@ class RobotPoseSource:
         return good
 
     def _wait_for_reading_after(self, t_kin_ns: int) -> None:
-        if self._stalled:
-            return
-        deadline = time.monotonic() + self.reading_wait_s
-        while self.pose_at.last_time_ns < t_kin_ns:  # (called after the first reading: there is a last one)
-            left = deadline - time.monotonic()
-            if left <= 0:
-                self._stalled = True
-                return
-            got = self._take(self.robot.read(timeout_s=min(left, 0.01)))
-            self._taken.extend(got)
-            if not got:
-                time.sleep(min(left, 0.002))  # (a reader that returns at once, without waiting)
+        if not self._stalled:
+            self._stalled = not wait_for_sample_after(lambda: self.pose_at.last_time_ns, t_kin_ns,
+                                                      self.reading_wait_s, self._read_into_taken)
+
+    def _read_into_taken(self, timeout_s: float) -> bool:
+        got = self._take(self.robot.read(timeout_s=timeout_s))
+        self._taken.extend(got)
+        return bool(got)
 
     @property
     def last_refusal(self) -> str:
@@ -486,18 +496,15 @@ class MarkerPoseSource(GivenPoseSource):
         return out
 
     def _wait_for_sample_after(self, t_pose_ns: int) -> None:
-        if self._stalled:
-            return
-        deadline = time.monotonic() + self.sample_wait_s
-        while self.track.last_time_ns < t_pose_ns:  # (called after the first sample: there is a last one)
-            left = deadline - time.monotonic()
-            if left <= 0:
-                self._stalled = True
-                return
-            new = self.tracker.read(timeout_s=min(left, 0.01))
-            self._taken.extend(new)
-            if not self._take(new) and not new:
-                time.sleep(min(left, 0.002))
+        if not self._stalled:
+            self._stalled = not wait_for_sample_after(lambda: self.track.last_time_ns, t_pose_ns,
+                                                      self.sample_wait_s, self._read_into_taken)
+
+    def _read_into_taken(self, timeout_s: float) -> bool:
+        new = self.tracker.read(timeout_s=timeout_s)
+        self._taken.extend(new)  # every sample read is recorded, accepted or not
+        self._take(new)
+        return bool(new)
 
     def has_pose(self, t_ns: int | None = None) -> bool:
         """Whether frame time ``t_ns`` has a pose (two accepted samples bracket it, within the gap limit); a

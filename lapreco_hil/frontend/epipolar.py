@@ -96,11 +96,11 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10 of them): the
     frame is then tracked as without a motion."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    if len(uv) == 0:
+        return None
     depth = depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, image_size)
     T = np.asarray(motion.T_cur_prev, np.float64)
     known = np.isfinite(depth)
-    if len(uv) == 0:
-        return None
     if known.sum() >= 10:
         moved = np.linalg.norm(project(uv[known], depth[known], K, K, T) - uv[known], axis=1)
         moved = moved[np.isfinite(moved)]
@@ -253,13 +253,10 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     guess = res.uv[found].astype(np.float32).reshape(-1, 1, 2)
     fwd, st, _ = cv2.calcOpticalFlowPyrLK(this_u8, other_u8, p, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                                           **lk)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(other_u8, this_u8, fwd, p.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-                                            **lk)
-    fb = np.linalg.norm((back - p).reshape(-1, 2), axis=1)
     h, w = other_u8.shape[:2]
     q = fwd.reshape(-1, 2)
-    ok = ((st.ravel() == 1) & (st2.ravel() == 1) & (fb < FORWARD_BACKWARD_PX) & (q[:, 0] >= 0) & (q[:, 1] >= 0)
-          & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1))
+    ok = ((st.ravel() == 1) & tracks_back(other_u8, this_u8, q, p.reshape(-1, 2), lk) & (q[:, 0] >= 0)
+          & (q[:, 1] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1))
     idx = np.flatnonzero(found)
     found[idx[~ok]] = False
     out[idx[ok]] = q[ok]

@@ -26,6 +26,7 @@ from lapreco_hil.types import Observations, PosePrior
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.archive import LandmarkArchive
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
+from lapreco_hil.mapping.prediction import depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
@@ -250,14 +251,8 @@ class Mapper:
     def track_depths(self, track_ids: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The depth (z in the camera at ``T_world_camera``) of each of ``track_ids`` that has a landmark:
         (ids, depths) for pose-predicted tracking."""
-        T_cw = inv_T(T_world_camera)
         ids = [t for t in np.asarray(track_ids).tolist() if t in self.landmarks]
-        if not ids:
-            return np.zeros(0, np.int64), np.zeros(0)
-        X = np.array([self.landmarks[t] for t in ids])
-        z = X @ T_cw[2, :3] + T_cw[2, 3]
-        keep = z > 0
-        return np.array(ids, np.int64)[keep], z[keep]
+        return depths_in_front(ids, np.array([self.landmarks[t] for t in ids]), T_world_camera)
 
     def _triangulate_pending(self) -> None:
         while self._untriangulated:

@@ -16,6 +16,13 @@ from lapreco_hil.types import FrameMotion
 NEAR_MARGIN, FAR_MARGIN = 0.5, 2.0
 
 
+def depths_in_front(ids: np.ndarray, points: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, z) of the world ``points`` that lie in front of the camera at ``T_world_camera``."""
+    T_cw = inv_T(T_world_camera)
+    z = np.asarray(points, float).reshape(-1, 3) @ T_cw[2, :3] + T_cw[2, 3]
+    return np.asarray(ids, np.int64)[z > 0], z[z > 0]
+
+
 def frame_motion(T_world_prev: np.ndarray, T_world_cur: np.ndarray, track_ids: np.ndarray, depth_m: np.ndarray,
                  scene_depth_m: tuple[float, float]) -> FrameMotion:
     """The motion from a frame at ``T_world_prev`` into one at ``T_world_cur`` (pose priors: the robot's relative
@@ -51,9 +58,7 @@ class TrackPoints:
             return np.zeros(0, np.int64), np.zeros(0)
         at = np.clip(np.searchsorted(ids, track_ids), 0, len(ids) - 1)
         known = ids[at] == track_ids
-        T_cw = inv_T(T_world_camera)
-        z = points[at[known]] @ T_cw[2, :3] + T_cw[2, 3]
-        return np.asarray(track_ids)[known][z > 0], z[z > 0]
+        return depths_in_front(np.asarray(track_ids)[known], points[at[known]], T_world_camera)
 
 
 class MotionPredictor:
