@@ -141,7 +141,23 @@ class MapperConfig:
 
 
 @dataclass(frozen=True)
+class DepthConfig:
+    """Multi-view stereo per keyframe (lapreco_hil.dense.depth)."""
+
+    source_views: int = ranged(4, ge=1)  # neighbouring keyframes (and the stereo partner) each depth map uses
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """The truncated signed distance volume (lapreco_hil.dense.fusion)."""
+
+    voxel_m: float = ranged(0.0005, gt=0.0)
+
+
+@dataclass(frozen=True)
 class SurfaceConfig:
+    # "dense": multi-view stereo fused in a TSDF volume, meshed; "alpha": the seed's alpha shape on the sparse map
+    mode: str = "alpha"
     alpha_factor: float = ranged(4.0, gt=0.0)  # alpha = factor x median nearest-neighbour distance
     render_width: int = ranged(1024, ge=16)
     render_height: int = ranged(768, ge=16)
@@ -177,6 +193,8 @@ class PipelineConfig:
     prior: PriorConfig = field(default_factory=PriorConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
 
