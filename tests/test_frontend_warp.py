@@ -53,7 +53,7 @@ def test_undistortion_matches_cv2_remap(wp, rng):
                                        t=(0.0006, -0.0004), p=(0.0008, -0.0006))
     fe = frontend(cam)
     image = bgr(texture_u8(rng, blur=2.0))
-    fe._upload(image)
+    fe._to_staging(image)
     fe._prepare_kernels()
     ours = fe._pyr[fe._cur].numpy()[: 320 * 240].reshape(240, 320) * 255.0  # level 0: plain intensity here
     mx, my = cam.undistort_maps()
@@ -84,7 +84,7 @@ def test_shading_removal_matches_the_opencv_baseline(wp, rng):
     yy, xx = np.mgrid[0:240, 0:320]
     shading = 0.35 + 0.65 * np.exp(-((xx - 150) ** 2 + (yy - 110) ** 2) / (2 * 90.0**2))  # a scope-tip light
     gray = (texture_u8(rng) * shading).astype(np.uint8)
-    fe._upload(bgr(gray))
+    fe._to_staging(bgr(gray))
     fe._prepare_kernels()
     ours = fe._pyr[fe._cur].numpy()[: 320 * 240].reshape(240, 320)
     ref = np.clip(remove_shading(gray, 6.0), -HIGHPASS_RANGE, HIGHPASS_RANGE)
@@ -104,7 +104,7 @@ def test_pyramid_gradients_and_min_eigenvalue_match_opencv(wp, rng):
     cam = CameraModel(320, 240, 300.0, 300.0, 159.5, 119.5)
     fe = frontend(cam)
     gray = texture_u8(rng)
-    fe._upload(bgr(gray))
+    fe._to_staging(bgr(gray))
     fe._prepare_kernels()
     offs, ws, hs = fe._lv
     pyr = fe._pyr[fe._cur].numpy()

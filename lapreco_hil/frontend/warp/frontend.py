@@ -1,7 +1,7 @@
 """The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
 into observations. Track bookkeeping (live counts, ids, compaction, the choice of new corners) stays on the
-device, so on CUDA a frame is the grey conversion on the host, then one graph replay: the upload, the image
-stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
+device, so on CUDA a frame is the grey conversion on the host, uploaded band by band as it is converted, then
+one graph replay: the image stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
 tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours
 are read on the host from the frame in hand, at each track's position in the distorted frame.
 
@@ -41,6 +41,13 @@ LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
 LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 COLOR_ROW = 64  # points per row of the colour remap
+# the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least this many
+# pixels there (a sigma-3 Gaussian is sampled finely enough for bilinear upsampling)
+SHADING_MAX_FACTOR = 8
+# frames of at least this many pixels go up in this many row bands, each copied while the next is converted
+UPLOAD_BANDS = 4
+UPLOAD_BANDS_FROM_PX = 1_000_000
+SHADING_MIN_SIGMA_PX = 3.0
 
 
 class WarpFrontEnd:
@@ -66,12 +73,17 @@ class WarpFrontEnd:
         map_x, map_y = camera.undistort_maps()
         fov = cv2.remap(camera.fov_mask(margin_px=config.fov_margin_px), map_x, map_y, cv2.INTER_NEAREST,
                         borderValue=0)
-        # the shading estimate (the log image blurred with sigma) is taken at half resolution, with sigma / 2
-        half_sigma = max(shading_sigma_px(config), 1.0) / 2.0
-        radius = int(np.ceil(3 * half_sigma))
-        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / half_sigma) ** 2)
-        self._half = ((W + 1) // 2, (H + 1) // 2)
-        hw, hh = self._half
+        # the shading estimate (the log image blurred with sigma) is taken at a reduced resolution, with sigma /
+        # factor: the largest power of two that leaves sigma a few pixels there
+        sigma = max(shading_sigma_px(config), 1.0)
+        factor = 2
+        while factor < SHADING_MAX_FACTOR and sigma / (2 * factor) >= SHADING_MIN_SIGMA_PX:
+            factor *= 2
+        low_sigma = sigma / factor
+        radius = int(np.ceil(3 * low_sigma))
+        g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / low_sigma) ** 2)
+        self._low = (-(-W // factor), -(-H // factor), factor)
+        hw, hh, _ = self._low
         n = config.max_features
         with wp.ScopedDevice(self.device):
             self._remap = wp.array(np.stack([map_x, map_y], -1).astype(np.float32), dtype=wp.vec2)
@@ -83,7 +95,7 @@ class WarpFrontEnd:
             self._frame = wp.zeros((H, W), dtype=wp.uint8)  # the distorted frame's grey levels
             self._log = wp.zeros((H, W), dtype=float)
             self._lit = wp.zeros((H, W), dtype=float)  # the shading level (blurred log), full resolution
-            self._half_log, self._half_tmp, self._half_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
+            self._low_log, self._low_tmp, self._low_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
             self._pyr = [wp.zeros(total, dtype=float) for _ in range(2)]  # current / previous, swapped
             self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
@@ -177,16 +189,18 @@ class WarpFrontEnd:
 
     # --- image stages -----------------------------------------------------------------------------------------
     def _to_staging(self, image: np.ndarray) -> None:
-        """The frame's grey levels into the pinned staging buffer; its copy to the device is the first node of
-        the frame's graph."""
+        """The frame's grey levels into the pinned staging buffer and on to the device, band by band: each band's
+        copy runs while the host converts the next (the frame's graph starts after the last on the same
+        stream)."""
         if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
             raise ValueError(f"frame is {image.shape} {image.dtype}; the front-end was built for "
                              f"{self.height}x{self.width}x3 uint8")
-        cv2.cvtColor(image, cv2.COLOR_BGR2GRAY, dst=self._staging_np)
-
-    def _upload(self, image: np.ndarray) -> None:
-        self._to_staging(image)
-        wp.copy(self._frame, self._staging)
+        W, H = self.width, self.height
+        bands = UPLOAD_BANDS if W * H >= UPLOAD_BANDS_FROM_PX else 1
+        for b in range(bands):
+            r0, r1 = H * b // bands, H * (b + 1) // bands
+            cv2.cvtColor(image[r0:r1], cv2.COLOR_BGR2GRAY, dst=self._staging_np[r0:r1])
+            wp.copy(self._frame, self._staging, r0 * W, r0 * W, (r1 - r0) * W)
 
     def _colors_at(self, image: np.ndarray, src: np.ndarray) -> np.ndarray:
         """RGB under each track: the distorted frame sampled bilinearly at the track's source position (computed
@@ -206,13 +220,14 @@ class WarpFrontEnd:
     def _prepare_kernels(self) -> None:
         """Undistort, remove shading, build the pyramid and its gradients into the current buffers."""
         dev = self.device
-        hw, hh = self._half
+        hw, hh, factor = self._low
         pyramid.undistort_log(self._frame, self._remap, self._log, dev)
-        pyramid.half_mean(self._log, self._half_log, hw, hh, dev)
-        pyramid.blur_1d(self._half_log, hw, hh, self._weights, 1, 0, self._half_tmp, dev)
-        pyramid.blur_1d(self._half_tmp, hw, hh, self._weights, 0, 1, self._half_lit, dev)
+        pyramid.box_mean(self._log, self._low_log, hw, hh, factor, dev)
+        pyramid.blur_1d(self._low_log, hw, hh, self._weights, 1, 0, self._low_tmp, dev)
+        pyramid.blur_1d(self._low_tmp, hw, hh, self._weights, 0, 1, self._low_lit, dev)
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        pyramid.level0(self._log, self._half_lit, hw, hh, shading_sigma_px(self.config) > 0, pyr, self._lit, dev)
+        pyramid.level0(self._log, self._low_lit, hw, hh, factor, shading_sigma_px(self.config) > 0, pyr, self._lit,
+                       dev)
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
             pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
@@ -295,7 +310,7 @@ class WarpFrontEnd:
         frame: where each will be if it moves as in its last frame. That leaves less room between the discs
         the selection avoids and those the corners are checked against when taken (around the tracks' new
         positions, ``corners._free_now``) than the previous positions would. It needs nothing from the frame, so on
-        CUDA it runs while the frame is uploaded."""
+        CUDA it runs beside the image stages."""
         corners.selection_begin(self._stamp, self._max_eig, self.device)
         self._occupancy(1 - self._cur, 1.0, 0)
 
@@ -339,12 +354,12 @@ class WarpFrontEnd:
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def _frame_kernels(self) -> None:
-        """A frame after its grey conversion (one CUDA graph): the copy to the device, image stages, tracking,
+        """A frame once its grey levels are on the device (one CUDA graph): image stages, tracking,
         the surviving tracks' results into pinned memory (then the ``tracked`` event: the host reads their colours
         while the rest runs), new corners when too few tracks are left (a conditional node), and every track's
         results into a second set of pinned buffers.
 
-        On CUDA the corner selection runs on a second stream: its occupancy discs during the upload, the
+        On CUDA the corner selection runs on a second stream: its occupancy discs during the image stages, the
         response and the greedy selection beside tracking (they need nothing from it). It is wasted on frames
         that need no new corners, which costs GPU time but no latency."""
         side = self._side_stream if not self.profile else None
@@ -353,7 +368,6 @@ class WarpFrontEnd:
             side.wait_stream(main)
             with wp.ScopedStream(side, sync_enter=False):
                 self._selection_start()
-        wp.copy(self._frame, self._staging)
         self._sync_for_profile("upload")
         self._prepare_kernels()
         if self._motion is not None:

@@ -1,4 +1,4 @@
-"""The image stages of the front-end: undistortion into the log domain, shading removal (a wide blur at half
+"""The image stages of the front-end: undistortion into the log domain, shading removal (a wide blur at reduced
 resolution), the pyramid and its gradients. Images are float32; a pyramid is one flat array with per-level
 offsets, widths and heights (kernels cannot take a list of arrays)."""
 
@@ -41,15 +41,24 @@ def _undistort_log(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp
 
 
 @wp.kernel
-def _half_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int):
-    """2x2 mean into a half-resolution flat image (odd sizes: the last column/row counts twice). The shading
-    estimate is a wide blur, so it is taken at half resolution: a quarter of the pixels and half the taps."""
+def _box_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int, factor: int):
+    """factor x factor mean into a reduced flat image (a block past the border: its pixels inside). The shading
+    estimate is a wide blur, so it is taken at a resolution where its sigma is a few pixels: factor^2 fewer
+    pixels and factor times fewer taps, and the block's own blur is small beside the Gaussian's."""
     y, x = wp.tid()
     h = src.shape[0]
     w = src.shape[1]
-    x1 = wp.min(2 * x + 1, w - 1)
-    y1 = wp.min(2 * y + 1, h - 1)
-    dst[y * dw + x] = 0.25 * (src[2 * y, 2 * x] + src[2 * y, x1] + src[y1, 2 * x] + src[y1, x1])
+    s = float(0.0)
+    n = int(0)
+    for j in range(factor):
+        yy = y * factor + j
+        if yy < h:
+            for i in range(factor):
+                xx = x * factor + i
+                if xx < w:
+                    s += src[yy, xx]
+                    n += 1
+    dst[y * dw + x] = s / float(wp.max(n, 1))
 
 
 @wp.kernel
@@ -76,15 +85,16 @@ def _blur_1d(src: wp.array(dtype=float), w: int, h: int, weights: wp.array(dtype
 
 
 @wp.kernel
-def _level0(log_img: wp.array2d(dtype=float), half_lit: wp.array(dtype=float), hw: int, hh: int, subtract: int,
-            pyr: wp.array(dtype=float), lit: wp.array2d(dtype=float)):
+def _level0(log_img: wp.array2d(dtype=float), low_lit: wp.array(dtype=float), lw: int, lh: int, factor: int,
+            subtract: int, pyr: wp.array(dtype=float), lit: wp.array2d(dtype=float)):
     """Level 0 of the pyramid and the full-resolution shading level ``lit`` (the blurred log image, upsampled
-    bilinearly from half resolution). Level 0 is log - lit, the shading-free log image, clamped to the range
+    bilinearly from the reduced resolution ``factor``). Level 0 is log - lit, the shading-free log image, clamped to the range
     the OpenCV baseline keeps in 8 bits (so silhouettes against black do not dominate the corner threshold),
     or, with ``subtract`` 0, plain intensity in [0, 1]."""
     y, x = wp.tid()
-    # pixel centre x of the full image lies at (x - 0.5) / 2 in the half image's pixel coordinates
-    s = bilinear(half_lit, 0, hw, hh, 0.5 * float(x) - 0.25, 0.5 * float(y) - 0.25)
+    # pixel centre x of the full image lies at (x + 0.5) / factor - 0.5 in the reduced image's pixel coordinates
+    inv = 1.0 / float(factor)
+    s = bilinear(low_lit, 0, lw, lh, (float(x) + 0.5) * inv - 0.5, (float(y) + 0.5) * inv - 0.5)
     lit[y, x] = s
     v = log_img[y, x]
     if subtract != 0:
@@ -153,9 +163,9 @@ def undistort_log(frame: wp.array, remap: wp.array, log_out: wp.array, device) -
     wp.launch(_undistort_log, dim=log_out.shape, inputs=[frame, remap, log_out], device=device)
 
 
-def half_mean(src: wp.array, dst: wp.array, dw: int, dh: int, device) -> None:
-    """``dst`` (flat dw x dh) <- the 2x2 mean of ``src``."""
-    wp.launch(_half_mean, dim=(dh, dw), inputs=[src, dst, dw], device=device)
+def box_mean(src: wp.array, dst: wp.array, dw: int, dh: int, factor: int, device) -> None:
+    """``dst`` (flat dw x dh) <- the factor x factor block means of ``src``."""
+    wp.launch(_box_mean, dim=(dh, dw), inputs=[src, dst, dw, factor], device=device)
 
 
 def blur_1d(src: wp.array, w: int, h: int, weights: wp.array, step_x: int, step_y: int, dst: wp.array,
@@ -164,11 +174,11 @@ def blur_1d(src: wp.array, w: int, h: int, weights: wp.array, step_x: int, step_
     wp.launch(_blur_1d, dim=(h, w), inputs=[src, w, h, weights, step_x, step_y, dst], device=device)
 
 
-def level0(log_img: wp.array, half_lit: wp.array, hw: int, hh: int, subtract: bool, pyr: wp.array, lit: wp.array,
-           device) -> None:
-    """Pyramid level 0 into ``pyr`` and the full-resolution shading level into ``lit``."""
-    wp.launch(_level0, dim=log_img.shape, inputs=[log_img, half_lit, hw, hh, 1 if subtract else 0, pyr, lit],
-              device=device)
+def level0(log_img: wp.array, low_lit: wp.array, lw: int, lh: int, factor: int, subtract: bool, pyr: wp.array,
+           lit: wp.array, device) -> None:
+    """Pyramid level 0 into ``pyr`` and the full-resolution shading level (``low_lit`` upsampled) into ``lit``."""
+    wp.launch(_level0, dim=log_img.shape,
+              inputs=[log_img, low_lit, lw, lh, factor, 1 if subtract else 0, pyr, lit], device=device)
 
 
 def pyr_down(pyr: wp.array, src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int, device) -> None:
