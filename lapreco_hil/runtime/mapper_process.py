@@ -179,6 +179,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
+        # keyframes added since the last local BA was handed to the worker: a job covers them all, so all but
+        # its newest were merged into it rather than given a window of their own (deferred)
+        keyframes_since_job = 0
         last_publish, map_changed = 0.0, False
         clock = StageClock()
 
@@ -223,7 +226,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             mapper.structured.clear()
 
         def housekeeping() -> None:
-            nonlocal map_changed, last_housekeeping
+            nonlocal map_changed, last_housekeeping, skipped_ba, keyframes_since_job
             if worker is not None:
                 t = time.perf_counter()
                 applied = worker.collect(mapper)
@@ -235,6 +238,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     job = mapper.local_ba_job()
                     if job is not None:
                         worker.submit(job)
+                        skipped_ba += max(keyframes_since_job - 1, 0)
+                        keyframes_since_job = 0
                         clock.add("submit_local_ba", time.perf_counter() - t)
             publish_if_due()
             last_housekeeping = time.monotonic()
@@ -278,7 +283,6 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 backlog = 0
             run_ba = worker is not None or backlog <= backlog_skip_ba
             resect = backlog == 0  # behind: a frame between keyframes takes its corrected prior for now
-            in_flight = worker is not None and worker.in_flight is not None
             t = time.perf_counter()
             views = ring.read_views(slot.slot) if ring_cameras > 1 else ()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect, partners=views or None)
@@ -286,7 +290,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             if is_kf:
                 keyframe_captured[len(mapper.keyframes) - 1] = arrival_ns
             points_done()
-            if is_kf and (not run_ba or in_flight):
+            if is_kf and worker is not None:
+                keyframes_since_job += 1
+            elif is_kf and not run_ba:
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
                 skipped_resection += 1

@@ -77,7 +77,9 @@ class LiveMetrics:
             # the video-kinematics offset in use and what the run's own motion says it is (runtime/time_offset_watch)
             "time_offset": time_offset,
             "queue_depth": {k: {"mean": float(np.mean(v)), "max": int(np.max(v))} for k, v in self.depth.items() if v},
+            # keyframes merged into a later keyframe's local BA instead of a window of their own (deferred)
             "live": {"local_ba_skipped": c.get("local_ba_skipped", 0),
+                     "local_ba_deferred_share": c.get("local_ba_skipped", 0) / max(c.get("keyframes", 0), 1),
                      "resection_skipped": c.get("resection_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),
                      "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
                      "stage_errors": dict(errors), "disabled_stages": sorted(disabled),
