@@ -14,6 +14,10 @@ import numpy as np
 from lapreco_hil.geometry import Rotation, make_T
 from lapreco_hil.mapping.robust import RobustSchedule, irls_weight, mad_sigma
 
+# a stage stops when its step is shorter than this (rad, m): a micrometre, a hundredth of what a pixel resolves at
+# laparoscopic distances; a tighter tolerance ran every stage to its iteration limit for no change in the pose
+STEP_TOL = 1e-6
+
 
 def _exp(xi: np.ndarray) -> np.ndarray:
     w, v = xi[:3], xi[3:]
@@ -98,6 +102,6 @@ def _gauss_newton(T, T_prior, info, points, uv, K, loss, threshold, sigma_px, it
         except np.linalg.LinAlgError:
             break
         T = T @ _exp(step)
-        if np.linalg.norm(step) < 1e-8:  # (rad, m): far below anything the pixels resolve
+        if np.linalg.norm(step) < STEP_TOL:
             break
     return T, w > 0
