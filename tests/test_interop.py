@@ -185,6 +185,36 @@ def test_live_logger_waits_for_the_readings_after_each_frame(source, tmp_path):
             np.testing.assert_array_equal(tf_matrix(x), tf_matrix(y))
 
 
+def test_export_of_a_stereo_rig(source, tmp_path):
+    """A version-2 session of two cameras: each camera's topics and frame, the right one 5 mm along x of the
+    left on /tf."""
+    from lapreco_hil.interop.mcap_export import export_mcap
+
+    stereo = tmp_path / "stereo"
+    shutil.copytree(source, stereo)
+    doc = json.loads((stereo / "session.json").read_text())
+    cam = doc.pop("camera")
+    cam.pop("fov_radius_px")
+    right = np.eye(4)
+    right[0, 3] = 0.005
+    doc.update(version=2, rig={"cameras": [{"name": "left", **cam}, {"name": "right", **cam}],
+                               "T_cam0_cam": [np.eye(4).tolist(), right.tolist()]})
+    (stereo / "session.json").write_text(json.dumps(doc))
+    rows = (stereo / "frames.csv").read_text().splitlines()[1:]
+    (stereo / "frames.csv").write_text("seq,t_ns,camera,file\n" + "".join(
+        f"{r.split(',')[0]},{r.split(',')[1]},{k},{r.split(',')[2]}\n" for r in rows for k in (0, 1)))
+    result = export_mcap(stereo, tmp_path / "stereo.mcap")
+    n = len(rows)
+    assert result["topics"] == {"/camera/left/image/compressed": n, "/camera/left/calibration": n,
+                                "/camera/right/image/compressed": n, "/camera/right/calibration": n, "/tf": n,
+                                "/joint_states": len(Session(source).joint_samples)}
+    msgs = read_mcap(tmp_path / "stereo.mcap")
+    assert msgs["/camera/right/calibration"][0][2].frame_id == "camera_right"
+    last = msgs["/tf"][0][2].transforms[-1]
+    assert (last.parent_frame_id, last.child_frame_id) == ("camera_left", "camera_right")
+    np.testing.assert_allclose(tf_matrix(last), right, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_lapreco_run_logs_live_to_mcap(source, tmp_path):
     out, mcap = tmp_path / "run", tmp_path / "run.mcap"
@@ -341,6 +371,15 @@ def test_a_sqlite3_bag_of_png_images_and_a_rational_lens(source, tmp_path):
     assert imp.camera == rational and imp.robot.T_tip_camera is None
     for i in range(4):
         np.testing.assert_array_equal(imp.frame(i).image, src.frame(i).image)
+    # exported, a calibration session's tree ends at the tip (no hand-eye yet); the lens goes out as it came in
+    from lapreco_hil.interop.mcap_export import export_mcap
+
+    export_mcap(tmp_path / "s", tmp_path / "s.mcap")
+    msgs = read_mcap(tmp_path / "s.mcap")
+    assert [(x.parent_frame_id, x.child_frame_id) for x in msgs["/tf"][0][2].transforms] == [("world", "base"),
+                                                                                           ("base", "tip")]
+    calib = msgs["/camera/calibration"][0][2]
+    assert calib.distortion_model == "rational_polynomial" and tuple(calib.D) == rational.dist[:8]
 
 
 @pytest.mark.parametrize("encoding", ["jpeg", "mono8", "bgr8"])
@@ -394,6 +433,19 @@ def test_pose_stamped_makes_a_marker_or_camera_pose_session(source, hand_eye_fil
             expected = pipeline_pose(src, t)
             assert np.abs(T[:3, 3] - expected[:3, 3]).max() < 1e-7
             assert np.abs(T[:3, :3] - expected[:3, :3]).max() < 1e-6
+        # exported: the tree of a tracked scope (world -> tracker -> marker -> camera) or of given poses
+        from lapreco_hil.interop.mcap_export import export_mcap
+
+        export_mcap(out, tmp_path / f"{kind}-export.mcap")
+        tfs = read_mcap(tmp_path / f"{kind}-export.mcap")["/tf"]
+        assert [t for t, _, _ in tfs] == [t for t, _ in frames]
+        for t, _, tf in tfs:
+            chain = [(x.parent_frame_id, x.child_frame_id, tf_matrix(x)) for x in tf.transforms]
+            names = [("world", "tracker"), ("tracker", "marker"), ("marker", "camera")] if kind == "tip" else \
+                [("world", "camera")]
+            assert [c[:2] for c in chain] == names
+            T = np.linalg.multi_dot([np.eye(4)] + [c[2] for c in chain])
+            assert np.abs(T - source_.prior_at(t).T_world_camera).max() < 1e-9
 
 
 @pytest.fixture

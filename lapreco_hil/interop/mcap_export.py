@@ -176,12 +176,6 @@ class McapLogger:
         self.path = Path(path)
         if self.path.is_dir():
             raise OutputError(f"'{self.path}' is a folder; --mcap/--out takes a file name such as run.mcap")
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
-        except OSError as exc:
-            raise OutputError(f"cannot write '{self.path}' ({exc.strerror}); choose another file") from None
-        self._writer = Writer(self._file)
         self.rig, self.joint_names = rig, tuple(joint_names)
         self.topics = camera_topics(rig, camera_names)
         self.jpeg = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
@@ -196,6 +190,12 @@ class McapLogger:
             log.warning("%s: the camera's thin-prism terms (%s) have no ROS/Foxglove model; its calibration is "
                         "written as rational_polynomial without them (the images are as recorded)", self.path,
                         ", ".join(self.dropped_terms))
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "wb")
+        except OSError as exc:
+            raise OutputError(f"cannot write '{self.path}' ({exc.strerror}); choose another file") from None
+        self._writer = Writer(self._file)
         # the other cameras of a rig hang off camera 0
         self.rig_transforms = [(self.topics[0][2], self.topics[k][2], np.asarray(rig.T_cam0_cam[k], float))
                                for k in range(1, len(rig))]
@@ -380,7 +380,8 @@ def export_mcap(session_dir: str | Path, out_path: str | Path, result_dir: str |
     events += [(s.t_ns, 1, i) for i, s in enumerate(session.joint_samples)]
     events.sort()
     without_tf = 0
-    with McapLogger(out_path, session.rig, meta.camera_names, meta.joint_names, jpeg_quality) as mcap:
+    mcap = McapLogger(out_path, session.rig, meta.camera_names, meta.joint_names, jpeg_quality)
+    try:
         map_stats = mcap.log_result(result_dir, int(session.frame_t_ns[0])) if result_dir is not None else {}
         for t, kind, i in tqdm(events, desc=f"mcap {Path(out_path).name}", unit="msg", file=sys.stderr,
                                disable=not progress):
@@ -392,8 +393,12 @@ def export_mcap(session_dir: str | Path, out_path: str | Path, result_dir: str |
             without_tf += not transforms
             if transforms or mcap.rig_transforms:
                 mcap.log_transforms(t, transforms)
-        counts = dict(mcap.counts)
-        dropped = mcap.dropped_terms
+    except BaseException:
+        mcap.close()
+        Path(out_path).unlink(missing_ok=True)  # a failed export leaves no half-written file
+        raise
+    mcap.close()
+    counts, dropped = dict(mcap.counts), mcap.dropped_terms
     return {"file": str(out_path), "topics": counts, "frames": len(session), "frames_without_transforms": without_tf,
             "calibration_terms_dropped": list(dropped), **({"map": map_stats} if map_stats else {})}
 

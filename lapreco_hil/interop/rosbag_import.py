@@ -1,4 +1,5 @@
-"""A ROS 2 bag (MCAP or sqlite3; a ROS 1 bag too) as a lapreco session, read with rosbags' AnyReader.
+"""A ROS 2 bag (MCAP or sqlite3) as a lapreco session, read with rosbags' AnyReader (which also opens ROS 1
+bags; not tested here).
 
 What becomes what (docs/interop.md):
 
@@ -202,7 +203,9 @@ def _camera(bag: _Bag, topic: str | None, camera_file: str | None, fov_radius_px
         if max(first.binning_x, 1) > 1 or max(first.binning_y, 1) > 1:
             raise CalibrationError(f"{where}: binned camera_info (binning {first.binning_x}x{first.binning_y}); "
                                    f"pass --camera with the calibration of the images as recorded")
-        camera = camera_from_camera_info(first.width, first.height, first.distortion_model, first.d, first.k, where)
+        # (a ROS 1 CameraInfo spells them D and K)
+        D, K = getattr(first, "d", getattr(first, "D", ())), getattr(first, "k", getattr(first, "K", ()))
+        camera = camera_from_camera_info(first.width, first.height, first.distortion_model, D, K, where)
         origin = topic
     if fov_radius_px:
         camera = replace(camera, fov_radius_px=float(fov_radius_px))
