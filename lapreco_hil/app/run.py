@@ -77,9 +77,9 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         elif record:
             recorder = SessionWriter(record, session_meta_for(grabber, robot, camera, description),
                                      urdf_path(description.urdf))
-        if mcap:
-            mcap_log = _mcap_logger(mcap, grabber, robot, camera, description, tracker_setup, poses)
         try:
+            if mcap:
+                mcap_log = _mcap_logger(mcap, grabber, robot, camera, description, tracker_setup, poses)
             live = LiveRun(grabber, poses, camera, config, tracker=tracker, device=device, out_dir=out_dir,
                            recorder=_with_mcap(recorder, mcap_log), on_stage_error=on_stage_error, progress=bar)
             if on_live is not None:
