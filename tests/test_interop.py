@@ -272,8 +272,8 @@ def write_bag(path, frames, camera: CameraModel, *, storage="mcap", image="rgb8"
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
         image_type = T["sensor_msgs/msg/CompressedImage" if image in ("png", "jpeg") else "sensor_msgs/msg/Image"]
-        conn = {"image": w.add_connection("/camera/left/image_raw" + ("/compressed" if image in ("png", "jpeg") else ""),
-                                          image_type.__msgtype__, typestore=ts)}
+        topic = "/camera/left/image_raw" + ("/compressed" if image in ("png", "jpeg") else "")
+        conn = {"image": w.add_connection(topic, image_type.__msgtype__, typestore=ts)}
         if camera_info:
             conn["info"] = w.add_connection("/camera/left/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
         if joints is not None:
@@ -298,10 +298,10 @@ def write_bag(path, frames, camera: CameraModel, *, storage="mcap", image="rgb8"
                 w.write(conn["joints"], t, ts.serialize_cdr(msg, msg.__msgtype__))
             else:
                 tx, ty, tz, qx, qy, qz, qw = tum_values(poses[i][1])
-                msg = T["geometry_msgs/msg/PoseStamped"](
-                    header=header(t, "ECM_base"),
-                    pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
-                                                     orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+                Point, Quaternion = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+                pose = T["geometry_msgs/msg/Pose"](position=Point(x=tx, y=ty, z=tz),
+                                                   orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+                msg = T["geometry_msgs/msg/PoseStamped"](header=header(t, "ECM_base"), pose=pose)
                 w.write(conn["poses"], t, ts.serialize_cdr(msg, msg.__msgtype__))
     return path
 
@@ -554,9 +554,14 @@ def test_camera_info_yaml_read_by_the_lens_loader_and_written_back(tmp_path):
     assert read_camera_info_yaml(tmp_path / "again.yaml") == cam
     write_camera_yaml(tmp_path / "opencv.yaml", cam)  # and next to it, OpenCV's
     assert read_camera_yaml(tmp_path / "opencv.yaml") == cam
-    (tmp_path / "cut.yaml").write_text(ROS_YAML.replace("image_height: 480\n", ""))
-    with pytest.raises(CalibrationError, match=r"cut\.yaml: missing or non-integer 'image_height'"):
-        read_camera_yaml(tmp_path / "cut.yaml")
+    # a file missing a key: one line naming the file and the key (whichever key is missing)
+    for key, cut in (("image_height", "image_height: 480\n"),
+                     ("distortion_model", "distortion_model: rational_polynomial\n"),
+                     ("camera_matrix", ROS_YAML[ROS_YAML.index("camera_matrix"):ROS_YAML.index("distortion_model")])):
+        (tmp_path / "cut.yaml").write_text(ROS_YAML.replace(cut, ""))
+        with pytest.raises(CalibrationError, match=rf"cut\.yaml: missing (or non-integer )?'{key}'") as info:
+            read_camera_yaml(tmp_path / "cut.yaml")
+        assert "\n" not in str(info.value)
 
 
 def test_camera_info_fields_both_ways():

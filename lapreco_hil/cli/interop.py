@@ -60,7 +60,8 @@ def add_parsers(sub) -> None:
     bag.add_argument("--image-topic", required=True, help="sensor_msgs/Image or CompressedImage, e.g. "
                                                           "/camera/left/image_raw")
     bag.add_argument("--camera-info-topic", default=None, help="sensor_msgs/CameraInfo, e.g. /camera/left/camera_info")
-    bag.add_argument("--camera", default=None, help="instead of camera_info: a lens file (OpenCV or ROS camera_info YAML)")
+    bag.add_argument("--camera", default=None,
+                     help="instead of camera_info: a lens file (OpenCV or ROS camera_info YAML)")
     bag.add_argument("--joints-topic", default=None, help="sensor_msgs/JointState, e.g. /ECM/measured_js")
     bag.add_argument("--poses-topic", default=None, help="instead of joints: geometry_msgs/PoseStamped, e.g. "
                                                          "/ECM/measured_cp")

@@ -334,7 +334,8 @@ def _point_cloud(points: np.ndarray, colors: np.ndarray, t_ns: int):
     packed["rgba"][:, 3] = 255
     F32, U8 = PackedElementField.NumericType.FLOAT32, PackedElementField.NumericType.UINT8
     fields = [PackedElementField(name=n, offset=4 * i, type=F32) for i, n in enumerate("xyz")]
-    fields += [PackedElementField(name=n, offset=12 + i, type=U8) for i, n in enumerate(("red", "green", "blue", "alpha"))]
+    fields += [PackedElementField(name=n, offset=12 + i, type=U8)
+               for i, n in enumerate(("red", "green", "blue", "alpha"))]
     return PointCloud(timestamp=_stamp(t_ns), frame_id=WORLD, pose=_pose(np.eye(4)), point_stride=16,
                       fields=fields, data=packed.tobytes())
 

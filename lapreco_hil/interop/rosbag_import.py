@@ -142,7 +142,8 @@ def _joint_order(msg_names, wanted: tuple[str, ...], where: str) -> np.ndarray |
 
 def import_rosbag(bag: str | Path, out: str | Path, image_topic: str, joints_topic: str | None = None,
                   camera_info_topic: str | None = None, poses_topic: str | None = None, *,
-                  robot_model: str = "ecm", tip_frame: str | None = None, hand_eye: str | Path | np.ndarray | None = None,
+                  robot_model: str = "ecm", tip_frame: str | None = None,
+                  hand_eye: str | Path | np.ndarray | None = None,
                   joint_names: tuple[str, ...] | None = None, poses_frame: str = "tip", camera_file: str | None = None,
                   fov_radius_px: float = 0.0, stamps: str = "header", progress: bool = False) -> dict:
     """The bag ``bag`` as a new session folder ``out``. Exactly one pose source: ``joints_topic`` (with
@@ -171,7 +172,8 @@ def import_rosbag(bag: str | Path, out: str | Path, image_topic: str, joints_top
         reader = AnyReader([bag], default_typestore=_typestore())
         reader.open()
     except Exception as exc:  # rosbags raises its own error kinds for a folder or file it cannot read
-        raise SessionError(f"{bag}: not a readable ROS bag ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SessionError(f"{bag}: not a readable ROS bag ({why})") from None
     out = Path(out)
     existed = out.exists()
     try:
@@ -270,7 +272,8 @@ def _import(bag: _Bag, out: Path, image_topic, joints_topic, camera_info_topic, 
         if hand_eye is not None:
             T = _robot(robot_model, tip_frame, hand_eye)[0].T_tip_camera
         tool = poses_topic.strip("/") or "pose"
-        meta = SessionMeta(camera=camera, pose_source="marker_poses", tracker=TrackerSetup(tool=tool, T_marker_camera=T),
+        meta = SessionMeta(camera=camera, pose_source="marker_poses",
+                           tracker=TrackerSetup(tool=tool, T_marker_camera=T),
                            source={**source, "poses_topic": poses_topic, "poses_frame": "tip"})
 
     n_frames = n_samples = skipped = 0
