@@ -214,20 +214,24 @@ def _camera(bag: _Bag, topic: str | None, camera_file: str | None, fov_radius_px
     return camera, origin
 
 
+def _hand_eye(hand_eye) -> tuple[np.ndarray | None, str | None]:
+    """(T_tip_camera, the tip frame the file names) from a handeye.yaml or a 4x4 (None: no hand-eye)."""
+    from lapreco_hil.calib.files import read_handeye_yaml
+
+    if isinstance(hand_eye, (str, Path)):
+        he = read_handeye_yaml(hand_eye)
+        return he["T_tip_camera"], he.get("tip_frame")
+    return (None if hand_eye is None else np.asarray(hand_eye, float)), None
+
+
 def _robot(robot_model: str, tip_frame: str | None, hand_eye):
     """(RobotDescription, URDF path, the model's joint names, their units)."""
-    from lapreco_hil.calib.files import read_handeye_yaml
     from lapreco_hil.kinematics import load_urdf_model, prismatic_joints
     from lapreco_hil.robot_models import urdf_path
     from lapreco_hil.types import RobotDescription
 
-    T_tip_camera = None
-    if isinstance(hand_eye, (str, Path)):
-        he = read_handeye_yaml(hand_eye)
-        T_tip_camera = he["T_tip_camera"]
-        tip_frame = tip_frame or he.get("tip_frame")
-    elif hand_eye is not None:
-        T_tip_camera = np.asarray(hand_eye, float)
+    T_tip_camera, he_tip_frame = _hand_eye(hand_eye)
+    tip_frame = tip_frame or he_tip_frame
     urdf = urdf_path(robot_model)
     tip_frame = tip_frame or DEFAULT_TIP_FRAMES.get(robot_model)
     if not tip_frame:
@@ -268,9 +272,7 @@ def _import(bag: _Bag, out: Path, image_topic, joints_topic, camera_info_topic, 
     elif poses_frame == "camera":
         meta = SessionMeta(camera=camera, pose_source="camera_poses", source={**source, "poses_topic": poses_topic})
     else:
-        T = None
-        if hand_eye is not None:
-            T = _robot(robot_model, tip_frame, hand_eye)[0].T_tip_camera
+        T = _hand_eye(hand_eye)[0]  # T_tip_camera: the "marker" is the tip
         tool = poses_topic.strip("/") or "pose"
         meta = SessionMeta(camera=camera, pose_source="marker_poses",
                            tracker=TrackerSetup(tool=tool, T_marker_camera=T),
