@@ -6,7 +6,7 @@ A ROS ``camera_info`` YAML (camera_calibration_parsers' plain YAML: ``image_widt
 ``camera_name``, ``camera_matrix``, ``distortion_model`` plumb_bob | rational_polynomial,
 ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``, each matrix as rows/cols/data) is
 written by :func:`write_camera_info_yaml`; :func:`read_camera_yaml` reads either, telling them apart by the
-``%YAML:1.0`` header that cv2.FileStorage writes and ROS does not.
+``%YAML:1.0`` header that cv2.FileStorage writes and ROS does not, and by camera_info's keys.
 handeye.yaml: ``T_tip_camera`` (4x4, metres), optional ``robot_model`` and ``tip_frame``.
 rig.yaml (stereo): ``cam0_*`` and ``cam1_*`` (``image_width``, ``image_height``, ``camera_matrix``,
 ``distortion_coefficients``), ``T_cam0_cam1`` (4x4, metres: camera 1's frame in camera 0's), and OpenCV's
@@ -15,6 +15,7 @@ rig.yaml (stereo): ``cam0_*`` and ``cam1_*`` (``image_width``, ``image_height``,
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -73,6 +74,8 @@ def _int(fs: cv2.FileStorage, key: str, path) -> int:
 
 
 ROS_MODELS = {"plumb_bob": 5, "rational_polynomial": 8}
+ROS_KEYS = (b"camera_matrix", b"distortion_model", b"distortion_coefficients", b"camera_name",
+            b"rectification_matrix", b"projection_matrix")
 
 
 def _is_ros_yaml(path: Path) -> bool:
@@ -80,7 +83,10 @@ def _is_ros_yaml(path: Path) -> bool:
         data = path.read_bytes()
     except OSError as exc:
         raise CalibrationError(f"{path}: cannot read ({exc.strerror})") from None
-    return not data.lstrip().startswith((b"%YAML", b"<?xml", b"{")) and b"camera_matrix" in data  # not OpenCV YAML, XML, JSON
+    # not OpenCV YAML, XML or JSON, and one of camera_info's keys (any: a file missing some gets the ROS reader's
+    # error naming the key it lacks)
+    return not data.lstrip().startswith((b"%YAML", b"<?xml", b"{")) and any(
+        re.search(rb"^" + key + rb"\s*:", data, re.M) for key in ROS_KEYS)
 
 
 def read_camera_yaml(path: str | Path) -> CameraModel:
@@ -175,6 +181,8 @@ def read_camera_info_yaml(path: str | Path) -> CameraModel:
         w, h = _int(fs, "image_width", path), _int(fs, "image_height", path)
         K = _ros_node_matrix(fs, "camera_matrix", path)
         model_node = _node(fs, "distortion_model", path)
+        if model_node.empty():
+            raise CalibrationError(f"{path}: missing 'distortion_model' (plumb_bob or rational_polynomial)")
         model = model_node.string() if model_node.isString() else ""
         d = _ros_node_matrix(fs, "distortion_coefficients", path).ravel()
     finally:

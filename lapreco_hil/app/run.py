@@ -34,12 +34,13 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
              camera=None, description=None, record: str | None = None, seconds: float | None = None,
              progress: bool = True, total: int | None = None, report_fields: dict | None = None,
              on_stage_error: str = "stop", write: bool = True, on_live=None, marker=None,
-             tracker_setup=None) -> dict:
+             tracker_setup=None, mcap: str | None = None) -> dict:
     """Open devices, run live, write the outputs; ``robot``/``grabber`` are unopened drivers. ``write=False``
     (benchmarks) returns the live metrics and map statistics without writing files or rendering;
     ``on_live(live)`` is called with the LiveRun before it starts (a benchmark's sampler). A tracked scope
     instead of a robot: ``robot`` None, ``marker`` an unopened TrackerDriver and ``tracker_setup`` (a
-    TrackerSetup with the hand-eye; its tool None: the tracker's only one)."""
+    TrackerSetup with the hand-eye; its tool None: the tracker's only one). ``mcap``: also log the run to this
+    MCAP file (fed beside the session recorder, encoded in its own thread; the map added at the end)."""
     from tqdm import tqdm
 
     from lapreco_hil.sessions.recorder import session_meta_for
@@ -61,7 +62,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
                               f"(from 'lapreco calibrate lens')")
         first, second = marker, grabber  # the tracker's bring-up first: frames passing meanwhile would be lost
     bar = tqdm(total=total, desc=f"live {Path(out).name}", unit="frame", file=sys.stderr, disable=not progress)
-    recorder = None
+    recorder = mcap_log = None
     with first, second, bar:
         if marker is not None:
             from lapreco_hil.sessions.recorder import scope_tool
@@ -77,11 +78,17 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             recorder = SessionWriter(record, session_meta_for(grabber, robot, camera, description),
                                      urdf_path(description.urdf))
         try:
+            if mcap:
+                mcap_log = _mcap_logger(mcap, grabber, robot, camera, description, tracker_setup, poses)
             live = LiveRun(grabber, poses, camera, config, tracker=tracker, device=device, out_dir=out_dir,
-                           recorder=recorder, on_stage_error=on_stage_error, progress=bar)
+                           recorder=_with_mcap(recorder, mcap_log), on_stage_error=on_stage_error, progress=bar)
             if on_live is not None:
                 on_live(live)
             result, metrics = live.run(seconds)
+        except BaseException:
+            if mcap_log is not None:
+                mcap_log.close()  # the file finished as far as the run got
+            raise
         finally:
             if recorder is not None:
                 recorder.close()
@@ -90,13 +97,43 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
                        "marker_samples_refused_by_cause": dict(poses.rejected_by_cause),
                        "tracker_faults": poses.tracker_faults})
+    if mcap_log is not None:
+        fields["mcap"] = mcap_log.finish_stream()
     if not write:
+        if mcap_log is not None:
+            mcap_log.close()
         return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")}}
     if record:
         fields["recorded_session"] = record
-    return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
-                         truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
-                         run_wall_s=metrics["wall_s"])
+    try:
+        return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
+                             truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
+                             run_wall_s=metrics["wall_s"])
+    finally:
+        if mcap_log is not None:  # the map, once the outputs are written
+            mcap_log.close(out_dir if (out_dir / "points.ply").is_file() else None)
+
+
+def _mcap_logger(path: str, grabber, robot, camera, description, tracker_setup, poses):
+    """``lapreco run --mcap``: the live MCAP log of this rig (lapreco_hil/interop/mcap_export.py)."""
+    from lapreco_hil.interop.mcap_export import live_logger_for
+    from lapreco_hil.sessions.format import default_camera_names
+    from lapreco_hil.sessions.recorder import recorded_rig
+
+    rig = recorded_rig(getattr(grabber, "rig", None), camera)
+    return live_logger_for(path, rig, default_camera_names(len(rig)), description=description,
+                           joint_names=robot.info.joint_names if robot is not None else (),
+                           tracker_setup=tracker_setup if robot is None else None,
+                           offset_ns=getattr(poses, "time_offset_ns", 0))
+
+
+def _with_mcap(recorder, mcap_log):
+    """The session recorder, the MCAP log, or both behind one (the live Record stage feeds one recorder)."""
+    if mcap_log is None:
+        return recorder
+    from lapreco_hil.interop.mcap_export import RecorderFanOut
+
+    return RecorderFanOut(recorder, mcap_log)
 
 
 def _live_view_if_renderable(config: PipelineConfig) -> PipelineConfig:
@@ -130,7 +167,7 @@ def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str |
         record: str | None = None, seconds: float | None = None, view_every: float = 0.0, tracker: str = "auto",
         device: str = "auto", camera_file: str | None = None, robot_model: str | None = None,
         tip_frame: str | None = None, hand_eye_file: str | None = None, progress: bool = True,
-        marker_url: str | None = None, tool: str | None = None) -> dict:
+        marker_url: str | None = None, tool: str | None = None, mcap: str | None = None) -> dict:
     """``lapreco run``: devices by URL (a robot, or a tracker ``marker_url`` following the scope's marker, with
     its hand-eye), the rig from files or the devices, live until the end; the report."""
     from lapreco_hil.config import load_config
@@ -146,17 +183,17 @@ def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str |
     if marker_url is not None:
         return _run_tracked(marker_url, grabber_url, out, config, context, tool=tool, hand_eye_file=hand_eye_file,
                             camera_file=camera_file, record=record, seconds=seconds, tracker=tracker,
-                            device=device, progress=progress)
+                            device=device, progress=progress, mcap=mcap)
     robot, grabber = open_robot(robot_url, context), open_grabber(grabber_url, context)
     camera, description = rig_from(robot, grabber, camera_file, hand_eye_file, robot_model, tip_frame)
     return run_live(robot, grabber, config, out, tracker=tracker, device=device, camera=camera,
                     description=description, record=record, seconds=seconds, progress=progress,
-                    report_fields={"robot": robot_url, "grabber": grabber_url})
+                    report_fields={"robot": robot_url, "grabber": grabber_url}, mcap=mcap)
 
 
 def _run_tracked(marker_url: str, grabber_url: str, out: str, config: PipelineConfig, context: DeviceContext, *,
                  tool: str | None, hand_eye_file: str | None, camera_file: str | None, record: str | None,
-                 seconds: float | None, tracker: str, device: str, progress: bool) -> dict:
+                 seconds: float | None, tracker: str, device: str, progress: bool, mcap: str | None = None) -> dict:
     """``lapreco run --marker``: the scope's pose from a tracker and the hand-eye T_marker_camera."""
     from lapreco_hil.app.record import tracker_setup
     from lapreco_hil.calib.files import read_camera_yaml
@@ -168,5 +205,5 @@ def _run_tracked(marker_url: str, grabber_url: str, out: str, config: PipelineCo
     marker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
     camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
     return run_live(None, grabber, config, out, tracker=tracker, device=device, camera=camera, record=record,
-                    seconds=seconds, progress=progress, marker=marker, tracker_setup=setup,
+                    seconds=seconds, progress=progress, marker=marker, tracker_setup=setup, mcap=mcap,
                     report_fields={"marker": marker_url, "grabber": grabber_url, "hand_eye_file": hand_eye_file})

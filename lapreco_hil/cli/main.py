@@ -137,6 +137,12 @@ def build_parser() -> ArgumentParser:
     add_run_parser(sub)
     add_calibrate_parsers(sub, _positive_int)
 
+    # --- interop: lapreco export mcap, lapreco import rosbag (lapreco_hil/cli/interop.py) ---
+    from lapreco_hil.cli.interop import add_parsers as add_interop_parsers
+
+    add_interop_parsers(sub)
+    # --- end interop ---
+
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")

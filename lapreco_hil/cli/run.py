@@ -12,7 +12,8 @@ def cmd_run(args) -> int:
     report = run(args.robot, args.grabber, args.out, config_path=args.config, record=args.record,
                  seconds=args.seconds, view_every=args.view_every, tracker=args.tracker, device=args.device,
                  camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
-                 hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool)
+                 hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool,
+                 mcap=args.mcap)
     f, lat = report["frames"], report["latency_ms"]
     print(f"lapreco run: {f['in']} frames in, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
@@ -34,6 +35,9 @@ def add_parser(sub) -> None:
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="pipeline configuration (TOML)")
     run.add_argument("--record", default=None, help="also record the session into this new folder")
+    run.add_argument("--mcap", default=None, metavar="FILE",
+                     help="also log frames, calibration, joints, /tf and at the end the map to this MCAP file "
+                          "(Foxglove's schemas; docs/interop.md)")
     run.add_argument("--seconds", type=positive, default=None, help="stop after this many seconds (> 0)")
     run.add_argument("--view-every", type=non_negative, default=0.0,
                      help="render the live textured view every S seconds to OUT/live/*.png and OUT/live.mp4 "
