@@ -26,7 +26,7 @@ from lapreco_hil.types import Observations, PosePrior
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.archive import LandmarkArchive
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
-from lapreco_hil.mapping.prediction import depths_in_front
+from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
@@ -253,6 +253,19 @@ class Mapper:
         (ids, depths) for pose-predicted tracking."""
         ids = [t for t in np.asarray(track_ids).tolist() if t in self.landmarks]
         return depths_in_front(ids, np.array([self.landmarks[t] for t in ids]), T_world_camera)
+
+    def newest_reference_poses(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, T_world_camera (K, 4, 4), depth spans (K, 2), NaN where unknown) of the newest ``n`` reference
+        keyframes: what the live dense surface needs after a local BA."""
+        kfs = [kf for kf in self.keyframes[max(self.first_active, len(self.keyframes) - 2 * n):]
+               if kf.reference is None][-n:]
+        spans = np.full((len(kfs), 2), np.nan)
+        for i, kf in enumerate(kfs):
+            span = depth_span(self.track_depths(kf.track_ids, kf.T_world_camera)[1])
+            if span is not None:
+                spans[i] = span
+        return (np.array([kf.id for kf in kfs], np.int64),
+                np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4), spans)
 
     def _triangulate_pending(self) -> None:
         while self._untriangulated:

@@ -23,6 +23,16 @@ def depths_in_front(ids: np.ndarray, points: np.ndarray, T_world_camera: np.ndar
     return np.asarray(ids, np.int64)[z > 0], z[z > 0]
 
 
+def depth_span(z: np.ndarray, min_points: int = 8) -> tuple[float, float] | None:
+    """The depths a keyframe's landmarks span (2nd to 98th percentile of ``z``, the positive ones) with a margin
+    (x0.8, x1.25): where dense stereo searches; None for fewer than ``min_points``."""
+    z = np.asarray(z, float)
+    z = z[z > 0]
+    if len(z) < min_points:
+        return None
+    return float(0.8 * np.percentile(z, 2)), float(1.25 * np.percentile(z, 98))
+
+
 def frame_motion(T_world_prev: np.ndarray, T_world_cur: np.ndarray, track_ids: np.ndarray, depth_m: np.ndarray,
                  scene_depth_m: tuple[float, float]) -> FrameMotion:
     """The motion from a frame at ``T_world_prev`` into one at ``T_world_cur`` (pose priors: the robot's relative

@@ -27,7 +27,7 @@ import traceback
 import numpy as np
 
 from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
-                                          MapperFailed, MapperReady, NewTrackPoints, SlotFree)
+                                          KeyframePoses, MapperFailed, MapperReady, NewTrackPoints, SlotFree)
 
 log = logging.getLogger(__name__)
 
@@ -162,10 +162,12 @@ class _BAClient:
 
 def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str, max_points: int, snap_lock,
                 K: np.ndarray, mapper_config, backlog_skip_ba: int, ready_q, done_q, final_conn, parent_pid: int,
-                ba_jobs_q=None, ba_results_q=None, ring_cameras: int = 1, rig=None) -> None:
+                ba_jobs_q=None, ba_results_q=None, ring_cameras: int = 1, rig=None,
+                keyframe_poses: bool = False) -> None:
     """Process body: take SlotReady messages until EndOfFrames, then finish the map and send it (FinalMap, or
     MapperFailed). With BA queues, local BA goes to the worker; without, it runs here (deferred while frames
-    wait)."""
+    wait). ``keyframe_poses``: after each local BA, send the newest keyframes' poses (KeyframePoses, for the
+    live dense surface)."""
     die_with_parent(parent_pid)
     from lapreco_hil.mapping.mapper import Mapper, MapperSchedule
     from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing
@@ -182,6 +184,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         # keyframes added since the last local BA was handed to the worker: a job covers them all, so all but
         # its newest were merged into it rather than given a window of their own (deferred)
         keyframes_since_job = 0
+        bas_announced = 0  # local BAs whose keyframe poses went to the main process (KeyframePoses)
         last_publish, map_changed = 0.0, False
         clock = StageClock()
 
@@ -225,12 +228,22 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                                            np.array([mapper.landmarks[t] for t in known]).reshape(-1, 3)))
             mapper.structured.clear()
 
+        def announce_poses() -> None:
+            # after a local BA, the moved keyframes' poses for the live dense surface (a window's worth, tiny)
+            nonlocal bas_announced
+            if keyframe_poses and len(mapper.ba_times) != bas_announced:
+                bas_announced = len(mapper.ba_times)
+                ids, poses, spans = mapper.newest_reference_poses(mapper_config.window_keyframes + 2)
+                if len(ids):
+                    done_q.put(KeyframePoses(ids, poses, spans))
+
         def housekeeping() -> None:
             nonlocal map_changed, last_housekeeping, skipped_ba, keyframes_since_job
             if worker is not None:
                 t = time.perf_counter()
                 applied = worker.collect(mapper)
                 if applied:
+                    announce_poses()
                     clock.add("apply_local_ba", time.perf_counter() - t)
                 map_changed |= applied
                 if worker.in_flight is None and mapper.local_ba_wanted:
@@ -261,6 +274,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 t = time.perf_counter()
                 work = mapper.maintain()
                 if work is not None:
+                    announce_poses()  # (an inline local BA follows a keyframe's last piece of points)
                     clock.add(f"{work}_keyframe", time.perf_counter() - t)
                     points_done()
                     map_changed = True
@@ -287,8 +301,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             views = ring.read_views(slot.slot) if ring_cameras > 1 else ()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect, partners=views or None)
             clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
+            kf_id = mapper.frames[-1].keyframe if is_kf else -1  # (the reference's: stereo partners follow it)
             if is_kf:
-                keyframe_captured[len(mapper.keyframes) - 1] = arrival_ns
+                keyframe_captured[kf_id] = arrival_ns
             points_done()
             if is_kf and worker is not None:
                 keyframes_since_job += 1
@@ -298,7 +313,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 skipped_resection += 1
             map_changed |= bool(is_kf)
             done_q.put(FramePose(obs.frame_seq, time.monotonic_ns(), arrival_ns, mapper.frames[-1].T_refined,
-                                 bool(is_kf), skipped_ba, skipped_resection))
+                                 bool(is_kf), skipped_ba, skipped_resection, kf_id))
         publish_if_due(whole=True)  # (the map as it ended, if it changed since the last snapshot)
         if worker is not None:
             worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass

@@ -2,7 +2,8 @@
 message, so each side matches on a type and reads named fields instead of positions in a tuple.
 
 main process -> mapper: ``SlotReady`` (a frame's observations wait in that shared-memory slot), ``EndOfFrames``
-mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``NewTrackPoints``; on its pipe ``FinalMap`` or
+mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``NewTrackPoints``, ``KeyframePoses``; on its pipe
+``FinalMap`` or
 ``MapperFailed``
 mapper -> BA worker: ``BAJob``, ``EndOfJobs``; BA worker -> mapper: ``BAResult``"""
 
@@ -44,6 +45,7 @@ class FramePose:
     is_keyframe: bool
     local_ba_skipped: int
     resection_skipped: int
+    keyframe_id: int = -1  # the frame's keyframe (its rig's reference camera's), -1: none
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,17 @@ class NewTrackPoints:
 
     track_ids: np.ndarray
     points: np.ndarray
+
+
+@dataclass(frozen=True)
+class KeyframePoses:
+    """The newest reference keyframes' poses after a local BA moved them, with the depths each one's landmarks
+    span (near, far in metres; NaN: too few): the live dense surface takes out and puts back the depth maps of
+    those that moved, and bounds new ones' stereo search."""
+
+    keyframe_ids: np.ndarray
+    poses: np.ndarray
+    depth_ranges: np.ndarray
 
 
 @dataclass(frozen=True)
