@@ -36,7 +36,7 @@ from lapreco_hil.warp_device import init_warp
 
 log = logging.getLogger(__name__)
 
-FUNNEL = ("pixels", "in_view", "textured", "matched", "in_range", "off_edges", "refined", "views_agree", "geometry_agrees")
+FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined", "views_agree", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
 
 
@@ -227,7 +227,8 @@ class DepthEstimator:
             b_f = wp.array(np.array([b for _, b in fine_terms], np.float32), dtype=wp.vec3)
         t0 = self._sync_time(times, "setup_ms", t0)
 
-        for i, view in enumerate([ref] + list(sources)):
+        # the reference last: its mask and highlights stay in the buffers for the funnel
+        for i, view in reversed(list(enumerate([ref] + list(sources)))):
             self._prepare(view, self.full_grey[i])
         fine, coarse = self.fine, self.coarse
         hc, wc = h // 2, w // 2
@@ -251,7 +252,7 @@ class DepthEstimator:
         t0 = self._sync_time(times, "fine_sweep_ms", t0)
 
         wp.launch(k.finalise, dim=(h, w), device=self.device,
-                  inputs=[fine.ref, fine.std, coarse.plane, coarse.best, coarse.second, n_planes, cfg.window_radius_px,
+                  inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second, n_planes, cfg.window_radius_px,
                           cfg.max_plane_jump, cfg.edge_min_zncc, fine.base,
                           fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
                           cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
@@ -274,6 +275,11 @@ class DepthEstimator:
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given]}
         return DepthMap(ref.kf_id, depth, confidence, np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
+
+    def rejection_codes(self) -> np.ndarray:
+        """(H, W) uint8 of the last ``compute``: per pixel, the index in ``FUNNEL`` of the first check it failed
+        minus one (0: out of view, ...), or ``len(FUNNEL) - 1`` where it was kept."""
+        return self.code.numpy().copy()
 
     def check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
         """``depth_map`` with only the depths that at least ``geometric_min_views`` of ``source_maps`` (the sources'

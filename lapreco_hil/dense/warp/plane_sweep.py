@@ -24,14 +24,15 @@ NO_SCORE = -2.0  # a ZNCC that is undefined (window out of view, excluded or tex
 
 # funnel codes per reference pixel: the first check it failed, or KEPT
 CODE_OUT_OF_VIEW = 0
-CODE_LOW_TEXTURE = 1
-CODE_NO_MATCH = 2
-CODE_OUT_OF_RANGE = 3
-CODE_DEPTH_EDGE = 4
-CODE_NOT_REFINED = 5
-CODE_VIEWS_DISAGREE = 6
-CODE_GEOMETRY_DISAGREES = 7
-CODE_KEPT = 8
+CODE_HIGHLIGHT = 1
+CODE_LOW_TEXTURE = 2
+CODE_NO_MATCH = 3
+CODE_OUT_OF_RANGE = 4
+CODE_DEPTH_EDGE = 5
+CODE_NOT_REFINED = 6
+CODE_VIEWS_DISAGREE = 7
+CODE_GEOMETRY_DISAGREES = 8
+CODE_KEPT = 9
 
 
 @wp.kernel
@@ -343,7 +344,8 @@ def upsample_rho(plane: wp.array2d(dtype=float), rho0: float, drho: float, rho_f
 
 
 @wp.kernel
-def finalise(grey: wp.array2d(dtype=float), fine_std: wp.array2d(dtype=float),
+def finalise(mask: wp.array2d(dtype=wp.uint8), highlight: wp.array2d(dtype=wp.uint8),
+             grey: wp.array2d(dtype=float), fine_std: wp.array2d(dtype=float),
              coarse_plane: wp.array2d(dtype=float), coarse_best: wp.array2d(dtype=float),
              coarse_second: wp.array2d(dtype=float), n_coarse: int, edge_radius: int, max_jump: float,
              edge_zncc: float,
@@ -360,8 +362,11 @@ def finalise(grey: wp.array2d(dtype=float), fine_std: wp.array2d(dtype=float),
     wc = coarse_plane.shape[1]
     yc = wp.min(y / 2, hc - 1)
     xc = wp.min(x / 2, wc - 1)
-    if grey[y, x] < -1.0:
+    if mask[y, x] == wp.uint8(0):
         code[y, x] = wp.uint8(CODE_OUT_OF_VIEW)
+        return
+    if highlight[y, x] != wp.uint8(0) or grey[y, x] < -1.0:
+        code[y, x] = wp.uint8(CODE_HIGHLIGHT)
         return
     if fine_std[y, x] <= 0.0:
         code[y, x] = wp.uint8(CODE_LOW_TEXTURE)
