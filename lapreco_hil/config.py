@@ -152,15 +152,16 @@ class DepthConfig:
     coarse_step_px: float = ranged(1.0, gt=0.0)  # plane spacing of the half-resolution sweep: at most this shift
     min_planes: int = ranged(8, ge=3)  # the half-resolution sweep's planes, whatever the baseline
     max_planes: int = ranged(96, ge=3)  # ... and their cap (a wider spacing beyond it): bounds time and memory
-    fine_planes: int = ranged(5, ge=3)  # planes of the full-resolution refinement about the coarse depth
+    fine_planes: int = ranged(5, ge=3)  # planes of the full-resolution refinement about the coarse depth ...
+    fine_range_px: float = ranged(1.0, gt=0.0)  # ... spanning this image motion (half-resolution pixels) each way
     best_k: int = ranged(2, ge=1)  # a plane's score: mean ZNCC of its k best source views (an occluded view drops out)
     min_zncc: float = ranged(0.6, ge=-1.0, le=1.0)  # the best score a pixel needs to get a depth
     # planes a pixel must score on (the rest fall outside the sources): the best of a few is no match
     min_scored_fraction: float = ranged(0.3, ge=0.0, le=1.0)
     min_margin: float = ranged(0.05, ge=0.0)  # best minus the second local maximum: repeated texture is ambiguous
-    # coarse planes between a pixel and its neighbours a window away beyond which it sits on a depth edge, where
-    # windows fatten the foreground
-    max_plane_jump: float = ranged(2.0, gt=0.0)
+    # bend of the coarse depth between a pixel and its neighbours a window away (as image motion, half-resolution
+    # pixels) beyond which it sits on a depth edge, where windows fatten the foreground
+    max_depth_jump_px: float = ranged(2.0, gt=0.0)
     edge_min_zncc: float = ranged(0.3, ge=-1.0, le=1.0)  # ... counting the neighbours that match at least this well
     margin_scale: float = ranged(0.3, gt=0.0)  # the margin at which the confidence's uniqueness factor reaches 1
     # a window scores on the pixels usable in both views (not excluded, inside): at least this fraction of it

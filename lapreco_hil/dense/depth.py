@@ -218,7 +218,8 @@ class DepthEstimator:
         shift = _max_shift_px(coarse_terms, (w // 2, h // 2), rho_lo, rho_hi)
         n_planes = int(np.clip(math.ceil(shift / cfg.coarse_step_px) + 1, cfg.min_planes, cfg.max_planes))
         drho_c = (rho_hi - rho_lo) / (n_planes - 1)
-        drho_f = 0.5 * drho_c
+        step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
+        drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
         rho0_f = -0.5 * (cfg.fine_planes - 1) * drho_f
         with wp.ScopedDevice(self.device):
             A_c = wp.array(np.array([a for a, _ in coarse_terms], np.float32), dtype=wp.mat33)
@@ -253,7 +254,7 @@ class DepthEstimator:
 
         wp.launch(k.finalise, dim=(h, w), device=self.device,
                   inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second, n_planes, cfg.window_radius_px,
-                          cfg.max_plane_jump, cfg.edge_min_zncc, fine.base,
+                          cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
                           fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
                           cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
                           self.depth, self.confidence, self.code])
