@@ -46,7 +46,7 @@ def test_depth_on_a_textured_surface_is_sub_millimetre_and_dense(sheet, sheet_ma
     for kf_id, depth_map in sheet_maps.items():
         err = _errors_mm(depth_map, truths[kf_id])
         funnel = depth_map.stats["funnel"]
-        # measured on the CPU: medians 0.12-0.16 mm at 70-80 mm, none beyond 5 mm, 90-93% of the textured pixels
+        # measured on the CPU: medians 0.12-0.17 mm at 70-80 mm, none beyond 5 mm, 89-94% of the textured pixels
         assert np.median(err) < 0.25, kf_id
         assert np.mean(err > 5.0) <= 0.005, kf_id
         assert np.mean(err > 1.0) <= 0.03, kf_id
@@ -184,7 +184,7 @@ def test_a_moving_instrument_gets_no_depth(instrument_scenes):
             # the tissue around it keeps its depth and its accuracy
             err = np.concatenate([_errors_mm(maps[k], truths[k]) for k in maps])
             assert np.median(err) < 0.4 and np.mean(err > 5.0) < 0.02
-    # measured: moving 3 of 9400 instrument pixels kept, static 290
+    # measured: moving 7 of 9423 instrument pixels kept, static 323
     assert kept["moving"] <= 0.002 * kept["moving_pixels"], kept
     assert kept["static"] >= max(100, 20 * kept["moving"]), kept
 
@@ -192,7 +192,7 @@ def test_a_moving_instrument_gets_no_depth(instrument_scenes):
 def test_a_view_pair_with_a_moving_instrument_keeps_no_depth_on_it(instrument_scenes):
     """The reference with each other keyframe as a pair, each view against the other, then forward-backward
     through each other's maps. Two views cannot tell an instrument that moved along the epipolar line from a
-    nearer one: measured 0, 32, 0 and 1 instrument pixels kept of 2096, 0.4% in all."""
+    nearer one: measured 0, 36, 0 and 1 instrument pixels kept of 2096, 0.4% in all."""
     from lapreco_hil.dense.depth import DepthEstimator
 
     views, truths, tools = instrument_scenes["moving"]
@@ -254,19 +254,19 @@ def test_the_hamlyn_phantom_pair_gets_a_dense_consistent_depth_map(warp_cpu):
     map_r = estimator.compute(view_r, [view_l])
     checked = estimator.check_geometry(map_l, [map_r])
     funnel = checked.stats["funnel"]
-    # measured: 60% of the textured pixels get a depth, 78% of those agree left to right
+    # measured: 62% of the textured pixels get a depth, 82% of those agree left to right
     assert funnel["views_agree"] >= 0.5 * funnel["textured"], funnel
     assert funnel["geometry_agrees"] >= 0.7 * funnel["views_agree"], funnel
 
-    # the sparse points (measured: median 0.33 mm, 79 of 95 with a depth)
+    # the sparse points (measured: median 0.37 mm, 78 of 95 with a depth)
     u = np.round(p_left).astype(int)
     dense_z = map_l.depth_m[u[1], u[0]]
     has = dense_z > 0
     assert has.sum() >= 0.7 * len(dense_z)
     assert np.median(np.abs(dense_z[has] - X[2, has])) < 0.6e-3
 
-    # StereoSGBM on the rectified pair, its points taken back into the left camera (measured: median 0.50 mm,
-    # 7.5% beyond 2 mm, over 45000 pixels; one pixel of disparity is 1.85 mm here)
+    # StereoSGBM on the rectified pair, its points taken back into the left camera (measured: median 0.51 mm,
+    # 8.3% beyond 2 mm, over 46000 pixels; one pixel of disparity is 1.85 mm here)
     h, w = left.shape[:2]
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K, None, K, None, (w, h), T_right_left[:3, :3],
                                                 T_right_left[:3, 3], alpha=0)
