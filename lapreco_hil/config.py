@@ -169,6 +169,11 @@ class DepthConfig:
     min_texture: float = ranged(0.008, ge=0.0)  # window standard deviation (grey / 255): below it ZNCC is noise
     view_min_zncc: float = ranged(0.5, ge=-1.0, le=1.0)  # a source view agrees with the depth at this score
     min_views: int = ranged(2, ge=1)  # source views that must agree (capped at the views there are): moving things fail
+    # a depth needs this share of its neighbours (radius in pixels) within this relative depth: specks and thin
+    # slivers (wrong matches along silhouettes and folds) go, surfaces stay
+    support_radius_px: int = ranged(3, ge=1)
+    min_support: float = ranged(0.5, ge=0.0, le=1.0)
+    support_max_rel: float = ranged(0.02, gt=0.0)
     geometric_max_px: float = ranged(1.0, gt=0.0)  # forward-backward through a source's depth map: reprojection
     geometric_max_rel: float = ranged(0.01, gt=0.0)  # ... and relative depth difference
     geometric_min_views: int = ranged(1, ge=1)  # source depth maps that must agree (capped at those given)

@@ -32,11 +32,12 @@ from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.warp import plane_sweep as k
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.errors import ReconstructionError
-from lapreco_hil.warp_device import init_warp
+from lapreco_hil.warp_device import device_lock, init_warp
 
 log = logging.getLogger(__name__)
 
-FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined", "views_agree", "geometry_agrees")
+FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined", "views_agree",
+          "supported", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
 
 
@@ -84,8 +85,7 @@ class _Sweep:
     ref: object  # (h, w) grey
     src: object  # (S, h, w) grey
     rows: object  # (h, w) vec3: reference window row sums
-    mean: object
-    std: object
+    std: object  # (h, w) reference window standard deviation, 0 where not textured
     base: object  # (h, w) inverse depth each plane offsets
     sums: object  # (S, P, h, w) vec4
     zncc: object  # (S, P, h, w)
@@ -104,6 +104,7 @@ class DepthEstimator:
         self.config = config
         self.device = device
         self._shape: tuple | None = None
+        self._check_shape: tuple | None = None
         if config.default_near_m >= config.default_far_m:
             raise ReconstructionError(f"[depth] default_near_m {config.default_near_m} must be less than "
                                       f"default_far_m {config.default_far_m}")
@@ -113,14 +114,27 @@ class DepthEstimator:
         wp = self.wp
         return _Sweep(
             ref=wp.zeros((h, w), dtype=float), src=wp.zeros((n_src, h, w), dtype=float),
-            rows=wp.zeros((h, w), dtype=wp.vec3), mean=wp.zeros((h, w), dtype=float),
-            std=wp.zeros((h, w), dtype=float), base=wp.zeros((h, w), dtype=float),
+            rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float), base=wp.zeros((h, w), dtype=float),
             sums=wp.zeros((n_src, n_planes, h, w), dtype=k.vec6),
             zncc=wp.zeros((n_src, n_planes, h, w), dtype=float),
             score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
             best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
 
+    def _ensure_checks(self, h: int, w: int) -> None:
+        """The output and geometric-check buffers (all that ``check_geometry`` needs)."""
+        if self._check_shape == (h, w):
+            return
+        with self.wp.ScopedDevice(self.device):
+            self.depth = self.wp.zeros((h, w), dtype=float)
+            self.confidence = self.wp.zeros((h, w), dtype=float)
+            self.code = self.wp.zeros((h, w), dtype=self.wp.uint8)
+            self.agree = self.wp.zeros((h, w), dtype=int)
+            self.supported = self.wp.zeros((h, w), dtype=self.wp.uint8)
+            self.src_depth = self.wp.zeros((h, w), dtype=float)
+        self._check_shape = (h, w)
+
     def _ensure(self, h: int, w: int, n_src: int) -> None:
+        self._ensure_checks(h, w)
         shape = (h, w, n_src)
         if self._shape == shape:
             return
@@ -134,11 +148,6 @@ class DepthEstimator:
             self.full_grey = wp.zeros((n_src + 1, h, w), dtype=float)  # reference first
             self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, cfg.max_planes)
             self.fine = self._sweep_buffers(h, w, n_src, cfg.fine_planes)
-            self.depth = wp.zeros((h, w), dtype=float)
-            self.confidence = wp.zeros((h, w), dtype=float)
-            self.code = wp.zeros((h, w), dtype=wp.uint8)
-            self.agree = wp.zeros((h, w), dtype=int)
-            self.src_depth = wp.zeros((h, w), dtype=float)
         self._shape = shape
 
     # --- steps ------------------------------------------------------------------------------------------------
@@ -165,8 +174,7 @@ class DepthEstimator:
         r = self.config.window_radius_px
         self.wp.launch(k.window_rows, dim=(h, w), device=self.device, inputs=[level.ref, r, level.rows])
         self.wp.launch(k.window_cols, dim=(h, w), device=self.device,
-                       inputs=[level.rows, r, self.config.min_texture, self.config.min_valid_fraction, level.mean,
-                               level.std])
+                       inputs=[level.rows, r, self.config.min_texture, self.config.min_valid_fraction, level.std])
 
     def _sweep(self, level: _Sweep, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
                min_scored: int) -> None:
@@ -191,6 +199,15 @@ class DepthEstimator:
     # --- the depth map ----------------------------------------------------------------------------------------
     def compute(self, ref: KeyframeView, sources: list[KeyframeView],
                 source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+        """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
+        that source's own depth map) adds the forward-backward check for the sources it holds."""
+        # Warp's current stream is one per device for the whole process: take turns with the other threads
+        # that drive this device (a CUDA graph capture in the front-end must not catch these launches)
+        with device_lock(self.device):
+            return self._compute(ref, sources, source_depths)
+
+    def _compute(self, ref: KeyframeView, sources: list[KeyframeView],
+                 source_depths: dict[int, DepthMap] | None) -> DepthMap:
         wp = self.wp
         cfg = self.config
         if not sources:
@@ -258,6 +275,11 @@ class DepthEstimator:
                           fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
                           cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
                           self.depth, self.confidence, self.code])
+        wp.launch(k.support, dim=(h, w), device=self.device,
+                  inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
+                          self.supported])
+        wp.launch(k.apply_support, dim=(h, w), device=self.device,
+                  inputs=[self.supported, self.depth, self.confidence, self.code])
         given = [s for s in sources if source_depths and s.kf_id in source_depths]
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
@@ -278,18 +300,22 @@ class DepthEstimator:
                         stats)
 
     def rejection_codes(self) -> np.ndarray:
-        """(H, W) uint8 of the last ``compute``: per pixel, the index in ``FUNNEL`` of the first check it failed
-        minus one (0: out of view, ...), or ``len(FUNNEL) - 1`` where it was kept."""
+        """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
+        the check ``FUNNEL[k + 1]`` (0: outside the mask, 1: a highlight, ...); len(FUNNEL) - 1: kept."""
         return self.code.numpy().copy()
 
     def check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
         """``depth_map`` with only the depths that at least ``geometric_min_views`` of ``source_maps`` (the sources'
         own depth maps, as computed, before their own checks) confirm forward-backward; the funnel gains
         ``geometry_agrees``."""
-        h, w = depth_map.depth_m.shape
         if not source_maps:
             return depth_map
-        self._ensure(h, w, self._shape[2] if self._shape and self._shape[:2] == (h, w) else 1)
+        with device_lock(self.device):
+            return self._check_geometry(depth_map, source_maps)
+
+    def _check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
+        h, w = depth_map.depth_m.shape
+        self._ensure_checks(h, w)
         t0 = time.perf_counter()
         self.depth.assign(np.ascontiguousarray(depth_map.depth_m, np.float32))
         self.confidence.assign(np.ascontiguousarray(depth_map.confidence, np.float32))
@@ -352,7 +378,7 @@ def highlight_mask(colour: np.ndarray, config: DepthConfig | None = None, device
     wp = init_warp()
     cfg = config or DepthConfig()
     h, w = colour.shape[:2]
-    with wp.ScopedDevice(device):
+    with device_lock(device), wp.ScopedDevice(device):
         colour_d = wp.array(np.ascontiguousarray(colour, np.uint8))
         mask = wp.ones((h, w), dtype=wp.uint8)
         grey = wp.zeros((h, w), dtype=float)

@@ -31,8 +31,9 @@ CODE_OUT_OF_RANGE = 4
 CODE_DEPTH_EDGE = 5
 CODE_NOT_REFINED = 6
 CODE_VIEWS_DISAGREE = 7
-CODE_GEOMETRY_DISAGREES = 8
-CODE_KEPT = 9
+CODE_UNSUPPORTED = 8
+CODE_GEOMETRY_DISAGREES = 9
+CODE_KEPT = 10
 
 
 @wp.kernel
@@ -116,9 +117,9 @@ def window_rows(grey: wp.array2d(dtype=float), r: int, out: wp.array2d(dtype=wp.
 
 @wp.kernel
 def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_valid: float,
-                mean: wp.array2d(dtype=float), std: wp.array2d(dtype=float)):
-    """Column pass: the mean and standard deviation of the window's usable pixels; std 0 where fewer than
-    ``min_valid`` (a fraction) of them are usable or the texture is below ``min_std`` (ZNCC is undefined there)."""
+                std: wp.array2d(dtype=float)):
+    """Column pass: the standard deviation of the window's usable pixels; 0 where fewer than ``min_valid`` (a
+    fraction) of them are usable or the texture is below ``min_std`` (ZNCC is undefined there)."""
     y, x = wp.tid()
     h = rows.shape[0]
     s = wp.vec3(0.0, 0.0, 0.0)
@@ -132,7 +133,6 @@ def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_val
     n = wp.max(total - s[2], 1.0)
     m = s[0] / n
     v = s[1] / n - m * m
-    mean[y, x] = m
     if n < min_valid * total or v <= min_std * min_std:
         std[y, x] = 0.0
     else:
@@ -432,6 +432,43 @@ def finalise(mask: wp.array2d(dtype=wp.uint8), highlight: wp.array2d(dtype=wp.ui
     c_unique = wp.clamp(margin / margin_scale, 0.0, 1.0)
     confidence[y, x] = c_match * c_unique
     code[y, x] = wp.uint8(CODE_KEPT)
+
+
+@wp.kernel
+def support(depth: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8), r: int, max_rel: float,
+            min_fraction: float, supported: wp.array2d(dtype=wp.uint8)):
+    """A depth is supported where at least ``min_fraction`` of its (2r+1)^2 neighbours have a depth within
+    ``max_rel`` of it: wrong matches come as specks and thin slivers (along silhouettes and folds), surfaces as
+    regions."""
+    y, x = wp.tid()
+    supported[y, x] = wp.uint8(0)
+    d = depth[y, x]
+    if d <= 0.0:
+        return
+    h = depth.shape[0]
+    w = depth.shape[1]
+    n = int(0)
+    for dy in range(-r, r + 1):
+        yy = y + dy
+        if yy >= 0 and yy < h:
+            for dx in range(-r, r + 1):
+                xx = x + dx
+                if xx >= 0 and xx < w:
+                    dn = depth[yy, xx]
+                    if dn > 0.0 and wp.abs(dn - d) <= max_rel * d:
+                        n += 1
+    if float(n) >= min_fraction * float((2 * r + 1) * (2 * r + 1)):
+        supported[y, x] = wp.uint8(1)
+
+
+@wp.kernel
+def apply_support(supported: wp.array2d(dtype=wp.uint8), depth: wp.array2d(dtype=float),
+                  confidence: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8)):
+    y, x = wp.tid()
+    if depth[y, x] > 0.0 and supported[y, x] == wp.uint8(0):
+        depth[y, x] = 0.0
+        confidence[y, x] = 0.0
+        code[y, x] = wp.uint8(CODE_UNSUPPORTED)
 
 
 @wp.kernel
