@@ -46,10 +46,10 @@ def test_depth_on_a_textured_surface_is_sub_millimetre_and_dense(sheet, sheet_ma
     for kf_id, depth_map in sheet_maps.items():
         err = _errors_mm(depth_map, truths[kf_id])
         funnel = depth_map.stats["funnel"]
-        # measured on the CPU: medians 0.12-0.17 mm at 70-80 mm, none beyond 5 mm, 89-94% of the textured pixels
+        # measured on the CPU: medians 0.12-0.17 mm at 70-80 mm, none beyond 5 mm, 88-93% of the textured pixels
         assert np.median(err) < 0.25, kf_id
         assert np.mean(err > 5.0) <= 0.005, kf_id
-        assert np.mean(err > 1.0) <= 0.03, kf_id
+        assert np.mean(err > 1.0) <= 0.02, kf_id
         assert funnel["geometry_agrees"] >= 0.8 * funnel["textured"], funnel
         assert funnel["geometry_agrees"] == np.count_nonzero(depth_map.valid)
         assert np.all((depth_map.confidence > 0) == depth_map.valid)
@@ -183,10 +183,11 @@ def test_a_moving_instrument_gets_no_depth(instrument_scenes):
         if kind == "moving":
             # the tissue around it keeps its depth and its accuracy
             err = np.concatenate([_errors_mm(maps[k], truths[k]) for k in maps])
-            assert np.median(err) < 0.4 and np.mean(err > 5.0) < 0.02
-    # measured: moving 7 of 9423 instrument pixels kept, static 323
+            # (measured: median 0.23 mm, 0.9% beyond 5 mm)
+            assert np.median(err) < 0.4 and np.mean(err > 5.0) < 0.015
+    # measured: moving 0 of 9423 instrument pixels kept, static 146
     assert kept["moving"] <= 0.002 * kept["moving_pixels"], kept
-    assert kept["static"] >= max(100, 20 * kept["moving"]), kept
+    assert kept["static"] >= max(50, 20 * kept["moving"]), kept
 
 
 def test_a_view_pair_with_a_moving_instrument_keeps_no_depth_on_it(instrument_scenes):
@@ -255,9 +256,10 @@ def test_the_hamlyn_phantom_pair_gets_a_dense_consistent_depth_map(warp_cpu):
     map_r = estimator.compute(view_r, [view_l])
     checked = estimator.check_geometry(map_l, [map_r])
     funnel = checked.stats["funnel"]
-    # measured: 62% of the textured pixels get a depth, 82% of those agree left to right
+    # measured: 62% of the textured pixels pass the photometric checks, 74% of those are supported and agree
+    # left to right
     assert funnel["views_agree"] >= 0.5 * funnel["textured"], funnel
-    assert funnel["geometry_agrees"] >= 0.7 * funnel["views_agree"], funnel
+    assert funnel["geometry_agrees"] >= 0.65 * funnel["views_agree"], funnel
 
     # the sparse points (measured: median 0.37 mm, 78 of 95 with a depth)
     u = np.round(p_left).astype(int)
@@ -266,8 +268,8 @@ def test_the_hamlyn_phantom_pair_gets_a_dense_consistent_depth_map(warp_cpu):
     assert has.sum() >= 0.7 * len(dense_z)
     assert np.median(np.abs(dense_z[has] - X[2, has])) < 0.6e-3
 
-    # StereoSGBM on the rectified pair, its points taken back into the left camera (measured: median 0.51 mm,
-    # 8.3% beyond 2 mm, over 46000 pixels; one pixel of disparity is 1.85 mm here)
+    # StereoSGBM on the rectified pair, its points taken back into the left camera (measured: median 0.48 mm,
+    # 6.1% beyond 2 mm, over 43000 pixels; one pixel of disparity is 1.85 mm here)
     h, w = left.shape[:2]
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K, None, K, None, (w, h), T_right_left[:3, :3],
                                                 T_right_left[:3, 3], alpha=0)
