@@ -9,14 +9,15 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
    planes. Per plane and source, ZNCC over a window by sliding sums (O(1) per pixel whatever the window); a
    plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
    plane, parabola through its neighbours, and the second-best local maximum for the margin.
-3. Full resolution: ``fine_planes`` planes at half the coarse spacing about the coarse depth (bilinear), again
-   with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
-4. Checks, in order, each counted in ``DepthMap.stats['funnel']``: in view, textured (ZNCC undefined on flat
-   windows), matched (best score and margin), in range (the best plane not at the range's end: the surface is
-   outside the landmarks' range), refined (the fine best not at its end), views agree (at least ``min_views``
-   sources each score the final depth well on their own: something that moved between the views, an
-   instrument, fails it), and, where the sources' own depth maps are given, geometry agrees (forward-backward
-   through the source's depth map).
+3. Full resolution: ``fine_planes`` planes about the coarse depth (bilinear) spanning +-``fine_range_px`` of
+   image motion, again with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
+4. Checks, in order, each counted in ``DepthMap.stats['funnel']`` (``FUNNEL``): in view (the mask), not a
+   highlight, textured (ZNCC is undefined on flat windows), matched (best score and margin), in range (the best
+   plane not at the range's end: the surface lies outside the landmarks' range), off edges (windows across a
+   depth edge fatten the foreground), refined (the fine best not at its end), views agree (at least
+   ``min_views`` sources each score the final depth well on their own: something that moved between the views,
+   an instrument, fails it), supported (wrong matches come as specks and slivers, surfaces as regions), and,
+   where the sources' own depth maps are given, geometry agrees (forward-backward through the source's map).
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ from lapreco_hil.warp_device import device_lock, init_warp
 
 log = logging.getLogger(__name__)
 
-FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined", "views_agree",
-          "supported", "geometry_agrees")
+# pixels kept after each check, in order (a pixel's rejection code k: it failed FUNNEL[k + 1])
+FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined",
+          "views_agree", "supported", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
 
 
@@ -270,8 +272,8 @@ class DepthEstimator:
         t0 = self._sync_time(times, "fine_sweep_ms", t0)
 
         wp.launch(k.finalise, dim=(h, w), device=self.device,
-                  inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second, n_planes, cfg.window_radius_px,
-                          cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
+                  inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second,
+                          n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
                           fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
                           cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
                           self.depth, self.confidence, self.code])
@@ -296,6 +298,7 @@ class DepthEstimator:
         times["total_ms"] = round(sum(times.values()), 3)
         stats = {"funnel": funnel, "times_ms": times, "planes": n_planes, "depth_range_m": (near, far),
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given]}
+        log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, depth, confidence, np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
 
