@@ -14,7 +14,7 @@ import pytest
 
 from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.types import KeyframeView
-from lapreco_hil.errors import ReconstructionError
+from lapreco_hil.errors import ConfigError, ReconstructionError
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 SIZE = (256, 192)
@@ -127,6 +127,8 @@ def test_bad_input_is_a_clear_error(sheet, warp_cpu):
         compute_depth(views[0], [small], DepthConfig(), DEVICE)
     with pytest.raises(ReconstructionError, match="at least one source"):
         compute_depth(views[0], [], DepthConfig(), DEVICE)
+    with pytest.raises(ConfigError, match=r"\[depth\] min_planes"):
+        compute_depth(views[0], views[1:], DepthConfig(min_planes=20, max_planes=10), DEVICE)
 
 
 def _view(kf_id, eye_mm, target=(0.0, 0.0, 0.1), reference=None, size=(64, 48)):

@@ -32,7 +32,7 @@ import numpy as np
 from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.warp import plane_sweep as k
 from lapreco_hil.dense.types import DepthMap, KeyframeView
-from lapreco_hil.errors import ReconstructionError
+from lapreco_hil.errors import ConfigError, ReconstructionError
 from lapreco_hil.warp_device import device_lock, init_warp
 
 log = logging.getLogger(__name__)
@@ -108,8 +108,11 @@ class DepthEstimator:
         self._shape: tuple | None = None
         self._check_shape: tuple | None = None
         if config.default_near_m >= config.default_far_m:
-            raise ReconstructionError(f"[depth] default_near_m {config.default_near_m} must be less than "
+            raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                                       f"default_far_m {config.default_far_m}")
+        if config.min_planes > config.max_planes:
+            raise ConfigError(f"[depth] min_planes {config.min_planes} must not exceed max_planes "
+                                      f"{config.max_planes}")
 
     # --- buffers ----------------------------------------------------------------------------------------------
     def _sweep_buffers(self, h: int, w: int, n_src: int, n_planes: int) -> _Sweep:
@@ -135,10 +138,15 @@ class DepthEstimator:
             self.src_depth = self.wp.zeros((h, w), dtype=float)
         self._check_shape = (h, w)
 
-    def _ensure(self, h: int, w: int, n_src: int) -> None:
+    def _ensure(self, h: int, w: int, n_src: int, n_planes: int) -> None:
+        """Buffers for this size and source count, and a coarse cost volume of at least ``n_planes`` planes (grown
+        in steps of 16: the volume is the sweep's largest buffer, 24 bytes per source, plane and pixel)."""
         self._ensure_checks(h, w)
         shape = (h, w, n_src)
         if self._shape == shape:
+            if self.coarse.zncc.shape[1] < n_planes:
+                with self.wp.ScopedDevice(self.device):
+                    self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
             return
         wp = self.wp
         cfg = self.config
@@ -148,7 +156,7 @@ class DepthEstimator:
             self.highlight = wp.zeros((h, w), dtype=wp.uint8)
             self.highlight_tmp = wp.zeros((h, w), dtype=wp.uint8)
             self.full_grey = wp.zeros((n_src + 1, h, w), dtype=float)  # reference first
-            self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, cfg.max_planes)
+            self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
             self.fine = self._sweep_buffers(h, w, n_src, cfg.fine_planes)
         self._shape = shape
 
@@ -222,7 +230,6 @@ class DepthEstimator:
         if w < 16 or h < 16:
             raise ReconstructionError(f"keyframe {ref.kf_id}: {w}x{h} is too small for multi-view stereo")
         n_src = len(sources)
-        self._ensure(h, w, n_src)
         times: dict[str, float] = {}
         t0 = time.perf_counter()
         # a sweep samples the plane homographies of every source at once: their terms go up as small arrays
@@ -236,6 +243,7 @@ class DepthEstimator:
         coarse_terms = [_homography_terms(_half_K(K_ref), _half_K(s.K), *_relative(ref, s)) for s in sources]
         shift = _max_shift_px(coarse_terms, (w // 2, h // 2), rho_lo, rho_hi)
         n_planes = int(np.clip(math.ceil(shift / cfg.coarse_step_px) + 1, cfg.min_planes, cfg.max_planes))
+        self._ensure(h, w, n_src, n_planes)
         drho_c = (rho_hi - rho_lo) / (n_planes - 1)
         step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
         drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
