@@ -192,8 +192,11 @@ class DepthEstimator:
         cfg = self.config
         h, w = level.ref.shape
         r = cfg.window_radius_px
+        # the warped samples go into the ZNCC volume, which the column pass overwrites once the rows have summed them
+        wp.launch(k.warp_samples, dim=(n_src, n_planes, h, w), device=self.device,
+                  inputs=[level.ref, level.src, A, b, level.base, rho0, drho, level.zncc])
         wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
-                  inputs=[level.ref, level.src, A, b, level.base, rho0, drho, r, level.sums])
+                  inputs=[level.ref, level.zncc, r, level.sums])
         wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
                   inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,

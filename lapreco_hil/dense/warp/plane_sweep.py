@@ -3,11 +3,12 @@
 Images are grey in [-0.5, 0.5] (centred, so the windowed sums keep their float32 precision); a pixel that may not
 be used (outside the field of view, on a dilated highlight) holds ``EXCLUDED``. A sweep samples every source view
 on a set of fronto-parallel planes in inverse depth rho, ``rho = base[y, x] + rho0 + plane * drho`` (base is 0 for
-the coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window.
-The window sums slide: one thread per (source, plane, row) adds the entering column and drops the leaving one,
-then one thread per (source, plane, column) does the same down the column, so a plane costs O(1) per pixel
-whatever the window. Source pixel = A @ (x, y, 1) + rho * b (A = K_s R_s_r K_r^-1, b = K_s t_s_r), the plane
-homography written for inverse depth.
+the coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window:
+one thread per (source, plane, pixel) samples the source (source pixel = A @ (x, y, 1) + rho * b, with
+A = K_s R_s_r K_r^-1 and b = K_s t_s_r: the plane homography written for inverse depth); then the window sums
+slide, one thread per (source, plane, row) adding the entering column and dropping the leaving one, then one
+thread per (source, plane, column) doing the same down the column, so a plane costs O(1) per pixel whatever the
+window, and every step is one launch over all sources and planes.
 """
 
 from __future__ import annotations
@@ -139,29 +140,26 @@ def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_val
         std[y, x] = wp.sqrt(v)
 
 
-@wp.func
-def _terms(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), s: int, A: wp.mat33, b: wp.vec3,
-           base: wp.array2d(dtype=float), rho_plane: float, x: int, y: int) -> vec6:
-    """(w, w^2, w g, g, g^2, 1) of the source sample w that reference pixel (x, y) of grey g sees on its plane;
-    zero where either may not be used (a window scores on its usable pixels only)."""
-    zero = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    h = ref.shape[0]
-    w = ref.shape[1]
-    if x < 0 or x >= w:
-        return zero
-    g = ref[y, x]
-    if g < -1.0:
-        return zero
-    rho = base[y, x] + rho_plane
-    p = A * wp.vec3(float(x), float(y), 1.0) + rho * b
-    if p[2] <= 1.0e-9:
-        return zero
-    u = p[0] / p[2]
-    v = p[1] / p[2]
+@wp.kernel
+def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), A: wp.array(dtype=wp.mat33),
+                 b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float, drho: float,
+                 samples: wp.array4d(dtype=float)):
+    """One thread per (source, plane, pixel): the source's grey (bilinear) where the reference pixel's ray meets
+    the plane; EXCLUDED where either view may not be used there or the point falls outside the source."""
+    s, p, y, x = wp.tid()
+    samples[s, p, y, x] = EXCLUDED
+    if ref[y, x] < -1.0:
+        return
+    rho = base[y, x] + rho0 + float(p) * drho
+    q = A[s] * wp.vec3(float(x), float(y), 1.0) + rho * b[s]
+    if q[2] <= 1.0e-9:
+        return
+    u = q[0] / q[2]
+    v = q[1] / q[2]
     hs = src.shape[1]
     ws = src.shape[2]
     if u < 0.0 or v < 0.0 or u > float(ws - 1) or v > float(hs - 1):
-        return zero
+        return
     x0 = wp.min(int(u), ws - 2)
     y0 = wp.min(int(v), hs - 2)
     fx = u - float(x0)
@@ -171,28 +169,36 @@ def _terms(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), s: int, A
     a10 = src[s, y0 + 1, x0]
     a11 = src[s, y0 + 1, x0 + 1]
     if wp.min(wp.min(a00, a01), wp.min(a10, a11)) < -1.0:
-        return zero
-    val = (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+        return
+    samples[s, p, y, x] = (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+
+
+@wp.func
+def _terms(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int) -> vec6:
+    """(w, w^2, w g, g, g^2, 1) of the source sample w and the reference grey g at pixel (x, y); zero where the
+    pair may not be used (a window scores on its usable pixels only)."""
+    if x < 0 or x >= ref.shape[1]:
+        return vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    val = samples[s, p, y, x]
+    if val < -1.0:
+        return vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    g = ref[y, x]
     return vec6(val, val * val, val * g, g, g * g, 1.0)
 
 
 @wp.kernel
-def sweep_rows(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), A: wp.array(dtype=wp.mat33),
-               b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float, drho: float, r: int,
+def sweep_rows(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), r: int,
                sums: wp.array4d(dtype=vec6)):
     """One thread per (source, plane, row): the window-row sums of every pixel, sliding along the row."""
     s, p, y = wp.tid()
     w = ref.shape[1]
-    A_s = A[s]
-    b_s = b[s]
-    rho_plane = rho0 + float(p) * drho
     acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for xi in range(-r, r):
-        acc += _terms(ref, src, s, A_s, b_s, base, rho_plane, xi, y)
+        acc += _terms(ref, samples, s, p, y, xi)
     for x in range(w):
-        acc += _terms(ref, src, s, A_s, b_s, base, rho_plane, x + r, y)
+        acc += _terms(ref, samples, s, p, y, x + r)
         sums[s, p, y, x] = acc
-        acc -= _terms(ref, src, s, A_s, b_s, base, rho_plane, x - r, y)
+        acc -= _terms(ref, samples, s, p, y, x - r)
 
 
 @wp.func
