@@ -153,8 +153,8 @@ class DepthEstimator:
         with wp.ScopedDevice(self.device):
             self.colour = wp.zeros((h, w, 3), dtype=wp.uint8)
             self.mask = wp.zeros((h, w), dtype=wp.uint8)
-            self.highlight = wp.zeros((h, w), dtype=wp.uint8)
-            self.highlight_tmp = wp.zeros((h, w), dtype=wp.uint8)
+            self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
+            self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
             self.full_grey = wp.zeros((n_src + 1, h, w), dtype=float)  # reference first
             self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
             self.fine = self._sweep_buffers(h, w, n_src, cfg.fine_planes)
@@ -173,11 +173,11 @@ class DepthEstimator:
             self.mask.assign(np.ascontiguousarray(view.mask, np.uint8))
         wp.launch(k.prepare_view, dim=(h, w), device=self.device,
                   inputs=[self.colour, self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
-                          self.highlight])
-        r = cfg.highlight_dilate_px
-        wp.launch(k.dilate_rows, dim=(h, w), device=self.device, inputs=[self.highlight, r, self.highlight_tmp])
-        wp.launch(k.dilate_cols_exclude, dim=(h, w), device=self.device,
-                  inputs=[self.highlight_tmp, r, self.highlight, grey])
+                          self.highlight_flags])
+        self.highlight.zero_()
+        wp.launch(k.dilate_scatter, dim=(h, w), device=self.device,
+                  inputs=[self.highlight_flags, cfg.highlight_dilate_px, self.highlight])
+        wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.highlight, grey])
 
     def _window_stats(self, level: _Sweep) -> None:
         h, w = level.ref.shape
@@ -397,12 +397,11 @@ def highlight_mask(colour: np.ndarray, config: DepthConfig | None = None, device
         mask = wp.ones((h, w), dtype=wp.uint8)
         grey = wp.zeros((h, w), dtype=float)
         flags = wp.zeros((h, w), dtype=wp.uint8)
-        tmp = wp.zeros((h, w), dtype=wp.uint8)
+        dilated = wp.zeros((h, w), dtype=wp.uint8)
         wp.launch(k.prepare_view, dim=(h, w), inputs=[colour_d, mask, cfg.highlight_value, cfg.highlight_saturation,
                                                       grey, flags])
-        wp.launch(k.dilate_rows, dim=(h, w), inputs=[flags, cfg.highlight_dilate_px, tmp])
-        wp.launch(k.dilate_cols_exclude, dim=(h, w), inputs=[tmp, cfg.highlight_dilate_px, flags, grey])
-        return flags.numpy().astype(bool)
+        wp.launch(k.dilate_scatter, dim=(h, w), inputs=[flags, cfg.highlight_dilate_px, dilated])
+        return dilated.numpy().astype(bool)
 
 
 def _centre(view: KeyframeView) -> np.ndarray:

@@ -58,28 +58,24 @@ def prepare_view(colour: wp.array3d(dtype=wp.uint8), mask: wp.array2d(dtype=wp.u
 
 
 @wp.kernel
-def dilate_rows(src: wp.array2d(dtype=wp.uint8), r: int, dst: wp.array2d(dtype=wp.uint8)):
+def dilate_scatter(flags: wp.array2d(dtype=wp.uint8), r: int, dilated: wp.array2d(dtype=wp.uint8)):
+    """Dilation by a (2r+1)^2 square, written outwards from each flagged pixel into a zeroed ``dilated``
+    (highlights are a few per cent of a frame: this costs a test per pixel, not a window). Threads that write the
+    same pixel write the same value."""
     y, x = wp.tid()
-    w = src.shape[1]
-    v = wp.uint8(0)
-    for k in range(-r, r + 1):
-        if src[y, wp.clamp(x + k, 0, w - 1)] != wp.uint8(0):
-            v = wp.uint8(1)
-    dst[y, x] = v
+    if flags[y, x] == wp.uint8(0):
+        return
+    h = flags.shape[0]
+    w = flags.shape[1]
+    for yy in range(wp.max(y - r, 0), wp.min(y + r + 1, h)):
+        for xx in range(wp.max(x - r, 0), wp.min(x + r + 1, w)):
+            dilated[yy, xx] = wp.uint8(1)
 
 
 @wp.kernel
-def dilate_cols_exclude(src: wp.array2d(dtype=wp.uint8), r: int, out_mask: wp.array2d(dtype=wp.uint8),
-                        grey: wp.array2d(dtype=float)):
-    """The second pass of the highlight's dilation; the dilated highlight is excluded from the grey image."""
+def exclude(dilated: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=float)):
     y, x = wp.tid()
-    h = src.shape[0]
-    v = wp.uint8(0)
-    for k in range(-r, r + 1):
-        if src[wp.clamp(y + k, 0, h - 1), x] != wp.uint8(0):
-            v = wp.uint8(1)
-    out_mask[y, x] = v
-    if v != wp.uint8(0):
+    if dilated[y, x] != wp.uint8(0):
         grey[y, x] = EXCLUDED
 
 
