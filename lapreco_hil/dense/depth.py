@@ -109,17 +109,18 @@ class DepthEstimator:
         self._check_shape: tuple | None = None
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
-                                      f"default_far_m {config.default_far_m}")
+                              f"default_far_m {config.default_far_m}")
         if config.min_planes > config.max_planes:
             raise ConfigError(f"[depth] min_planes {config.min_planes} must not exceed max_planes "
-                                      f"{config.max_planes}")
+                              f"{config.max_planes}")
 
     # --- buffers ----------------------------------------------------------------------------------------------
     def _sweep_buffers(self, h: int, w: int, n_src: int, n_planes: int) -> _Sweep:
         wp = self.wp
         return _Sweep(
             ref=wp.zeros((h, w), dtype=float), src=wp.zeros((n_src, h, w), dtype=float),
-            rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float), base=wp.zeros((h, w), dtype=float),
+            rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float),
+            base=wp.zeros((h, w), dtype=float),
             sums=wp.zeros((n_src, n_planes, h, w), dtype=k.vec6),
             zncc=wp.zeros((n_src, n_planes, h, w), dtype=float),
             score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
