@@ -152,8 +152,8 @@ class DepthConfig:
     coarse_step_px: float = ranged(1.0, gt=0.0)  # plane spacing of the half-resolution sweep: at most this shift
     min_planes: int = ranged(8, ge=3)  # the half-resolution sweep's planes, whatever the baseline
     max_planes: int = ranged(96, ge=3)  # ... and their cap (a wider spacing beyond it): bounds time and memory
-    fine_planes: int = ranged(5, ge=3)  # planes of the full-resolution refinement about the coarse depth ...
-    fine_range_px: float = ranged(1.0, gt=0.0)  # ... spanning this image motion (half-resolution pixels) each way
+    fine_planes: int = ranged(4, ge=3)  # planes of the full-resolution refinement about the coarse depth ...
+    fine_range_px: float = ranged(0.75, gt=0.0)  # ... spanning this image motion (half-resolution pixels) each way
     best_k: int = ranged(2, ge=1)  # a plane's score: mean ZNCC of its k best source views (an occluded view drops out)
     min_zncc: float = ranged(0.6, ge=-1.0, le=1.0)  # the best score a pixel needs to get a depth
     # planes a pixel must score on (the rest fall outside the sources): the best of a few is no match
