@@ -72,6 +72,13 @@ def test_the_geometric_check_drops_depths_the_sources_contradict(sheet, warp_cpu
     kept = np.count_nonzero(depth_map.valid)
     assert np.count_nonzero(estimator.check_geometry(depth_map, true_maps).valid) >= 0.95 * kept
     assert np.count_nonzero(estimator.check_geometry(depth_map, wrong_maps).valid) == 0
+    # the same check inside compute, for the sources whose maps are given
+    given = {m.kf_id: m for m in wrong_maps[:2]}
+    checked = estimator.compute(views[0], views[1:], source_depths=given)
+    assert checked.stats["geometric_sources"] == [1, 2]
+    assert checked.stats["funnel"]["geometry_agrees"] == np.count_nonzero(checked.valid) == 0
+    checked = estimator.compute(views[0], views[1:], source_depths={m.kf_id: m for m in true_maps})
+    assert checked.stats["funnel"]["geometry_agrees"] >= 0.95 * checked.stats["funnel"]["supported"]
 
 
 def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu):
