@@ -145,6 +145,41 @@ class DepthConfig:
     """Multi-view stereo per keyframe (lapreco_hil.dense.depth)."""
 
     source_views: int = ranged(4, ge=1)  # neighbouring keyframes (and the stereo partner) each depth map uses
+    # the sweep's range where the keyframe's sparse landmarks give none (metres along the optical axis)
+    default_near_m: float = ranged(0.02, gt=0.0)
+    default_far_m: float = ranged(0.30, gt=0.0)
+    window_radius_px: int = ranged(3, ge=1)  # ZNCC window (2r+1)^2 at both levels: 7x7
+    coarse_step_px: float = ranged(1.0, gt=0.0)  # plane spacing of the half-resolution sweep: at most this shift
+    min_planes: int = ranged(8, ge=3)  # the half-resolution sweep's planes, whatever the baseline
+    max_planes: int = ranged(96, ge=3)  # ... and their cap (a wider spacing beyond it): bounds time and memory
+    fine_planes: int = ranged(4, ge=3)  # planes of the full-resolution refinement about the coarse depth ...
+    fine_range_px: float = ranged(0.75, gt=0.0)  # ... spanning this image motion (half-resolution pixels) each way
+    best_k: int = ranged(2, ge=1)  # a plane's score: mean ZNCC of its k best source views (an occluded view drops out)
+    min_zncc: float = ranged(0.6, ge=-1.0, le=1.0)  # the best score a pixel needs to get a depth
+    # planes a pixel must score on (the rest fall outside the sources): the best of a few is no match
+    min_scored_fraction: float = ranged(0.3, ge=0.0, le=1.0)
+    min_margin: float = ranged(0.05, ge=0.0)  # best minus the second local maximum: repeated texture is ambiguous
+    # bend of the coarse depth between a pixel and its neighbours a window away (as image motion, half-resolution
+    # pixels) beyond which it sits on a depth edge, where windows fatten the foreground
+    max_depth_jump_px: float = ranged(2.0, gt=0.0)
+    edge_min_zncc: float = ranged(0.3, ge=-1.0, le=1.0)  # ... counting the neighbours that match at least this well
+    margin_scale: float = ranged(0.3, gt=0.0)  # the margin at which the confidence's uniqueness factor reaches 1
+    # a window scores on the pixels usable in both views (not excluded, inside): at least this fraction of it
+    min_valid_fraction: float = ranged(0.6, gt=0.0, le=1.0)
+    min_texture: float = ranged(0.008, ge=0.0)  # window standard deviation (grey / 255): below it ZNCC is noise
+    view_min_zncc: float = ranged(0.5, ge=-1.0, le=1.0)  # a source view agrees with the depth at this score
+    min_views: int = ranged(2, ge=1)  # source views that must agree (capped at the views there are): moving things fail
+    # a depth needs this share of its neighbours (radius in pixels) within this relative depth: specks and thin
+    # slivers (wrong matches along silhouettes and folds) go, surfaces stay
+    support_radius_px: int = ranged(3, ge=1)
+    min_support: float = ranged(0.5, ge=0.0, le=1.0)
+    support_max_rel: float = ranged(0.02, gt=0.0)
+    geometric_max_px: float = ranged(1.0, gt=0.0)  # forward-backward through a source's depth map: reprojection
+    geometric_max_rel: float = ranged(0.01, gt=0.0)  # ... and relative depth difference
+    geometric_min_views: int = ranged(1, ge=1)  # source depth maps that must agree (capped at those given)
+    highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
+    highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
+    highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,186 @@
+"""Depth maps by multi-view stereo (lapreco_hil.dense.depth): time per keyframe and accuracy against the renderer's
+true depth, on keyframes rendered by the simulator's own renderer with a pinhole camera (the mapper hands
+stereo undistorted keyframes) and the true poses.
+
+Two kinds of simulated keyframes: a simulated world's scene along the robot's scan trajectory (``liver``: real
+organ models at 70-150 mm, a wet specular surface, grazing slopes and folds), or ``sheet``: a wavy sheet with
+the liver texture seen from above at 75 mm by views offset sideways (a controlled case with no occlusion).
+The sweep's depth range is the true depth's 1st-99th percentile widened by 10%, as a keyframe's landmarks give.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import numpy as np
+
+from lapreco_hil.config import DepthConfig
+from lapreco_hil.dense.types import KeyframeView
+
+WORLD_OFFSETS_S = (0.0, 0.6, -0.6, 1.2, -1.2, 1.8, -1.8, 2.4, -2.4)  # keyframe times about the reference's
+SHEET_OFFSETS_MM = ((0, 0), (6, 0), (-6, 0), (0, 6), (0, -6), (9, 9), (-9, -9), (9, -9), (-9, 9))
+
+
+def _landmark_range(depth: np.ndarray) -> tuple[float, float]:
+    d = depth[depth > 0]
+    return float(np.percentile(d, 1)) * 0.9, float(np.percentile(d, 99)) * 1.1
+
+
+def _pinhole(camera, width: int, height: int):
+    from lapreco_hil.camera import CameraModel
+
+    return CameraModel(width, height, camera.fx, camera.fy, camera.cx, camera.cy,
+                       fov_radius_px=camera.fov_radius_px)
+
+
+def _fov_mask(camera) -> np.ndarray:
+    ys, xs = np.mgrid[0:camera.height, 0:camera.width]
+    return np.hypot(xs - camera.cx, ys - camera.cy) < camera.fov_radius_px - 1.0
+
+
+def _K(camera) -> np.ndarray:
+    return np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+
+
+def world_keyframes(scene: str, resolution: tuple[int, int], n_views: int, device: str, t0_s: float = 2.0,
+                    instrument: str | None = None) -> tuple[list[KeyframeView], list[np.ndarray], list | None]:
+    """``n_views`` keyframes of a simulated world's scene (the reference first, then the others at
+    ``WORLD_OFFSETS_S`` about it), their true depths (of the scene, without an instrument) and, with an
+    ``instrument`` ("moving": where the simulator moves it at each keyframe's time; "static": held where it is at
+    the reference's time), each keyframe's instrument pixels."""
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+    width, height = resolution
+    scene_world = SimWorld(SimSettings(scene=scene, width=width, height=height, device=device))
+    world = scene_world
+    if instrument is not None:
+        world = SimWorld(SimSettings(scene=scene, width=width, height=height, device=device, instrument=True))
+    camera = _pinhole(world.camera, width, height)
+    mask = _fov_mask(camera)
+    t_ref = world.now_ns() + int(t0_s * 1e9)
+    views, truths, tools = [], [], []
+    for i, dt in enumerate(WORLD_OFFSETS_S[:n_views]):
+        t = t_ref + int(dt * 1e9)
+        T = world.true_camera_pose(t)
+        if instrument is not None:
+            world._move_instrument(t if instrument == "moving" else t_ref)
+        image, depth = world.renderer.render(T, seed=i, camera=camera)
+        truth = depth
+        if instrument is not None:
+            _, truth = scene_world.renderer.render(T, seed=i, camera=camera)
+            tools.append(mask & (np.abs(depth - truth) > 1e-4))
+        views.append(KeyframeView(i, image[:, :, ::-1].copy(), _K(camera), T, mask, _landmark_range(truth)))
+        truths.append(truth)
+    return views, truths, (tools if instrument is not None else None)
+
+
+def sheet_keyframes(resolution: tuple[int, int], n_views: int, device: str, distance_m: float = 0.075,
+                    specular: float = 0.0) -> tuple[list[KeyframeView], list[np.ndarray]]:
+    """``n_views`` keyframes of a wavy textured sheet (6 mm waves) seen from ``distance_m``, the reference over
+    its centre, the others ``SHEET_OFFSETS_MM`` aside, all looking at the centre; and their true depths."""
+    from lapreco_hil.camera import CameraModel
+    from lapreco_hil.geometry import make_T
+    from lapreco_hil.simulators.world.renderer import Lighting, Material, Renderer
+    from lapreco_hil.simulators.world.scenes import _grid_sheet
+    from lapreco_hil.simulators.world.textures import liver_texture
+
+    width, height = resolution
+    fx = (width / 2) / np.tan(np.deg2rad(70.0) / 2)
+    camera = CameraModel(width, height, fx, fx, (width - 1) / 2, (height - 1) / 2,
+                         fov_radius_px=0.68 * np.hypot(width, height) / 2)
+    vertices, faces = _grid_sheet(0.2, 120, lambda x, y: 0.006 * np.sin(x * 60) * np.cos(y * 45))
+    material = Material(liver_texture(np.random.default_rng(0)), texel_size_m=0.0003, specular=specular,
+                        shininess=60.0)
+    renderer = Renderer(vertices, faces, np.zeros(len(faces), np.int32), [material], camera,
+                        Lighting(light_w=0.004), device=device)
+    mask = _fov_mask(camera)
+    views, truths = [], []
+    for i, (dx, dy) in enumerate(SHEET_OFFSETS_MM[:n_views]):
+        eye = np.array([dx * 1e-3, dy * 1e-3, distance_m])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        T = make_T(np.column_stack([x, np.cross(z, x), z]), eye)
+        image, depth = renderer.render(T, seed=i, camera=camera)
+        views.append(KeyframeView(i, image[:, :, ::-1].copy(), _K(camera), T, mask, _landmark_range(depth)))
+        truths.append(depth)
+    return views, truths
+
+
+def depth_errors(depth_m: np.ndarray, truth_m: np.ndarray) -> dict:
+    """Accuracy of the kept depths against the truth (mm), over the pixels where both exist."""
+    kept = (depth_m > 0) & (truth_m > 0)
+    err = np.abs(depth_m[kept] - truth_m[kept]) * 1e3
+    if not err.size:
+        return {"kept": 0}
+    return {"kept": int(kept.sum()), "median_mm": float(np.median(err)), "p95_mm": float(np.percentile(err, 95)),
+            "over_1mm": float(np.mean(err > 1.0)), "over_5mm": float(np.mean(err > 5.0))}
+
+
+def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
+                config: DepthConfig | None = None) -> dict:
+    """Time ``compute_depth`` of one keyframe against ``views`` source views (after a warm-up that compiles the
+    kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
+    and its accuracy, before and after the geometric check against the sources' own depth maps."""
+    from lapreco_hil.dense.depth import DepthEstimator
+    from lapreco_hil.warp_device import init_warp
+
+    wp = init_warp()
+    cfg = config or DepthConfig()
+    if scene == "sheet":
+        keyframes, truths = sheet_keyframes(resolution, views + 1, device)
+    else:
+        keyframes, truths, _ = world_keyframes(scene, resolution, views + 1, device)
+    ref, sources = keyframes[0], keyframes[1:]
+    estimator = DepthEstimator(cfg, device)
+    estimator.compute(ref, sources)
+    totals, cpu, steps = [], [], {}
+    for _ in range(max(1, repeats)):
+        wp.synchronize_device(device)
+        t0, c0 = time.perf_counter(), time.process_time()
+        depth_map = estimator.compute(ref, sources)
+        wp.synchronize_device(device)
+        totals.append((time.perf_counter() - t0) * 1e3)
+        cpu.append((time.process_time() - c0) * 1e3)
+        for name, ms in depth_map.stats["times_ms"].items():
+            steps.setdefault(name, []).append(ms)
+    # the sources' own maps (each against the others) for the forward-backward check
+    source_maps = [estimator.compute(s, [v for v in keyframes if v is not s]) for s in sources]
+    checked = estimator.check_geometry(depth_map, source_maps)
+    in_view = (ref.mask if ref.mask is not None else np.ones(truths[0].shape, bool)) & (truths[0] > 0)
+    return {
+        "device": device, "resolution": f"{resolution[0]}x{resolution[1]}", "scene": scene, "views": views,
+        "repeats": repeats, "planes": depth_map.stats["planes"], "total_ms": float(np.median(totals)),
+        # this process's CPU time: on a shared machine the wall time also counts other processes' turns (Warp's
+        # CPU kernels run on one thread, so on the CPU device this is the time on an idle core)
+        "process_cpu_ms": float(np.median(cpu)), "load_average": os.getloadavg()[0],
+        "steps_ms": {k: float(np.median(v)) for k, v in steps.items() if k != "total_ms"},
+        "funnel": checked.stats["funnel"],
+        "accuracy": depth_errors(depth_map.depth_m, truths[0]),
+        "accuracy_checked": depth_errors(checked.depth_m, truths[0]),
+        "coverage": float(np.count_nonzero(depth_map.valid & in_view) / max(1, np.count_nonzero(in_view))),
+        "coverage_checked": float(np.count_nonzero(checked.valid & in_view) / max(1, np.count_nonzero(in_view))),
+        "cpu_threads": os.cpu_count(), "machine": platform.node(), "processor": platform.processor(),
+    }
+
+
+def format_table(result: dict) -> str:
+    def acc(a: dict) -> str:
+        if not a.get("kept"):
+            return "no depth kept"
+        return (f"median {a['median_mm']:.3f} mm, p95 {a['p95_mm']:.2f} mm, >1 mm {100 * a['over_1mm']:.2f}%, "
+                f">5 mm {100 * a['over_5mm']:.2f}% of {a['kept']} px")
+
+    steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result["steps_ms"].items())
+    return "\n".join([
+        f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
+        f"coarse planes, on {result['device']} ({result['machine']}; median of {result['repeats']})",
+        f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
+        f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads)",
+        f"sweep only:        {acc(result['accuracy'])}; {100 * result['coverage']:.1f}% of the in-view pixels",
+        f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
+        "in-view pixels",
+        "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
+    ])

@@ -1,0 +1,452 @@
+"""A depth map per keyframe by multi-view stereo: a plane sweep in inverse depth against a few neighbouring
+keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CUDA).
+
+1. Each view to centred grey; the reference's field of view (``KeyframeView.mask``) and saturated specular
+   highlights (near-white, low saturation, dilated) are excluded in every view, so a source's highlight spoils
+   only that view's score.
+2. Half resolution: fronto-parallel planes evenly spaced in inverse depth over the keyframe's landmark range (a
+   configured default without one), spaced so that no source's image moves more than ``coarse_step_px`` between
+   planes. Per plane and source, ZNCC over a window by sliding sums (O(1) per pixel whatever the window); a
+   plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
+   plane, parabola through its neighbours, and the second-best local maximum for the margin.
+3. Full resolution: ``fine_planes`` planes about the coarse depth (bilinear) spanning +-``fine_range_px`` of
+   image motion, again with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
+4. Checks, in order, each counted in ``DepthMap.stats['funnel']`` (``FUNNEL``): in view (the mask), not a
+   highlight, textured (ZNCC is undefined on flat windows), matched (best score and margin), in range (the best
+   plane not at the range's end: the surface lies outside the landmarks' range), off edges (windows across a
+   depth edge fatten the foreground), refined (the fine best not at its end), views agree (at least
+   ``min_views`` sources each score the final depth well on their own: something that moved between the views,
+   an instrument, fails it), supported (wrong matches come as specks and slivers, surfaces as regions), and,
+   where the sources' own depth maps are given, geometry agrees (forward-backward through the source's map).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from lapreco_hil.config import DepthConfig
+from lapreco_hil.dense.warp import plane_sweep as k
+from lapreco_hil.dense.types import DepthMap, KeyframeView
+from lapreco_hil.errors import ConfigError, ReconstructionError
+from lapreco_hil.warp_device import device_lock, init_warp
+
+log = logging.getLogger(__name__)
+
+# pixels kept after each check, in order (a pixel's rejection code k: it failed FUNNEL[k + 1])
+FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined",
+          "views_agree", "supported", "geometry_agrees")
+DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
+
+
+def _half_K(K: np.ndarray) -> np.ndarray:
+    """Intrinsics of the 2x2-mean half-resolution image (pixel centres: x_half = (x + 0.5) / 2 - 0.5)."""
+    Kh = np.array(K, float).copy()
+    Kh[0, 0] *= 0.5
+    Kh[1, 1] *= 0.5
+    Kh[0, 1] *= 0.5
+    Kh[0, 2] = (Kh[0, 2] + 0.5) * 0.5 - 0.5
+    Kh[1, 2] = (Kh[1, 2] + 0.5) * 0.5 - 0.5
+    return Kh
+
+
+def _relative(ref: KeyframeView, src: KeyframeView) -> tuple[np.ndarray, np.ndarray]:
+    T_src_ref = np.linalg.inv(np.asarray(src.T_world_camera, float)) @ np.asarray(ref.T_world_camera, float)
+    return T_src_ref[:3, :3], T_src_ref[:3, 3]
+
+
+def _homography_terms(K_ref: np.ndarray, K_src: np.ndarray, R: np.ndarray, t: np.ndarray):
+    """Source pixel ~ A @ (x, y, 1) + rho * b for a fronto-parallel plane at inverse depth rho in the reference."""
+    return K_src @ R @ np.linalg.inv(K_ref), K_src @ t
+
+
+def _max_shift_px(A_b: list, size: tuple[int, int], rho_lo: float, rho_hi: float) -> float:
+    """The largest image motion in any source between the nearest and the farthest plane, over a grid of pixels."""
+    w, h = size
+    xs, ys = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    shift = 0.0
+    for A, b in A_b:
+        p_lo = A @ pts + rho_lo * b[:, None]
+        p_hi = A @ pts + rho_hi * b[:, None]
+        ok = (p_lo[2] > 1e-9) & (p_hi[2] > 1e-9)
+        if ok.any():
+            d = p_hi[:2, ok] / p_hi[2, ok] - p_lo[:2, ok] / p_lo[2, ok]
+            shift = max(shift, float(np.max(np.hypot(d[0], d[1]))))
+    return shift
+
+
+@dataclass
+class _Sweep:
+    """The device buffers of one sweep level (allocated once per image size and source count)."""
+
+    ref: object  # (h, w) grey
+    src: object  # (S, h, w) grey
+    rows: object  # (h, w) vec3: reference window row sums
+    std: object  # (h, w) reference window standard deviation, 0 where not textured
+    base: object  # (h, w) inverse depth each plane offsets
+    sums: object  # (S, P, h, w) vec4
+    zncc: object  # (S, P, h, w)
+    score: object  # (P, h, w)
+    plane: object
+    best: object
+    second: object
+
+
+class DepthEstimator:
+    """Computes depth maps on one device, reusing its buffers from one keyframe to the next (they are made again
+    only when the image size or the number of source views changes)."""
+
+    def __init__(self, config: DepthConfig, device: str) -> None:
+        self.wp = init_warp()
+        self.config = config
+        self.device = device
+        self._shape: tuple | None = None
+        self._check_shape: tuple | None = None
+        if config.default_near_m >= config.default_far_m:
+            raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
+                              f"default_far_m {config.default_far_m}")
+        if config.min_planes > config.max_planes:
+            raise ConfigError(f"[depth] min_planes {config.min_planes} must not exceed max_planes "
+                              f"{config.max_planes}")
+
+    # --- buffers ----------------------------------------------------------------------------------------------
+    def _sweep_buffers(self, h: int, w: int, n_src: int, n_planes: int) -> _Sweep:
+        wp = self.wp
+        return _Sweep(
+            ref=wp.zeros((h, w), dtype=float), src=wp.zeros((n_src, h, w), dtype=float),
+            rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float),
+            base=wp.zeros((h, w), dtype=float),
+            sums=wp.zeros((n_src, n_planes, h, w), dtype=k.vec6),
+            zncc=wp.zeros((n_src, n_planes, h, w), dtype=float),
+            score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
+            best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
+
+    def _ensure_checks(self, h: int, w: int) -> None:
+        """The output and geometric-check buffers (all that ``check_geometry`` needs)."""
+        if self._check_shape == (h, w):
+            return
+        with self.wp.ScopedDevice(self.device):
+            self.depth = self.wp.zeros((h, w), dtype=float)
+            self.confidence = self.wp.zeros((h, w), dtype=float)
+            self.code = self.wp.zeros((h, w), dtype=self.wp.uint8)
+            self.agree = self.wp.zeros((h, w), dtype=int)
+            self.supported = self.wp.zeros((h, w), dtype=self.wp.uint8)
+            self.src_depth = self.wp.zeros((h, w), dtype=float)
+        self._check_shape = (h, w)
+
+    def _ensure(self, h: int, w: int, n_src: int, n_planes: int) -> None:
+        """Buffers for this size and source count, and a coarse cost volume of at least ``n_planes`` planes (grown
+        in steps of 16: the volume is the sweep's largest buffer, 24 bytes per source, plane and pixel)."""
+        self._ensure_checks(h, w)
+        shape = (h, w, n_src)
+        if self._shape == shape:
+            if self.coarse.zncc.shape[1] < n_planes:
+                with self.wp.ScopedDevice(self.device):
+                    self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
+            return
+        wp = self.wp
+        cfg = self.config
+        with wp.ScopedDevice(self.device):
+            self.colour = wp.zeros((h, w, 3), dtype=wp.uint8)
+            self.mask = wp.zeros((h, w), dtype=wp.uint8)
+            self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
+            self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
+            self.full_grey = wp.zeros((n_src + 1, h, w), dtype=float)  # reference first
+            self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
+            self.fine = self._sweep_buffers(h, w, n_src, cfg.fine_planes)
+        self._shape = shape
+
+    # --- steps ------------------------------------------------------------------------------------------------
+    def _prepare(self, view: KeyframeView, grey) -> None:
+        """Upload one view's colour and mask; grey with the field of view and dilated highlights excluded."""
+        wp = self.wp
+        cfg = self.config
+        h, w = grey.shape
+        self.colour.assign(np.ascontiguousarray(view.colour, np.uint8))
+        if view.mask is None:
+            self.mask.fill_(1)
+        else:
+            self.mask.assign(np.ascontiguousarray(view.mask, np.uint8))
+        wp.launch(k.prepare_view, dim=(h, w), device=self.device,
+                  inputs=[self.colour, self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
+                          self.highlight_flags])
+        self.highlight.zero_()
+        wp.launch(k.dilate_scatter, dim=(h, w), device=self.device,
+                  inputs=[self.highlight_flags, cfg.highlight_dilate_px, self.highlight])
+        wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.highlight, grey])
+
+    def _window_stats(self, level: _Sweep) -> None:
+        h, w = level.ref.shape
+        r = self.config.window_radius_px
+        self.wp.launch(k.window_rows, dim=(h, w), device=self.device, inputs=[level.ref, r, level.rows])
+        self.wp.launch(k.window_cols, dim=(h, w), device=self.device,
+                       inputs=[level.rows, r, self.config.min_texture, self.config.min_valid_fraction, level.std])
+
+    def _sweep(self, level: _Sweep, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
+               min_scored: int) -> None:
+        wp = self.wp
+        cfg = self.config
+        h, w = level.ref.shape
+        r = cfg.window_radius_px
+        # the warped samples go into the ZNCC volume, which the column pass overwrites once the rows have summed them
+        wp.launch(k.warp_samples, dim=(n_src, n_planes, h, w), device=self.device,
+                  inputs=[level.ref, level.src, A, b, level.base, rho0, drho, level.zncc])
+        wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
+                  inputs=[level.ref, level.zncc, r, level.sums])
+        wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
+                  inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
+        wp.launch(k.select_plane, dim=(h, w), device=self.device,
+                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.score, level.plane,
+                          level.best, level.second])
+
+    def _sync_time(self, times: dict, name: str, t0: float) -> float:
+        self.wp.synchronize_device(self.device)
+        t1 = time.perf_counter()
+        times[name] = round((t1 - t0) * 1000.0, 3)
+        return t1
+
+    # --- the depth map ----------------------------------------------------------------------------------------
+    def compute(self, ref: KeyframeView, sources: list[KeyframeView],
+                source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+        """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
+        that source's own depth map) adds the forward-backward check for the sources it holds."""
+        # Warp's current stream is one per device for the whole process: take turns with the other threads
+        # that drive this device (a CUDA graph capture in the front-end must not catch these launches)
+        with device_lock(self.device):
+            return self._compute(ref, sources, source_depths)
+
+    def _compute(self, ref: KeyframeView, sources: list[KeyframeView],
+                 source_depths: dict[int, DepthMap] | None) -> DepthMap:
+        wp = self.wp
+        cfg = self.config
+        if not sources:
+            raise ReconstructionError(f"keyframe {ref.kf_id}: a depth map needs at least one source view")
+        w, h = ref.size
+        for view in sources:
+            if view.size != (w, h):
+                raise ReconstructionError(f"keyframe {view.kf_id} is {view.size[0]}x{view.size[1]}, keyframe "
+                                          f"{ref.kf_id} {w}x{h}: multi-view stereo needs views of one size")
+        if w < 16 or h < 16:
+            raise ReconstructionError(f"keyframe {ref.kf_id}: {w}x{h} is too small for multi-view stereo")
+        n_src = len(sources)
+        times: dict[str, float] = {}
+        t0 = time.perf_counter()
+        # a sweep samples the plane homographies of every source at once: their terms go up as small arrays
+        near, far = ref.depth_range_m or (cfg.default_near_m, cfg.default_far_m)
+        near, far = max(float(near), 1e-4), float(far)
+        if far <= near:
+            raise ReconstructionError(f"keyframe {ref.kf_id}: depth_range_m {ref.depth_range_m} is empty")
+        rho_lo, rho_hi = 1.0 / far, 1.0 / near
+        K_ref = np.asarray(ref.K, float)
+        fine_terms = [_homography_terms(K_ref, np.asarray(s.K, float), *_relative(ref, s)) for s in sources]
+        coarse_terms = [_homography_terms(_half_K(K_ref), _half_K(s.K), *_relative(ref, s)) for s in sources]
+        shift = _max_shift_px(coarse_terms, (w // 2, h // 2), rho_lo, rho_hi)
+        n_planes = int(np.clip(math.ceil(shift / cfg.coarse_step_px) + 1, cfg.min_planes, cfg.max_planes))
+        self._ensure(h, w, n_src, n_planes)
+        drho_c = (rho_hi - rho_lo) / (n_planes - 1)
+        step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
+        drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
+        rho0_f = -0.5 * (cfg.fine_planes - 1) * drho_f
+        with wp.ScopedDevice(self.device):
+            A_c = wp.array(np.array([a for a, _ in coarse_terms], np.float32), dtype=wp.mat33)
+            b_c = wp.array(np.array([b for _, b in coarse_terms], np.float32), dtype=wp.vec3)
+            A_f = wp.array(np.array([a for a, _ in fine_terms], np.float32), dtype=wp.mat33)
+            b_f = wp.array(np.array([b for _, b in fine_terms], np.float32), dtype=wp.vec3)
+        t0 = self._sync_time(times, "setup_ms", t0)
+
+        # the reference last: its mask and highlights stay in the buffers for the funnel
+        for i, view in reversed(list(enumerate([ref] + list(sources)))):
+            self._prepare(view, self.full_grey[i])
+        fine, coarse = self.fine, self.coarse
+        hc, wc = h // 2, w // 2
+        wp.copy(fine.ref, self.full_grey[0])
+        wp.copy(fine.src, self.full_grey, src_offset=h * w, count=n_src * h * w)
+        wp.launch(k.half_mean, dim=(hc, wc), device=self.device, inputs=[self.full_grey[0], coarse.ref])
+        for s in range(n_src):
+            wp.launch(k.half_mean, dim=(hc, wc), device=self.device, inputs=[self.full_grey[s + 1], coarse.src[s]])
+        self._window_stats(coarse)
+        self._window_stats(fine)
+        t0 = self._sync_time(times, "prepare_ms", t0)
+
+        coarse.base.zero_()
+        self._sweep(coarse, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
+                    max(3, math.ceil(cfg.min_scored_fraction * n_planes)))
+        t0 = self._sync_time(times, "coarse_sweep_ms", t0)
+
+        wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
+                  inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
+        self._sweep(fine, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src, cfg.fine_planes)
+        t0 = self._sync_time(times, "fine_sweep_ms", t0)
+
+        wp.launch(k.finalise, dim=(h, w), device=self.device,
+                  inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second,
+                          n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
+                          fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
+                          cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
+                          self.depth, self.confidence, self.code])
+        wp.launch(k.support, dim=(h, w), device=self.device,
+                  inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
+                          self.supported])
+        wp.launch(k.apply_support, dim=(h, w), device=self.device,
+                  inputs=[self.supported, self.depth, self.confidence, self.code])
+        given = [s for s in sources if source_depths and s.kf_id in source_depths]
+        if given:
+            self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
+        t0 = self._sync_time(times, "checks_ms", t0)
+
+        depth = self.depth.numpy().copy()
+        confidence = self.confidence.numpy().copy()
+        code = self.code.numpy()
+        counts = np.bincount(code.ravel(), minlength=k.CODE_KEPT + 1)
+        funnel = {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL)}
+        if not given:
+            funnel.pop("geometry_agrees")
+        self._sync_time(times, "download_ms", t0)
+        times["total_ms"] = round(sum(times.values()), 3)
+        stats = {"funnel": funnel, "times_ms": times, "planes": n_planes, "depth_range_m": (near, far),
+                 "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given]}
+        log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
+        return DepthMap(ref.kf_id, depth, confidence, np.array(ref.K, float), np.array(ref.T_world_camera, float),
+                        stats)
+
+    def rejection_codes(self) -> np.ndarray:
+        """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
+        the check ``FUNNEL[k + 1]`` (0: outside the mask, 1: a highlight, ...); len(FUNNEL) - 1: kept."""
+        return self.code.numpy().copy()
+
+    def check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
+        """``depth_map`` with only the depths that at least ``geometric_min_views`` of ``source_maps`` (the sources'
+        own depth maps, as computed, before their own checks) confirm forward-backward; the funnel gains
+        ``geometry_agrees``."""
+        if not source_maps:
+            return depth_map
+        with device_lock(self.device):
+            return self._check_geometry(depth_map, source_maps)
+
+    def _check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
+        h, w = depth_map.depth_m.shape
+        self._ensure_checks(h, w)
+        t0 = time.perf_counter()
+        self.depth.assign(np.ascontiguousarray(depth_map.depth_m, np.float32))
+        self.confidence.assign(np.ascontiguousarray(depth_map.confidence, np.float32))
+        self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps)
+        depth = self.depth.numpy().copy()
+        confidence = self.confidence.numpy().copy()
+        stats = dict(depth_map.stats or {})
+        stats["funnel"] = dict(stats.get("funnel", {}), geometry_agrees=int(np.count_nonzero(depth > 0)))
+        stats["geometric_sources"] = [m.kf_id for m in source_maps]
+        stats["times_ms"] = dict(stats.get("times_ms", {}),
+                                 geometry_ms=round((time.perf_counter() - t0) * 1000.0, 3))
+        return DepthMap(depth_map.kf_id, depth, confidence, depth_map.K, depth_map.T_world_camera, stats)
+
+    def _geometric(self, kf_id: int, K_ref, T_world_ref, maps: list[DepthMap]) -> None:
+        """Keep the depths on the device that at least ``geometric_min_views`` of the given depth maps confirm."""
+        wp = self.wp
+        cfg = self.config
+        h, w = self.depth.shape
+        K_ref = np.asarray(K_ref, float)
+        self.agree.zero_()
+        for dm in maps:
+            if dm.depth_m.shape != (h, w):
+                raise ReconstructionError(f"depth map of keyframe {dm.kf_id} is {dm.depth_m.shape}, keyframe "
+                                          f"{kf_id}'s ({h}, {w}): the geometric check needs one size")
+            T_src_ref = np.linalg.inv(np.asarray(dm.T_world_camera, float)) @ np.asarray(T_world_ref, float)
+            self.src_depth.assign(np.ascontiguousarray(dm.depth_m, np.float32))
+            K_src = np.asarray(dm.K, float)
+            wp.launch(k.geometric_agreement, dim=(h, w), device=self.device,
+                      inputs=[self.depth, wp.mat33(*np.linalg.inv(K_ref).ravel()), wp.mat33(*K_ref.ravel()),
+                              wp.mat33(*T_src_ref[:3, :3].ravel()), wp.vec3(*T_src_ref[:3, 3]),
+                              wp.mat33(*K_src.ravel()), wp.mat33(*np.linalg.inv(K_src).ravel()), self.src_depth,
+                              cfg.geometric_max_px, cfg.geometric_max_rel, self.agree])
+        wp.launch(k.apply_agreement, dim=(h, w), device=self.device,
+                  inputs=[self.agree, min(cfg.geometric_min_views, len(maps)), self.depth, self.confidence,
+                          self.code])
+
+
+def compute_depth(ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
+                  source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+    """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
+    that source's own depth map) adds the forward-backward geometric check for the sources it holds. For many
+    keyframes keep one :class:`DepthEstimator`: it reuses its device buffers."""
+    return DepthEstimator(config, device).compute(ref, sources, source_depths)
+
+
+def compute_depths(views: list[KeyframeView], config: DepthConfig, device: str,
+                   estimator: DepthEstimator | None = None) -> dict[int, DepthMap]:
+    """Depth maps of every view against its ``choose_sources`` neighbours, each then checked forward-backward
+    against its sources' own depth maps (views with no useful neighbour get none)."""
+    estimator = estimator or DepthEstimator(config, device)
+    chosen = {v.kf_id: choose_sources(v, views, config.source_views) for v in views}
+    raw = {v.kf_id: estimator.compute(v, chosen[v.kf_id]) for v in views if chosen[v.kf_id]}
+    return {kf_id: estimator.check_geometry(dm, [raw[s.kf_id] for s in chosen[kf_id] if s.kf_id in raw])
+            for kf_id, dm in raw.items()}
+
+
+def highlight_mask(colour: np.ndarray, config: DepthConfig | None = None, device: str = "cpu") -> np.ndarray:
+    """(H, W) bool: saturated specular highlights (near-white, low saturation), dilated by
+    ``highlight_dilate_px``: the pixels that multi-view stereo leaves out in every view."""
+    wp = init_warp()
+    cfg = config or DepthConfig()
+    h, w = colour.shape[:2]
+    with device_lock(device), wp.ScopedDevice(device):
+        colour_d = wp.array(np.ascontiguousarray(colour, np.uint8))
+        mask = wp.ones((h, w), dtype=wp.uint8)
+        grey = wp.zeros((h, w), dtype=float)
+        flags = wp.zeros((h, w), dtype=wp.uint8)
+        dilated = wp.zeros((h, w), dtype=wp.uint8)
+        wp.launch(k.prepare_view, dim=(h, w), inputs=[colour_d, mask, cfg.highlight_value, cfg.highlight_saturation,
+                                                      grey, flags])
+        wp.launch(k.dilate_scatter, dim=(h, w), inputs=[flags, cfg.highlight_dilate_px, dilated])
+        return dilated.numpy().astype(bool)
+
+
+def _centre(view: KeyframeView) -> np.ndarray:
+    return np.asarray(view.T_world_camera, float)[:3, 3]
+
+
+def choose_sources(ref: KeyframeView, candidates: list[KeyframeView], n: int) -> list[KeyframeView]:
+    """Up to ``n`` neighbours of ``ref`` for multi-view stereo, best first: a stereo partner (same rig reference)
+    first, then views whose triangulation angle at the scene depth lies between 2 and 30 degrees and that see
+    much of what ``ref`` sees, ranked by overlap times closeness of the angle to about 8 degrees (wide enough for
+    depth resolution, narrow enough that windows still look alike)."""
+    near, far = ref.depth_range_m or (DEFAULT_SCENE_DEPTH_M, DEFAULT_SCENE_DEPTH_M)
+    z = 0.5 * (near + far)
+    w, h = ref.size
+    K_inv = np.linalg.inv(np.asarray(ref.K, float))
+    xs, ys = np.meshgrid(np.linspace(0.1, 0.9, 5) * (w - 1), np.linspace(0.1, 0.9, 5) * (h - 1))
+    rays = K_inv @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    T_wr = np.asarray(ref.T_world_camera, float)
+    points = T_wr[:3, :3] @ (rays / rays[2] * z) + T_wr[:3, 3:4]
+    centre_point = T_wr[:3, :3] @ (K_inv @ np.array([(w - 1) / 2, (h - 1) / 2, 1.0]) * z) + T_wr[:3, 3]
+    partners, ranked = [], []
+    ref_group = ref.reference if ref.reference is not None else ref.kf_id
+    for cand in candidates:
+        if cand.kf_id == ref.kf_id:
+            continue
+        cand_group = cand.reference if cand.reference is not None else cand.kf_id
+        if ref_group == cand_group:
+            partners.append(cand)
+            continue
+        a = centre_point - _centre(ref)
+        c = centre_point - _centre(cand)
+        angle = math.degrees(math.acos(np.clip(a @ c / (np.linalg.norm(a) * np.linalg.norm(c) + 1e-12), -1, 1)))
+        if not 2.0 <= angle <= 30.0:
+            continue
+        T_cw = np.linalg.inv(np.asarray(cand.T_world_camera, float))
+        pc = T_cw[:3, :3] @ points + T_cw[:3, 3:4]
+        front = pc[2] > 1e-6
+        uv = np.asarray(cand.K, float) @ pc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = uv[0] / uv[2], uv[1] / uv[2]
+        cw, ch = cand.size
+        overlap = float(np.mean(front & (u >= 0) & (u <= cw - 1) & (v >= 0) & (v <= ch - 1)))
+        if overlap < 0.3:
+            continue
+        ranked.append((overlap * math.exp(-math.log(angle / 8.0) ** 2 / (2 * 0.6 ** 2)), cand))
+    ranked.sort(key=lambda item: -item[0])
+    return (partners + [c for _, c in ranked])[:n]
