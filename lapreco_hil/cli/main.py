@@ -137,6 +137,12 @@ def build_parser() -> ArgumentParser:
     add_run_parser(sub)
     add_calibrate_parsers(sub, _positive_int)
 
+    # --- lapreco batch (issue 24): sessions of a folder as Ray tasks; its own module, lapreco_hil/cli/batch.py ---
+    from lapreco_hil.cli.batch import add_parser as add_batch_parser
+
+    add_batch_parser(sub)
+    # --- end lapreco batch ---
+
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")
