@@ -146,16 +146,19 @@ def ray_connection(address: str | None, workers: int | None):
     this machine's), shut down afterwards. A connection the caller opened already is used and left open."""
     if address is None:
         os.environ.setdefault(RAY_LOOPBACK_ENV, "0")
-    elif workers is not None:
-        raise ConfigError("--workers sizes a local Ray instance; with --address the cluster's nodes decide how "
-                          "many tasks run at once")
+    else:
+        if workers is not None:
+            raise ConfigError("--workers sizes a local Ray instance; with --address the cluster's nodes decide how "
+                              "many tasks run at once")
+        _check_reachable(address)
     import ray
 
     if ray.is_initialized():
         yield ray
         return
-    if address is not None:
-        _check_reachable(address)
+    if address is None and ray._private.ray_constants.ENABLE_RAY_CLUSTER:
+        log.warning("Ray was imported before %s was set: the local Ray instance listens on every interface, "
+                    "not only on loopback", RAY_LOOPBACK_ENV)
     kwargs = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
                   runtime_env={"env_vars": dict(TASK_ENV)})
     if address is None:
@@ -184,7 +187,10 @@ def _check_resources(ray, gpus_per_task: float, address: str | None) -> str:
         need = f"1 CPU and {gpus_per_task:g} GPUs" if gpus_per_task else "1 CPU"
         raise ConfigError(f"no node of {where} has {need} for a task (largest GPU count on a node: {most:g}); "
                           f"lower --gpus-per-task or add nodes with GPUs")
-    return f"{where} ({len(nodes)} node{'s' * (len(nodes) != 1)}, {cpus:g} CPUs, {gpus:g} GPUs)"
+    at = ""
+    if address is None:  # a local instance says where it listens (127.0.0.1: loopback only)
+        at = " at " + ", ".join(sorted({n.get("NodeManagerAddress", "?") for n in ray.nodes() if n.get("Alive")}))
+    return f"{where} ({len(nodes)} node{'s' * (len(nodes) != 1)}{at}, {cpus:g} CPUs, {gpus:g} GPUs)"
 
 
 def _ray_error_line(exc: Exception) -> str:
