@@ -70,7 +70,7 @@ def test_the_cli_says_in_one_line_that_there_are_no_sessions(case, expected, tmp
     assert not (tmp_path / "out").exists()
 
 
-def test_an_unreachable_address_is_one_line(sessions_dir, tmp_path, capsys):
+def test_an_unreachable_address_or_a_bad_option_is_one_line(sessions_dir, tmp_path, capsys):
     with socket.socket() as s:  # a loopback port that nothing listens on once closed
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -82,6 +82,8 @@ def test_an_unreachable_address_is_one_line(sessions_dir, tmp_path, capsys):
     assert "expected HOST:PORT" in one_error_line(capsys)
     assert main([*argv, "--address", "auto", "--workers", "2"]) == 2
     assert "--workers sizes a local Ray instance" in one_error_line(capsys)
+    assert main([*argv, "--config", str(tmp_path / "missing.toml")]) == 2  # refused before Ray starts
+    assert "missing.toml" in one_error_line(capsys)
 
 
 def test_one_session_in_process_writes_its_outputs_and_done_file_last(sessions_dir, tmp_path, warp_cpu):
@@ -131,10 +133,13 @@ def test_gpus_a_local_instance_lacks_are_refused_instead_of_waiting(sessions_dir
 
 
 @pytest.mark.slow
-def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions_dir, tmp_path, capsys):
+def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions_dir, tmp_path, capsys,
+                                                                          monkeypatch):
     out = tmp_path / "out"
+    monkeypatch.chdir(tmp_path)  # a relative --config must reach the tasks, whose working folder is another
+    (tmp_path / "batch.toml").write_text("[tracker]\ndrift_check = false\n")
     argv = ["batch", str(sessions_dir), "--out", str(out), "--workers", "2", "--tracker", "opencv",
-            "--device", "auto", "--no-progress"]
+            "--device", "auto", "--config", "batch.toml", "--no-progress"]
     assert main(argv) == 1  # the broken session failed; the others ran
     captured = capsys.readouterr()
     assert "4 sessions: 3 ok (0 done before), 1 failed (broken); 4 replayed" in captured.out
@@ -149,6 +154,7 @@ def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions
         assert int(r["inliers"]) > 20 and float(r["rms_mm"]) > 0 and float(r["camera_mm"]) > 0
         assert r["coverage"] and float(r["latency_p50_ms"]) > 0 and r["device"] == "cpu"
         assert is_done(out / name) and (out / name / "points.ply").is_file()
+        assert json.loads((out / name / "report.json").read_text())["drift_check"] is False  # the --config
     assert rows["broken"]["status"] == "failed" and "session.json: field" in rows["broken"]["error"]
     assert not (out / "broken" / DONE_FILE).exists()
     md = (out / "summary.md").read_text()

@@ -12,7 +12,7 @@ import socket
 import sys
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from lapreco_hil.app.replay import run_replay
@@ -118,7 +118,7 @@ def _ray_task(session: str, out_dir: str, options: BatchOptions) -> SessionRow:
     cv2.setNumThreads(1)  # see TASK_ENV
     if options.device == "auto":
         # Ray gives a task its GPUs through CUDA_VISIBLE_DEVICES, so the task's first GPU is cuda:0
-        options = BatchOptions(options.tracker, "cuda:0" if ray.get_gpu_ids() else "cpu", options.config_path)
+        options = replace(options, device="cuda:0" if ray.get_gpu_ids() else "cpu")
     return process_session(session, out_dir, options)
 
 
@@ -213,8 +213,11 @@ def run_batch(sessions_dir: str, out: str, *, address: str | None = None, worker
     for folder in others:
         log.warning("%s: no session.json; not a session, skipped", folder)
     load_config(options.config_path)  # a bad configuration is one error here, not one per task
+    if options.config_path:  # a task's working folder is not this one
+        options = replace(options, config_path=str(Path(options.config_path).absolute()))
     check_output_dir(out)
-    out_dir = prepare_output_dir(out).resolve()
+    # absolute, not resolved: on a cluster the shared storage's path (a link, perhaps) is what every node sees
+    out_dir = prepare_output_dir(out).absolute()
     rows: dict[str, SessionRow] = {}
     todo = []
     for session in sessions:
@@ -234,7 +237,7 @@ def run_batch(sessions_dir: str, out: str, *, address: str | None = None, worker
             cluster = _check_resources(ray, gpus_per_task, address)
             log.info("batch: %d tasks on %s", len(todo), cluster)
             task = ray.remote(_ray_task).options(num_cpus=1, num_gpus=gpus_per_task, max_retries=1)
-            names = {task.remote(str(s.resolve()), str(out_dir / s.name), options): s.name for s in todo}
+            names = {task.remote(str(s.absolute()), str(out_dir / s.name), options): s.name for s in todo}
             pending = list(names)
             bar = tqdm(total=len(pending), desc="batch", unit="session", file=sys.stderr, disable=not progress)
             try:
