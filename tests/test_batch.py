@@ -137,7 +137,8 @@ def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions
                                                                           monkeypatch):
     out = tmp_path / "out"
     monkeypatch.chdir(tmp_path)  # a relative --config must reach the tasks, whose working folder is another
-    (tmp_path / "batch.toml").write_text("[tracker]\ndrift_check = false\n")
+    # 16 frames count as few views, so the report shows the corner budget of this config
+    (tmp_path / "batch.toml").write_text("[tracker.few_views]\nframes = 16\nmax_features = 1500\n")
     argv = ["batch", str(sessions_dir), "--out", str(out), "--workers", "2", "--tracker", "opencv",
             "--device", "auto", "--config", "batch.toml", "--no-progress"]
     assert main(argv) == 1  # the broken session failed; the others ran
@@ -154,7 +155,7 @@ def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions
         assert int(r["inliers"]) > 20 and float(r["rms_mm"]) > 0 and float(r["camera_mm"]) > 0
         assert r["coverage"] and float(r["latency_p50_ms"]) > 0 and r["device"] == "cpu"
         assert is_done(out / name) and (out / name / "points.ply").is_file()
-        assert json.loads((out / name / "report.json").read_text())["drift_check"] is False  # the --config
+        assert json.loads((out / name / "report.json").read_text())["few_views"]["max_features"] == 1500
     assert rows["broken"]["status"] == "failed" and "session.json: field" in rows["broken"]["error"]
     assert not (out / "broken" / DONE_FILE).exists()
     md = (out / "summary.md").read_text()
