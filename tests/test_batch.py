@@ -91,7 +91,7 @@ def test_one_session_in_process_writes_its_outputs_and_done_file_last(sessions_d
     row = process_session(str(sessions_dir / "skull-0"), str(tmp_path / "skull-0"), options)
     assert row.status == "ok" and row.error == "" and row.frames == 16 and row.inliers > 20
     assert row.rms_mm > 0 and row.camera_mm > 0 and 0 < row.coverage <= 1 and row.icp_rms_mm > 0
-    assert row.latency_p99_ms >= row.latency_p50_ms > 0 and row.fps > 0
+    assert row.latency_p99_ms >= row.latency_p50_ms > 0 and row.fps > 0 and row.wall_s > 0 and row.cpu_s > 0
     assert is_done(tmp_path / "skull-0")
     (tmp_path / "skull-0" / DONE_FILE).unlink()  # as if the run died after report.json: not done
     assert not is_done(tmp_path / "skull-0")

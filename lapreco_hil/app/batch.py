@@ -58,12 +58,15 @@ class BatchResult:
 
     def summary_line(self) -> str:
         earlier = sum(r.earlier for r in self.rows)
-        line = (f"{len(self.rows)} sessions: {len(self.rows) - len(self.failed)} ok ({earlier} done before), "
+        line = (f"{len(self.rows)} session{'s' * (len(self.rows) != 1)}: {len(self.rows) - len(self.failed)} ok ({earlier} done before), "
                 f"{len(self.failed)} failed")
         if self.failed:
             line += " (" + ", ".join(r.session for r in self.failed) + ")"
-        where = f" on {self.cluster}" if self.ran else ""
-        return line + f"; {self.ran} replayed in {self.wall_s:.1f} s{where}"
+        if not self.ran:
+            return line + "; nothing to replay"
+        # the tasks' CPU time against the wall time: how many cores the batch really had
+        cpu = sum(r.cpu_s or 0.0 for r in self.rows if not r.earlier)
+        return line + f"; {self.ran} replayed in {self.wall_s:.1f} s (tasks' CPU time {cpu:.1f} s) on {self.cluster}"
 
 
 def process_session(session: str, out_dir: str, options: BatchOptions) -> SessionRow:
@@ -71,7 +74,7 @@ def process_session(session: str, out_dir: str, options: BatchOptions) -> Sessio
     has one); the done file is written last. Never raises: a failure is a failed row with its one-line error."""
     name = Path(session).name
     host = socket.gethostname()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     out = Path(out_dir)
     try:
         (out / DONE_FILE).unlink(missing_ok=True)  # a redo that dies half-way must not look done
@@ -79,14 +82,17 @@ def process_session(session: str, out_dir: str, options: BatchOptions) -> Sessio
                             config_path=options.config_path, progress=False)
         evaluation, evaluation_error = _evaluate(session, out, report)
         write_json(out / DONE_FILE, {"status": "ok", "session": session, "host": host,
-                                     "wall_s": time.perf_counter() - t0, "evaluation": evaluation,
+                                     "wall_s": time.perf_counter() - t0,
+                                     # the task's CPU time: wall_s beyond it is time spent waiting for a core
+                                     "cpu_s": time.process_time() - cpu0, "evaluation": evaluation,
                                      "evaluation_error": evaluation_error})
         return row_from_outputs(name, out)
     except LaprecoError as exc:
-        return failed_row(name, str(exc), time.perf_counter() - t0, host)
+        return failed_row(name, str(exc), time.perf_counter() - t0, host, time.process_time() - cpu0)
     except Exception as exc:  # a bug or a library's failure on this session: the batch goes on
         log.debug("session %s failed", name, exc_info=True)
-        return failed_row(name, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0, host)
+        return failed_row(name, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0, host,
+                          time.process_time() - cpu0)
 
 
 def _evaluate(session: str, out: Path, report: dict) -> tuple[dict | None, str | None]:

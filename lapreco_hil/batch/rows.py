@@ -34,6 +34,7 @@ class SessionRow:
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     wall_s: float | None = None  # replay + evaluation, as the task measured it
+    cpu_s: float | None = None  # the task's CPU time (its process's, all threads)
     tracker: str | None = None
     device: str | None = None
     host: str | None = None
@@ -75,10 +76,11 @@ def is_done(out_dir: Path) -> bool:
     return done.get("status") == "ok" and (out_dir / REPORT_FILE).is_file()
 
 
-def failed_row(session: str, error: str, wall_s: float | None = None, host: str | None = None) -> SessionRow:
+def failed_row(session: str, error: str, wall_s: float | None = None, host: str | None = None,
+               cpu_s: float | None = None) -> SessionRow:
     # one line: a multi-line message would break the table
     line = " ".join(str(error).split())
-    return SessionRow(session=session, status="failed", error=line, wall_s=wall_s, host=host)
+    return SessionRow(session=session, status="failed", error=line, wall_s=wall_s, cpu_s=cpu_s, host=host)
 
 
 def _get(doc: dict | None, *keys):
@@ -117,7 +119,7 @@ def row_from_outputs(session: str, out_dir: Path, earlier: bool = False) -> Sess
         camera_mm=_get(acc, "camera_refined", "position_rms_mm"),
         fps=report.get("throughput_fps"),
         latency_p50_ms=_get(report, "latency_ms", "p50"), latency_p99_ms=_get(report, "latency_ms", "p99"),
-        wall_s=done.get("wall_s", report.get("wall_s")),
+        wall_s=done.get("wall_s", report.get("wall_s")), cpu_s=done.get("cpu_s"),
         tracker=report.get("tracker"), device=report.get("device"), host=done.get("host"),
         # a replay that worked but could not be evaluated (e.g. fewer than 3 points) says so here
         error=done.get("evaluation_error") or "",
