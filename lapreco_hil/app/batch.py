@@ -170,11 +170,14 @@ def ray_connection(address: str | None, workers: int | None):
     if address is None:
         kwargs.update(num_cpus=workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES)
     try:
-        ray.init(address=address, **kwargs)
+        # "local": a new instance even where RAY_ADDRESS names a cluster (only --address picks one)
+        ray.init(address=address or "local", **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        where = f"the Ray cluster at {address}" if address else "a local Ray instance"
-        raise ConfigError(f"cannot connect to {where} ({first})") from None
+        if address is None:
+            raise ConfigError(f"cannot start a local Ray instance ({first})") from None
+        raise ConfigError(f"--address {address}: cannot connect to a Ray cluster there ({first}); start one with "
+                          f"`ray start --head`, or leave --address out for a local Ray instance") from None
     try:
         yield ray
     finally:
