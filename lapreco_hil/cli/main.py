@@ -142,6 +142,11 @@ def build_parser() -> ArgumentParser:
 
     add_interop_parsers(sub)
     # --- end interop ---
+    # --- lapreco batch (issue 24): sessions of a folder as Ray tasks; its own module, lapreco_hil/cli/batch.py ---
+    from lapreco_hil.cli.batch import add_parser as add_batch_parser
+
+    add_batch_parser(sub)
+    # --- end lapreco batch ---
 
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
