@@ -12,6 +12,9 @@ from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative,
                                   resolution, seed)
 
 _positive_int = positive_int  # the calibration parsers take it as an argument
+SURFACE_CHOICES = ("dense", "alpha")
+SURFACE_HELP = ("the surface: dense (multi-view stereo fused in a TSDF: mesh.ply and dense.ply) or alpha (the "
+                "sparse points' alpha shape) (default: the config's [surface] mode)")
 
 
 def build_parser() -> ArgumentParser:
@@ -47,6 +50,7 @@ def build_parser() -> ArgumentParser:
                       help="render the live textured view every S seconds (OUT/live/*.png, OUT/live.mp4; 0 = off)")
     demo.add_argument("--instrument", action="store_true",
                       help="a moving instrument in view (it is not part of the true surface)")
+    demo.add_argument("--surface", choices=SURFACE_CHOICES, default=None, help=SURFACE_HELP)
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
 
@@ -111,6 +115,7 @@ def build_parser() -> ArgumentParser:
     rep.add_argument("--hand-eye", default=None, help="use this hand-eye (OpenCV YAML) instead of the session's")
     rep.add_argument("--time-offset-ms", type=finite, default=None,
                      help="video-to-kinematics offset instead of the session's time_offset_ns")
+    rep.add_argument("--surface", choices=SURFACE_CHOICES, default=None, help=SURFACE_HELP)
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
 
@@ -377,7 +382,7 @@ def _cmd_replay(args) -> int:
     report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
                         config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
                         progress=not args.no_progress, camera_file=args.camera, hand_eye_file=args.hand_eye,
-                        time_offset_ms=args.time_offset_ms)
+                        time_offset_ms=args.time_offset_ms, surface=args.surface)
     _print_run("replay", report)
     return 0
 
@@ -390,7 +395,7 @@ def _cmd_demo(args) -> int:
                       seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check,
                       robot_link=args.robot_link, sim_speed=args.sim_speed, instrument=args.instrument,
                       runtime="sequential" if args.sequential else "live", view_every=args.view_every,
-                      stereo_baseline_mm=args.stereo)
+                      stereo_baseline_mm=args.stereo, surface=args.surface)
     _print_run("demo", report)
     return 0
 
