@@ -300,6 +300,13 @@ def _cmd_evaluate(args) -> int:
           f"{icp['median_mm']:.3f} mm, p95 {icp['p95_mm']:.3f} mm, scale {icp['scale']:.4f}; coverage "
           f"{'n/a' if cov is None else f'{cov:.0%}'} of the visible true surface within {args.coverage_mm:g} mm; "
           f"before alignment RMS {result['unaligned']['rms_mm']:.3f} mm")
+    surface = result.get("surface")
+    if surface and "dense" in surface:
+        sp, de = surface["sparse"], surface["dense"]
+        print(f"lapreco evaluate: dense surface: {de['points']} points, RMS {_fmt(de['rms_mm'])} mm, median "
+              f"{_fmt(de['median_mm'])} mm, {_pct(de['beyond_5mm'])} beyond 5 mm; coverage within "
+              f"{surface['radius_mm']:g} mm of the seen true surface: sparse {_pct(sp['coverage'])}, dense "
+              f"{_pct(de['coverage'])}")
     _write_json(args.json, result)
     return 0
 
@@ -418,11 +425,25 @@ def _print_run(command: str, report: dict) -> None:
                  f"{_fmt(acc.get('camera_raw_fk', {}).get('position_rms_mm'))} mm -> refined "
                  f"{_fmt(acc.get('camera_refined', {}).get('position_rms_mm'))} mm")
     print(line + f"; outputs in {report['out']}")
+    dense = report.get("dense")
+    if dense:
+        line = (f"lapreco {command}: dense surface: {dense['points']} points, {dense['mesh_triangles']} triangles from "
+                f"{dense['keyframes_fused']} keyframes")
+        surface = acc.get("surface") or {}
+        if "dense" in surface:
+            line += (f"; RMS to true surface {_fmt(surface['dense']['rms_mm'])} mm; coverage within "
+                     f"{surface['radius_mm']:g} mm: sparse {_pct(surface['sparse']['coverage'])}, dense "
+                     f"{_pct(surface['dense']['coverage'])}")
+        print(line)
     print_funnel(command, report)
 
 
 def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.2f}"
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None else f"{v:.0%}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -138,7 +138,7 @@ class TsdfVolume:
             self._rebuild(np.arange(self.n_blocks), capacity)
             if total <= self.capacity:
                 return
-        keep = self._occupied() > 0
+        keep = (self._occupied() > 0) | protected  # an empty block this map touches would only be claimed again
         used = self.block_used.numpy()[:self.n_blocks]
         excess = int(keep.sum()) + needed - self.max_blocks
         if excess > 0:
@@ -212,7 +212,7 @@ class TsdfVolume:
         if needed and self.n_blocks + needed > self.capacity:
             self._make_room(needed)
             self._stamp += 1
-            needed = touch()  # the rebuilt table: claim this map's blocks again
+            touch()  # the rebuilt table: claim this map's blocks again (as many: the ones it touched were kept)
         self.counters.assign(np.array([self.n_blocks, 0, 0], np.int32))
         wp.launch(k.collect_blocks, dim=1 << self.slot_bits,
                   inputs=[self.slot_keys, self.slot_stamp, self.slot_block, self._stamp, insert, self._born,
