@@ -4,13 +4,14 @@ Fusion is tested apart from multi-view stereo: the depth maps are the simulated 
 with the undistorted pinhole camera at the keyframe's pose), so what is measured is what fusion adds: where the
 mesh lies, how much of the seen surface it covers, that a map taken out leaves the volume as it was, that the
 memory cap holds, that a pose update moves the surface. The run-level tests inject the same true depth in place
-of ``compute_depth``; that is a stand-in for stereo, not a measure of it."""
+of ``compute_depth``; that is a stand-in for stereo, not a measure of it. The volume runs on Warp's CPU device
+(or LAPRECO_TEST_DEVICE=cuda:0)."""
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,6 +28,7 @@ from lapreco_hil.evaluation.accuracy import surface_distances, surface_report
 from lapreco_hil.geometry import make_T
 
 T0 = 1_000_000_000
+DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 
 
 def pinhole(camera: CameraModel) -> CameraModel:
@@ -54,7 +56,7 @@ def scan_poses(world, n: int, seconds: float = 5.0) -> list[np.ndarray]:
 
 
 def fused_surface(world, poses, config: PipelineConfig | None = None) -> DenseSurface:
-    dense = DenseSurface(world.camera, config or PipelineConfig(), "cpu", depth_fn=true_depth_fn(world),
+    dense = DenseSurface(world.camera, config or PipelineConfig(), DEVICE, depth_fn=true_depth_fn(world),
                          sources_fn=nearest_views)
     for i, T in enumerate(poses):
         image, _ = world.renderer.render(T)  # the grabber's frame: distorted, BGR
@@ -110,7 +112,7 @@ def test_taking_a_map_out_restores_the_volume_bit_for_bit(skull_world, warp_cpu)
         return m
 
     colour = np.random.default_rng(0).integers(0, 255, (world.camera.height, world.camera.width, 3), np.uint8)
-    volume = TsdfVolume(FusionConfig(), warp_cpu)
+    volume = TsdfVolume(FusionConfig(), DEVICE)
     volume.integrate(depth_map(0, a, 1.0), colour)
     before = volume.raw_blocks()
     second = depth_map(1, b, 0.6)
@@ -135,7 +137,7 @@ def plane_map(kf_id: int, x_m: float) -> tuple[DepthMap, np.ndarray]:
 
 def test_memory_stays_under_the_block_cap_as_the_view_moves_on(warp_cpu):
     cap = 1000
-    volume = TsdfVolume(FusionConfig(max_blocks=cap), warp_cpu)
+    volume = TsdfVolume(FusionConfig(max_blocks=cap), DEVICE)
     first = None
     for i in range(12):
         depth, colour = plane_map(i, 0.03 * i)  # 3 cm a step: about half of each view is new ground
