@@ -78,11 +78,11 @@ def test_fused_true_depth_lies_on_the_true_surface_and_covers_what_was_seen(skul
     mesh = result.mesh
     assert mesh.n_cells > 10_000
     d = surface_distances(np.asarray(mesh.points), world.surface_mesh())
-    assert np.sqrt(np.mean(d**2)) < 0.0005  # measured 0.07 mm with 0.5 mm voxels
+    assert np.sqrt(np.mean(d**2)) < 0.0005  # measured 0.077 mm with 0.5 mm voxels
     report = surface_report(world.surface_mesh(), np.array(poses), cam.K, (cam.width, cam.height),
                             dense=result.points, mask=undistortion(cam)[2])
     assert report["seen_samples"] > 10_000
-    assert report["dense"]["coverage"] >= 0.90, report  # measured 99%
+    assert report["dense"]["coverage"] >= 0.90, report  # measured 97.7%
     assert report["dense"]["beyond_5mm"] == 0.0
     # normals point out of the surface, towards the cameras that saw it
     to_camera = poses[0][:3, 3] - result.points
