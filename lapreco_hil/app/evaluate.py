@@ -45,8 +45,8 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0) -> dict:
     if "error" in result:
         raise ConfigError(f"{points_file}: {result['error']}")
     if (out / "dense.ply").is_file() and poses is not None:
-        result["surface"] = surface_report(truth, poses, K, size, sparse=points, dense=read_points_ply(out / "dense.ply"),
-                                           mask=_field_of_view(cam))
+        dense = read_points_ply(out / "dense.ply")
+        result["surface"] = surface_report(truth, poses, K, size, sparse=points, dense=dense, mask=_field_of_view(cam))
     return result
 
 

@@ -56,7 +56,8 @@ def visible_samples(samples: np.ndarray, poses: np.ndarray, K: np.ndarray, size:
             idx, uv = idx[keep], uv[keep]
         if occlusion_m is not None and len(idx):
             zi = z[idx]
-            radius_px = max(1, int(np.ceil(0.5 * OCCLUSION_SPLAT_SPACINGS * spacing_m * K[0, 0] / float(np.median(zi)))))
+            spacing_px = spacing_m * K[0, 0] / float(np.median(zi))
+            radius_px = max(1, int(np.ceil(0.5 * OCCLUSION_SPLAT_SPACINGS * spacing_px)))
             px = np.clip(uv.astype(np.int64), 0, [w - 1, h - 1])
             zbuf = np.full((h, w), np.inf, np.float32)
             np.minimum.at(zbuf, (px[:, 1], px[:, 0]), zi.astype(np.float32))
