@@ -153,6 +153,22 @@ def test_memory_stays_under_the_block_cap_as_the_view_moves_on(warp_cpu):
     assert points[:, 0].min() > 0.03 + half_width
 
 
+def test_kept_keyframes_are_bounded_the_oldest_let_go_first(warp_cpu):
+    from lapreco_hil.simulators.world import default_camera
+
+    camera = default_camera(64, 48)
+    config = config_from_dict({"fusion": {"keep_keyframes": 3}})
+    dense = DenseSurface(camera, config, DEVICE, depth_fn=lambda *a: None, sources_fn=nearest_views)
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        dense.add_view(i, rng.integers(0, 255, (48, 64, 3), np.uint8), make_T(np.eye(3), [0.001 * i, 0, 0]))
+    assert list(dense.views) == [3, 4, 5] and dense.released == 3
+    view = dense.keyframe_view(5)
+    assert view.colour.shape == (48, 64, 3) and view.mask.shape == (48, 64)
+    assert view.mask[24, 32] and not view.mask[0, 0]  # the lens's circle, undistorted
+    assert dense.fuse_pending() == 0 and dense.depth_failures == 3  # no depth map: nothing fused, counted
+
+
 def test_a_pose_update_moves_the_surface_and_moving_back_restores_it(skull_world):
     poses = scan_poses(skull_world, 3, seconds=4.0)
     dense = fused_surface(skull_world, poses)
