@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import PipelineConfig
-from lapreco_hil.dense.surface import DenseResult, dense_surface_for
 from lapreco_hil.errors import ReconstructionError
 from lapreco_hil.frontend import make_frontend, partner_views
 from lapreco_hil.mapping.mapper import Mapper, MapperSchedule, MapResult
@@ -32,7 +31,7 @@ class RunResult:
     latency_s: list[float]
     frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
     without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
-    dense: DenseResult | None = None  # the dense surface ([surface] mode = "dense")
+    dense: object | None = None  # the dense surface ([surface] mode = "dense"): a dense.surface.DenseResult
     surface_note: str | None = None  # why a dense run made the alpha shape instead
 
 
@@ -46,6 +45,9 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline(), rig=rig)
     predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict and config.tracker.predict else None
     # the dense surface keeps each keyframe's image as it comes, and is built once at the end with the final poses
+    # (imported here: VTK and its kin load only for a run that makes a surface)
+    from lapreco_hil.dense.surface import dense_surface_for
+
     dense, surface_note = dense_surface_for(camera, config, device or "cpu", rig)
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
