@@ -187,6 +187,20 @@ class FusionConfig:
     """The truncated signed distance volume (lapreco_hil.dense.fusion)."""
 
     voxel_m: float = ranged(0.0005, gt=0.0)
+    # half the band about the surface a depth map updates, in voxels: wider than the maps' depth noise
+    truncation_voxels: float = ranged(4.0, ge=1.0)
+    # the memory cap: 8^3-voxel blocks (10 KiB each); past it the blocks unused for longest are dropped
+    max_blocks: int = ranged(16384, ge=8)
+    # a voxel with less weight (1 = one view at full confidence) is unobserved for meshing: single weak views
+    # leave no surface
+    mesh_min_weight: float = ranged(0.5, ge=0.0)
+    # a keyframe that bundle adjustment moved farther than this is taken out and fused again at its new pose
+    refuse_translation_m: float = ranged(0.0001, ge=0.0)
+    refuse_rotation_rad: float = ranged(0.0005, ge=0.0)
+    # keyframes whose images and depth maps are kept (compressed, in memory) to be sources and re-fused;
+    # the oldest are let go past it (their part of the volume stays where it was fused)
+    keep_keyframes: int = ranged(400, ge=2)
+    jpeg_quality: int = ranged(95, ge=50, le=100)  # the kept keyframe images (JPEG in memory)
 
 
 @dataclass(frozen=True)

@@ -66,4 +66,5 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
         "stage_ms": {k: _percentiles_ms(v) for k, v in run.stage_s.items() if v},
     }
     return write_outputs(run.map, camera, config, out_dir, tracker=tracker, device=device, truth=truth,
-                         report_fields=report_fields, metrics=metrics, run_wall_s=run.wall_s)
+                         report_fields=report_fields, metrics=metrics, run_wall_s=run.wall_s, dense=run.dense,
+                         surface_note=run.surface_note)

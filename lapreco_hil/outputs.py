@@ -1,5 +1,6 @@
 """The outputs contract of a run (DESIGN.md): points.ply, mesh.ply, trajectory.tum, reconstruction.png,
-report.json, all in one folder, written from a finished map by :func:`write_outputs`."""
+report.json, and dense.ply when the dense surface runs, all in one folder, written from a finished map by
+:func:`write_outputs`."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import pyvista as pv
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import OutputError
-from lapreco_hil.evaluation.accuracy import accuracy_report
+from lapreco_hil.evaluation.accuracy import accuracy_report, surface_report
 from lapreco_hil.geometry import to_tum
 from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.surface.mesh import alpha_shape
@@ -68,6 +69,17 @@ def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None
     cloud.save(str(path), texture="RGB", binary=True)
 
 
+def write_dense_ply(path: Path, points: np.ndarray, normals: np.ndarray, colours: np.ndarray) -> None:
+    """The dense surface's points with their normals ("Normals": nx ny nz) and colours ("RGB"), metres."""
+    if len(points) == 0:
+        _write_empty_ply(path)
+        return
+    cloud = pv.PolyData(np.asarray(points, np.float64).reshape(-1, 3))
+    cloud.point_data["Normals"] = np.asarray(normals, np.float32).reshape(-1, 3)
+    cloud.point_data["RGB"] = np.asarray(colours, np.uint8).reshape(-1, 3)
+    cloud.save(str(path), texture="RGB", binary=True)
+
+
 def write_mesh_ply(path: Path, mesh: pv.PolyData) -> None:
     if mesh.n_points == 0 or mesh.n_cells == 0:
         _write_empty_ply(path)
@@ -110,17 +122,27 @@ def _json_default(o):
 
 
 def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path, *, tracker: str, device: str,
-                  truth: GroundTruth | None, report_fields: dict | None, metrics: dict, run_wall_s: float) -> dict:
-    """The outputs contract from a finished map: mesh, PLYs, TUM trajectory, picture, report.json."""
+                  truth: GroundTruth | None, report_fields: dict | None, metrics: dict, run_wall_s: float,
+                  dense=None, surface_note: str | None = None) -> dict:
+    """The outputs contract from a finished map: mesh, PLYs, TUM trajectory, picture, report.json. ``dense``:
+    the run's DenseResult ([surface] mode "dense"): mesh.ply is its mesh and dense.ply its points; without it
+    the alpha shape of the inlier points (``surface_note`` says why, when the dense surface was asked for)."""
     t0 = time.perf_counter()
     points, colors = m.points[m.inlier], m.colors[m.inlier]
-    mesh = alpha_shape(points, colors, config.surface.alpha_factor)
+    if dense is None and config.surface.mode == "dense" and surface_note is None:
+        surface_note = "this runtime builds no dense surface yet; the alpha shape instead"
+        log.warning("dense surface off: %s", surface_note)
+    mesh = dense.mesh if dense is not None else alpha_shape(points, colors, config.surface.alpha_factor)
     surface_s = time.perf_counter() - t0
     accuracy = accuracy_report(m, truth) if truth is not None else None
+    if accuracy is not None and truth.surface is not None:
+        accuracy["surface"] = _surface_accuracy(m, camera, truth, points, dense)
 
     t1 = time.perf_counter()
     write_points_ply(out_dir / "points.ply", points, colors)
     write_mesh_ply(out_dir / "mesh.ply", mesh)
+    if dense is not None:
+        write_dense_ply(out_dir / "dense.ply", dense.points, dense.normals, dense.colours)
     write_tum(out_dir / "trajectory.tum", np.array([f.t_ns for f in m.frames]), m.frame_poses)
     cams = [(k.T_world_camera, k.refined) for k in m.keyframes if k.reference is None]
     picture = _render_picture(out_dir / "reconstruction.png", mesh, points, colors, cams, camera, config)
@@ -137,7 +159,8 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "drift_check": config.tracker.drift_check,
         "device": device,
         "resolution": [camera.width, camera.height],
-        "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist)},
+        "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist),
+                   "fov_radius_px": camera.fov_radius_px},
         "out": str(out_dir),
         **metrics,
         "wall_s": run_wall_s + surface_s + output_s,
@@ -157,6 +180,9 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "observations": m.observations,
         "inlier_observations": m.inlier_observations,
         "mesh": {"points": int(mesh.n_points), "triangles": int(mesh.n_cells)},
+        "surface": "dense" if dense is not None else "alpha",
+        "surface_note": surface_note,
+        "dense": dense.stats if dense is not None else None,
         "bundle_adjustment": {k: m.stats[k] for k in ("local_ba_runs", "local_ba_mean_s", "final_ba_s")},
         "picture": picture,
     }
@@ -164,6 +190,18 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         report["accuracy"] = accuracy
     write_report(out_dir / "report.json", report)
     return report
+
+
+def _surface_accuracy(m, camera: CameraModel, truth: GroundTruth, points: np.ndarray, dense) -> dict | None:
+    """The sparse points and the dense surface side by side against the true surface the reference keyframes
+    saw (their refined poses, the lens's field of view)."""
+    from lapreco_hil.dense.surface import undistortion
+
+    poses = np.array([k.T_world_camera for k in m.keyframes if k.reference is None]).reshape(-1, 4, 4)
+    if not len(poses):
+        return None
+    return surface_report(truth.surface, poses, camera.K, (camera.width, camera.height), sparse=points,
+                          dense=dense.points if dense is not None else None, mask=undistortion(camera)[2])
 
 
 def _render_picture(path: Path, mesh, points, colors, cams, camera: CameraModel, config: PipelineConfig) -> str | None:

@@ -31,6 +31,8 @@ class RunResult:
     latency_s: list[float]
     frames_without_pose: int = 0  # frames no pose brackets (pose_sources): skipped, not mapped
     without_pose_by_cause: dict | None = None  # geometry.NO_POSE_CAUSES -> frames
+    dense: object | None = None  # the dense surface ([surface] mode = "dense"): a dense.surface.DenseResult
+    surface_note: str | None = None  # why a dense run made the alpha shape instead
 
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
@@ -42,6 +44,11 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     frontend = make_frontend(tracker, camera, config.tracker, device)
     mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline(), rig=rig)
     predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict and config.tracker.predict else None
+    # the dense surface keeps each keyframe's image as it comes, and is built once at the end with the final poses
+    # (imported here: VTK and its kin load only for a run that makes a surface)
+    from lapreco_hil.dense.surface import dense_surface_for
+
+    dense, surface_note = dense_surface_for(camera, config, device or "cpu", rig)
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0
@@ -62,7 +69,10 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         motion = predictor.motion(prior.T_world_camera) if predictor is not None else None
         obs = frontend.process(frame, motion)
         t3 = time.perf_counter()
-        mapper.add(obs, prior, partners=partner_views(frontend, frame, mapper.rig))
+        n_keyframes = len(mapper.keyframes)
+        if mapper.add(obs, prior, partners=partner_views(frontend, frame, mapper.rig)) and dense is not None:
+            for kf in mapper.keyframes[n_keyframes:]:  # the new keyframe and its stereo partners
+                dense.add_view(kf.id, frame.image_of(kf.camera), kf.T_world_camera, kf.camera, kf.reference)
         t4 = time.perf_counter()
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)
@@ -83,6 +93,11 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     t5 = time.perf_counter()
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]
+    dense_result = None
+    if dense is not None:
+        t6 = time.perf_counter()
+        dense_result = dense.build(result)
+        stages["dense"] = [time.perf_counter() - t6]
     processed = frames_in - frames_without_pose
     return RunResult(result, frames_in, processed, time.perf_counter() - t_start, stages, latency,
-                     frames_without_pose, by_cause)
+                     frames_without_pose, by_cause, dense_result, surface_note)

@@ -39,6 +39,10 @@ def run_comparison(session: str, out: str, device: str = "auto", config_path: st
         if "camera_raw_fk" in acc:
             row["camera_raw_mm"] = acc["camera_raw_fk"]["position_rms_mm"]
             row["camera_refined_mm"] = acc["camera_refined"]["position_rms_mm"]
+        surface = acc.get("surface") or {}
+        row["coverage_1mm_sparse"] = surface.get("sparse", {}).get("coverage")
+        row["coverage_1mm_dense"] = surface.get("dense", {}).get("coverage")
+        row["dense_rms_mm"] = surface.get("dense", {}).get("rms_mm")
         if truth is not None and truth.surface is not None:
             cam = report["camera"]
             _, poses = read_tum(out_dir / name / "trajectory.tum")

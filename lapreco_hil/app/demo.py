@@ -21,11 +21,14 @@ def run_demo(scene: str = "skull", frames: int = 150, resolution=(640, 480), fps
              config_path: str | None = None, seed: int = 0, progress: bool = True,
              drift_check: bool | None = None, robot_link: str = "direct", sim_speed: float = 0.2,
              instrument: bool = False, runtime: str = "live", view_every: float = 0.0,
-             stereo_baseline_mm: float | None = None) -> dict:
+             stereo_baseline_mm: float | None = None, surface: str | None = None) -> dict:
     """``robot_link`` 'serial' or 'canopen' reads the simulated robot through the real driver and a device
     emulator; the simulated clock then flows at ``sim_speed`` x real time so the driver can poll it.
-    ``stereo_baseline_mm``: a stereo scope with this baseline (None: mono)."""
+    ``stereo_baseline_mm``: a stereo scope with this baseline (None: mono). ``surface``: "dense" or "alpha"
+    instead of the configuration's [surface] mode."""
     config = load_config(config_path)
+    if surface is not None:
+        config = replace(config, surface=replace(config.surface, mode=surface))
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))
     check_output_dir(out)

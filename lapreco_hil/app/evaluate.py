@@ -1,4 +1,5 @@
-"""``lapreco evaluate``: a finished run's points against a ground-truth surface (similarity ICP, coverage)."""
+"""``lapreco evaluate``: a finished run's points against a ground-truth surface (similarity ICP, coverage), and
+its dense surface (dense.ply) beside its sparse points when it has one."""
 
 from __future__ import annotations
 
@@ -8,13 +9,16 @@ from pathlib import Path
 import numpy as np
 
 from lapreco_hil.errors import ConfigError
+from lapreco_hil.evaluation.accuracy import surface_report
 from lapreco_hil.evaluation.compare import read_points_ply, read_tum
 from lapreco_hil.evaluation.icp import evaluate_points
 
 
 def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0) -> dict:
     """ICP RMS, scale and coverage of ``outdir``'s points.ply against the mesh at ``truth_path`` (world frame,
-    metres); the run's trajectory and camera, when present, give the visible part of the surface."""
+    metres); the run's trajectory and camera, when present, give the visible part of the surface. With a
+    dense.ply, ``surface`` puts the sparse and dense points side by side (distances unaligned, coverage within
+    1 mm of the surface the trajectory's cameras saw)."""
     import pyvista as pv
 
     out = Path(outdir)
@@ -30,13 +34,30 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0) -> dict:
         raise ConfigError(f"{truth_file}: cannot read the mesh ({exc})") from None
     if truth.n_points == 0 or truth.n_cells == 0:
         raise ConfigError(f"{truth_file}: the mesh is empty")
-    poses = K = size = None
+    poses = K = size = cam = None
     if (out / "trajectory.tum").is_file() and (out / "report.json").is_file():
         cam = json.loads((out / "report.json").read_text()).get("camera")
         if cam:
             _, poses = read_tum(out / "trajectory.tum")
             K, size = np.array(cam["K"]), (cam["width"], cam["height"])
-    result = evaluate_points(read_points_ply(points_file), truth, poses, K, size, coverage_mm)
+    points = read_points_ply(points_file)
+    result = evaluate_points(points, truth, poses, K, size, coverage_mm)
     if "error" in result:
         raise ConfigError(f"{points_file}: {result['error']}")
+    if (out / "dense.ply").is_file() and poses is not None:
+        dense = read_points_ply(out / "dense.ply")
+        result["surface"] = surface_report(truth, poses, K, size, sparse=points, dense=dense, mask=_field_of_view(cam))
     return result
+
+
+def _field_of_view(cam: dict) -> np.ndarray | None:
+    """The lens's field of view in the undistorted image, from report.json's camera (None: not recorded)."""
+    if not cam.get("fov_radius_px"):
+        return None
+    from lapreco_hil.camera import CameraModel
+    from lapreco_hil.dense.surface import undistortion
+
+    K = np.array(cam["K"])
+    camera = CameraModel(cam["width"], cam["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(cam["dist"]),
+                         cam["fov_radius_px"])
+    return undistortion(camera)[2]

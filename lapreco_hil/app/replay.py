@@ -19,10 +19,12 @@ from lapreco_hil.warp_device import resolve_device
 def run_replay(session: str, out: str, tracker: str = "auto", device: str = "auto", config_path: str | None = None,
                drift_check: bool | None = None, realtime: bool = False, progress: bool = True,
                camera_file: str | None = None, hand_eye_file: str | None = None,
-               time_offset_ms: float | None = None) -> dict:
+               time_offset_ms: float | None = None, surface: str | None = None) -> dict:
     """``camera_file`` / ``hand_eye_file`` (OpenCV YAML from ``lapreco calibrate``) and ``time_offset_ms``
-    replace what the session says."""
+    replace what the session says; ``surface`` ("dense" or "alpha") the configuration's [surface] mode."""
     config = load_config(config_path)
+    if surface is not None:
+        config = replace(config, surface=replace(config.surface, mode=surface))
     check_output_dir(out)
     if drift_check is not None:
         config = replace(config, tracker=replace(config.tracker, drift_check=drift_check))

@@ -167,9 +167,11 @@ def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str |
         record: str | None = None, seconds: float | None = None, view_every: float = 0.0, tracker: str = "auto",
         device: str = "auto", camera_file: str | None = None, robot_model: str | None = None,
         tip_frame: str | None = None, hand_eye_file: str | None = None, progress: bool = True,
-        marker_url: str | None = None, tool: str | None = None, mcap: str | None = None) -> dict:
+        marker_url: str | None = None, tool: str | None = None, mcap: str | None = None,
+        surface: str | None = None) -> dict:
     """``lapreco run``: devices by URL (a robot, or a tracker ``marker_url`` following the scope's marker, with
-    its hand-eye), the rig from files or the devices, live until the end; the report."""
+    its hand-eye), the rig from files or the devices, live until the end; the report. ``surface``: "dense" or
+    "alpha" instead of the configuration's [surface] mode."""
     from lapreco_hil.config import load_config
 
     if (robot_url is None) == (marker_url is None):
@@ -177,6 +179,8 @@ def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str |
                           "--marker URL (a tracker following the scope's marker, e.g. ndi:///dev/ttyUSB0), "
                           f"{'not both' if robot_url else 'got neither'}")
     config = load_config(config_path)
+    if surface is not None:
+        config = replace(config, surface=replace(config.surface, mode=surface))
     if view_every:
         config = replace(config, runtime=replace(config.runtime, view_period_s=view_every))
     context = DeviceContext(device=resolve_device(device))

@@ -12,6 +12,9 @@ from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative,
                                   resolution, seed)
 
 _positive_int = positive_int  # the calibration parsers take it as an argument
+SURFACE_CHOICES = ("dense", "alpha")
+SURFACE_HELP = ("the surface: dense (multi-view stereo fused in a TSDF: mesh.ply and dense.ply) or alpha (the "
+                "sparse points' alpha shape) (default: the config's [surface] mode)")
 
 
 def build_parser() -> ArgumentParser:
@@ -47,6 +50,7 @@ def build_parser() -> ArgumentParser:
                       help="render the live textured view every S seconds (OUT/live/*.png, OUT/live.mp4; 0 = off)")
     demo.add_argument("--instrument", action="store_true",
                       help="a moving instrument in view (it is not part of the true surface)")
+    demo.add_argument("--surface", choices=SURFACE_CHOICES, default=None, help=SURFACE_HELP)
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(func=_cmd_demo)
 
@@ -111,6 +115,7 @@ def build_parser() -> ArgumentParser:
     rep.add_argument("--hand-eye", default=None, help="use this hand-eye (OpenCV YAML) instead of the session's")
     rep.add_argument("--time-offset-ms", type=finite, default=None,
                      help="video-to-kinematics offset instead of the session's time_offset_ns")
+    rep.add_argument("--surface", choices=SURFACE_CHOICES, default=None, help=SURFACE_HELP)
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
 
@@ -306,6 +311,13 @@ def _cmd_evaluate(args) -> int:
           f"{icp['median_mm']:.3f} mm, p95 {icp['p95_mm']:.3f} mm, scale {icp['scale']:.4f}; coverage "
           f"{'n/a' if cov is None else f'{cov:.0%}'} of the visible true surface within {args.coverage_mm:g} mm; "
           f"before alignment RMS {result['unaligned']['rms_mm']:.3f} mm")
+    surface = result.get("surface")
+    if surface and "dense" in surface:
+        sp, de = surface["sparse"], surface["dense"]
+        print(f"lapreco evaluate: dense surface: {de['points']} points, RMS {_fmt(de['rms_mm'])} mm, median "
+              f"{_fmt(de['median_mm'])} mm, {_pct(de['beyond_5mm'])} beyond 5 mm; coverage within "
+              f"{surface['radius_mm']:g} mm of the seen true surface: sparse {_pct(sp['coverage'])}, dense "
+              f"{_pct(de['coverage'])}")
     _write_json(args.json, result)
     return 0
 
@@ -388,7 +400,7 @@ def _cmd_replay(args) -> int:
     report = run_replay(args.session, args.out, tracker=args.tracker, device=args.device,
                         config_path=args.config, drift_check=args.drift_check, realtime=args.realtime,
                         progress=not args.no_progress, camera_file=args.camera, hand_eye_file=args.hand_eye,
-                        time_offset_ms=args.time_offset_ms)
+                        time_offset_ms=args.time_offset_ms, surface=args.surface)
     _print_run("replay", report)
     return 0
 
@@ -401,7 +413,7 @@ def _cmd_demo(args) -> int:
                       seed=args.seed, progress=not args.no_progress, drift_check=args.drift_check,
                       robot_link=args.robot_link, sim_speed=args.sim_speed, instrument=args.instrument,
                       runtime="sequential" if args.sequential else "live", view_every=args.view_every,
-                      stereo_baseline_mm=args.stereo)
+                      stereo_baseline_mm=args.stereo, surface=args.surface)
     _print_run("demo", report)
     return 0
 
@@ -424,11 +436,25 @@ def _print_run(command: str, report: dict) -> None:
                  f"{_fmt(acc.get('camera_raw_fk', {}).get('position_rms_mm'))} mm -> refined "
                  f"{_fmt(acc.get('camera_refined', {}).get('position_rms_mm'))} mm")
     print(line + f"; outputs in {report['out']}")
+    dense = report.get("dense")
+    if dense:
+        line = (f"lapreco {command}: dense surface: {dense['points']} points, {dense['mesh_triangles']} triangles from "
+                f"{dense['keyframes_fused']} keyframes")
+        surface = acc.get("surface") or {}
+        if "dense" in surface:
+            line += (f"; RMS to true surface {_fmt(surface['dense']['rms_mm'])} mm; coverage within "
+                     f"{surface['radius_mm']:g} mm: sparse {_pct(surface['sparse']['coverage'])}, dense "
+                     f"{_pct(surface['dense']['coverage'])}")
+        print(line)
     print_funnel(command, report)
 
 
 def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.2f}"
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None else f"{v:.0%}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ def cmd_run(args) -> int:
                  seconds=args.seconds, view_every=args.view_every, tracker=args.tracker, device=args.device,
                  camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
                  hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool,
-                 mcap=args.mcap)
+                 mcap=args.mcap, surface=args.surface)
     f, lat = report["frames"], report["latency_ms"]
     print(f"lapreco run: {f['in']} frames in, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
@@ -49,5 +49,8 @@ def add_parser(sub) -> None:
     run.add_argument("--tip-frame", default=None, help="the URDF link that holds the scope")
     run.add_argument("--hand-eye", default=None, help="hand-eye calibration (OpenCV YAML with T_tip_camera; with "
                                                       "--marker the scope marker's)")
+    from lapreco_hil.cli.main import SURFACE_CHOICES, SURFACE_HELP
+
+    run.add_argument("--surface", choices=SURFACE_CHOICES, default=None, help=SURFACE_HELP)
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)

@@ -76,3 +76,28 @@ def accuracy_report(m, truth: GroundTruth) -> dict:
             acc["keyframes_refined"] = pose_error_stats(np.array([k.T_world_camera for k in m.keyframes]), true_kf)
         acc["position_improvement_ratio"] = raw["position_rms_mm"] / max(refined["position_rms_mm"], 1e-9)
     return acc
+
+
+def surface_report(surface: pv.PolyData, poses: np.ndarray, K: np.ndarray, size: tuple, *,
+                   sparse: np.ndarray | None = None, dense: np.ndarray | None = None, mask: np.ndarray | None = None,
+                   radius_mm: float = 1.0, beyond_mm: float = 5.0, max_points: int = 200_000) -> dict:
+    """Sparse and dense reconstructions side by side against the true surface: distances to it (mm; the share
+    beyond ``beyond_mm``) and coverage: the share of the true surface seen by the cameras at ``poses`` (in
+    ``mask``, unoccluded) with a reconstructed point within ``radius_mm``. No alignment: the reconstruction and
+    the truth share the world frame of the robot's poses. Distances are taken on at most ``max_points`` points,
+    evenly thinned."""
+    from lapreco_hil.evaluation.coverage import covered_fraction, sample_surface, visible_samples
+
+    samples = sample_surface(surface, 0.0005)
+    spacing = float(np.sqrt(surface.area / max(len(samples), 1)))
+    seen = samples[visible_samples(samples, poses, K, size, mask=mask, occlusion_m=0.001, spacing_m=spacing)]
+    out: dict = {"radius_mm": radius_mm, "seen_samples": int(len(seen)), "views": int(len(poses))}
+    for name, points in (("sparse", sparse), ("dense", dense)):
+        if points is None:
+            continue
+        points = np.asarray(points, float).reshape(-1, 3)
+        d = surface_distances(points[::max(1, len(points) // max_points)], surface)
+        out[name] = {**distance_stats_mm(d), "points": int(len(points)),
+                     f"beyond_{beyond_mm:g}mm": float(np.mean(d > beyond_mm * 1e-3)) if len(d) else None,
+                     "coverage": covered_fraction(points, seen, radius_mm * 1e-3) if len(seen) else None}
+    return out

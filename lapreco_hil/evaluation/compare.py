@@ -62,15 +62,18 @@ def _f(v, fmt: str = "{:.2f}") -> str:
 def format_markdown(result: dict) -> str:
     lines = [f"Session: `{result['session']}`", "",
              "| variant (ran on) | inliers (Fig 3) | seed: skull / uterus | tracking ms/frame mean / p95 (Fig 5) "
-             "| ICP RMS mm (Fig 6b) | seed: skull | ICP scale | coverage | camera mm raw -> refined |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| ICP RMS mm (Fig 6b) | seed: skull | ICP scale | coverage | camera mm raw -> refined "
+             "| coverage 1 mm sparse / dense | dense RMS mm |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["variants"]:
         seed = result["seed"][r["variant"]]
         lines.append(
             f"| {variant_label(r['tracker'], r['drift_check'], r['device'])} (`{r['variant']}`; seed: {seed['name']}) | {r['inliers']} | {seed['inliers_skull']} / {seed['inliers_uterus']} | "
             f"{r['tracking_ms_mean']:.1f} / {r['tracking_ms_p95']:.1f} | {_f(r.get('icp_rms_mm'))} | "
             f"{seed['icp_rms_mm']:.2f} | {_f(r.get('icp_scale'), '{:.4f}')} | {_f(r.get('coverage'), '{:.0%}')} | "
-            f"{_f(r.get('camera_raw_mm'), '{:.3f}')} -> {_f(r.get('camera_refined_mm'), '{:.3f}')} |")
+            f"{_f(r.get('camera_raw_mm'), '{:.3f}')} -> {_f(r.get('camera_refined_mm'), '{:.3f}')} | "
+            f"{_f(r.get('coverage_1mm_sparse'), '{:.0%}')} / {_f(r.get('coverage_1mm_dense'), '{:.0%}')} | "
+            f"{_f(r.get('dense_rms_mm'))} |")
     return "\n".join(lines) + "\n"
 
 

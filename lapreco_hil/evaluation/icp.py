@@ -1,6 +1,6 @@
 """Reconstruction against a ground-truth surface: similarity ICP (VTK's vtkIterativeClosestPointTransform in
 similarity mode, against a dense area-uniform sample of the true surface), point-to-surface residuals (VTK's
-implicit distance), and coverage of the visible true surface.
+implicit distance), and coverage of the visible true surface (lapreco_hil.evaluation.coverage).
 
 The seed aligned by hand, then ran ICP. Here the start is the identity (the reconstruction and the truth share
 the world frame of the robot's poses); if that start fits badly (a session whose truth is in another frame),
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyvista as pv
-from scipy.spatial import cKDTree
 
 from lapreco_hil.evaluation.accuracy import distance_stats_mm, surface_distances
+from lapreco_hil.evaluation.coverage import covered_fraction, sample_surface, visible_samples
 
 
 @dataclass
@@ -25,22 +25,6 @@ class Alignment:
     scale: float
     rms_m: float
     start: str
-
-
-def sample_surface(surface: pv.PolyData, spacing_m: float, max_points: int = 300_000, seed: int = 0) -> np.ndarray:
-    """Points spread uniformly by area over the surface, about ``spacing_m`` apart."""
-    tri = surface.triangulate()
-    faces = tri.faces.reshape(-1, 4)[:, 1:]
-    v = np.asarray(tri.points, float)
-    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    n = int(min(max_points, max(1000, area.sum() / spacing_m**2)))
-    rng = np.random.default_rng(seed)
-    idx = rng.choice(len(area), n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    pts = (1 - s)[:, None] * a[idx] + (s * (1 - r2))[:, None] * b[idx] + (s * r2)[:, None] * c[idx]
-    return pts
 
 
 def _vtk_icp(source: np.ndarray, target: pv.PolyData, start: np.ndarray, iterations: int) -> np.ndarray:
@@ -98,25 +82,6 @@ def _axis_rotations() -> list[np.ndarray]:
     return out
 
 
-def visible_samples(samples: np.ndarray, poses: np.ndarray, K: np.ndarray, size: tuple,
-                    near_m: float = 0.01, far_m: float = 0.3, max_views: int = 60) -> np.ndarray:
-    """Which true-surface samples some camera had in view: in front of it, inside the image, within range.
-    Neither occlusion nor back-facing is tested, so surfaces hidden behind others count as visible: the
-    coverage is a lower bound."""
-    seen = np.zeros(len(samples), bool)
-    step = max(1, len(poses) // max_views)
-    w, h = size
-    for T in poses[::step]:
-        R, t = T[:3, :3], T[:3, 3]
-        pc = (samples - t) @ R
-        z = pc[:, 2]
-        ok = (z > near_m) & (z < far_m)
-        uv = pc[ok, :2] / z[ok, None] @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        seen[np.flatnonzero(ok)[inside]] = True
-    return seen
-
-
 def evaluate_points(points: np.ndarray, surface: pv.PolyData, poses: np.ndarray | None = None,
                     K: np.ndarray | None = None, size: tuple | None = None, coverage_mm: float = 3.0) -> dict:
     """ICP-aligned residuals (mm), the fitted scale, and coverage of the visible true surface."""
@@ -135,7 +100,6 @@ def evaluate_points(points: np.ndarray, surface: pv.PolyData, poses: np.ndarray 
     if poses is not None and K is not None and size is not None and len(poses):
         vis = visible_samples(samples, poses, K, size)
         if vis.any():
-            d, _ = cKDTree(moved).query(samples[vis], distance_upper_bound=coverage_mm * 1e-3)
             out["coverage"] = {"radius_mm": coverage_mm, "visible_samples": int(vis.sum()),
-                               "covered_fraction": float(np.mean(np.isfinite(d)))}
+                               "covered_fraction": covered_fraction(moved, samples[vis], coverage_mm * 1e-3)}
     return out

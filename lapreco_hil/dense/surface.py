@@ -1,0 +1,332 @@
+"""The dense surface of a run: each keyframe's image kept, a depth map per reference keyframe by multi-view
+stereo (``lapreco_hil.dense.depth``, or any function of the same signature), fused into a TSDF volume
+(``lapreco_hil.dense.fusion``), meshed with colour.
+
+Memory is bounded: a keyframe's undistorted image is kept JPEG-encoded in memory (``FusionConfig.jpeg_quality``)
+and its fused depth map PNG-encoded (depth in 10 um steps, confidence in 1/255 steps: the map is fused as
+stored, so taking it out again is exact); past ``keep_keyframes`` the oldest keyframes' images and maps are let
+go (their part of the volume stays). The volume itself has its block cap.
+
+Offline (``build``) every reference keyframe is fused once at the end with the final poses. The incremental API
+is for the live run: ``add_view`` as keyframes come, ``set_depth_ranges`` / ``fuse_pending`` when their poses
+are refined, ``update_poses`` after each bundle adjustment (a keyframe that moved more than the thresholds is
+taken out with its old pose and put back with its new one: the same depth map, re-placed).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+import pyvista as pv
+
+from lapreco_hil.camera import CameraModel, Rig
+from lapreco_hil.config import DepthConfig, PipelineConfig
+from lapreco_hil.dense.fusion import TsdfVolume
+from lapreco_hil.dense.types import DepthMap, KeyframeView
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.geometry import rotation_angle
+
+log = logging.getLogger(__name__)
+
+DepthFn = Callable[[KeyframeView, list, DepthConfig, str], DepthMap]
+SourcesFn = Callable[[KeyframeView, list, int], list]
+SURFACE_MODES = ("dense", "alpha")
+DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
+CANDIDATE_FACTOR = 3  # the sources are chosen among the 3 x n views nearest the reference (and its stereo partners)
+
+
+def stereo_functions() -> tuple[DepthFn | None, SourcesFn | None, str | None]:
+    """Multi-view stereo's (compute_depth, choose_sources), or (None, None, why) where it cannot be imported."""
+    try:
+        from lapreco_hil.dense.depth import choose_sources, compute_depth
+    except ImportError as exc:
+        return None, None, f"multi-view stereo is not available ({exc})"
+    return compute_depth, choose_sources, None
+
+
+def nearest_views(ref: KeyframeView, candidates: list, n: int) -> list:
+    """The ``n`` candidates whose cameras are nearest the reference's (its stereo partners first)."""
+    c = ref.T_world_camera[:3, 3]
+    return sorted(candidates, key=lambda v: (v.reference != ref.kf_id, np.linalg.norm(v.T_world_camera[:3, 3] - c)))[:n]
+
+
+@dataclass
+class DenseResult:
+    """What a run's dense surface is: the mesh (with "RGB" and "Normals"), its surface points, and figures."""
+
+    mesh: pv.PolyData
+    points: np.ndarray  # (N, 3) metres, world
+    normals: np.ndarray  # (N, 3)
+    colours: np.ndarray  # (N, 3) uint8 RGB
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass
+class _View:
+    kf_id: int
+    camera: int
+    reference: int | None
+    T_world_camera: np.ndarray
+    jpeg: bytes
+    depth_range: tuple[float, float] | None = None
+    # once fused: the map as stored (PNG bytes), its K, the pose it is in the volume at, its integration number
+    depth_png: bytes | None = None
+    confidence_png: bytes | None = None
+    K: np.ndarray | None = None
+    T_fused: np.ndarray | None = None
+    integration: int | None = None
+
+
+class DenseSurface:
+    """``camera``: the rig's camera 0 (its K is every view's K after undistortion, as in the mapper); ``rig``: a
+    stereo scope's cameras (None: one camera). ``depth_fn`` / ``sources_fn``: compute_depth / choose_sources of
+    lapreco_hil.dense.depth by default (a test may give the renderer's true depth to test fusion apart from
+    stereo)."""
+
+    def __init__(self, camera: CameraModel, config: PipelineConfig, device: str = "cpu", rig: Rig | None = None,
+                 depth_fn: DepthFn | None = None, sources_fn: SourcesFn | None = None) -> None:
+        if depth_fn is None:
+            depth_fn, default_sources, why = stereo_functions()
+            if depth_fn is None:
+                raise ConfigError(f"[surface] mode = 'dense': {why}; use --surface alpha")
+            sources_fn = sources_fn or default_sources
+        self.depth_fn = depth_fn
+        self.sources_fn = sources_fn or nearest_views
+        self.camera = camera
+        self.rig = rig if rig is not None and rig.is_stereo else None
+        self.config = config
+        self.device = device
+        self.K = camera.K
+        self.size = (camera.width, camera.height)
+        self.volume = TsdfVolume(config.fusion, device)
+        self.views: OrderedDict[int, _View] = OrderedDict()
+        self._undistort: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._decoded: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.timings = {"depth_s": 0.0, "integration_s": 0.0, "meshing_s": 0.0}
+        self.fused = 0
+        self.refused = 0  # re-fusions after a pose update
+        self.depth_failures = 0
+        self.released = 0
+
+    # --- images -------------------------------------------------------------------------------------------
+    def _maps(self, camera: int):
+        """cv2.remap maps from rig camera ``camera``'s distorted frame to the pinhole ``K`` (camera 0's), and the
+        field of view in that undistorted image (bool)."""
+        if camera not in self._undistort:
+            cam = self.camera if camera == 0 else self.rig.cameras[camera]
+            self._undistort[camera] = undistortion(cam, self.K, self.size)
+        return self._undistort[camera]
+
+    def add_view(self, kf_id: int, image_bgr: np.ndarray, T_world_camera: np.ndarray, camera: int = 0,
+                 reference: int | None = None) -> None:
+        """Keep a keyframe's image (the grabber's distorted BGR frame of rig camera ``camera``), undistorted to
+        ``K``, JPEG-encoded; ``reference``: a stereo partner's reference keyframe (as Keyframe.reference)."""
+        mx, my, _ = self._maps(camera)
+        undistorted = cv2.remap(image_bgr, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        ok, jpeg = cv2.imencode(".jpg", undistorted, [cv2.IMWRITE_JPEG_QUALITY, int(self.config.fusion.jpeg_quality)])
+        if not ok:
+            raise ConfigError(f"keyframe {kf_id}: its image could not be JPEG-encoded ({image_bgr.shape})")
+        self.views[kf_id] = _View(kf_id, camera, reference, np.array(T_world_camera, float), jpeg.tobytes())
+        while len(self.views) > self.config.fusion.keep_keyframes:
+            old_id, _ = self.views.popitem(last=False)
+            self._decoded.pop(old_id, None)
+            self.released += 1
+
+    def _colour(self, kf_id: int) -> np.ndarray:
+        """A kept view's undistorted RGB image (a few decoded ones cached)."""
+        if kf_id in self._decoded:
+            self._decoded.move_to_end(kf_id)
+            return self._decoded[kf_id]
+        bgr = cv2.imdecode(np.frombuffer(self.views[kf_id].jpeg, np.uint8), cv2.IMREAD_COLOR)
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        self._decoded[kf_id] = rgb
+        while len(self._decoded) > CANDIDATE_FACTOR * self.config.depth.source_views + 2:
+            self._decoded.popitem(last=False)
+        return rgb
+
+    def keyframe_view(self, kf_id: int) -> KeyframeView:
+        v = self.views[kf_id]
+        return KeyframeView(kf_id, self._colour(kf_id), self.K.copy(), v.T_world_camera.copy(),
+                            mask=self._maps(v.camera)[2], depth_range_m=v.depth_range, reference=v.reference)
+
+    # --- poses and ranges ---------------------------------------------------------------------------------
+    def set_depth_ranges(self, ranges: dict[int, tuple[float, float] | None]) -> None:
+        for kf_id, r in ranges.items():
+            if kf_id in self.views:
+                self.views[kf_id].depth_range = r
+
+    def update_poses(self, poses: dict[int, np.ndarray]) -> int:
+        """New refined poses of kept keyframes; a fused keyframe that moved more than the thresholds is taken
+        out at its old pose and put back at its new one. Returns how many were re-fused."""
+        fc = self.config.fusion
+        moved = 0
+        for kf_id, T in poses.items():
+            v = self.views.get(kf_id)
+            if v is None:
+                continue
+            v.T_world_camera = np.array(T, float)
+            if v.T_fused is None:
+                continue
+            dt = np.linalg.norm(T[:3, 3] - v.T_fused[:3, 3])
+            dr = rotation_angle(v.T_fused[:3, :3].T @ T[:3, :3])
+            if dt <= fc.refuse_translation_m and dr <= fc.refuse_rotation_rad:
+                continue
+            depth = self._stored_map(v)
+            colour = self._colour(kf_id)
+            t0 = time.perf_counter()
+            self.volume.deintegrate(depth, colour, integration=v.integration)
+            depth.T_world_camera = v.T_world_camera.copy()
+            v.integration = self.volume.integrate(depth, colour)
+            v.T_fused = v.T_world_camera.copy()
+            self.timings["integration_s"] += time.perf_counter() - t0
+            moved += 1
+        self.refused += moved
+        return moved
+
+    # --- fusion -------------------------------------------------------------------------------------------
+    def _stored_map(self, v: _View) -> DepthMap:
+        depth = cv2.imdecode(np.frombuffer(v.depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
+        conf = cv2.imdecode(np.frombuffer(v.confidence_png, np.uint8), cv2.IMREAD_UNCHANGED)
+        return DepthMap(v.kf_id, depth.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                        conf.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+
+    def _keep_map(self, v: _View, depth: DepthMap) -> DepthMap:
+        """Store the map as it will be fused (quantised, PNG) and return that stored map."""
+        d = np.nan_to_num(np.asarray(depth.depth_m, np.float64))
+        steps = np.round(d / DEPTH_UNIT_M)
+        valid = (steps > 0) & (steps < 65536)
+        d16 = np.where(valid, steps, 0).astype(np.uint16)
+        c8 = np.round(np.clip(np.nan_to_num(depth.confidence), 0.0, 1.0) * 255.0).astype(np.uint8)
+        c8[~valid] = 0
+        v.depth_png = cv2.imencode(".png", d16)[1].tobytes()
+        v.confidence_png = cv2.imencode(".png", c8)[1].tobytes()
+        v.K = np.array(depth.K, float)
+        v.T_fused = np.array(depth.T_world_camera, float)
+        return self._stored_map(v)
+
+    def _sources(self, ref: KeyframeView) -> list[KeyframeView]:
+        n = self.config.depth.source_views
+        c = ref.T_world_camera[:3, 3]
+        others = [v for v in self.views.values() if v.kf_id != ref.kf_id]
+        others.sort(key=lambda v: (v.reference != ref.kf_id, np.linalg.norm(v.T_world_camera[:3, 3] - c)))
+        candidates = [self.keyframe_view(v.kf_id) for v in others[:CANDIDATE_FACTOR * n]]
+        return list(self.sources_fn(ref, candidates, n)) if candidates else []
+
+    def fuse_pending(self, kf_ids=None) -> int:
+        """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
+        poses. Returns how many were fused."""
+        todo = [v.kf_id for v in self.views.values()
+                if v.reference is None and v.T_fused is None and (kf_ids is None or v.kf_id in kf_ids)]
+        done = 0
+        for kf_id in todo:
+            ref = self.keyframe_view(kf_id)
+            t0 = time.perf_counter()
+            depth = self.depth_fn(ref, self._sources(ref), self.config.depth, self.device)
+            t1 = time.perf_counter()
+            self.timings["depth_s"] += t1 - t0
+            if depth is None or not np.any(depth.valid):
+                self.depth_failures += 1
+                continue
+            v = self.views[kf_id]
+            stored = self._keep_map(v, depth)
+            v.integration = self.volume.integrate(stored, ref.colour)
+            self.timings["integration_s"] += time.perf_counter() - t1
+            done += 1
+        self.fused += done
+        return done
+
+    def build(self, m) -> DenseResult:
+        """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
+        with the depth range its landmarks span; the mesh and points."""
+        self.update_poses({k.id: k.T_world_camera for k in m.keyframes if k.id in self.views})
+        self.set_depth_ranges(depth_ranges(m.keyframes, m.landmark_ids, m.points, m.inlier))
+        self.fuse_pending()
+        return self.extract()
+
+    def extract(self) -> DenseResult:
+        t0 = time.perf_counter()
+        mesh = self.volume.extract_mesh()
+        self.timings["meshing_s"] += time.perf_counter() - t0
+        if mesh.n_points:
+            points = np.asarray(mesh.points, float)
+            normals = np.asarray(mesh.point_data["Normals"], float)
+            colours = np.asarray(mesh.point_data["RGB"], np.uint8)
+        else:
+            points, normals, colours = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        return DenseResult(mesh, points, normals, colours, self.report(mesh))
+
+    def report(self, mesh: pv.PolyData | None = None) -> dict:
+        """report.json's ``dense``: points, triangles, keyframes fused, memory, timings."""
+        vol = self.volume
+        kept = sum(len(v.jpeg) + len(v.depth_png or b"") + len(v.confidence_png or b"") for v in self.views.values())
+        return {
+            "points": int(mesh.n_points) if mesh is not None else None,
+            "mesh_triangles": int(mesh.n_cells) if mesh is not None else None,
+            "keyframes_fused": self.fused,
+            "keyframes_refused": self.refused,
+            "depth_maps_failed": self.depth_failures,
+            "keyframes_released": self.released,
+            "voxel_mm": vol.voxel_m * 1e3,
+            "memory": {"blocks": vol.blocks_in_use, "max_blocks": vol.max_blocks,
+                       "peak_blocks": vol.stats.peak_blocks, "evicted_blocks": vol.stats.evicted_blocks,
+                       "volume_mb": vol.memory_bytes / 2**20, "kept_images_mb": kept / 2**20},
+            "timings_s": {**self.timings,
+                          "depth_per_keyframe_s": self.timings["depth_s"] / max(self.fused, 1),
+                          "integration_per_keyframe_s": self.timings["integration_s"] /
+                          max(self.fused + self.refused, 1)},
+        }
+
+
+def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):
+    """cv2.remap maps from ``camera``'s distorted frame to the pinhole ``K`` (default: its own) at ``size``, and its
+    field of view in that undistorted image (bool H x W: the lens's circle, and nothing outside the frame)."""
+    K = camera.K if K is None else K
+    size = (camera.width, camera.height) if size is None else size
+    mx, my = cv2.initUndistortRectifyMap(camera.K, camera.dist_array, None, K, size, cv2.CV_32FC1)
+    mask = cv2.remap(camera.fov_mask(), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return mx, my, mask > 0
+
+
+def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier: np.ndarray,
+                 min_points: int = 8) -> dict[int, tuple[float, float] | None]:
+    """Per keyframe, the depths its inlier landmarks span (2nd to 98th percentile) with a margin (x0.8, x1.25);
+    None where it sees fewer than ``min_points`` of them (its observations let go, or too few)."""
+    lm = dict(zip(np.asarray(landmark_ids)[inlier].tolist(), np.asarray(points)[inlier]))
+    out = {}
+    for kf in keyframes:
+        ids = [t for t in np.asarray(kf.track_ids).tolist() if t in lm] if kf.track_ids is not None else []
+        if len(ids) < min_points:
+            out[kf.id] = None
+            continue
+        X = np.array([lm[t] for t in ids])
+        T = kf.T_world_camera
+        z = ((X - T[:3, 3]) @ T[:3, :3])[:, 2]
+        z = z[z > 0]
+        if len(z) < min_points:
+            out[kf.id] = None
+            continue
+        out[kf.id] = (float(0.8 * np.percentile(z, 2)), float(1.25 * np.percentile(z, 98)))
+    return out
+
+
+def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None
+                      ) -> tuple[DenseSurface | None, str | None]:
+    """The run's DenseSurface when ``[surface] mode`` is "dense" (None for "alpha"), or (None, why) with one
+    warning when multi-view stereo is not there: the run then makes the alpha shape."""
+    mode = config.surface.mode
+    if mode not in SURFACE_MODES:
+        raise ConfigError(f"[surface] mode = '{mode}': use dense or alpha")
+    if mode == "alpha":
+        return None, None
+    depth_fn, sources_fn, why = stereo_functions()
+    if depth_fn is None:
+        note = f"dense surface off: {why}; the alpha shape instead"
+        log.warning(note)
+        return None, note
+    return DenseSurface(camera, config, device, rig, depth_fn, sources_fn), None
