@@ -130,7 +130,7 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
     t0 = time.perf_counter()
     points, colors = m.points[m.inlier], m.colors[m.inlier]
     if dense is None and config.surface.mode == "dense" and surface_note is None:
-        surface_note = "this runtime builds no dense surface yet; the alpha shape instead"
+        surface_note = "no dense surface was built (its stage was switched off after an error); the alpha shape instead"
         log.warning("dense surface off: %s", surface_note)
     mesh = dense.mesh if dense is not None else alpha_shape(points, colors, config.surface.alpha_factor)
     surface_s = time.perf_counter() - t0

@@ -286,3 +286,24 @@ def test_surface_is_an_option_of_demo_replay_and_run():
     assert parser.parse_args(["run", "--grabber", "g", "--out", "o", "--surface", "dense"]).surface == "dense"
     assert parser.parse_args(["demo"]).surface is None  # the config's [surface] mode
     assert main(["demo", "--surface", "mesh"]) == 2
+
+
+def test_a_live_run_fuses_keyframes_as_they_come_and_refuses_those_bundle_adjustment_moves(tmp_path, apple_world,
+                                                                                             monkeypatch):
+    """The live runtime's dense stage: keyframes reach it from the mapper's answers (their frames kept by the
+    tracking stage until then), their depth maps are fused during the run and taken out and put back when a
+    local BA moves them; the outputs come from the final poses. The renderer's true depth stands in for stereo
+    (the stereo itself is tested in test_dense_depth.py), so what is tested is the live plumbing."""
+    from lapreco_hil.app.demo import run_demo
+
+    monkeypatch.setattr(dense_surface, "stereo_functions", lambda: (true_depth_fn(apple_world), nearest_views, None))
+    report = run_demo(scene="apple", frames=40, resolution=(192, 144), out=str(tmp_path), device="cpu",
+                      tracker="opencv", progress=False, runtime="live", surface="dense")
+    assert report["runtime"] == "live" and report["surface"] == "dense" and report["surface_note"] is None
+    dense = report["dense"]
+    assert report["stage_ms"]["dense_keyframe"]["mean"] > 0  # fused while the run went, not only at its end
+    assert dense["keyframes_fused"] >= report["keyframes"] - 1 >= 3
+    assert dense["keyframes_refused"] > 0  # local BA moved keyframes already fused
+    assert pv.read(tmp_path / "dense.ply").n_points == dense["points"] > 1000
+    surface = report["accuracy"]["surface"]
+    assert surface["dense"]["rms_mm"] < 0.5 and surface["dense"]["coverage"] > surface["sparse"]["coverage"]

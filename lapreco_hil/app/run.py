@@ -108,7 +108,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     try:
         return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
                              truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
-                             run_wall_s=metrics["wall_s"])
+                             run_wall_s=metrics["wall_s"], dense=live.dense_result, surface_note=live.surface_note)
     finally:
         if mcap_log is not None:  # the map, once the outputs are written
             mcap_log.close(out_dir if (out_dir / "points.ply").is_file() else None)

@@ -38,7 +38,8 @@ DepthFn = Callable[[KeyframeView, list, DepthConfig, str], DepthMap]
 SourcesFn = Callable[[KeyframeView, list, int], list]
 SURFACE_MODES = ("dense", "alpha")
 DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
-CANDIDATE_FACTOR = 3  # the sources are chosen among the 3 x n views nearest the reference (and its stereo partners)
+CANDIDATE_FACTOR = 3  # decoded keyframe images cached: 3 x n views (and a few more)
+CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest the reference (poses only)
 
 
 def stereo_functions() -> tuple[DepthFn | None, SourcesFn | None, str | None]:
@@ -112,6 +113,7 @@ class DenseSurface:
         self.fused = 0
         self.refused = 0  # re-fusions after a pose update
         self.depth_failures = 0
+        self.without_sources: set[int] = set()  # keyframes no neighbour could serve as a stereo source for
         self.released = 0
 
     # --- images -------------------------------------------------------------------------------------------
@@ -215,8 +217,14 @@ class DenseSurface:
         c = ref.T_world_camera[:3, 3]
         others = [v for v in self.views.values() if v.kf_id != ref.kf_id]
         others.sort(key=lambda v: (v.reference != ref.kf_id, np.linalg.norm(v.T_world_camera[:3, 3] - c)))
-        candidates = [self.keyframe_view(v.kf_id) for v in others[:CANDIDATE_FACTOR * n]]
-        return list(self.sources_fn(ref, candidates, n)) if candidates else []
+        # chosen on poses alone among many (an image stands in by its shape; only the chosen few are decoded): the
+        # nearest keyframes are often too close for depth resolution, the best angle lies farther along the path
+        w, h = self.size
+        shape_only = np.broadcast_to(np.zeros((1, 1, 3), np.uint8), (h, w, 3))
+        candidates = [KeyframeView(v.kf_id, shape_only, self.K, v.T_world_camera, reference=v.reference,
+                                   depth_range_m=v.depth_range) for v in others[:CANDIDATE_POSES]]
+        chosen = self.sources_fn(ref, candidates, n) if candidates else []
+        return [self.keyframe_view(c.kf_id) for c in chosen]
 
     def fuse_pending(self, kf_ids=None) -> int:
         """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
@@ -226,8 +234,13 @@ class DenseSurface:
         done = 0
         for kf_id in todo:
             ref = self.keyframe_view(kf_id)
+            sources = self._sources(ref)
+            if not sources:  # no neighbour with a useful baseline (yet: a live run tries again later)
+                self.without_sources.add(kf_id)
+                continue
+            self.without_sources.discard(kf_id)
             t0 = time.perf_counter()
-            depth = self.depth_fn(ref, self._sources(ref), self.config.depth, self.device)
+            depth = self.depth_fn(ref, sources, self.config.depth, self.device)
             t1 = time.perf_counter()
             self.timings["depth_s"] += t1 - t0
             if depth is None or not np.any(depth.valid):
@@ -271,6 +284,7 @@ class DenseSurface:
             "keyframes_fused": self.fused,
             "keyframes_refused": self.refused,
             "depth_maps_failed": self.depth_failures,
+            "keyframes_without_sources": len(self.without_sources),
             "keyframes_released": self.released,
             "voxel_mm": vol.voxel_m * 1e3,
             "memory": {"blocks": vol.blocks_in_use, "max_blocks": vol.max_blocks,

@@ -36,11 +36,15 @@ from lapreco_hil.runtime.messages import MapperFailed
 from lapreco_hil.runtime.metrics import LiveMetrics
 from lapreco_hil.runtime.processes import MapperProcesses
 from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
-from lapreco_hil.runtime.stages import Capture, LatestView, Record, Results, StageLinks, Surface, Tracking
+from lapreco_hil.runtime.stages import (Capture, Dense, LatestView, RecentFrames, Record, Results, StageLinks,
+                                        Surface, Tracking)
 from lapreco_hil.runtime.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 FEW_FRAMES = 3  # a run that maps fewer frames than this says why
+# frames the tracking stage keeps for the dense surface until the mapper names its keyframes (it answers within a
+# few frames; at 1080p this is about 200 MB)
+RECENT_FRAMES = 32
 
 
 class StageError(LaprecoError):
@@ -68,8 +72,21 @@ class LiveRun:
         use_worker = rt.ba_worker == "on" or (rt.ba_worker == "auto" and (os.cpu_count() or 1) >= 4)
         rig = getattr(grabber, "rig", None)  # the ring's slots hold each of the rig's cameras' observations of a frame
         stereo = rig if rig is not None and rig.is_stereo else None
+        # the dense surface ([surface] mode = "dense"): keyframe images kept until the mapper names them, fused in
+        # a stage of its own; None with the alpha shape (or, with a note, where multi-view stereo cannot run)
+        self.dense, self.recent, self.dense_result, self.surface_note = None, None, None, None
+        if camera is not None:
+            from lapreco_hil.dense.surface import dense_surface_for
+
+            surface, self.surface_note = dense_surface_for(camera, config, device, stereo)
+            if surface is not None:
+                view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
+                self.dense = Dense(surface, self.links, self.metrics, device=device,
+                                   period_s=rt.surface_period_s if view else None)
+                self.recent = RecentFrames(RECENT_FRAMES)
         self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker,
-                                         cameras=len(rig) if rig is not None else 1, rig=stereo)
+                                         cameras=len(rig) if rig is not None else 1, rig=stereo,
+                                         keyframe_poses=self.dense is not None)
         self.supervisor = Supervisor(self.processes, self.links, self.metrics, on_stage_error=on_stage_error)
         recording = recorder is not None
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,
@@ -82,7 +99,7 @@ class LiveRun:
                                  device=device, degrade=on_stage_error == "degrade", recording=recording,
                                  track_points=self.track_points if config.tracker.predict else None,
                                  scene_depth_m=config.mapper.scene_depth_m,
-                                 offset_watch=self.offset_watch, rig=stereo)
+                                 offset_watch=self.offset_watch, rig=stereo, recent=self.recent)
         self.tracking.frontend = frontend
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)
         self.health.add("grabber", lambda: grabber.health)
@@ -136,12 +153,15 @@ class LiveRun:
         sup.start_processes()
         stages = {"capture": self.capture.run, "tracking": self.tracking.run,
                   "results": Results(self.processes.done_q, self.processes.slot_freed, self.metrics, self.latest,
-                                     self.progress, track_points=self.track_points).run,
+                                     self.progress, track_points=self.track_points, dense=self.dense,
+                                     recent=self.recent).run,
                   "surface": Surface(self.processes.snapshot, self.camera, self.config, self.out_dir, self.links,
-                                     self.metrics, self.latest).run,
+                                     self.metrics, self.latest, dense=self.dense).run,
                   "health": lambda: self.health.run_until(self.links.finished)}
         if self.recorder is not None:
             stages["record"] = Record(self.recorder, self.links).run
+        if self.dense is not None:
+            stages["dense"] = self.dense.run
         sup.run(stages, seconds)
         fatal = sup.fatal_errors()
         mapper_raised = set(fatal) == {"mapper"} and isinstance(sup.final, MapperFailed)
@@ -161,6 +181,8 @@ class LiveRun:
             self.poses.warn_without_pose()
         if not result.frames:
             raise ReconstructionError(f"the live run mapped no frames: {self.why_few_frames()}")
+        if self.dense is not None and "dense" not in self.links.disabled:
+            self.dense_result = self.dense.finish(result)  # every kept keyframe at its final pose
         metrics = self.report(result)
         if len(result.frames) < FEW_FRAMES:
             log.warning("the live run mapped only %d frames: %s", len(result.frames), self.why_few_frames())

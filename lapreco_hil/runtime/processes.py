@@ -24,11 +24,13 @@ log = logging.getLogger(__name__)
 
 
 class MapperProcesses:
-    def __init__(self, K, config, *, use_ba_worker: bool, cameras: int = 1, rig=None) -> None:
+    def __init__(self, K, config, *, use_ba_worker: bool, cameras: int = 1, rig=None,
+                 keyframe_poses: bool = False) -> None:
         self.K, self.config, self.rt = K, config, config.runtime
         self.use_ba_worker = use_ba_worker
         self.cameras = cameras  # the rig's cameras: each frame's slot holds the observations of each
         self.rig = rig  # a stereo scope's rig: the mapper ties each keyframe's partner views to it
+        self.keyframe_poses = keyframe_poses  # the mapper sends keyframe poses after each local BA (dense surface)
         self.ring: ObservationRing | None = None
         self.snapshot: MapSnapshot | None = None
         self.mapper: mp.Process | None = None
@@ -67,7 +69,8 @@ class MapperProcesses:
             target=mapper_main, name="lapreco mapper", daemon=True,
             args=(self.ring.name, rt.mapper_slots, rt.max_tracks, self.snapshot.name, rt.max_landmarks, snap_lock,
                   self.K, self.config.mapper, rt.mapper_backlog_skip_ba, self.ready_q, self.done_q, send, parent,
-                  self.ba_jobs, self.ba_results), kwargs={"ring_cameras": self.cameras, "rig": self.rig})
+                  self.ba_jobs, self.ba_results), kwargs={"ring_cameras": self.cameras, "rig": self.rig,
+                                                        "keyframe_poses": self.keyframe_poses})
         self.mapper.start()
         send.close()  # the mapper holds the sending end; a dead mapper then reads as EOF here
 

@@ -6,8 +6,10 @@ what it writes and what it counts are given to its constructor.
 - ``Tracking``: capture queue -> pose prior + front-end -> the mapper (a shared-memory slot; with none free the
   frame is not mapped, counted). Takes every frame capture kept: LK needs consecutive frames.
 - ``Results``: the mapper's messages -> latency, counters, free slots, the refined pose of the live view.
-- ``Surface``: the mapper's map snapshot -> the live mesh every ``surface_period_s``, the textured view every
-  ``view_period_s``.
+- ``Surface``: the mapper's map snapshot -> the live mesh every ``surface_period_s`` (or the dense surface's
+  mesh), the textured view every ``view_period_s``.
+- ``Dense``: keyframe images (kept by tracking until the mapper names its keyframes) and poses -> depth maps
+  fused into the TSDF volume, re-fused when local BA moves a keyframe, its mesh every ``surface_period_s``.
 - ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture)."""
 
 from __future__ import annotations
@@ -24,11 +26,13 @@ from lapreco_hil.errors import DeviceTimeoutError
 from lapreco_hil.runtime.health import Condition
 from lapreco_hil.mapping.prediction import TrackPoints, frame_motion
 from lapreco_hil.frontend import partner_views
-from lapreco_hil.runtime.messages import EndOfResults, FramePose, MapperReady, NewTrackPoints, SlotFree
+from lapreco_hil.runtime.messages import (EndOfResults, FramePose, KeyframePoses, MapperReady, NewTrackPoints,
+                                          SlotFree)
 from lapreco_hil.runtime.metrics import LiveMetrics
 
 log = logging.getLogger(__name__)
 BAD_TIME_SHOWN_S = 0.25  # frame times read as "refused" this long after the last refused frame
+RETRY_KEYFRAMES = 4  # a live keyframe without a stereo source yet is tried again while this many wait
 
 
 @dataclass
@@ -67,6 +71,26 @@ class LatestView:
     def get(self):
         with self._lock:
             return None if self._frame is None else (self._frame, self._T)
+
+
+class RecentFrames:
+    """The newest tracked frames by sequence number, until the mapper says which became keyframes (a few tens of
+    milliseconds later); bounded, so frames it never names are let go."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._frames: collections.OrderedDict = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def add(self, frame) -> None:
+        with self._lock:
+            self._frames[frame.seq] = frame
+            while len(self._frames) > self.capacity:
+                self._frames.popitem(last=False)
+
+    def take(self, seq: int):
+        with self._lock:
+            return self._frames.pop(seq, None)
 
 
 class Capture:
@@ -126,7 +150,8 @@ class Tracking:
 
     def __init__(self, poses, links: StageLinks, metrics: LiveMetrics, latest: LatestView, coverage, submit, *,
                  device: str, degrade: bool, recording: bool, track_points: TrackPoints | None = None,
-                 scene_depth_m: tuple[float, float] = (0.01, 0.3), offset_watch=None, rig=None) -> None:
+                 scene_depth_m: tuple[float, float] = (0.01, 0.3), offset_watch=None, rig=None,
+                 recent: RecentFrames | None = None) -> None:
         self.poses, self.links, self.metrics, self.latest = poses, links, metrics, latest
         self.coverage, self.submit = coverage, submit
         self.device, self.degrade, self.recording = device, degrade, recording
@@ -134,6 +159,7 @@ class Tracking:
         self.track_points, self.scene_depth_m = track_points, scene_depth_m
         self.offset_watch = offset_watch  # the video-kinematics offset, watched (runtime/time_offset_watch.py)
         self.rig = rig  # a stereo scope: every frame's tracks are also found in the other cameras' images
+        self.recent = recent  # the live dense surface's: frames until the mapper names its keyframes
         self.frontend = None
         self.tracks_lost = False
         self._prev = None  # the last tracked frame's (prior T_world_camera, observations)
@@ -187,6 +213,8 @@ class Tracking:
             m.time_stage("pose", t1 - t0)
             m.time_stage("frontend", t2 - t1)
             self.latest.tracked(frame, prior.T_world_camera)
+            if self.recent is not None:
+                self.recent.add(frame)
             views = partner_views(self.frontend, frame, self.rig)
             if not self.submit(obs, prior, arrival, views() if views is not None else ()):
                 m.add("mapper_skipped")  # the mapper is a whole ring behind: this frame is not mapped
@@ -214,10 +242,12 @@ class Tracking:
 
 class Results:
     def __init__(self, messages, slot_freed, metrics: LiveMetrics, latest: LatestView, progress=None,
-                 track_points: TrackPoints | None = None) -> None:
+                 track_points: TrackPoints | None = None, dense: "Dense | None" = None,
+                 recent: RecentFrames | None = None) -> None:
         self.messages, self.slot_freed = messages, slot_freed  # a queue of the mapper's messages
         self.metrics, self.latest, self.progress = metrics, latest, progress
         self.track_points = track_points
+        self.dense, self.recent = dense, recent  # the live dense surface, and the frames it takes keyframes from
 
     def run(self) -> None:
         m = self.metrics
@@ -232,11 +262,20 @@ class Results:
                 m.add("frames_processed")
                 if msg.is_keyframe:
                     m.add("keyframes")
+                    if self.dense is not None:
+                        frame = self.recent.take(msg.seq)
+                        if frame is not None:
+                            self.dense.keyframe(msg.keyframe_id, frame, msg.T_world_camera)
+                        else:
+                            m.add("dense_keyframes_missed")  # its frame was let go before the mapper named it
                 m.set("local_ba_skipped", msg.local_ba_skipped)
                 m.set("resection_skipped", msg.resection_skipped)
                 self.latest.refined(msg.seq, msg.T_world_camera)
                 if self.progress is not None:
                     self.progress.update(1)
+            elif isinstance(msg, KeyframePoses):
+                if self.dense is not None:
+                    self.dense.poses(msg)
             elif isinstance(msg, NewTrackPoints):
                 if self.track_points is not None:
                     self.track_points.update(msg.track_ids, msg.points)
@@ -246,9 +285,10 @@ class Results:
 
 class Surface:
     def __init__(self, snapshot, camera, config, out_dir, links: StageLinks, metrics: LiveMetrics,
-                 latest: LatestView) -> None:
+                 latest: LatestView, dense: "Dense | None" = None) -> None:
         self.snapshot, self.camera, self.config, self.out_dir = snapshot, camera, config, out_dir
         self.links, self.metrics, self.latest = links, metrics, latest
+        self.dense = dense  # the live dense surface: its mesh is the live one
         self.mesh = None
 
     def run(self) -> None:
@@ -263,7 +303,9 @@ class Surface:
         try:
             while not self.links.stop.wait(0.02) and not self.links.finished.is_set():
                 now = time.monotonic()
-                if now >= next_mesh:
+                if self.dense is not None:
+                    self.mesh = self.dense.mesh  # (rebuilt by the dense stage)
+                elif now >= next_mesh:
                     # until the first mesh exists, look again soon: the view should show it as soon as there is one
                     next_mesh = now + (rt.surface_period_s if self.mesh is not None else min(rt.surface_period_s, 0.1))
                     v, pts, cols = self.snapshot.read()
@@ -285,6 +327,90 @@ class Surface:
         finally:
             if view is not None:
                 view.close()
+
+
+class Dense:
+    """The live dense surface (``[surface] mode = "dense"``, lapreco_hil.dense.surface.DenseSurface). Keyframes
+    come from the results stage with their frame; a keyframe's depth map is made and fused once a newer
+    keyframe exists (its neighbours on both sides, the mapper's depth span for it by then), and taken out and
+    put back when local BA moves it. The mesh is extracted every ``period_s`` for the live view (None: no view
+    wants it; meshing the whole volume takes a CPU second, so then only the final outputs mesh it). On a GPU,
+    each step takes the device in turn with tracking (the device lock), so no kernel lands in a graph being
+    captured."""
+
+    def __init__(self, surface, links: StageLinks, metrics: LiveMetrics, *, period_s: float | None,
+                 device: str) -> None:
+        self.surface, self.links, self.metrics = surface, links, metrics
+        self.period_s, self.device = period_s, device
+        self.mesh = None
+        self._inbox: collections.deque = collections.deque()  # ("keyframe", id, frame, T) | ("poses", msg)
+        self._cond = threading.Condition()
+        self.order: list[int] = []  # keyframe ids as they came
+
+    def keyframe(self, kf_id: int, frame, T_world_camera: np.ndarray) -> None:
+        with self._cond:
+            self._inbox.append(("keyframe", kf_id, frame, T_world_camera))
+            self._cond.notify()
+
+    def poses(self, msg: KeyframePoses) -> None:
+        with self._cond:
+            self._inbox.append(("poses", msg))
+            self._cond.notify()
+
+    def run(self) -> None:
+        from lapreco_hil.warp_device import device_lock
+
+        m = self.metrics
+        next_mesh = time.monotonic() + (self.period_s or 0.0)
+        while not self.links.stop.is_set() and not self.links.finished.is_set():
+            with self._cond:
+                if not self._inbox:
+                    self._cond.wait(0.05)
+                items = list(self._inbox)
+                self._inbox.clear()
+            for item in items:
+                if item[0] == "keyframe":
+                    _, kf_id, frame, T = item
+                    self.surface.add_view(kf_id, frame.image, T)
+                    self.order.append(kf_id)
+                else:
+                    msg = item[1]
+                    spans = {int(k): (None if not np.all(np.isfinite(r)) else (float(r[0]), float(r[1])))
+                             for k, r in zip(msg.keyframe_ids, msg.depth_ranges)}
+                    self.surface.set_depth_ranges(spans)
+                    with device_lock(self.device):
+                        moved = self.surface.update_poses(dict(zip(msg.keyframe_ids.tolist(), msg.poses)))
+                    m.add("dense_refused", moved)
+            # every keyframe but the newest has a neighbour on each side by now: its depth map; one that has no
+            # source view yet is tried again while it is among the newest few
+            ready = self.order[:-1]
+            if ready:
+                t0 = time.perf_counter()
+                with device_lock(self.device):
+                    fused = self.surface.fuse_pending(set(ready))
+                waiting = [k for k in ready if k in self.surface.without_sources][-RETRY_KEYFRAMES:]
+                self.order = waiting + self.order[-1:]
+                if fused:
+                    m.time_stage("dense_keyframe", (time.perf_counter() - t0) / fused)
+                    m.add("dense_keyframes", fused)
+            now = time.monotonic()
+            if self.period_s is not None and now >= next_mesh and self.surface.fused:
+                next_mesh = now + self.period_s
+                t0 = time.perf_counter()
+                with device_lock(self.device):
+                    self.mesh = self.surface.extract().mesh
+                m.time_stage("dense_mesh", time.perf_counter() - t0)
+
+    def finish(self, result):
+        """The run's dense surface from its final map (every kept keyframe at its final pose): a DenseResult."""
+        from lapreco_hil.warp_device import device_lock
+
+        for item in self._inbox:  # keyframes that came after the stage stopped
+            if item[0] == "keyframe":
+                self.surface.add_view(item[1], item[2].image, item[3])
+        self._inbox.clear()
+        with device_lock(self.device):
+            return self.surface.build(result)
 
 
 class Record:

@@ -1,12 +1,12 @@
 """Starts and stops the live run's threads and processes, and owns the shutdown order.
 
 A stage that raises is stored and reported (``errors``); an essential one (capture, tracking, the mapper)
-stops the run, an optional one (surface, record, health) is switched off under ``on_stage_error = "degrade"``
+stops the run, an optional one (surface, dense, record, health) is switched off under ``on_stage_error = "degrade"``
 and the run goes on. A mapper or BA worker process that dies is always fatal. Nothing dies silently.
 
 Shutdown, in order: capture stops; tracking finishes what capture kept; the mapper is asked for its final
 map (while the BA worker and the mapper are watched, so one killed meanwhile is reported at once); both
-processes end; the results reader ends after the mapper's last message; then surface, record and health;
+processes end; the results reader ends after the mapper's last message; then surface, dense, record and health;
 last the shared memory is unlinked."""
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ class Supervisor:
         self.threads["results"].join(timeout=10.0)
         links.finished.set()
         links.notify()
-        for name in ("surface", "record", "health"):
+        for name in ("surface", "dense", "record", "health"):
             if name in self.threads:
                 self.threads[name].join(timeout=60.0)
         procs.close()
