@@ -23,17 +23,18 @@ landmarks there are; it is solved by a dense Cholesky factorisation.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse
+import scipy.linalg.blas
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.errors import ConfigError
-from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, residual_vectors
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
 from lapreco_hil.mapping.robust import RobustSchedule
 
 log = logging.getLogger(__name__)
@@ -149,62 +150,81 @@ def robust_loss(loss: str, e: np.ndarray, k: float) -> np.ndarray:
 
 
 # --- the problem's fixed structure ----------------------------------------------------------------------------
+def pose_major(problem: BAProblem) -> tuple[BAProblem, np.ndarray]:
+    """The problem with its observations sorted by pose (each pose's are then one contiguous run, transformed
+    by one matrix product), and the permutation (``sorted[i] = original[perm[i]]``)."""
+    perm = np.argsort(problem.obs_pose, kind="stable")
+    if np.all(perm[1:] > perm[:-1]):
+        return problem, perm
+    return dataclasses.replace(problem, obs_pose=problem.obs_pose[perm], obs_point=problem.obs_point[perm],
+                               obs_uv=problem.obs_uv[perm]), perm
+
+
+@dataclass
+class _Chunk:
+    """Landmarks eliminated together through one dense block: their observations by free poses, each one's
+    chunk-local landmark row and pose column, and the camera-system indices those columns are."""
+
+    points: slice
+    obs: np.ndarray
+    row: np.ndarray
+    local: np.ndarray
+    n_cols: int
+    idx: np.ndarray
+
+
 @dataclass
 class _Layout:
     free: np.ndarray  # (F,) pose indices of the unknown poses
-    obs_point: np.ndarray  # (O,) landmark of each observation
     col: np.ndarray  # (P,) column block of a pose, -1 where fixed
+    obs_point: np.ndarray  # (O,) landmark of each observation
     obs_col: np.ndarray  # (O,) column block of the observing pose, -1 where fixed
-    order: np.ndarray  # (O,) observations sorted by point
-    pose_order: np.ndarray  # observations of free poses, sorted by pose
-    pose_starts: np.ndarray  # (F + 1,) each free pose's range in ``pose_order``
-    starts: np.ndarray  # (N + 1,) each point's range in ``order``
-    to_pose: scipy.sparse.csr_matrix  # (F, O) sums observation terms into their pose
-    to_point: scipy.sparse.csr_matrix  # (N, O) sums observation terms into their point
-    chunks: list  # [(point slice, observation slice in ``order``, column blocks it touches)]
+    pose_starts: np.ndarray  # (P + 1,) each pose's run of observations (they are pose-major)
+    n_points: int
+    chunks: list[_Chunk]
     unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
-    prior_idx: np.ndarray  # poses with a prior (free ones)
+    prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
     tie_R: np.ndarray
 
 
 def _layout(p: BAProblem) -> _Layout:
+    """The structure of a pose-major problem (``pose_major``)."""
     n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
     col = np.full(n_poses, -1, np.int64)
     col[free] = np.arange(len(free))
+    obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
-    order = np.argsort(p.obs_point, kind="stable")
-    counts = np.bincount(p.obs_point, minlength=n_points)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    seen = obs_col >= 0
-    ones = np.ones(int(seen.sum()))
-    to_pose = scipy.sparse.csr_matrix((ones, (obs_col[seen], np.flatnonzero(seen))), shape=(len(free), n_obs))
-    to_point = scipy.sparse.csr_matrix((np.ones(n_obs), (p.obs_point, np.arange(n_obs))), shape=(n_points, n_obs))
-    pair = p.obs_point.astype(np.int64) * (n_poses + 1) + p.obs_pose
-    unique_pairs = len(np.unique(pair)) == n_obs
-    # chunks of consecutive points whose dense landmark-pose block stays under CHUNK_ENTRIES
-    chunks = []
-    sorted_col = obs_col[order]
-    j = 0
+    pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
+    unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
+    # chunks of consecutive landmarks whose dense landmark-pose block stays under CHUNK_ENTRIES
+    by_point = np.argsort(obs_point, kind="stable")
+    by_point = by_point[obs_col[by_point] >= 0]
+    starts = np.searchsorted(obs_point[by_point], np.arange(n_points + 1))
+    chunks, j = [], 0
     while j < n_points:
         hi = n_points
         while True:
-            cols = np.unique(sorted_col[starts[j]:starts[hi]])
-            cols = cols[cols >= 0]
-            if (hi - j) * 3 * 6 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
+            obs = by_point[starts[j]:starts[hi]]
+            cols = np.unique(obs_col[obs])
+            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
                 break
             hi = j + max(1, (hi - j) // 2)
-        chunks.append((slice(j, hi), slice(starts[j], starts[hi]), cols))
+        if len(cols):
+            chunks.append(_Chunk(slice(j, hi), obs, obs_point[obs] - j, np.searchsorted(cols, obs_col[obs]),
+                                 len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
         j = hi
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
-    seen_sorted = np.argsort(obs_col, kind="stable")
-    pose_order = seen_sorted[obs_col[seen_sorted] >= 0]
-    pose_starts = np.concatenate([[0], np.cumsum(np.bincount(obs_col[seen], minlength=len(free)))])
-    return _Layout(free, np.asarray(p.obs_point, np.int64), col, obs_col, order, pose_order, pose_starts, starts,
-                   to_pose, to_point, chunks, unique_pairs, prior_idx, whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)))
+    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
+                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)))
+
+
+def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
+    """Sum per-observation values (O,) into their landmarks (N,)."""
+    return np.bincount(lay.obs_point, values, minlength=lay.n_points)
 
 
 # --- residuals, Jacobians, errors -------------------------------------------------------------------------------
@@ -220,38 +240,29 @@ class _Linear:
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
 
-def _camera_points(p: BAProblem, poses: np.ndarray, points: np.ndarray):
-    """Each observation's landmark in its camera's frame (O, 3), and the world-to-camera rotation (O, 3, 3)."""
-    Rcw = np.transpose(poses[:, :3, :3], (0, 2, 1))
-    t_cw = -np.einsum("nij,nj->ni", Rcw, poses[:, :3, 3])
-    Rc = Rcw[p.obs_pose]
-    Xw = points[p.obs_point]
-    Xc = (Rc[:, :, 0] * Xw[:, 0, None] + Rc[:, :, 1] * Xw[:, 1, None] + Rc[:, :, 2] * Xw[:, 2, None]
-          + t_cw[p.obs_pose])
-    return Xc, Rc
-
-
-def _project(p: BAProblem, Xc: np.ndarray):
-    """Residuals (O, 2), normalised coordinates and which points are in front; behind the camera the residual
-    is GTSAM's constant 2 fx (and its Jacobians are zero)."""
+def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray, jacobians: bool,
+                  behind: float | None = None):
+    """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
+    (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+    Xw = points[lay.obs_point]
+    Xc = np.empty_like(Xw)
+    R, t, ps = poses[:, :3, :3], poses[:, :3, 3], lay.pose_starts
+    for i in range(len(poses)):
+        run = slice(ps[i], ps[i + 1])
+        Xc[run] = (Xw[run] - t[i]) @ R[i]  # R^T (X - t), row-wise
     z = Xc[:, 2]
     front = z > 0
     zs = np.where(front, z, 1.0)
     xn, yn = Xc[:, 0] / zs, Xc[:, 1] / zs
-    r = np.empty((len(z), 2))
-    r[:, 0] = p.K[0, 0] * xn + p.K[0, 2] - p.obs_uv[:, 0]
-    r[:, 1] = p.K[1, 1] * yn + p.K[1, 2] - p.obs_uv[:, 1]
-    r[~front] = 2.0 * p.K[0, 0]
-    return r, xn, yn, zs, front
-
-
-def _reprojection(p: BAProblem, poses: np.ndarray, points: np.ndarray):
-    """Residuals (O, 2) and their Jacobians wrt the pose (O, 2, 6) and the point (O, 2, 3)."""
-    Xc, Rc = _camera_points(p, poses, points)
-    r, xn, yn, zs, front = _project(p, Xc)
     fx, fy = p.K[0, 0], p.K[1, 1]
+    r = np.empty((len(z), 2))
+    r[:, 0] = fx * xn + p.K[0, 2] - p.obs_uv[:, 0]
+    r[:, 1] = fy * yn + p.K[1, 2] - p.obs_uv[:, 1]
+    r[~front] = 2.0 * fx if behind is None else behind
+    if not jacobians:
+        return r
     a, b = fx / zs, fy / zs
-    Jc = np.empty((len(zs), 2, 6))
+    Jc = np.empty((len(z), 2, 6))
     Jc[:, 0, 0] = fx * xn * yn
     Jc[:, 0, 1] = -fx * (1.0 + xn * xn)
     Jc[:, 0, 2] = fx * yn
@@ -264,9 +275,15 @@ def _reprojection(p: BAProblem, poses: np.ndarray, points: np.ndarray):
     Jc[:, 1, 3] = 0.0
     Jc[:, 1, 4] = -b
     Jc[:, 1, 5] = b * yn
-    Jp = np.empty((len(zs), 2, 3))
-    Jp[:, 0] = a[:, None] * (Rc[:, 0] - xn[:, None] * Rc[:, 2])
-    Jp[:, 1] = b[:, None] * (Rc[:, 1] - yn[:, None] * Rc[:, 2])
+    D = np.zeros((len(z), 2, 3))  # d(pixel) / d(camera point)
+    D[:, 0, 0] = a
+    D[:, 0, 2] = -a * xn
+    D[:, 1, 1] = b
+    D[:, 1, 2] = -b * yn
+    Jp = np.empty_like(D)
+    for i in range(len(poses)):
+        run = slice(ps[i], ps[i + 1])
+        Jp[run] = (D[run].reshape(-1, 3) @ R[i].T).reshape(-1, 2, 3)
     if not front.all():
         Jc[~front] = 0.0
         Jp[~front] = 0.0
@@ -296,7 +313,7 @@ def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool
 
 def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
     """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
-    r = _project(p, _camera_points(p, poses, points)[0])[0]
+    r = _reprojection(p, lay, poses, points, jacobians=False)
     e = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2) / sigma
     total = float(np.sum(robust_loss(loss, e, k)))
     for err, _ in _pose_factors(p, lay, poses, jacobians=False):
@@ -305,26 +322,30 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
 
 
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
-    r, Jc, Jp = _reprojection(p, poses, points)
+    r, Jc, Jp = _reprojection(p, lay, poses, points, jacobians=True)
     r2 = r[:, 0] ** 2 + r[:, 1] ** 2
     s = robust_weight(loss, np.sqrt(r2) / sigma, k) / sigma**2  # whitening and the robust reweighting, squared
-    sJpT = (s[:, None, None] * Jp).transpose(0, 2, 1)
-    n_free = len(lay.free)
+    sr = s[:, None] * r
     error0 = 0.5 * float(np.sum(s * r2))
-    Hpp = (lay.to_point @ (sJpT @ Jp).reshape(-1, 9)).reshape(-1, 3, 3)
-    gp = lay.to_point @ (sJpT[:, :, 0] * r[:, 0, None] + sJpT[:, :, 1] * r[:, 1, None])
-    W = sJpT @ Jc
-    W[lay.obs_col < 0] = 0.0
+    sJp = s[:, None, None] * Jp
+    Hpp = np.empty((lay.n_points, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            Hpp[:, a, b] = Hpp[:, b, a] = _to_points(lay, sJp[:, 0, a] * Jp[:, 0, b] + sJp[:, 1, a] * Jp[:, 1, b])
+    gp = np.column_stack([_to_points(lay, Jp[:, 0, a] * sr[:, 0] + Jp[:, 1, a] * sr[:, 1]) for a in range(3)])
+    W = sJp.transpose(0, 2, 1) @ Jc
+    n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
     gc = np.zeros(6 * n_free)
     if n_free:
-        # each pose's block by one product of its whitened Jacobian rows
-        Jw = (np.sqrt(s)[:, None, None] * Jc)[lay.pose_order].reshape(-1, 6)
-        for c in range(n_free):
-            rows = Jw[2 * lay.pose_starts[c]:2 * lay.pose_starts[c + 1]]
-            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = rows.T @ rows
-        sr = s[:, None] * r
-        gc[:] = (lay.to_pose @ (Jc[:, 0] * sr[:, 0, None] + Jc[:, 1] * sr[:, 1, None])).ravel()
+        W[lay.obs_col < 0] = 0.0
+        Jw = (np.sqrt(s)[:, None, None] * Jc).reshape(-1, 6)  # whitened Jacobian rows, pose-major
+        Jr = Jc.reshape(-1, 6)
+        srf = sr.ravel()
+        for c, i in enumerate(lay.free.tolist()):
+            rows = slice(2 * lay.pose_starts[i], 2 * lay.pose_starts[i + 1])
+            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[rows].T @ Jw[rows]
+            gc[6 * c:6 * c + 6] = Jr[rows].T @ srf[rows]
     H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
     for err, jac in _pose_factors(p, lay, poses, jacobians=True):
@@ -342,62 +363,91 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
 
 
 # --- one damped step ------------------------------------------------------------------------------------------------
+def _cholesky3(V: np.ndarray):
+    """Closed-form Cholesky factors (l11, l21, l22, l31, l32, l33) of (N, 3, 3) symmetric matrices; None unless
+    every one is positive definite (LAPACK's test: a pivot <= 0 or NaN fails)."""
+    d1 = V[:, 0, 0]
+    if not np.all(d1 > 0):
+        return None
+    l11 = np.sqrt(d1)
+    l21, l31 = V[:, 1, 0] / l11, V[:, 2, 0] / l11
+    d2 = V[:, 1, 1] - l21 * l21
+    if not np.all(d2 > 0):
+        return None
+    l22 = np.sqrt(d2)
+    l32 = (V[:, 2, 1] - l31 * l21) / l22
+    d3 = V[:, 2, 2] - l31 * l31 - l32 * l32
+    if not np.all(d3 > 0):
+        return None
+    return l11, l21, l22, l31, l32, np.sqrt(d3)
+
+
+def _forward(L, X: np.ndarray) -> np.ndarray:
+    """L^-1 X for X (N, 3, ...) (L from ``_cholesky3``, broadcast over the trailing axes)."""
+    l11, l21, l22, l31, l32, l33 = (v.reshape(v.shape + (1,) * (X.ndim - 2)) for v in L)
+    Z = np.empty_like(X)
+    Z[:, 0] = X[:, 0] / l11
+    Z[:, 1] = (X[:, 1] - l21 * Z[:, 0]) / l22
+    Z[:, 2] = (X[:, 2] - l31 * Z[:, 0] - l32 * Z[:, 1]) / l33
+    return Z
+
+
+def _backward(L, Z: np.ndarray) -> np.ndarray:
+    """L^-T Z for Z (N, 3)."""
+    l11, l21, l22, l31, l32, l33 = L
+    Y = np.empty_like(Z)
+    Y[:, 2] = Z[:, 2] / l33
+    Y[:, 1] = (Z[:, 1] - l32 * Y[:, 2]) / l22
+    Y[:, 0] = (Z[:, 0] - l21 * Y[:, 1] - l31 * Y[:, 2]) / l11
+    return Y
+
+
 def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     """The step (pose tangents (F, 6), point moves (N, 3)) of the damped system, landmarks eliminated;
-    None where the reduced system is not positive definite."""
+    None where it is not positive definite (a landmark left with one weighted view is singular along its ray
+    to the damping's precision: GTSAM's elimination throws IndeterminateSystemException there, and lambda
+    grows)."""
     t0 = time.perf_counter()
-    n_points = len(lin.Hpp)
-    V = lin.Hpp + lam * np.eye(3)
-    try:
-        # a landmark left with one weighted view is singular along its ray to the damping's precision: the
-        # step fails and lambda grows (GTSAM's elimination throws IndeterminateSystemException there)
-        np.linalg.cholesky(V)
-        Vinv = np.linalg.inv(V)
-    except np.linalg.LinAlgError:
+    L = _cholesky3(lin.Hpp + lam * np.eye(3))
+    if L is None:
         timing["schur_s"] += time.perf_counter() - t0
         return None
-    Vg = np.einsum("nij,nj->ni", Vinv, lin.gp)
+    Lg = _forward(L, lin.gp[:, :, None])[:, :, 0]  # L^-1 gp
     n6 = lin.Hcc.shape[0]
-    S = lin.Hcc + lam * np.eye(n6)
+    S = lin.Hcc + lam * np.eye(n6)  # its lower triangle is what the factorisation reads
     rhs = -lin.gc.copy()
-    order = lay.order
-    for pts, obs, cols in lay.chunks:
-        if not len(cols):
-            continue
-        o = order[obs]
-        local = np.searchsorted(cols, lay.obs_col[o])
-        keep = lay.obs_col[o] >= 0
-        o, local = o[keep], local[keep]
-        n_c = pts.stop - pts.start
-        Wd = np.zeros((n_c, len(cols), 3, 6))
-        row = lay.obs_point[o] - pts.start  # the chunk-local landmark
+    for ch in lay.chunks:
+        n_c = ch.points.stop - ch.points.start
+        Wd = np.zeros((n_c, ch.n_cols, 3, 6))
         if lay.unique_pairs:
-            Wd[row, local] = lin.W[o]
+            Wd[ch.row, ch.local] = lin.W[ch.obs]
         else:
-            np.add.at(Wd, (row, local), lin.W[o])
-        Wd = Wd.transpose(0, 2, 1, 3).reshape(n_c, 3, 6 * len(cols))
-        Y = Vinv[pts] @ Wd  # (n_c, 3, 6m)
-        idx = (6 * cols[:, None] + np.arange(6)).ravel()
-        Wf = Wd.reshape(3 * n_c, -1)
-        S[np.ix_(idx, idx)] -= Wf.T @ Y.reshape(3 * n_c, -1)
-        rhs[idx] += Wf.T @ Vg[pts].ravel()
+            np.add.at(Wd, (ch.row, ch.local), lin.W[ch.obs])
+        Wd = Wd.transpose(0, 2, 1, 3).reshape(n_c, 3, 6 * ch.n_cols)
+        Lc = tuple(v[ch.points] for v in L)
+        Z = _forward(Lc, Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
+        ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
+        S[np.ix_(ch.idx, ch.idx)] -= ZtZ
+        rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
-    try:
-        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
-                                    check_finite=False) if n6 else np.zeros(0)
-    except np.linalg.LinAlgError:
-        timing["solve_s"] += time.perf_counter() - t1
-        return None
-    if not np.all(np.isfinite(dc)):
-        timing["solve_s"] += time.perf_counter() - t1
-        return None
-    # back-substitution: dp = V^-1 (-gp - W^T dc) per landmark
-    Wdc = np.zeros((n_points, 3))
+    dc = np.zeros(0)
+    if n6:
+        try:
+            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
+                                        check_finite=False)
+        except np.linalg.LinAlgError:
+            dc = np.full(n6, np.nan)
+        if not np.all(np.isfinite(dc)):
+            timing["solve_s"] += time.perf_counter() - t1
+            return None
+    # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
+    x = lin.gp.copy()
     if n6:
         dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col]  # fixed poses: row -1, zero
-        Wdc = lay.to_point @ np.einsum("oij,oj->oi", lin.W, dc_of_obs)
-    dp = -np.einsum("nij,nj->ni", Vinv, lin.gp + Wdc)
+        Wdc = (lin.W @ dc_of_obs[:, :, None])[:, :, 0]
+        x += np.column_stack([_to_points(lay, Wdc[:, a]) for a in range(3)])
+    dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
     timing["solve_s"] += time.perf_counter() - t1
     return dc.reshape(-1, 6), dp
 
@@ -470,19 +520,29 @@ def _new_timing() -> dict:
     return {"linearize_s": 0.0, "schur_s": 0.0, "solve_s": 0.0, "error_s": 0.0}
 
 
+def _residual_norms(p: BAProblem, lay: _Layout, poses, points) -> np.ndarray:
+    """(O,) reprojection error norms, inf behind the camera (``bundle_adjustment.reprojection_residuals``)."""
+    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.inf)
+    return np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
+
+
+def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    out = np.empty_like(values)
+    out[perm] = values
+    return out
+
+
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
                 max_iterations: int = 15, device: str = "cpu") -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system."""
     _check_device(device)
     t0 = time.perf_counter()
-    p = problem
+    p, perm = pose_major(problem)
     lay = _layout(p)
     timing = _new_timing()
     poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
                                              pixel_sigma, loss or "none", k, max_iterations, timing)
-    r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
-    residuals = np.linalg.norm(r, axis=1)
-    residuals[~np.isfinite(residuals)] = np.inf
+    residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
     return BAResult(poses, points, residuals, e0, e1, its, time.perf_counter() - t0,
                     {"timing": timing, "iteration_timing": per_it})
 
@@ -494,14 +554,14 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     and per stage ``iteration_timing``)."""
     _check_device(device)
     t0 = time.perf_counter()
-    p = problem
+    p, perm = pose_major(problem)
     lay = _layout(p)
     poses, points = np.array(p.poses, float), np.array(p.points, float)
     stages, iterations = [], 0
     initial_error = final_error = 0.0
     timing = _new_timing()
     for n, stage in enumerate(schedule.stages):
-        r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
+        r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
         sigma = pixel_sigma(p, r, schedule)
         stage_timing = _new_timing()
         poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
@@ -515,11 +575,12 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
         stages.append({"loss": stage.loss, "sigma_px": sigma, "k": stage.k, "iterations": its,
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
                        "iteration_timing": per_it})
-    r = residual_vectors(p.K, poses, points, p.obs_pose, p.obs_point, p.obs_uv)
-    residuals = np.linalg.norm(r, axis=1)
+    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
+    residuals = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
     residuals[~np.isfinite(residuals)] = np.inf
     sigma_final = pixel_sigma(p, r, schedule)
     threshold = schedule.inlier_threshold_px(sigma_final)
+    residuals = _unsorted(residuals, perm)
     return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
                     {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,
                      "inlier_obs": residuals <= threshold, "timing": timing})
