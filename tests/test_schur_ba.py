@@ -203,6 +203,7 @@ def test_chunked_elimination_equals_one_block(monkeypatch):
     """A final pass eliminates its landmarks chunk by chunk (bounded memory); a local window in one block."""
     syn = make_problem(np.random.default_rng(7), n_views=20, n_points=600)
     p = dataclasses.replace(syn.problem, fixed=np.arange(20) < 2)
+    monkeypatch.setattr(schur, "CHUNK_POINTS", 10_000)
     one = schur.solve_schur(p, 0.5, "cauchy", 3.0)
     assert len(schur._layout(schur.pose_major(p)[0]).chunks) == 1
     monkeypatch.setattr(schur, "CHUNK_ENTRIES", 20_000)

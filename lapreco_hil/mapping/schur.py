@@ -23,7 +23,10 @@ landmarks there are; it is solved by a dense Cholesky factorisation.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import dataclasses
+import functools
 import logging
 import time
 from dataclasses import dataclass
@@ -46,11 +49,49 @@ LAMBDA_UPPER = 1e5
 RELATIVE_ERROR_TOL = 1e-5
 ABSOLUTE_ERROR_TOL = 1e-5
 MIN_MODEL_FIDELITY = 1e-3
-# a chunk of landmarks is eliminated at a time through a dense (3 x chunk) x (6 x its poses) block of at most
-# this many entries: one chunk for a local window, bounded memory for a final pass
+# landmarks are eliminated a chunk at a time through a dense (3 x chunk) x (6 x the chunk's poses) block of at
+# most CHUNK_POINTS landmarks and CHUNK_ENTRIES entries: a long map's chunks each touch a few of its poses, so
+# the work grows with the track lengths, not with the map's size, and the memory stays bounded
+CHUNK_POINTS = 256
 CHUNK_ENTRIES = 4_000_000
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
+
+
+# --- BLAS threads ------------------------------------------------------------------------------------------------
+@functools.cache
+def _openblas_libraries() -> tuple:
+    """The OpenBLAS copies loaded in this process (numpy's and scipy's wheels bundle one each) that can set a
+    thread count for the calling thread alone (OpenBLAS >= 0.3.27); empty where there are none or no /proc."""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "openblas" in line and ".so" in line}
+    except OSError:
+        return ()
+    libs = []
+    for path in sorted(paths):
+        try:
+            setter = ctypes.CDLL(path).openblas_set_num_threads_local
+        except (OSError, AttributeError):
+            continue
+        setter.restype, setter.argtypes = ctypes.c_int, [ctypes.c_int]
+        libs.append(setter)
+    return tuple(libs)
+
+
+@contextlib.contextmanager
+def single_threaded_blas():
+    """BLAS on one thread for this thread, while inside. The solver's products and factorisations are a few
+    hundred wide: OpenBLAS's worker threads gain little there and, on cores shared with the tracker and the other
+    processes (the live runtime, a loaded machine), their spinning made solves 10-30x slower
+    (docs/benchmarks.md)."""
+    setters = _openblas_libraries()
+    previous = [set_threads(1) for set_threads in setters]
+    try:
+        yield
+    finally:
+        for set_threads, n in zip(setters, previous):
+            set_threads(n)
 
 
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
@@ -165,7 +206,7 @@ class _Chunk:
     """Landmarks eliminated together through one dense block: their observations by free poses, each one's
     chunk-local landmark row and pose column, and the camera-system indices those columns are."""
 
-    points: slice
+    points: np.ndarray  # the landmarks
     obs: np.ndarray
     row: np.ndarray
     local: np.ndarray
@@ -199,22 +240,29 @@ def _layout(p: BAProblem) -> _Layout:
     obs_col = col[p.obs_pose]
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
     unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
-    # chunks of consecutive landmarks whose dense landmark-pose block stays under CHUNK_ENTRIES
-    by_point = np.argsort(obs_point, kind="stable")
-    by_point = by_point[obs_col[by_point] >= 0]
-    starts = np.searchsorted(obs_point[by_point], np.arange(n_points + 1))
+    # landmarks in the order of the first free pose that sees them (a long map's tracks then share their poses
+    # with their neighbours), cut into chunks of at most CHUNK_POINTS whose dense block stays under CHUNK_ENTRIES
+    seen = obs_col >= 0
+    first_col = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first_col, obs_point[seen], obs_col[seen])
+    point_order = np.argsort(first_col, kind="stable")
+    point_order = point_order[first_col[point_order] < len(free)]
+    rank = np.empty(n_points, np.int64)
+    rank[point_order] = np.arange(len(point_order))
+    by_rank = np.flatnonzero(seen)
+    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
+    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
     chunks, j = [], 0
-    while j < n_points:
-        hi = n_points
+    while j < len(point_order):
+        hi = min(len(point_order), j + CHUNK_POINTS)
         while True:
-            obs = by_point[starts[j]:starts[hi]]
+            obs = by_rank[starts[j]:starts[hi]]
             cols = np.unique(obs_col[obs])
             if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
                 break
             hi = j + max(1, (hi - j) // 2)
-        if len(cols):
-            chunks.append(_Chunk(slice(j, hi), obs, obs_point[obs] - j, np.searchsorted(cols, obs_col[obs]),
-                                 len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
+        chunks.append(_Chunk(point_order[j:hi], obs, rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]),
+                             len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
         j = hi
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
@@ -417,7 +465,7 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     S = lin.Hcc + lam * np.eye(n6)  # its lower triangle is what the factorisation reads
     rhs = -lin.gc.copy()
     for ch in lay.chunks:
-        n_c = ch.points.stop - ch.points.start
+        n_c = len(ch.points)
         Wd = np.zeros((n_c, ch.n_cols, 3, 6))
         if lay.unique_pairs:
             Wd[ch.row, ch.local] = lin.W[ch.obs]
@@ -540,8 +588,9 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
     p, perm = pose_major(problem)
     lay = _layout(p)
     timing = _new_timing()
-    poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
-                                             pixel_sigma, loss or "none", k, max_iterations, timing)
+    with single_threaded_blas():
+        poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
+                                                 pixel_sigma, loss or "none", k, max_iterations, timing)
     residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
     return BAResult(poses, points, residuals, e0, e1, its, time.perf_counter() - t0,
                     {"timing": timing, "iteration_timing": per_it})
@@ -564,8 +613,9 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
         r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
         sigma = pixel_sigma(p, r, schedule)
         stage_timing = _new_timing()
-        poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
-                                                 stage.iterations, stage_timing)
+        with single_threaded_blas():
+            poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
+                                                     stage.iterations, stage_timing)
         for key in timing:
             timing[key] += stage_timing[key]
         final_error = e1
