@@ -220,3 +220,13 @@ def test_the_mapper_uses_the_configured_solver():
     assert Mapper(K, MapperConfig(ba_solver="gtsam")).solve_ba is ba.solve_robust
     with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres': use schur or gtsam"):
         Mapper(K, MapperConfig(ba_solver="ceres"))
+
+
+def test_a_live_run_refuses_an_unknown_solver_before_it_starts():
+    from lapreco_hil.config import PipelineConfig
+    from lapreco_hil.runtime.live import LiveRun
+
+    config = PipelineConfig()
+    config = dataclasses.replace(config, mapper=dataclasses.replace(config.mapper, ba_solver="ceres"))
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres'"):
+        LiveRun(None, None, None, config, tracker="opencv", device="cpu")

@@ -52,7 +52,7 @@ MIN_MODEL_FIDELITY = 1e-3
 # landmarks are eliminated a chunk at a time through a dense (3 x chunk) x (6 x the chunk's poses) block of at
 # most CHUNK_POINTS landmarks and CHUNK_ENTRIES entries: a long map's chunks each touch a few of its poses, so
 # the work grows with the track lengths, not with the map's size, and the memory stays bounded
-CHUNK_POINTS = 256
+CHUNK_POINTS = 1024
 CHUNK_ENTRIES = 4_000_000
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
