@@ -52,7 +52,7 @@ MIN_MODEL_FIDELITY = 1e-3
 # landmarks are eliminated a chunk at a time through a dense (3 x chunk) x (6 x the chunk's poses) block of at
 # most CHUNK_POINTS landmarks and CHUNK_ENTRIES entries: a long map's chunks each touch a few of its poses, so
 # the work grows with the track lengths, not with the map's size, and the memory stays bounded
-CHUNK_POINTS = 1024
+CHUNK_POINTS = 256
 CHUNK_ENTRIES = 4_000_000
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
@@ -207,9 +207,8 @@ class _Chunk:
     chunk-local landmark row and pose column, and the camera-system indices those columns are."""
 
     points: np.ndarray  # the landmarks
-    obs: np.ndarray
-    row: np.ndarray
-    local: np.ndarray
+    obs: np.ndarray  # their observations by free poses
+    dest: np.ndarray  # (3, 6, len(obs)) where each observation's W block goes in the chunk's (n, 3, 6 m) block
     n_cols: int
     idx: np.ndarray
 
@@ -261,8 +260,10 @@ def _layout(p: BAProblem) -> _Layout:
             if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
                 break
             hi = j + max(1, (hi - j) // 2)
-        chunks.append(_Chunk(point_order[j:hi], obs, rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]),
-                             len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
+        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
+        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
+                                                                + np.arange(6)[None, :])[:, :, None]
+        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
         j = hi
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
@@ -276,6 +277,8 @@ def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
 
 
 # --- residuals, Jacobians, errors -------------------------------------------------------------------------------
+# Per-observation quantities are kept component-major ((component, O) arrays): every arithmetic pass then runs
+# over contiguous memory, a few times faster in numpy than the (O, 2, 6) layout's strided columns.
 @dataclass
 class _Linear:
     """One linearisation: the normal equations' blocks (landmark-pose blocks per observation)."""
@@ -284,58 +287,72 @@ class _Linear:
     gc: np.ndarray  # (6F,)
     Hpp: np.ndarray  # (N, 3, 3)
     gp: np.ndarray  # (N, 3)
-    W: np.ndarray  # (O, 3, 6) s Jp^T Jc per observation (zero where the pose is fixed)
+    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed)
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
 
-def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray, jacobians: bool,
-                  behind: float | None = None):
-    """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
-    (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+def _project(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray):
+    """(residual u, residual v, x/z, y/z, z, in front): (O,) each; behind the camera the residual is GTSAM's
+    constant 2 fx and z is 1."""
     Xw = points[lay.obs_point]
     Xc = np.empty_like(Xw)
     R, t, ps = poses[:, :3, :3], poses[:, :3, 3], lay.pose_starts
     for i in range(len(poses)):
         run = slice(ps[i], ps[i + 1])
         Xc[run] = (Xw[run] - t[i]) @ R[i]  # R^T (X - t), row-wise
-    z = Xc[:, 2]
-    front = z > 0
-    zs = np.where(front, z, 1.0)
-    xn, yn = Xc[:, 0] / zs, Xc[:, 1] / zs
+    Xc = Xc.T.copy()
+    front = Xc[2] > 0
+    zs = np.where(front, Xc[2], 1.0)
+    xn, yn = Xc[0] / zs, Xc[1] / zs
+    ru = p.K[0, 0] * xn + (p.K[0, 2] - p.obs_uv[:, 0])
+    rv = p.K[1, 1] * yn + (p.K[1, 2] - p.obs_uv[:, 1])
+    if not front.all():
+        ru[~front] = rv[~front] = 2.0 * p.K[0, 0]
+    return ru, rv, xn, yn, zs, front
+
+
+def _jacobians(p: BAProblem, lay: _Layout, poses: np.ndarray, xn, yn, zs, front):
+    """d residual / d pose tangent (2, 6, O) and d residual / d point (2, 3, O); zero behind the camera."""
     fx, fy = p.K[0, 0], p.K[1, 1]
-    r = np.empty((len(z), 2))
-    r[:, 0] = fx * xn + p.K[0, 2] - p.obs_uv[:, 0]
-    r[:, 1] = fy * yn + p.K[1, 2] - p.obs_uv[:, 1]
-    r[~front] = 2.0 * fx if behind is None else behind
+    a, b = fx / zs, fy / zs
+    n = len(zs)
+    Jc = np.empty((2, 6, n))
+    Jc[0, 0] = fx * xn * yn
+    Jc[0, 1] = -fx * (1.0 + xn * xn)
+    Jc[0, 2] = fx * yn
+    Jc[0, 3] = -a
+    Jc[0, 4] = 0.0
+    Jc[0, 5] = a * xn
+    Jc[1, 0] = fy * (1.0 + yn * yn)
+    Jc[1, 1] = -(fy / fx) * Jc[0, 0]
+    Jc[1, 2] = -fy * xn
+    Jc[1, 3] = 0.0
+    Jc[1, 4] = -b
+    Jc[1, 5] = b * yn
+    # d(pixel)/d(camera point) times R^T: rows of each observation's camera rotation, repeated over its run
+    Rcw = np.repeat(np.transpose(poses[:, :3, :3], (0, 2, 1)).reshape(-1, 9), np.diff(lay.pose_starts), axis=0).T
+    Jp = np.empty((2, 3, n))
+    for k in range(3):
+        Jp[0, k] = a * (Rcw[k] - xn * Rcw[6 + k])
+        Jp[1, k] = b * (Rcw[3 + k] - yn * Rcw[6 + k])
+    if not front.all():
+        Jc[:, :, ~front] = 0.0
+        Jp[:, :, ~front] = 0.0
+    return Jc, Jp
+
+
+def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray, jacobians: bool,
+                  behind: float | None = None):
+    """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
+    (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+    ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
+    r = np.column_stack([ru, rv])
+    if behind is not None:
+        r[~front] = behind
     if not jacobians:
         return r
-    a, b = fx / zs, fy / zs
-    Jc = np.empty((len(z), 2, 6))
-    Jc[:, 0, 0] = fx * xn * yn
-    Jc[:, 0, 1] = -fx * (1.0 + xn * xn)
-    Jc[:, 0, 2] = fx * yn
-    Jc[:, 0, 3] = -a
-    Jc[:, 0, 4] = 0.0
-    Jc[:, 0, 5] = a * xn
-    Jc[:, 1, 0] = fy * (1.0 + yn * yn)
-    Jc[:, 1, 1] = -Jc[:, 0, 0] * (fy / fx)
-    Jc[:, 1, 2] = -fy * xn
-    Jc[:, 1, 3] = 0.0
-    Jc[:, 1, 4] = -b
-    Jc[:, 1, 5] = b * yn
-    D = np.zeros((len(z), 2, 3))  # d(pixel) / d(camera point)
-    D[:, 0, 0] = a
-    D[:, 0, 2] = -a * xn
-    D[:, 1, 1] = b
-    D[:, 1, 2] = -b * yn
-    Jp = np.empty_like(D)
-    for i in range(len(poses)):
-        run = slice(ps[i], ps[i + 1])
-        Jp[run] = (D[run].reshape(-1, 3) @ R[i].T).reshape(-1, 2, 3)
-    if not front.all():
-        Jc[~front] = 0.0
-        Jp[~front] = 0.0
-    return r, Jc, Jp
+    Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
+    return r, np.transpose(Jc, (2, 0, 1)), np.transpose(Jp, (2, 0, 1))
 
 
 def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
@@ -361,39 +378,41 @@ def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool
 
 def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
     """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
-    r = _reprojection(p, lay, poses, points, jacobians=False)
-    e = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2) / sigma
-    total = float(np.sum(robust_loss(loss, e, k)))
+    ru, rv = _project(p, lay, poses, points)[:2]
+    total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
     for err, _ in _pose_factors(p, lay, poses, jacobians=False):
         total += 0.5 * float(np.sum(err * err))
     return total
 
 
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
-    r, Jc, Jp = _reprojection(p, lay, poses, points, jacobians=True)
-    r2 = r[:, 0] ** 2 + r[:, 1] ** 2
+    ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
+    Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
+    r2 = ru * ru + rv * rv
     s = robust_weight(loss, np.sqrt(r2) / sigma, k) / sigma**2  # whitening and the robust reweighting, squared
-    sr = s[:, None] * r
+    su, sv = s * ru, s * rv
     error0 = 0.5 * float(np.sum(s * r2))
-    sJp = s[:, None, None] * Jp
+    sJp = s * Jp
     Hpp = np.empty((lay.n_points, 3, 3))
     for a in range(3):
         for b in range(a, 3):
-            Hpp[:, a, b] = Hpp[:, b, a] = _to_points(lay, sJp[:, 0, a] * Jp[:, 0, b] + sJp[:, 1, a] * Jp[:, 1, b])
-    gp = np.column_stack([_to_points(lay, Jp[:, 0, a] * sr[:, 0] + Jp[:, 1, a] * sr[:, 1]) for a in range(3)])
-    W = sJp.transpose(0, 2, 1) @ Jc
+            Hpp[:, a, b] = Hpp[:, b, a] = _to_points(lay, sJp[0, a] * Jp[0, b] + sJp[1, a] * Jp[1, b])
+    gp = np.column_stack([_to_points(lay, Jp[0, a] * su + Jp[1, a] * sv) for a in range(3)])
+    W = np.empty((3, 6, len(s)))
+    for a in range(3):
+        for b in range(6):  # one contiguous pass each (a broadcast product is 3x slower here)
+            np.multiply(sJp[0, a], Jc[0, b], out=W[a, b])
+            W[a, b] += sJp[1, a] * Jc[1, b]
     n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
     gc = np.zeros(6 * n_free)
     if n_free:
-        W[lay.obs_col < 0] = 0.0
-        Jw = (np.sqrt(s)[:, None, None] * Jc).reshape(-1, 6)  # whitened Jacobian rows, pose-major
-        Jr = Jc.reshape(-1, 6)
-        srf = sr.ravel()
+        W[:, :, lay.obs_col < 0] = 0.0
+        Jw = np.sqrt(s) * Jc  # whitened Jacobian rows; each pose's observations are one run
         for c, i in enumerate(lay.free.tolist()):
-            rows = slice(2 * lay.pose_starts[i], 2 * lay.pose_starts[i + 1])
-            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[rows].T @ Jw[rows]
-            gc[6 * c:6 * c + 6] = Jr[rows].T @ srf[rows]
+            run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
+            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
+            gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
     H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
     for err, jac in _pose_factors(p, lay, poses, jacobians=True):
@@ -466,12 +485,12 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     rhs = -lin.gc.copy()
     for ch in lay.chunks:
         n_c = len(ch.points)
-        Wd = np.zeros((n_c, ch.n_cols, 3, 6))
+        # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
+        Wd = (np.empty if lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols else np.zeros)((n_c, 3, 6 * ch.n_cols))
         if lay.unique_pairs:
-            Wd[ch.row, ch.local] = lin.W[ch.obs]
+            Wd.ravel()[ch.dest] = lin.W[:, :, ch.obs]
         else:
-            np.add.at(Wd, (ch.row, ch.local), lin.W[ch.obs])
-        Wd = Wd.transpose(0, 2, 1, 3).reshape(n_c, 3, 6 * ch.n_cols)
+            np.add.at(Wd.ravel(), ch.dest, lin.W[:, :, ch.obs])
         Lc = tuple(v[ch.points] for v in L)
         Z = _forward(Lc, Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
         ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
@@ -492,9 +511,8 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
     x = lin.gp.copy()
     if n6:
-        dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col]  # fixed poses: row -1, zero
-        Wdc = (lin.W @ dc_of_obs[:, :, None])[:, :, 0]
-        x += np.column_stack([_to_points(lay, Wdc[:, a]) for a in range(3)])
+        dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1, zero
+        x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", lin.W[a], dc_of_obs)) for a in range(3)])
     dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
     timing["solve_s"] += time.perf_counter() - t1
     return dc.reshape(-1, 6), dp
