@@ -36,7 +36,6 @@ import scipy.linalg
 import scipy.linalg.blas
 from scipy.spatial.transform import Rotation
 
-from lapreco_hil.errors import ConfigError
 from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
 from lapreco_hil.mapping.robust import RobustSchedule
 
@@ -226,10 +225,12 @@ class _Layout:
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
     tie_R: np.ndarray
+    kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
 
 
-def _layout(p: BAProblem) -> _Layout:
-    """The structure of a pose-major problem (``pose_major``)."""
+def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
+    """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
+    that is "numpy"."""
     n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -267,8 +268,13 @@ def _layout(p: BAProblem) -> _Layout:
         j = hi
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
+    kernels = None
+    if device != "numpy":
+        from lapreco_hil.mapping.schur_kernels import ObservationKernels
+
+        kernels = ObservationKernels(p, obs_col, len(free), device)
     return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
-                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)))
+                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
 
 
 def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
@@ -287,7 +293,7 @@ class _Linear:
     gc: np.ndarray  # (6F,)
     Hpp: np.ndarray  # (N, 3, 3)
     gp: np.ndarray  # (N, 3)
-    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed)
+    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); (O, 3, 6) from kernels
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
 
@@ -378,14 +384,24 @@ def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool
 
 def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
     """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
-    ru, rv = _project(p, lay, poses, points)[:2]
-    total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
+    if lay.kernels is not None:
+        total = lay.kernels.error(poses, points, sigma, loss, k)
+    else:
+        ru, rv = _project(p, lay, poses, points)[:2]
+        total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
     for err, _ in _pose_factors(p, lay, poses, jacobians=False):
         total += 0.5 * float(np.sum(err * err))
     return total
 
 
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
+    if lay.kernels is not None:
+        W, Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        n_free = len(lay.free)
+        Hcc = np.zeros((6 * n_free, 6 * n_free))
+        for c in range(n_free):
+            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[c]
+        return _with_pose_factors(p, lay, poses, Hcc, grads.ravel().copy(), Hpp, gp, W, 0.5 * weighted_sq)
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
     r2 = ru * ru + rv * rv
@@ -413,6 +429,12 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
             run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
             Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
             gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
+    return _with_pose_factors(p, lay, poses, Hcc, gc, Hpp, gp, W, error0)
+
+
+def _with_pose_factors(p: BAProblem, lay: _Layout, poses, Hcc, gc, Hpp, gp, W, error0: float) -> _Linear:
+    """The linearisation with the priors' and ties' terms added to the pose blocks."""
+    n_free = len(lay.free)
     H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
     for err, jac in _pose_factors(p, lay, poses, jacobians=True):
@@ -483,16 +505,23 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     n6 = lin.Hcc.shape[0]
     S = lin.Hcc + lam * np.eye(n6)  # its lower triangle is what the factorisation reads
     rhs = -lin.gc.copy()
-    for ch in lay.chunks:
+    on_device = lay.kernels is not None and lay.unique_pairs
+    if on_device:
+        lay.kernels.set_landmark_factors(np.column_stack(L))
+    W = lin.W if lay.kernels is None else np.transpose(lin.W, (1, 2, 0))  # (3, 6, O)
+    for n, ch in enumerate(lay.chunks):
         n_c = len(ch.points)
         # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
-        Wd = (np.empty if lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols else np.zeros)((n_c, 3, 6 * ch.n_cols))
-        if lay.unique_pairs:
-            Wd.ravel()[ch.dest] = lin.W[:, :, ch.obs]
+        dense = lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols
+        if on_device:
+            Z = lay.kernels.whitened_blocks(n, ch, dense)  # L^-1 W: S -= Z^T Z
         else:
-            np.add.at(Wd.ravel(), ch.dest, lin.W[:, :, ch.obs])
-        Lc = tuple(v[ch.points] for v in L)
-        Z = _forward(Lc, Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
+            Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
+            if lay.unique_pairs:
+                Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+            else:
+                np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
+            Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
         ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
         S[np.ix_(ch.idx, ch.idx)] -= ZtZ
         rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
@@ -511,8 +540,11 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
     x = lin.gp.copy()
     if n6:
-        dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1, zero
-        x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", lin.W[a], dc_of_obs)) for a in range(3)])
+        if lay.kernels is not None:
+            x += lay.kernels.w_times_step(dc.reshape(-1, 6))
+        else:
+            dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1
+            x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", W[a], dc_of_obs)) for a in range(3)])
     dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
     timing["solve_s"] += time.perf_counter() - t1
     return dc.reshape(-1, 6), dp
@@ -577,9 +609,13 @@ def _lm(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: f
     return poses, points, error_before, error, iterations, per_iteration
 
 
-def _check_device(device: str) -> None:
-    if device != "cpu":
-        raise ConfigError(f"Schur bundle adjustment device '{device}': only 'cpu' (numpy) is implemented")
+def _check_device(device: str) -> str:
+    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels."""
+    if device == "numpy":
+        return device
+    from lapreco_hil.warp_device import resolve_device
+
+    return resolve_device(device)
 
 
 def _new_timing() -> dict:
@@ -600,11 +636,12 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
                 max_iterations: int = 15, device: str = "cpu") -> BAResult:
-    """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system."""
-    _check_device(device)
+    """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
+    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp)."""
+    device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p)
+    lay = _layout(p, device)
     timing = _new_timing()
     with single_threaded_blas():
         poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
@@ -618,11 +655,11 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
     (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
-    and per stage ``iteration_timing``)."""
-    _check_device(device)
+    and per stage ``iteration_timing``). ``device`` as ``solve_schur``'s."""
+    device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p)
+    lay = _layout(p, device)
     poses, points = np.array(p.poses, float), np.array(p.points, float)
     stages, iterations = [], 0
     initial_error = final_error = 0.0
