@@ -114,7 +114,8 @@ def _schur_row(seconds: float, cpu_s: float, result: ba.BAResult, reference: ba.
                         "iteration_timing": st["iteration_timing"]} for st in result.stats["stages"]]}
 
 
-def run(repeats: int = 3, seed: int = 0) -> dict:
+def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
+    """``device``: the Warp device of the Schur solver's kernels (its numpy path is timed too)."""
     syn = make_problem(np.random.default_rng(seed), n_views=10, n_points=2000, jump=0.02, highlight=0.015,
                        instrument=0.015)
     p = syn.problem
@@ -126,8 +127,11 @@ def run(repeats: int = 3, seed: int = 0) -> dict:
     t, r = _median_time(lambda: ba.solve_robust(p, RobustSchedule()), repeats, cpu)
     rows["lm_mad_cauchy_tukey_cold"] = {"s": t, "cpu_s": cpu["s"], "iterations": r.iterations,
                                         "pose_rms_mm": _pose_rms_mm(r.poses, syn.true_poses)}
-    t, rs = _median_time(lambda: solve_robust_schur(p, RobustSchedule()), repeats, cpu)
+    solve_robust_schur(p, RobustSchedule((RobustStage("cauchy", CAUCHY_K, 1),)), device=device)  # compile/load
+    t, rs = _median_time(lambda: solve_robust_schur(p, RobustSchedule(), device=device), repeats, cpu)
     rows["schur_mad_cauchy_tukey_cold"] = _schur_row(t, cpu["s"], rs, r, syn)
+    t, rs = _median_time(lambda: solve_robust_schur(p, RobustSchedule(), device="numpy"), repeats, cpu)
+    rows["schur_numpy_mad_cauchy_tukey_cold"] = _schur_row(t, cpu["s"], rs, r, syn)
     warm = ba.BAProblem(**{**p.__dict__, "poses": r.poses.copy(), "points": r.points.copy()})
     # the next window starts from the last solution: one new keyframe from its prior
     warm.poses[-1] = p.prior_poses[-1]
@@ -135,12 +139,14 @@ def run(repeats: int = 3, seed: int = 0) -> dict:
     t, rw = _median_time(lambda: ba.solve_robust(warm, quick), repeats, cpu)
     rows["lm_mad_cauchy_tukey_warm_3+3"] = {"s": t, "cpu_s": cpu["s"], "iterations": rw.iterations,
                                             "pose_rms_mm": _pose_rms_mm(rw.poses, syn.true_poses)}
-    t, rsw = _median_time(lambda: solve_robust_schur(warm, quick), repeats, cpu)
+    t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device=device), repeats, cpu)
     rows["schur_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
+    t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device="numpy"), repeats, cpu)
+    rows["schur_numpy_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
     # a final pass over a long session's map (GTSAM's PCG path takes minutes here: docs/benchmarks.md)
     long_problem, long_truth = long_session_problem(np.random.default_rng(seed))
     final = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStage("tukey", TUKEY_C, 15)))
-    t, rl = _median_time(lambda: solve_robust_schur(long_problem, final), 1, cpu)
+    t, rl = _median_time(lambda: solve_robust_schur(long_problem, final, device=device), 1, cpu)
     rows["schur_final_ba_300kf_15+15"] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations,
                                           "pose_rms_mm": _pose_rms_mm(rl.poses, long_truth),
                                           "timing": rl.stats["timing"]}
@@ -169,6 +175,7 @@ def run(repeats: int = 3, seed: int = 0) -> dict:
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                     "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?"},
         "repeats": repeats,
+        "schur_device": device,
         "results": rows,
     }
 
@@ -180,14 +187,15 @@ def format_table(result: dict) -> str:
              f"final BA: {result['final_ba_problem']['keyframes']} keyframes x {result['final_ba_problem']['points']} "
              f"points, {result['final_ba_problem']['observations']} observations; prior pose RMS "
              f"{result['final_ba_problem']['prior_pose_rms_mm']:.3f} mm",
-             f"{'method':32s} {'time ms':>9s} {'CPU ms':>8s} {'pose RMS mm':>12s} {'iterations':>10s} "
+             f"Schur solver rows: kernels on Warp device {result.get('schur_device', 'cpu')} (schur_numpy_*: numpy)",
+             f"{'method':38s} {'time ms':>9s} {'CPU ms':>8s} {'pose RMS mm':>12s} {'iterations':>10s} "
              f"{'labels != gtsam':>15s}"]
     for name, row in result["results"].items():
         acc = f"{row['pose_rms_mm']:.3f}" if "pose_rms_mm" in row else "-"
         cpu = f"{1e3 * row['cpu_s']:.1f}" if "cpu_s" in row else "-"
         its = str(row.get("iterations", "-"))
         labels = str(row.get("labels_differing_from_gtsam", "-"))
-        lines.append(f"{name:32s} {1e3 * row['s']:9.1f} {cpu:>8s} {acc:>12s} {its:>10s} {labels:>15s}")
+        lines.append(f"{name:38s} {1e3 * row['s']:9.1f} {cpu:>8s} {acc:>12s} {its:>10s} {labels:>15s}")
     lines.append("Schur solver, where the time goes (ms per LM iteration: linearise / Schur complement / solve / "
                  "error evaluations):")
     for name, row in result["results"].items():
