@@ -1,6 +1,8 @@
-"""Bundle adjustment by Levenberg-Marquardt on the reduced camera system (the Schur complement), vectorised
-with numpy: the same problem, robust schedule and answers as the GTSAM solver in ``bundle_adjustment``, a few
-times faster on a local window because nothing is built per factor.
+"""Bundle adjustment by Levenberg-Marquardt on the reduced camera system (the Schur complement): the same
+problem, robust schedule and answers as the GTSAM solver in ``bundle_adjustment``, several times faster on a
+local window because nothing is built per factor. The per-observation work runs as Warp kernels
+(``schur_kernels``; Warp's CPU device by default, CUDA if asked) or in numpy (``device="numpy"``); the LM logic
+and the small dense camera system stay on the host.
 
 What is kept identical to GTSAM, so that the optimum and the path to it are the same:
 
