@@ -125,6 +125,9 @@ class MapperConfig:
     min_inlier_observations: int = ranged(3, ge=2)
     min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
     final_global_ba: bool = True
+    # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
+    # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)
+    ba_solver: str = "schur"
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
     active_keyframes: int = ranged(400, ge=0)

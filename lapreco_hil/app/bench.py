@@ -107,11 +107,12 @@ def bench_frontend(device: str = "auto", resolutions=((1920, 1080),), features=(
     return run(resolve_device(device), list(resolutions), list(features), frames=frames)
 
 
-def bench_ba(repeats: int = 3) -> dict:
-    """One local BA window: 10 keyframes x 2000 points, 5% outliers."""
+def bench_ba(repeats: int = 3, device: str = "cpu") -> dict:
+    """One local BA window: 10 keyframes x 2000 points, 5% outliers; ``device``: the Schur solver's Warp device."""
     from lapreco_hil.bench.ba import run
+    from lapreco_hil.warp_device import resolve_device
 
-    return run(repeats=repeats)
+    return run(repeats=repeats, device=resolve_device(device))
 
 
 def bench_robot(links=("serial", "canopen"), rates=(100.0, 500.0), seconds: float = 5.0) -> dict:

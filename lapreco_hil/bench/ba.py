@@ -1,5 +1,6 @@
 """``lapreco bench ba``: one local-BA window of 10 keyframes x 2000 points (~20k observations) with 5% gross
-outliers, solved the ways the live loop could solve it, timed on this machine."""
+outliers, solved the ways the live loop could solve it (GTSAM, the Schur-complement solver), and a final pass
+over a long session's map, timed on this machine."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from lapreco_hil.geometry import pose_error
+from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.schur import solve_robust_schur
 from lapreco_hil.mapping.synthetic import make_problem
 
 
@@ -20,12 +22,17 @@ def _pose_rms_mm(poses, truth) -> float:
     return float(1e3 * np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(poses, truth)])))
 
 
-def _median_time(fn, repeats: int):
-    times, out = [], None
+def _median_time(fn, repeats: int, cpu: dict | None = None):
+    """Median wall time of ``fn`` over ``repeats`` runs (and its last result); ``cpu['s']`` gets the median
+    CPU time of this process (what the wall time would be on cores of its own: 7 agents share this machine's 2)."""
+    times, cpu_times, out = [], [], None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t0)
+        cpu_times.append(time.process_time() - c0)
+    if cpu is not None:
+        cpu["s"] = float(np.median(cpu_times))
     return float(np.median(times)), out
 
 
@@ -65,7 +72,50 @@ def _isam2_update(syn, sigma: float) -> tuple[float, float]:
     return dt, _pose_rms_mm(poses, syn.true_poses)
 
 
-def run(repeats: int = 3, seed: int = 0) -> dict:
+def long_session_problem(rng: np.random.Generator, n_views: int = 300, new_points_per_view: int = 50,
+                         track_views: int = 15, pixel_noise: float = 0.5, outliers: float = 0.05):
+    """A final pass's problem: a scope sweeping 0.5 mm per keyframe over tissue with relief, every landmark seen
+    by ``track_views`` consecutive keyframes, robot priors drawn from their covariance, the first two keyframes
+    fixed (retired), ``outliers`` of the tracks jumping by 6-25 px half-way. Returns (problem, true poses)."""
+    K = np.array([[1400.0, 0, 960], [0, 1400.0, 540], [0, 0, 1]])  # 1080p
+    rot_sigma, trans_sigma = 0.003, 0.0004
+    s = 0.0005 * np.arange(n_views)
+    eyes = np.column_stack([s, 0.004 * np.sin(s * 40), np.zeros(n_views)])
+    true = np.array([look_at(e, e + np.array([0.0, 0.0, 0.1]), np.array([0, -1.0, 0])) for e in eyes])
+    priors = np.array([T @ make_T(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
+                                  rng.normal(0, trans_sigma, 3)) for T in true])
+    first = np.repeat(np.arange(n_views - track_views + 1), new_points_per_view)
+    mid = eyes[first + track_views // 2]
+    xy = mid[:, :2] + rng.uniform(-0.02, 0.02, (len(first), 2))
+    pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
+    obs_point = np.repeat(np.arange(len(pts)), track_views)
+    obs_pose = (first[:, None] + np.arange(track_views)).ravel()
+    T_cw = np.linalg.inv(true)[obs_pose]
+    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
+    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
+    jumped = np.repeat(rng.random(len(pts)) < outliers, track_views) & (np.tile(np.arange(track_views),
+                                                                                 len(pts)) >= track_views // 2)
+    uv[jumped] += rng.uniform(6, 25, (int(jumped.sum()), 2)) * rng.choice([-1, 1], (int(jumped.sum()), 2))
+    cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+    problem = ba.BAProblem(K, np.arange(n_views), priors.copy(), np.arange(n_views) < 2, priors,
+                           np.repeat(cov[None], n_views, 0), np.arange(len(pts)),
+                           pts + rng.normal(0, 0.0005, pts.shape), obs_pose, obs_point, uv)
+    return problem, true
+
+
+def _schur_row(seconds: float, cpu_s: float, result: ba.BAResult, reference: ba.BAResult, syn) -> dict:
+    """A Schur solver row: its time, accuracy, how many inlier labels differ from GTSAM's (``reference``), and
+    where the time goes, per stage and per LM iteration (linearise, Schur complement, solve, error)."""
+    return {"s": seconds, "cpu_s": cpu_s, "iterations": result.iterations,
+            "pose_rms_mm": _pose_rms_mm(result.poses, syn.true_poses),
+            "labels_differing_from_gtsam": int((result.stats["inlier_obs"] != reference.stats["inlier_obs"]).sum()),
+            "timing": result.stats["timing"],
+            "stages": [{"loss": st["loss"], "iterations": st["iterations"], "timing": st["timing"],
+                        "iteration_timing": st["iteration_timing"]} for st in result.stats["stages"]]}
+
+
+def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
+    """``device``: the Warp device of the Schur solver's kernels (its numpy path is timed too)."""
     syn = make_problem(np.random.default_rng(seed), n_views=10, n_points=2000, jump=0.02, highlight=0.015,
                        instrument=0.015)
     p = syn.problem
@@ -73,16 +123,33 @@ def run(repeats: int = 3, seed: int = 0) -> dict:
     prior = _pose_rms_mm(p.prior_poses, syn.true_poses)
     t, r = _median_time(lambda: ba.solve(p, 1.0, "cauchy", 2.0, 15), repeats)
     rows["lm_cauchy_fixed_k_cold"] = {"s": t, "iterations": r.iterations, "pose_rms_mm": _pose_rms_mm(r.poses, syn.true_poses)}
-    t, r = _median_time(lambda: ba.solve_robust(p, RobustSchedule()), repeats)
-    rows["lm_mad_cauchy_tukey_cold"] = {"s": t, "iterations": r.iterations,
+    cpu = {}
+    t, r = _median_time(lambda: ba.solve_robust(p, RobustSchedule()), repeats, cpu)
+    rows["lm_mad_cauchy_tukey_cold"] = {"s": t, "cpu_s": cpu["s"], "iterations": r.iterations,
                                         "pose_rms_mm": _pose_rms_mm(r.poses, syn.true_poses)}
+    solve_robust_schur(p, RobustSchedule((RobustStage("cauchy", CAUCHY_K, 1),)), device=device)  # compile/load
+    t, rs = _median_time(lambda: solve_robust_schur(p, RobustSchedule(), device=device), repeats, cpu)
+    rows["schur_mad_cauchy_tukey_cold"] = _schur_row(t, cpu["s"], rs, r, syn)
+    t, rs = _median_time(lambda: solve_robust_schur(p, RobustSchedule(), device="numpy"), repeats, cpu)
+    rows["schur_numpy_mad_cauchy_tukey_cold"] = _schur_row(t, cpu["s"], rs, r, syn)
     warm = ba.BAProblem(**{**p.__dict__, "poses": r.poses.copy(), "points": r.points.copy()})
     # the next window starts from the last solution: one new keyframe from its prior
     warm.poses[-1] = p.prior_poses[-1]
     quick = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 3), RobustStage("tukey", TUKEY_C, 3)))
-    t, rw = _median_time(lambda: ba.solve_robust(warm, quick), repeats)
-    rows["lm_mad_cauchy_tukey_warm_3+3"] = {"s": t, "iterations": rw.iterations,
+    t, rw = _median_time(lambda: ba.solve_robust(warm, quick), repeats, cpu)
+    rows["lm_mad_cauchy_tukey_warm_3+3"] = {"s": t, "cpu_s": cpu["s"], "iterations": rw.iterations,
                                             "pose_rms_mm": _pose_rms_mm(rw.poses, syn.true_poses)}
+    t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device=device), repeats, cpu)
+    rows["schur_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
+    t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device="numpy"), repeats, cpu)
+    rows["schur_numpy_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
+    # a final pass over a long session's map (GTSAM's PCG path takes minutes here: docs/benchmarks.md)
+    long_problem, long_truth = long_session_problem(np.random.default_rng(seed))
+    final = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStage("tukey", TUKEY_C, 15)))
+    t, rl = _median_time(lambda: solve_robust_schur(long_problem, final, device=device), 1, cpu)
+    rows["schur_final_ba_300kf_15+15"] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations,
+                                          "pose_rms_mm": _pose_rms_mm(rl.poses, long_truth),
+                                          "timing": rl.stats["timing"]}
     t, built = _median_time(lambda: ba._build(p, ba.robust_pixel_noise(1.0, "cauchy", 2.0)), repeats)
     rows["graph_build_only"] = {"s": t}
     graph, pose_keys, point_keys, _ = built
@@ -102,9 +169,13 @@ def run(repeats: int = 3, seed: int = 0) -> dict:
         "benchmark": "ba",
         "problem": {"keyframes": 10, "points": 2000, "observations": int(len(p.obs_uv)),
                     "outlier_share": float(syn.outlier_obs.mean()), "prior_pose_rms_mm": prior},
+        "final_ba_problem": {"keyframes": int(len(long_problem.poses)), "points": int(len(long_problem.points)),
+                             "observations": int(len(long_problem.obs_uv)),
+                             "prior_pose_rms_mm": _pose_rms_mm(long_problem.prior_poses, long_truth)},
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                     "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?"},
         "repeats": repeats,
+        "schur_device": device,
         "results": rows,
     }
 
@@ -113,8 +184,23 @@ def format_table(result: dict) -> str:
     lines = [f"BA window: {result['problem']['keyframes']} keyframes x {result['problem']['points']} points, "
              f"{result['problem']['observations']} observations, {100 * result['problem']['outlier_share']:.1f}% "
              f"corrupted; prior pose RMS {result['problem']['prior_pose_rms_mm']:.3f} mm",
-             f"{'method':32s} {'time ms':>9s} {'pose RMS mm':>12s}"]
+             f"final BA: {result['final_ba_problem']['keyframes']} keyframes x {result['final_ba_problem']['points']} "
+             f"points, {result['final_ba_problem']['observations']} observations; prior pose RMS "
+             f"{result['final_ba_problem']['prior_pose_rms_mm']:.3f} mm",
+             f"Schur solver rows: kernels on Warp device {result.get('schur_device', 'cpu')} (schur_numpy_*: numpy)",
+             f"{'method':38s} {'time ms':>9s} {'CPU ms':>8s} {'pose RMS mm':>12s} {'iterations':>10s} "
+             f"{'labels != gtsam':>15s}"]
     for name, row in result["results"].items():
         acc = f"{row['pose_rms_mm']:.3f}" if "pose_rms_mm" in row else "-"
-        lines.append(f"{name:32s} {1e3 * row['s']:9.1f} {acc:>12s}")
+        cpu = f"{1e3 * row['cpu_s']:.1f}" if "cpu_s" in row else "-"
+        its = str(row.get("iterations", "-"))
+        labels = str(row.get("labels_differing_from_gtsam", "-"))
+        lines.append(f"{name:38s} {1e3 * row['s']:9.1f} {cpu:>8s} {acc:>12s} {its:>10s} {labels:>15s}")
+    lines.append("Schur solver, where the time goes (ms per LM iteration: linearise / Schur complement / solve / "
+                 "error evaluations):")
+    for name, row in result["results"].items():
+        for stage in row.get("stages", []):
+            per = " ".join("{:.1f}/{:.1f}/{:.1f}/{:.1f}".format(*(1e3 * it[k] for k in (
+                "linearize_s", "schur_s", "solve_s", "error_s"))) for it in stage["iteration_timing"])
+            lines.append(f"  {name} {stage['loss']}: {per}")
     return "\n".join(lines)

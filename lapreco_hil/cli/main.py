@@ -155,8 +155,11 @@ def build_parser() -> ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
-    bench_ba = bench_sub.add_parser("ba", help="one local BA window: 10 keyframes x 2000 points, 5%% outliers")
+    bench_ba = bench_sub.add_parser("ba", help="one local BA window (10 keyframes x 2000 points, 5%% outliers) by GTSAM "
+                                   "and the Schur solver, and a final BA over 300 keyframes")
     bench_ba.add_argument("--repeats", type=positive_int, default=3)
+    bench_ba.add_argument("--device", default="cpu", help="Warp device of the Schur solver's kernels: cpu (default), "
+                          "cuda, cuda:N or auto")
     bench_ba.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_ba.set_defaults(func=_cmd_bench_ba)
     bench_fe = bench_sub.add_parser("frontend", help="Warp front-end vs the OpenCV baseline, per stage")
@@ -295,7 +298,7 @@ def _cmd_bench_ba(args) -> int:
     from lapreco_hil.app.bench import bench_ba
     from lapreco_hil.bench.ba import format_table
 
-    result = bench_ba(repeats=args.repeats)
+    result = bench_ba(repeats=args.repeats, device=args.device)
     print(format_table(result))
     _write_json(args.json, result)
     return 0

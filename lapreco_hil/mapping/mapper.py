@@ -20,6 +20,7 @@ import numpy as np
 
 from lapreco_hil.camera import Rig
 from lapreco_hil.config import MapperConfig
+from lapreco_hil.errors import ConfigError
 from lapreco_hil.funnel import Funnel
 from lapreco_hil.geometry import inv_T, rigid
 from lapreco_hil.types import Observations, PosePrior
@@ -30,6 +31,7 @@ from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
+from lapreco_hil.mapping.schur import solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -116,6 +118,16 @@ def local_schedule(config: MapperConfig) -> RobustSchedule:
                           sigma_floor_px=config.sigma_floor_px)
 
 
+BA_SOLVERS = {"schur": solve_robust_schur, "gtsam": ba.solve_robust}
+
+
+def ba_solver(config: MapperConfig):
+    """The robust BA solver ``[mapper] ba_solver`` names: ``solve(problem, schedule) -> BAResult``."""
+    if config.ba_solver not in BA_SOLVERS:
+        raise ConfigError(f"[mapper] ba_solver = '{config.ba_solver}': use {' or '.join(BA_SOLVERS)}")
+    return BA_SOLVERS[config.ba_solver]
+
+
 class Mapper:
     def __init__(self, K: np.ndarray, config: MapperConfig, schedule: MapperSchedule | None = None,
                  rig: Rig | None = None) -> None:
@@ -141,6 +153,7 @@ class Mapper:
         self.ba_times: list[float] = []
         self.ba_iterations: list[int] = []
         self.last_sigma_px = float("nan")
+        self.solve_ba = ba_solver(config)
         self.local_schedule = local_schedule(config)
         self.final_schedule = RobustSchedule(
             (RobustStage("cauchy", CAUCHY_K, config.final_cauchy_iterations),
@@ -562,10 +575,10 @@ class Mapper:
     def _local_ba(self) -> None:
         problem = self._problem(self._local_scope())
         if problem is not None:
-            self._apply(problem, ba.solve_robust(problem, self.local_schedule))
+            self._apply(problem, self.solve_ba(problem, self.local_schedule))
 
     def local_ba_job(self) -> tuple[ba.BAProblem, dict] | None:
-        """The newest window's local BA for a worker to solve (``ba.solve_robust(problem, local_schedule)``),
+        """The newest window's local BA for a worker to solve (``ba_solver(config)(problem, local_schedule)``),
         and the ticket ``apply_local_ba`` needs; None when there is nothing to adjust."""
         self._local_ba_wanted = False
         problem = self._problem(self._local_scope())
@@ -599,7 +612,7 @@ class Mapper:
         reprojection = {}
         if problem is not None:
             if cfg.final_global_ba:
-                result = ba.solve_robust(problem, self.final_schedule)
+                result = self.solve_ba(problem, self.final_schedule)
                 self._apply(problem, result)
                 good = result.stats["inlier_obs"]
                 threshold = result.stats["inlier_threshold_px"]

@@ -29,6 +29,7 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.errors import ConfigError, LaprecoError, ReconstructionError
 from lapreco_hil.frontend import make_frontend
+from lapreco_hil.mapping.mapper import ba_solver
 from lapreco_hil.mapping.prediction import TrackPoints
 from lapreco_hil.runtime.coverage import ViewCoverage
 from lapreco_hil.runtime.health import HealthMonitor
@@ -60,6 +61,7 @@ class LiveRun:
         rt = config.runtime
         if rt.ba_worker not in ("auto", "on", "off"):
             raise ConfigError(f"[runtime] ba_worker = '{rt.ba_worker}': use auto, on or off")
+        ba_solver(config.mapper)  # a bad [mapper] ba_solver is a ConfigError here, not in the mapper process
         self.grabber, self.poses, self.camera, self.config = grabber, poses, camera, config
         self.out_dir, self.recorder, self.on_stage_error, self.progress = out_dir, recorder, on_stage_error, progress
         self.device = device

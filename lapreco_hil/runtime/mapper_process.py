@@ -106,10 +106,12 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent watch", daemon=True).start()
 
 
-def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int) -> None:
+def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) -> None:
     """Process body: solve each BAJob until EndOfJobs arrives; errors go back, never lost."""
     die_with_parent(parent_pid)
-    from lapreco_hil.mapping.bundle_adjustment import solve_robust
+    from lapreco_hil.mapping.mapper import ba_solver
+
+    solve = ba_solver(mapper_config)
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     while True:
@@ -118,7 +120,7 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int) -> None:
             return
         t0 = time.perf_counter()
         try:
-            solved = solve_robust(job.problem, schedule)
+            solved = solve(job.problem, schedule)
             results_q.put(BAResult(job.job_id, solved, "", time.perf_counter() - t0))
         except Exception:
             results_q.put(BAResult(job.job_id, None, traceback.format_exc(), time.perf_counter() - t0))

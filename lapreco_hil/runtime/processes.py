@@ -63,7 +63,7 @@ class MapperProcesses:
             self.ba_jobs, self.ba_results = ctx.Queue(), ctx.Queue()
             self.ba_worker = ctx.Process(target=ba_worker_main, name="lapreco local BA", daemon=True,
                                          args=(local_schedule(self.config.mapper), self.ba_jobs, self.ba_results,
-                                               parent))
+                                               parent, self.config.mapper))
             self.ba_worker.start()
         self.mapper = ctx.Process(
             target=mapper_main, name="lapreco mapper", daemon=True,

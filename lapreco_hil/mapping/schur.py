@@ -1,0 +1,693 @@
+"""Bundle adjustment by Levenberg-Marquardt on the reduced camera system (the Schur complement): the same
+problem, robust schedule and answers as the GTSAM solver in ``bundle_adjustment``, several times faster on a
+local window because nothing is built per factor. The per-observation work runs as Warp kernels
+(``schur_kernels``; Warp's CPU device by default, CUDA if asked) or in numpy (``device="numpy"``); the LM logic
+and the small dense camera system stay on the host.
+
+What is kept identical to GTSAM, so that the optimum and the path to it are the same:
+
+- the variables and their retraction: a pose is T_world_camera moved by ``T Exp(xi)``, xi = (rotation,
+  translation) in the body frame (GTSAM's Pose3 with full Expmap); a point moves in world coordinates;
+- the factors: the pinhole reprojection error ``project(X) - uv`` (a point at or behind the camera gives the
+  constant error 2 fx and no gradient, as GenericProjectionFactor does), pose priors ``Log(prior^-1 T)`` and
+  rig ties ``Log(T_ij^-1 T_i^-1 T_j)`` whitened by the Cholesky factor of their information;
+- the m-estimators (GTSAM's Cauchy and Tukey: weight and loss in whitened units) applied by reweighting the
+  whitened system, the nonlinear error that LM compares (sum of losses), and LM's own schedule: lambda from
+  1e-5 times/divided by 10, damping lambda*I on every variable, the model-fidelity test, the relative and
+  absolute error tolerances, lambda's upper bound.
+
+Fixed poses are left out of the unknowns (GTSAM holds them with a 1e-7 prior: the same to that precision).
+The camera system is dense (6 free poses x 6 free poses): a local window's is a few hundred wide, a final
+pass over a few hundred keyframes a few thousand. It is assembled point-chunk by point-chunk, each chunk's
+landmark blocks eliminated into the rows of the poses that see it, so memory stays bounded however many
+landmarks there are; it is solved by a dense Cholesky factorisation.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import dataclasses
+import functools
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.linalg.blas
+from scipy.spatial.transform import Rotation
+
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
+from lapreco_hil.mapping.robust import RobustSchedule
+
+log = logging.getLogger(__name__)
+
+# GTSAM's LevenbergMarquardtParams defaults (the GTSAM solver sets relativeErrorTol 1e-5 too)
+LAMBDA_INITIAL = 1e-5
+LAMBDA_FACTOR = 10.0
+LAMBDA_UPPER = 1e5
+RELATIVE_ERROR_TOL = 1e-5
+ABSOLUTE_ERROR_TOL = 1e-5
+MIN_MODEL_FIDELITY = 1e-3
+# landmarks are eliminated a chunk at a time through a dense (3 x chunk) x (6 x the chunk's poses) block of at
+# most CHUNK_POINTS landmarks and CHUNK_ENTRIES entries: a long map's chunks each touch a few of its poses, so
+# the work grows with the track lengths, not with the map's size, and the memory stays bounded
+CHUNK_POINTS = 256
+CHUNK_ENTRIES = 4_000_000
+# terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
+_JR_TERMS = 16
+
+
+# --- BLAS threads ------------------------------------------------------------------------------------------------
+@functools.cache
+def _openblas_libraries() -> tuple:
+    """The OpenBLAS copies loaded in this process (numpy's and scipy's wheels bundle one each) that can set a
+    thread count for the calling thread alone (OpenBLAS >= 0.3.27); empty where there are none or no /proc."""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "openblas" in line and ".so" in line}
+    except OSError:
+        return ()
+    libs = []
+    for path in sorted(paths):
+        try:
+            setter = ctypes.CDLL(path).openblas_set_num_threads_local
+        except (OSError, AttributeError):
+            continue
+        setter.restype, setter.argtypes = ctypes.c_int, [ctypes.c_int]
+        libs.append(setter)
+    return tuple(libs)
+
+
+@contextlib.contextmanager
+def single_threaded_blas():
+    """BLAS on one thread for this thread, while inside. The solver's products and factorisations are a few
+    hundred wide: OpenBLAS's worker threads gain little there and, on cores shared with the tracker and the other
+    processes (the live runtime, a loaded machine), their spinning made solves 10-30x slower
+    (docs/benchmarks.md)."""
+    setters = _openblas_libraries()
+    previous = [set_threads(1) for set_threads in setters]
+    try:
+        yield
+    finally:
+        for set_threads, n in zip(setters, previous):
+            set_threads(n)
+
+
+# --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
+def hat(w: np.ndarray) -> np.ndarray:
+    """(n, 3) -> (n, 3, 3) cross-product matrices."""
+    z = np.zeros(len(w))
+    return np.stack([np.stack([z, -w[:, 2], w[:, 1]], -1), np.stack([w[:, 2], z, -w[:, 0]], -1),
+                     np.stack([-w[:, 1], w[:, 0], z], -1)], 1)
+
+
+def _v_coefficients(theta: np.ndarray):
+    """(1 - cos t) / t^2 and (t - sin t) / t^3, by their series near 0."""
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / t**3)
+    return a, b
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """(n, 6) -> (n, 4, 4): GTSAM's Pose3::Expmap."""
+    w, v = xi[:, :3], xi[:, 3:]
+    W = hat(w)
+    a, b = _v_coefficients(np.linalg.norm(w, axis=1))
+    V = np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+    T = np.zeros((len(xi), 4, 4))
+    T[:, :3, :3] = Rotation.from_rotvec(w).as_matrix()
+    T[:, :3, 3] = np.einsum("nij,nj->ni", V, v)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) -> (n, 6): GTSAM's Pose3::Logmap."""
+    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    theta = np.linalg.norm(w, axis=1)
+    W = hat(w)
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    # V^-1 = I - W/2 + c W^2, c = (1 - t sin t / (2 (1 - cos t))) / t^2
+    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0, (1.0 - t * np.sin(t) / (2.0 * (1.0 - np.cos(t)))) / t**2)
+    Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * (W @ W)
+    return np.concatenate([w, np.einsum("nij,nj->ni", Vinv, T[:, :3, 3])], axis=1)
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) -> (n, 6, 6) adjoint in (rotation, translation) order."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    A = np.zeros((len(T), 6, 6))
+    A[:, :3, :3] = R
+    A[:, 3:, 3:] = R
+    A[:, 3:, :3] = hat(t) @ R
+    return A
+
+
+def right_jacobian_inverse(xi: np.ndarray) -> np.ndarray:
+    """(n, 6) -> (n, 6, 6): d Log(E Exp(d)) / d d at E = Exp(xi) (GTSAM's Pose3::LogmapDerivative)."""
+    ad = np.zeros((len(xi), 6, 6))
+    ad[:, :3, :3] = hat(xi[:, :3])
+    ad[:, 3:, 3:] = ad[:, :3, :3]
+    ad[:, 3:, :3] = hat(xi[:, 3:])
+    term = np.broadcast_to(np.eye(6), ad.shape).copy()
+    Jr = term.copy()
+    for k in range(1, _JR_TERMS):  # Jr = sum (-ad)^k / (k + 1)!
+        term = -(term @ ad) / (k + 1)
+        Jr += term
+    return np.linalg.inv(Jr)
+
+
+def whitening(covs: np.ndarray) -> np.ndarray:
+    """(n, 6, 6) covariances -> (n, 6, 6) matrices R with R^T R = cov^-1 (whitened error = R e)."""
+    if not len(covs):
+        return np.zeros((0, 6, 6))
+    return np.transpose(np.linalg.cholesky(np.linalg.inv(covs)), (0, 2, 1))
+
+
+# --- m-estimators as GTSAM defines them (whitened units) ----------------------------------------------------
+def robust_weight(loss: str, e: np.ndarray, k: float) -> np.ndarray:
+    if loss == "cauchy":
+        return k * k / (k * k + e * e)
+    if loss == "tukey":
+        return np.where(np.abs(e) <= k, (1.0 - (e / k) ** 2) ** 2, 0.0)
+    if loss == "huber":
+        return np.where(np.abs(e) <= k, 1.0, k / np.maximum(np.abs(e), 1e-300))
+    return np.ones_like(e)
+
+
+def robust_loss(loss: str, e: np.ndarray, k: float) -> np.ndarray:
+    if loss == "cauchy":
+        return 0.5 * k * k * np.log1p((e / k) ** 2)
+    if loss == "tukey":
+        return np.where(np.abs(e) <= k, k * k / 6.0 * (1.0 - (1.0 - (e / k) ** 2) ** 3), k * k / 6.0)
+    if loss == "huber":
+        a = np.abs(e)
+        return np.where(a <= k, 0.5 * e * e, k * a - 0.5 * k * k)
+    return 0.5 * e * e
+
+
+# --- the problem's fixed structure ----------------------------------------------------------------------------
+def pose_major(problem: BAProblem) -> tuple[BAProblem, np.ndarray]:
+    """The problem with its observations sorted by pose (each pose's are then one contiguous run, transformed
+    by one matrix product), and the permutation (``sorted[i] = original[perm[i]]``)."""
+    perm = np.argsort(problem.obs_pose, kind="stable")
+    if np.all(perm[1:] > perm[:-1]):
+        return problem, perm
+    return dataclasses.replace(problem, obs_pose=problem.obs_pose[perm], obs_point=problem.obs_point[perm],
+                               obs_uv=problem.obs_uv[perm]), perm
+
+
+@dataclass
+class _Chunk:
+    """Landmarks eliminated together through one dense block: their observations by free poses, each one's
+    chunk-local landmark row and pose column, and the camera-system indices those columns are."""
+
+    points: np.ndarray  # the landmarks
+    obs: np.ndarray  # their observations by free poses
+    dest: np.ndarray  # (3, 6, len(obs)) where each observation's W block goes in the chunk's (n, 3, 6 m) block
+    n_cols: int
+    idx: np.ndarray
+
+
+@dataclass
+class _Layout:
+    free: np.ndarray  # (F,) pose indices of the unknown poses
+    col: np.ndarray  # (P,) column block of a pose, -1 where fixed
+    obs_point: np.ndarray  # (O,) landmark of each observation
+    obs_col: np.ndarray  # (O,) column block of the observing pose, -1 where fixed
+    pose_starts: np.ndarray  # (P + 1,) each pose's run of observations (they are pose-major)
+    n_points: int
+    chunks: list[_Chunk]
+    unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
+    prior_idx: np.ndarray  # free poses with a prior
+    prior_R: np.ndarray  # their whitening
+    tie_R: np.ndarray
+    kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
+
+
+def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
+    """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
+    that is "numpy"."""
+    n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
+    fixed = np.asarray(p.fixed, bool)
+    free = np.flatnonzero(~fixed)
+    col = np.full(n_poses, -1, np.int64)
+    col[free] = np.arange(len(free))
+    obs_point = np.asarray(p.obs_point, np.int64)
+    obs_col = col[p.obs_pose]
+    pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
+    unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
+    # landmarks in the order of the first free pose that sees them (a long map's tracks then share their poses
+    # with their neighbours), cut into chunks of at most CHUNK_POINTS whose dense block stays under CHUNK_ENTRIES
+    seen = obs_col >= 0
+    first_col = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first_col, obs_point[seen], obs_col[seen])
+    point_order = np.argsort(first_col, kind="stable")
+    point_order = point_order[first_col[point_order] < len(free)]
+    rank = np.empty(n_points, np.int64)
+    rank[point_order] = np.arange(len(point_order))
+    by_rank = np.flatnonzero(seen)
+    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
+    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
+    chunks, j = [], 0
+    while j < len(point_order):
+        hi = min(len(point_order), j + CHUNK_POINTS)
+        while True:
+            obs = by_rank[starts[j]:starts[hi]]
+            cols = np.unique(obs_col[obs])
+            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
+                break
+            hi = j + max(1, (hi - j) // 2)
+        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
+        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
+                                                                + np.arange(6)[None, :])[:, :, None]
+        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
+        j = hi
+    has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
+    prior_idx = np.flatnonzero(has_prior & ~fixed)
+    kernels = None
+    if device != "numpy":
+        from lapreco_hil.mapping.schur_kernels import ObservationKernels
+
+        kernels = ObservationKernels(p, obs_col, len(free), device)
+    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
+                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
+
+
+def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
+    """Sum per-observation values (O,) into their landmarks (N,)."""
+    return np.bincount(lay.obs_point, values, minlength=lay.n_points)
+
+
+# --- residuals, Jacobians, errors -------------------------------------------------------------------------------
+# Per-observation quantities are kept component-major ((component, O) arrays): every arithmetic pass then runs
+# over contiguous memory, a few times faster in numpy than the (O, 2, 6) layout's strided columns.
+@dataclass
+class _Linear:
+    """One linearisation: the normal equations' blocks (landmark-pose blocks per observation)."""
+
+    Hcc: np.ndarray  # (6F, 6F) pose block, priors and ties included
+    gc: np.ndarray  # (6F,)
+    Hpp: np.ndarray  # (N, 3, 3)
+    gp: np.ndarray  # (N, 3)
+    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); (O, 3, 6) from kernels
+    error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
+
+
+def _project(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray):
+    """(residual u, residual v, x/z, y/z, z, in front): (O,) each; behind the camera the residual is GTSAM's
+    constant 2 fx and z is 1."""
+    Xw = points[lay.obs_point]
+    Xc = np.empty_like(Xw)
+    R, t, ps = poses[:, :3, :3], poses[:, :3, 3], lay.pose_starts
+    for i in range(len(poses)):
+        run = slice(ps[i], ps[i + 1])
+        Xc[run] = (Xw[run] - t[i]) @ R[i]  # R^T (X - t), row-wise
+    Xc = Xc.T.copy()
+    front = Xc[2] > 0
+    zs = np.where(front, Xc[2], 1.0)
+    xn, yn = Xc[0] / zs, Xc[1] / zs
+    ru = p.K[0, 0] * xn + (p.K[0, 2] - p.obs_uv[:, 0])
+    rv = p.K[1, 1] * yn + (p.K[1, 2] - p.obs_uv[:, 1])
+    if not front.all():
+        ru[~front] = rv[~front] = 2.0 * p.K[0, 0]
+    return ru, rv, xn, yn, zs, front
+
+
+def _jacobians(p: BAProblem, lay: _Layout, poses: np.ndarray, xn, yn, zs, front):
+    """d residual / d pose tangent (2, 6, O) and d residual / d point (2, 3, O); zero behind the camera."""
+    fx, fy = p.K[0, 0], p.K[1, 1]
+    a, b = fx / zs, fy / zs
+    n = len(zs)
+    Jc = np.empty((2, 6, n))
+    Jc[0, 0] = fx * xn * yn
+    Jc[0, 1] = -fx * (1.0 + xn * xn)
+    Jc[0, 2] = fx * yn
+    Jc[0, 3] = -a
+    Jc[0, 4] = 0.0
+    Jc[0, 5] = a * xn
+    Jc[1, 0] = fy * (1.0 + yn * yn)
+    Jc[1, 1] = -(fy / fx) * Jc[0, 0]
+    Jc[1, 2] = -fy * xn
+    Jc[1, 3] = 0.0
+    Jc[1, 4] = -b
+    Jc[1, 5] = b * yn
+    # d(pixel)/d(camera point) times R^T: rows of each observation's camera rotation, repeated over its run
+    Rcw = np.repeat(np.transpose(poses[:, :3, :3], (0, 2, 1)).reshape(-1, 9), np.diff(lay.pose_starts), axis=0).T
+    Jp = np.empty((2, 3, n))
+    for k in range(3):
+        Jp[0, k] = a * (Rcw[k] - xn * Rcw[6 + k])
+        Jp[1, k] = b * (Rcw[3 + k] - yn * Rcw[6 + k])
+    if not front.all():
+        Jc[:, :, ~front] = 0.0
+        Jp[:, :, ~front] = 0.0
+    return Jc, Jp
+
+
+def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray, jacobians: bool,
+                  behind: float | None = None):
+    """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
+    (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+    ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
+    r = np.column_stack([ru, rv])
+    if behind is not None:
+        r[~front] = behind
+    if not jacobians:
+        return r
+    Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
+    return r, np.transpose(Jc, (2, 0, 1)), np.transpose(Jp, (2, 0, 1))
+
+
+def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
+    """Whitened prior and tie errors, and (optionally) their Jacobians: [(error (n, 6), [(pose idx (n,),
+    J (n, 6, 6))])]."""
+    out = []
+    if len(lay.prior_idx):
+        i = lay.prior_idx
+        e = se3_log(np.linalg.inv(p.prior_poses[i]) @ poses[i])
+        J = lay.prior_R @ right_jacobian_inverse(e) if jacobians else None
+        out.append((np.einsum("nij,nj->ni", lay.prior_R, e), [(i, J)]))
+    if len(p.tie_pairs):
+        i, j = p.tie_pairs[:, 0], p.tie_pairs[:, 1]
+        B = np.linalg.inv(poses[i]) @ poses[j]
+        e = se3_log(np.linalg.inv(p.tie_T) @ B)
+        blocks = []
+        if jacobians:
+            Jj = lay.tie_R @ right_jacobian_inverse(e)
+            blocks = [(i, -Jj @ adjoint(np.linalg.inv(B))), (j, Jj)]
+        out.append((np.einsum("nij,nj->ni", lay.tie_R, e), blocks))
+    return out
+
+
+def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
+    """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
+    if lay.kernels is not None:
+        total = lay.kernels.error(poses, points, sigma, loss, k)
+    else:
+        ru, rv = _project(p, lay, poses, points)[:2]
+        total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
+    for err, _ in _pose_factors(p, lay, poses, jacobians=False):
+        total += 0.5 * float(np.sum(err * err))
+    return total
+
+
+def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
+    if lay.kernels is not None:
+        W, Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        n_free = len(lay.free)
+        Hcc = np.zeros((6 * n_free, 6 * n_free))
+        for c in range(n_free):
+            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[c]
+        return _with_pose_factors(p, lay, poses, Hcc, grads.ravel().copy(), Hpp, gp, W, 0.5 * weighted_sq)
+    ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
+    Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
+    r2 = ru * ru + rv * rv
+    s = robust_weight(loss, np.sqrt(r2) / sigma, k) / sigma**2  # whitening and the robust reweighting, squared
+    su, sv = s * ru, s * rv
+    error0 = 0.5 * float(np.sum(s * r2))
+    sJp = s * Jp
+    Hpp = np.empty((lay.n_points, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            Hpp[:, a, b] = Hpp[:, b, a] = _to_points(lay, sJp[0, a] * Jp[0, b] + sJp[1, a] * Jp[1, b])
+    gp = np.column_stack([_to_points(lay, Jp[0, a] * su + Jp[1, a] * sv) for a in range(3)])
+    W = np.empty((3, 6, len(s)))
+    for a in range(3):
+        for b in range(6):  # one contiguous pass each (a broadcast product is 3x slower here)
+            np.multiply(sJp[0, a], Jc[0, b], out=W[a, b])
+            W[a, b] += sJp[1, a] * Jc[1, b]
+    n_free = len(lay.free)
+    Hcc = np.zeros((6 * n_free, 6 * n_free))
+    gc = np.zeros(6 * n_free)
+    if n_free:
+        W[:, :, lay.obs_col < 0] = 0.0
+        Jw = np.sqrt(s) * Jc  # whitened Jacobian rows; each pose's observations are one run
+        for c, i in enumerate(lay.free.tolist()):
+            run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
+            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
+            gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
+    return _with_pose_factors(p, lay, poses, Hcc, gc, Hpp, gp, W, error0)
+
+
+def _with_pose_factors(p: BAProblem, lay: _Layout, poses, Hcc, gc, Hpp, gp, W, error0: float) -> _Linear:
+    """The linearisation with the priors' and ties' terms added to the pose blocks."""
+    n_free = len(lay.free)
+    H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
+    g2 = gc.reshape(n_free, 6)
+    for err, jac in _pose_factors(p, lay, poses, jacobians=True):
+        error0 += 0.5 * float(np.sum(err * err))
+        for idx_a, Ja in jac:
+            ca = lay.col[idx_a]
+            ok = ca >= 0
+            np.add.at(g2, ca[ok], np.einsum("nji,nj->ni", Ja[ok], err[ok]))
+            for idx_b, Jb in jac:
+                cb = lay.col[idx_b]
+                both = ok & (cb >= 0)
+                np.add.at(H4, (ca[both], slice(None), cb[both], slice(None)),
+                          np.transpose(Ja[both], (0, 2, 1)) @ Jb[both])
+    return _Linear(Hcc, gc, Hpp, gp, W, error0)
+
+
+# --- one damped step ------------------------------------------------------------------------------------------------
+def _cholesky3(V: np.ndarray):
+    """Closed-form Cholesky factors (l11, l21, l22, l31, l32, l33) of (N, 3, 3) symmetric matrices; None unless
+    every one is positive definite (LAPACK's test: a pivot <= 0 or NaN fails)."""
+    d1 = V[:, 0, 0]
+    if not np.all(d1 > 0):
+        return None
+    l11 = np.sqrt(d1)
+    l21, l31 = V[:, 1, 0] / l11, V[:, 2, 0] / l11
+    d2 = V[:, 1, 1] - l21 * l21
+    if not np.all(d2 > 0):
+        return None
+    l22 = np.sqrt(d2)
+    l32 = (V[:, 2, 1] - l31 * l21) / l22
+    d3 = V[:, 2, 2] - l31 * l31 - l32 * l32
+    if not np.all(d3 > 0):
+        return None
+    return l11, l21, l22, l31, l32, np.sqrt(d3)
+
+
+def _forward(L, X: np.ndarray) -> np.ndarray:
+    """L^-1 X for X (N, 3, ...) (L from ``_cholesky3``, broadcast over the trailing axes)."""
+    l11, l21, l22, l31, l32, l33 = (v.reshape(v.shape + (1,) * (X.ndim - 2)) for v in L)
+    Z = np.empty_like(X)
+    Z[:, 0] = X[:, 0] / l11
+    Z[:, 1] = (X[:, 1] - l21 * Z[:, 0]) / l22
+    Z[:, 2] = (X[:, 2] - l31 * Z[:, 0] - l32 * Z[:, 1]) / l33
+    return Z
+
+
+def _backward(L, Z: np.ndarray) -> np.ndarray:
+    """L^-T Z for Z (N, 3)."""
+    l11, l21, l22, l31, l32, l33 = L
+    Y = np.empty_like(Z)
+    Y[:, 2] = Z[:, 2] / l33
+    Y[:, 1] = (Z[:, 1] - l32 * Y[:, 2]) / l22
+    Y[:, 0] = (Z[:, 0] - l21 * Y[:, 1] - l31 * Y[:, 2]) / l11
+    return Y
+
+
+def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
+    """The step (pose tangents (F, 6), point moves (N, 3)) of the damped system, landmarks eliminated;
+    None where it is not positive definite (a landmark left with one weighted view is singular along its ray
+    to the damping's precision: GTSAM's elimination throws IndeterminateSystemException there, and lambda
+    grows)."""
+    t0 = time.perf_counter()
+    L = _cholesky3(lin.Hpp + lam * np.eye(3))
+    if L is None:
+        timing["schur_s"] += time.perf_counter() - t0
+        return None
+    Lg = _forward(L, lin.gp[:, :, None])[:, :, 0]  # L^-1 gp
+    n6 = lin.Hcc.shape[0]
+    S = lin.Hcc + lam * np.eye(n6)  # its lower triangle is what the factorisation reads
+    rhs = -lin.gc.copy()
+    on_device = lay.kernels is not None and lay.unique_pairs
+    if on_device:
+        lay.kernels.set_landmark_factors(np.column_stack(L))
+    W = lin.W if lay.kernels is None else np.transpose(lin.W, (1, 2, 0))  # (3, 6, O)
+    for n, ch in enumerate(lay.chunks):
+        n_c = len(ch.points)
+        # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
+        dense = lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols
+        if on_device:
+            Z = lay.kernels.whitened_blocks(n, ch, dense)  # L^-1 W: S -= Z^T Z
+        else:
+            Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
+            if lay.unique_pairs:
+                Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+            else:
+                np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
+            Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
+        ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
+        S[np.ix_(ch.idx, ch.idx)] -= ZtZ
+        rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
+    t1 = time.perf_counter()
+    timing["schur_s"] += t1 - t0
+    dc = np.zeros(0)
+    if n6:
+        try:
+            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
+                                        check_finite=False)
+        except np.linalg.LinAlgError:
+            dc = np.full(n6, np.nan)
+        if not np.all(np.isfinite(dc)):
+            timing["solve_s"] += time.perf_counter() - t1
+            return None
+    # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
+    x = lin.gp.copy()
+    if n6:
+        if lay.kernels is not None:
+            x += lay.kernels.w_times_step(dc.reshape(-1, 6))
+        else:
+            dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1
+            x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", W[a], dc_of_obs)) for a in range(3)])
+    dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
+    timing["solve_s"] += time.perf_counter() - t1
+    return dc.reshape(-1, 6), dp
+
+
+# --- Levenberg-Marquardt as GTSAM runs it -------------------------------------------------------------------------
+def _lm(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float, max_iterations: int,
+        timing: dict):
+    """One LM run: (poses, points, error before, error after, iterations, per-iteration times)."""
+    t0 = time.perf_counter()
+    error = _error(p, lay, poses, points, sigma, loss, k)
+    timing["error_s"] += time.perf_counter() - t0
+    error_before = error
+    lam, iterations, per_iteration = LAMBDA_INITIAL, 0, []
+    if max_iterations == 0 or error <= 0.0:
+        return poses, points, error_before, error, iterations, per_iteration
+    while True:
+        it_times = {k_: timing[k_] for k_ in ("linearize_s", "schur_s", "solve_s", "error_s")}
+        t0 = time.perf_counter()
+        lin = _linearize(p, lay, poses, points, sigma, loss, k)
+        timing["linearize_s"] += time.perf_counter() - t0
+        new_error, accepted = error, False
+        while True:
+            step = _solve_damped(lay, lin, lam, timing)
+            stop_searching = success = False
+            if step is not None:
+                dc, dp = step
+                g_dot = float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel())
+                step2 = float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel())
+                # the undamped linear model's decrease: -g.d - d^T H d / 2, with (H + lam I) d = -g
+                linear_change = -0.5 * g_dot + 0.5 * lam * step2
+                if linear_change >= 0:
+                    t0 = time.perf_counter()
+                    trial_poses = poses.copy()
+                    if len(lay.free):
+                        trial_poses[lay.free] = poses[lay.free] @ se3_exp(dc)
+                    trial_points = points + dp
+                    trial_error = _error(p, lay, trial_poses, trial_points, sigma, loss, k)
+                    timing["error_s"] += time.perf_counter() - t0
+                    cost_change = error - trial_error
+                    if linear_change > np.finfo(float).eps * lin.error0:
+                        success = cost_change / linear_change > MIN_MODEL_FIDELITY
+                    stop_searching = abs(cost_change) < RELATIVE_ERROR_TOL * error
+            if success:
+                poses, points, new_error, accepted = trial_poses, trial_points, trial_error, True
+                lam = max(0.0, lam / LAMBDA_FACTOR)
+                iterations += 1
+                break
+            if stop_searching:
+                break
+            lam *= LAMBDA_FACTOR
+            if lam >= LAMBDA_UPPER:
+                log.debug("LM gives up: cannot decrease the error with the largest lambda")
+                break
+        per_iteration.append({k_: timing[k_] - it_times[k_] for k_ in it_times})
+        decrease = error - new_error
+        converged = (not accepted or new_error <= 0.0 or decrease / error <= RELATIVE_ERROR_TOL
+                     or decrease <= ABSOLUTE_ERROR_TOL)
+        error = new_error
+        if iterations >= max_iterations or converged or not np.isfinite(error):
+            break
+    return poses, points, error_before, error, iterations, per_iteration
+
+
+def _check_device(device: str) -> str:
+    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels."""
+    if device == "numpy":
+        return device
+    from lapreco_hil.warp_device import resolve_device
+
+    return resolve_device(device)
+
+
+def _new_timing() -> dict:
+    return {"linearize_s": 0.0, "schur_s": 0.0, "solve_s": 0.0, "error_s": 0.0}
+
+
+def _residual_norms(p: BAProblem, lay: _Layout, poses, points) -> np.ndarray:
+    """(O,) reprojection error norms, inf behind the camera (``bundle_adjustment.reprojection_residuals``)."""
+    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.inf)
+    return np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
+
+
+def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    out = np.empty_like(values)
+    out[perm] = values
+    return out
+
+
+def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
+                max_iterations: int = 15, device: str = "cpu") -> BAResult:
+    """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
+    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp)."""
+    device = _check_device(device)
+    t0 = time.perf_counter()
+    p, perm = pose_major(problem)
+    lay = _layout(p, device)
+    timing = _new_timing()
+    with single_threaded_blas():
+        poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
+                                                 pixel_sigma, loss or "none", k, max_iterations, timing)
+    residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
+    return BAResult(poses, points, residuals, e0, e1, its, time.perf_counter() - t0,
+                    {"timing": timing, "iteration_timing": per_it})
+
+
+def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu") -> BAResult:
+    """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
+    MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
+    (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
+    and per stage ``iteration_timing``). ``device`` as ``solve_schur``'s."""
+    device = _check_device(device)
+    t0 = time.perf_counter()
+    p, perm = pose_major(problem)
+    lay = _layout(p, device)
+    poses, points = np.array(p.poses, float), np.array(p.points, float)
+    stages, iterations = [], 0
+    initial_error = final_error = 0.0
+    timing = _new_timing()
+    for n, stage in enumerate(schedule.stages):
+        r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
+        sigma = pixel_sigma(p, r, schedule)
+        stage_timing = _new_timing()
+        with single_threaded_blas():
+            poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
+                                                     stage.iterations, stage_timing)
+        for key in timing:
+            timing[key] += stage_timing[key]
+        final_error = e1
+        if n == 0:
+            initial_error = e0
+        iterations += its
+        stages.append({"loss": stage.loss, "sigma_px": sigma, "k": stage.k, "iterations": its,
+                       "error_before": e0, "error_after": e1, "timing": stage_timing,
+                       "iteration_timing": per_it})
+    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
+    residuals = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
+    residuals[~np.isfinite(residuals)] = np.inf
+    sigma_final = pixel_sigma(p, r, schedule)
+    threshold = schedule.inlier_threshold_px(sigma_final)
+    residuals = _unsorted(residuals, perm)
+    return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
+                    {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,
+                     "inlier_obs": residuals <= threshold, "timing": timing})

@@ -1,0 +1,243 @@
+"""Warp kernels for the Schur-complement bundle adjustment's per-observation work (one thread per observation):
+linearisation (residual, Jacobians, robust weight, and their sums into the landmark and pose blocks), the
+reprojection error, the landmark elimination's whitened blocks, and the back-substitution's products. On Warp's
+CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
+they run on the GPU. Float64 throughout, as GTSAM computes.
+
+``ObservationKernels`` holds a problem's fixed arrays on the device and launches the kernels; the host
+(``schur.py``) keeps the LM logic, the small dense camera system and its Cholesky factorisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lapreco_hil.warp_device import device_lock, init_warp
+
+wp = init_warp()
+wp.set_module_options({"enable_backward": False})
+
+mat36d = wp.types.matrix(shape=(3, 6), dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+
+LOSS_CODES = {"none": 0, "cauchy": 1, "tukey": 2, "huber": 3}
+
+
+@wp.func
+def _weight(loss: int, e: wp.float64, k: wp.float64) -> wp.float64:
+    """GTSAM's m-estimator weights (whitened units), as ``schur.robust_weight``."""
+    if loss == 1:
+        return k * k / (k * k + e * e)
+    if loss == 2:
+        if e <= k:
+            q = wp.float64(1.0) - (e / k) * (e / k)
+            return q * q
+        return wp.float64(0.0)
+    if loss == 3:
+        if e <= k:
+            return wp.float64(1.0)
+        return k / e
+    return wp.float64(1.0)
+
+
+@wp.func
+def _loss(loss: int, e: wp.float64, k: wp.float64) -> wp.float64:
+    """GTSAM's m-estimator losses, as ``schur.robust_loss``."""
+    if loss == 1:
+        return wp.float64(0.5) * k * k * wp.log(wp.float64(1.0) + (e / k) * (e / k))
+    if loss == 2:
+        if e <= k:
+            q = wp.float64(1.0) - (e / k) * (e / k)
+            return k * k / wp.float64(6.0) * (wp.float64(1.0) - q * q * q)
+        return k * k / wp.float64(6.0)
+    if loss == 3:
+        if e <= k:
+            return wp.float64(0.5) * e * e
+        return k * e - wp.float64(0.5) * k * k
+    return wp.float64(0.5) * e * e
+
+
+@wp.func
+def _camera_point(R: wp.mat33d, t: wp.vec3d, X: wp.vec3d) -> wp.vec3d:
+    return wp.transpose(R) @ (X - t)
+
+
+@wp.kernel
+def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+               obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), R: wp.array(dtype=wp.mat33d),
+               t: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
+               k: wp.float64, loss: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
+               gp: wp.array(dtype=wp.vec3d), Hcc: wp.array(dtype=wp.spatial_matrixd),
+               gc: wp.array(dtype=wp.spatial_vectord), weighted_sq: wp.array(dtype=wp.float64)):
+    o = wp.tid()
+    i = obs_pose[o]
+    j = obs_point[o]
+    Rm = R[i]
+    Xc = _camera_point(Rm, t[i], X[j])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    fx = K[0]
+    fy = K[1]
+    # behind the camera: GTSAM's constant error 2 fx, no gradient
+    ru = wp.float64(2.0) * fx
+    rv = wp.float64(2.0) * fx
+    ju = wp.spatial_vectord()
+    jv = wp.spatial_vectord()
+    pu = wp.vec3d()
+    pv = wp.vec3d()
+    if Xc[2] > zero:
+        z = Xc[2]
+        xn = Xc[0] / z
+        yn = Xc[1] / z
+        ru = fx * xn + K[2] - uv[o][0]
+        rv = fy * yn + K[3] - uv[o][1]
+        a = fx / z
+        b = fy / z
+        # d residual / d (rotation, translation) of T Exp(xi)
+        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
+        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
+        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
+        c0 = wp.vec3d(Rm[0, 0], Rm[1, 0], Rm[2, 0])
+        c1 = wp.vec3d(Rm[0, 1], Rm[1, 1], Rm[2, 1])
+        c2 = wp.vec3d(Rm[0, 2], Rm[1, 2], Rm[2, 2])
+        pu = a * (c0 - xn * c2)
+        pv = b * (c1 - yn * c2)
+    r2 = ru * ru + rv * rv
+    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
+    wp.atomic_add(weighted_sq, 0, s * r2)
+    wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
+    wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+    c = obs_col[o]
+    Wo = mat36d()
+    if c >= 0:
+        for a_ in range(3):
+            for b_ in range(6):
+                Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
+        wp.atomic_add(Hcc, c, s * (wp.outer(ju, ju) + wp.outer(jv, jv)))
+        wp.atomic_add(gc, c, s * (ju * ru + jv * rv))
+    W[o] = Wo
+
+
+@wp.kernel
+def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
+           R: wp.array(dtype=wp.mat33d), t: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d,
+           inv_sigma: wp.float64, k: wp.float64, loss: int, total: wp.array(dtype=wp.float64)):
+    o = wp.tid()
+    Xc = _camera_point(R[obs_pose[o]], t[obs_pose[o]], X[obs_point[o]])
+    ru = wp.float64(2.0) * K[0]
+    rv = wp.float64(2.0) * K[0]
+    if Xc[2] > wp.float64(0.0):
+        ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
+        rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
+    wp.atomic_add(total, 0, _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k))
+
+
+@wp.kernel
+def _whitened_blocks(obs: wp.array(dtype=wp.int32), dest: wp.array(dtype=wp.int64), width: wp.int64,
+                     obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
+                     Z: wp.array(dtype=wp.float64)):
+    """Z = L^-1 W of each observation of a chunk (L: its landmark's Cholesky factor l11 l21 l22 l31 l32 l33),
+    written where its block goes in the chunk's dense (landmarks x 3, 6 x poses) matrix."""
+    n = wp.tid()
+    o = obs[n]
+    l = L[obs_point[o]]
+    Wo = W[o]
+    base = dest[n]
+    for b in range(6):
+        z0 = Wo[0, b] / l[0]
+        z1 = (Wo[1, b] - l[1] * z0) / l[2]
+        z2 = (Wo[2, b] - l[3] * z0 - l[4] * z1) / l[5]
+        col = base + wp.int64(b)
+        Z[col] = z0
+        Z[col + width] = z1
+        Z[col + width + width] = z2
+
+
+@wp.kernel
+def _w_times_step(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                  W: wp.array(dtype=mat36d), dc: wp.array(dtype=vec6d), out: wp.array(dtype=wp.vec3d)):
+    """Sum of W_o dc over each landmark's observations (the back-substitution's right-hand side)."""
+    o = wp.tid()
+    c = obs_col[o]
+    if c >= 0:
+        wp.atomic_add(out, obs_point[o], W[o] @ dc[c])
+
+
+class ObservationKernels:
+    """A pose-major problem's observations on a Warp device, and the launches over them (each under the
+    device's lock, which threads driving one device take turns through: ``warp_device.device_lock``)."""
+
+    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str) -> None:
+        self.device = device
+        self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
+        self.K = wp.vec4d(float(p.K[0, 0]), float(p.K[1, 1]), float(p.K[0, 2]), float(p.K[1, 2]))
+        self.obs_pose = wp.array(np.asarray(p.obs_pose, np.int32), dtype=wp.int32, device=device)
+        self.obs_point = wp.array(np.asarray(p.obs_point, np.int32), dtype=wp.int32, device=device)
+        self.obs_col = wp.array(np.asarray(obs_col, np.int32), dtype=wp.int32, device=device)
+        self.uv = wp.array(np.ascontiguousarray(p.obs_uv, np.float64), dtype=wp.vec2d, device=device)
+        self.W = wp.zeros(self.n_obs, dtype=mat36d, device=device)
+        self.Hpp = wp.zeros(self.n_points, dtype=wp.mat33d, device=device)
+        self.gp = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+        self.Hcc = wp.zeros(max(n_free, 1), dtype=wp.spatial_matrixd, device=device)
+        self.gc = wp.zeros(max(n_free, 1), dtype=wp.spatial_vectord, device=device)
+        self.scalar = wp.zeros(1, dtype=wp.float64, device=device)
+        self.Wdc = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+        self._chunks: dict[int, tuple] = {}
+
+    def _state(self, poses: np.ndarray, points: np.ndarray):
+        d = self.device
+        return (wp.array(np.ascontiguousarray(poses[:, :3, :3]), dtype=wp.mat33d, device=d),
+                wp.array(np.ascontiguousarray(poses[:, :3, 3]), dtype=wp.vec3d, device=d),
+                wp.array(np.ascontiguousarray(points, np.float64), dtype=wp.vec3d, device=d))
+
+    def linearize(self, poses, points, sigma: float, loss: str, k: float):
+        """(W (O, 3, 6), Hpp (N, 3, 3), gp (N, 3), pose blocks (F, 6, 6), pose gradients (F, 6),
+        sum of s |r|^2) at the given state."""
+        R, t, X = self._state(poses, points)
+        with device_lock(self.device):
+            for a in (self.Hpp, self.gp, self.Hcc, self.gc, self.scalar):
+                a.zero_()
+            wp.launch(_linearize, dim=self.n_obs, device=self.device,
+                      inputs=[self.obs_pose, self.obs_point, self.obs_col, self.uv, R, t, X, self.K, 1.0 / sigma,
+                              float(k), LOSS_CODES[loss]],
+                      outputs=[self.W, self.Hpp, self.gp, self.Hcc, self.gc, self.scalar])
+        return (self.W.numpy(), self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free],
+                self.gc.numpy()[:self.n_free], float(self.scalar.numpy()[0]))
+
+    def error(self, poses, points, sigma: float, loss: str, k: float) -> float:
+        """The sum of the reprojection losses at the given state."""
+        R, t, X = self._state(poses, points)
+        with device_lock(self.device):
+            self.scalar.zero_()
+            wp.launch(_error, dim=self.n_obs, device=self.device,
+                      inputs=[self.obs_pose, self.obs_point, self.uv, R, t, X, self.K, 1.0 / sigma, float(k),
+                              LOSS_CODES[loss]], outputs=[self.scalar])
+        return float(self.scalar.numpy()[0])
+
+    def set_landmark_factors(self, L: np.ndarray) -> None:
+        """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_blocks``."""
+        self.L = wp.array(np.ascontiguousarray(L, np.float64), dtype=vec6d, device=self.device)
+
+    def whitened_blocks(self, n: int, chunk, dense: bool) -> np.ndarray:
+        """Chunk ``n``'s dense L^-1 W (landmarks x 3, 6 x poses), by ``set_landmark_factors``' factors."""
+        d = self.device
+        if n not in self._chunks:
+            self._chunks[n] = (wp.array(np.asarray(chunk.obs, np.int32), dtype=wp.int32, device=d),
+                               wp.array(np.ascontiguousarray(chunk.dest[0, 0], np.int64), dtype=wp.int64, device=d),
+                               wp.zeros(len(chunk.points) * 18 * chunk.n_cols, dtype=wp.float64, device=d))
+        obs, dest, Z = self._chunks[n]
+        with device_lock(d):
+            if not dense:
+                Z.zero_()
+            wp.launch(_whitened_blocks, dim=len(chunk.obs), device=d,
+                      inputs=[obs, dest, wp.int64(6 * chunk.n_cols), self.obs_point, self.W, self.L], outputs=[Z])
+        return Z.numpy().reshape(3 * len(chunk.points), 6 * chunk.n_cols)
+
+    def w_times_step(self, dc: np.ndarray) -> np.ndarray:
+        """(N, 3): the sum of W_o dc over each landmark's observations."""
+        step = wp.array(np.ascontiguousarray(dc, np.float64), dtype=vec6d, device=self.device)
+        with device_lock(self.device):
+            self.Wdc.zero_()
+            wp.launch(_w_times_step, dim=self.n_obs, device=self.device,
+                      inputs=[self.obs_point, self.obs_col, self.W, step], outputs=[self.Wdc])
+        return self.Wdc.numpy()

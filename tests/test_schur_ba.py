@@ -1,0 +1,266 @@
+"""The Schur-complement bundle adjustment against GTSAM, the reference: the same optimum, the same robust
+schedule's answers and labels, fixed poses, full-covariance priors, rig ties; its Jacobians against finite
+differences; the chunked elimination (a final pass's) against the one-block one (a local window's). Each solver
+test runs the numpy path and the Warp kernels on Warp's CPU device (LAPRECO_TEST_DEVICE=cuda:0 runs them on the
+GPU instead)."""
+
+import dataclasses
+import os
+
+import gtsam
+import numpy as np
+import pytest
+
+from lapreco_hil.config import MapperConfig
+from lapreco_hil.errors import ConfigError
+from lapreco_hil.geometry import inv_T, pose_error
+from lapreco_hil.mapping import bundle_adjustment as ba
+from lapreco_hil.mapping import schur
+from lapreco_hil.mapping.mapper import Mapper
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
+from lapreco_hil.mapping.synthetic import make_problem
+
+DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
+DEVICES = pytest.mark.parametrize("device", ["numpy", DEVICE])
+
+
+def rms_mm(poses, truth):
+    return 1e3 * np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(poses, truth)]))
+
+
+def full_covariances(rng, n):
+    """Correlated 6x6 covariances (rotation, translation), as a robot's propagated joint noise gives."""
+    A = rng.normal(0, 1, (n, 6, 6)) * np.array([0.003] * 3 + [0.0004] * 3)[None, :, None]
+    return A @ np.transpose(A, (0, 2, 1)) + np.diag([0.002**2] * 3 + [0.0003**2] * 3)
+
+
+def test_se3_maps_and_jacobian_agree_with_gtsam(rng):
+    xi = rng.normal(0, 0.4, (5, 6))
+    T = schur.se3_exp(xi)
+    for x, M in zip(xi, T):
+        np.testing.assert_allclose(M, gtsam.Pose3.Expmap(x).matrix(), atol=1e-12)
+        np.testing.assert_allclose(schur.right_jacobian_inverse(x[None])[0], gtsam.Pose3.LogmapDerivative(x),
+                                   atol=1e-9)
+    np.testing.assert_allclose(schur.se3_log(T), xi, atol=1e-12)
+    tiny = np.array([[1e-9, -2e-9, 1e-9, 1e-3, 2e-3, -1e-3]])
+    np.testing.assert_allclose(schur.se3_log(schur.se3_exp(tiny)), tiny, atol=1e-15)
+
+
+def _numeric_jacobian(f, n, eps=1e-6):
+    cols = []
+    for i in range(n):
+        d = np.zeros(n)
+        d[i] = eps
+        cols.append((f(d) - f(-d)) / (2 * eps))
+    return np.stack(cols, -1)
+
+
+def test_reprojection_jacobians_match_finite_differences(rng):
+    p = make_problem(rng, n_views=3, n_points=20).problem
+    p, _ = schur.pose_major(p)
+    lay = schur._layout(p)
+    r, Jc, Jp = schur._reprojection(p, lay, p.poses, p.points, jacobians=True)
+    for o in (0, 7, 33, 59):
+        i, j = p.obs_pose[o], p.obs_point[o]
+
+        def moved_pose(d, i=i, o=o):
+            poses = p.poses.copy()
+            poses[i] = poses[i] @ schur.se3_exp(d[None])[0]  # GTSAM's retraction: T Exp(xi)
+            return schur._reprojection(p, lay, poses, p.points, jacobians=False)[o]
+
+        def moved_point(d, j=j, o=o):
+            points = p.points.copy()
+            points[j] += d
+            return schur._reprojection(p, lay, p.poses, points, jacobians=False)[o]
+
+        np.testing.assert_allclose(Jc[o], _numeric_jacobian(moved_pose, 6), rtol=1e-5, atol=1e-3)
+        np.testing.assert_allclose(Jp[o], _numeric_jacobian(moved_point, 3), rtol=1e-5, atol=1e-2)
+
+
+def test_prior_and_tie_jacobians_match_finite_differences(rng):
+    p = make_problem(rng, n_views=4, n_points=10).problem
+    # a tie measured a little off the current relative pose, so the error (and its Jacobian) is not trivial
+    T_01 = inv_T(p.poses[0]) @ p.poses[1] @ schur.se3_exp(np.array([[0.02, -0.01, 0.03, 1e-3, -2e-3, 5e-4]]))[0]
+    p = dataclasses.replace(p, prior_covs=full_covariances(rng, 4), tie_pairs=np.array([[0, 1]]),
+                            tie_T=T_01[None], tie_covs=full_covariances(rng, 1))
+    lay = schur._layout(p)
+    factors = schur._pose_factors(p, lay, p.poses, jacobians=True)
+    assert len(factors) == 2
+    for n_factor, (_, blocks) in enumerate(factors):
+        for idx, J in blocks:
+            for n in range(len(idx)):
+
+                def moved(d, i=idx[n], n=n, n_factor=n_factor):
+                    poses = p.poses.copy()
+                    poses[i] = poses[i] @ schur.se3_exp(d[None])[0]
+                    return schur._pose_factors(p, lay, poses, jacobians=False)[n_factor][0][n]
+
+                np.testing.assert_allclose(J[n], _numeric_jacobian(moved, 6), rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("loss", ["none", "cauchy", "tukey", "huber"])
+def test_kernels_linearise_as_numpy_does(loss):
+    """The Warp kernels' normal-equation blocks, error and elimination blocks against the numpy path's, with a
+    fixed pose and a point behind a camera in the problem."""
+    syn = make_problem(np.random.default_rng(8), n_views=5, n_points=80, jump=0.1)
+    p, _ = schur.pose_major(dataclasses.replace(syn.problem, fixed=np.arange(5) == 0))
+    p.points[3] = 2 * p.poses[1][:3, 3] - p.points[3]  # behind camera 1 (and others)
+    ref, dev = schur._layout(p), schur._layout(p, DEVICE)
+    a = schur._linearize(p, ref, p.poses, p.points, 0.7, loss, 2.5)
+    b = schur._linearize(p, dev, p.poses, p.points, 0.7, loss, 2.5)
+    for x, y in ((a.Hcc, b.Hcc), (a.gc, b.gc), (a.Hpp, b.Hpp), (a.gp, b.gp),
+                 (np.transpose(a.W, (2, 0, 1)), b.W)):
+        np.testing.assert_allclose(y, x, rtol=1e-12, atol=1e-9 * np.abs(x).max())
+    assert b.error0 == pytest.approx(a.error0, rel=1e-12)
+    e_ref = schur._error(p, ref, p.poses, p.points, 0.7, loss, 2.5)
+    assert schur._error(p, dev, p.poses, p.points, 0.7, loss, 2.5) == pytest.approx(e_ref, rel=1e-12)
+    timing = schur._new_timing()
+    step_ref, step_dev = schur._solve_damped(ref, a, 1e-3, timing), schur._solve_damped(dev, b, 1e-3, timing)
+    for x, y in zip(step_ref, step_dev):  # to 1 nm: Tukey leaves some landmarks one weighted view (ill-conditioned)
+        np.testing.assert_allclose(y, x, rtol=1e-6, atol=1e-9)
+
+
+@DEVICES
+@pytest.mark.parametrize("loss, k", [(None, 0.0), ("cauchy", 3.0), ("tukey", 6.0), ("huber", 2.0)])
+def test_same_optimum_as_gtsam_without_outliers(loss, k, device):
+    # points start within ~1 px: far enough to move, near enough that Tukey (3 px) weighs every view (a landmark
+    # left with one weighted view is free along its ray, and both solvers would move it by their round-off)
+    syn = make_problem(np.random.default_rng(3), n_views=6, n_points=150, init_point_noise=0.0002)
+    p = dataclasses.replace(syn.problem, prior_covs=full_covariances(np.random.default_rng(4), 6))
+    ref = ba.solve(p, 0.5, loss, k, max_iterations=15)
+    got = schur.solve_schur(p, 0.5, loss, k, max_iterations=15, device=device)
+    assert got.iterations == ref.iterations
+    assert got.final_error == pytest.approx(ref.final_error, rel=1e-9)
+    # to 10 nm (Tukey's sharper weights carry round-off a little further than the other losses' 1e-14)
+    np.testing.assert_allclose(got.poses, ref.poses, atol=1e-8)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-8)
+    np.testing.assert_allclose(got.residuals_px, ref.residuals_px, atol=1e-5)
+    # and it moved: the optimum is not the start
+    assert np.abs(got.points - p.points).max() > 1e-4
+
+
+@DEVICES
+def test_a_pose_that_sees_a_point_twice_sums_both_views(device):
+    syn = make_problem(np.random.default_rng(5), n_views=4, n_points=60)
+    p = syn.problem
+    twice = np.arange(0, len(p.obs_pose), 7)  # the same pose-point pair again, a pixel off
+    p = dataclasses.replace(p, obs_pose=np.concatenate([p.obs_pose, p.obs_pose[twice]]),
+                            obs_point=np.concatenate([p.obs_point, p.obs_point[twice]]),
+                            obs_uv=np.concatenate([p.obs_uv, p.obs_uv[twice] + 1.0]))
+    assert not schur._layout(schur.pose_major(p)[0]).unique_pairs
+    ref, got = ba.solve(p, 0.5, None), schur.solve_schur(p, 0.5, None, device=device)
+    np.testing.assert_allclose(got.poses, ref.poses, atol=1e-10)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-10)
+
+
+@DEVICES
+def test_robust_schedule_agrees_with_gtsam_under_gross_outliers(rng, device):
+    syn = make_problem(np.random.default_rng(0), n_views=8, n_points=600, jump=0.03, highlight=0.02,
+                       instrument=0.02)
+    for schedule in (RobustSchedule(), RobustSchedule((RobustStage("cauchy", CAUCHY_K, 3),
+                                                       RobustStage("tukey", TUKEY_C, 3)))):
+        ref = ba.solve_robust(syn.problem, schedule)
+        got = schur.solve_robust_schur(syn.problem, schedule, device=device)
+        assert set(ref.stats) <= set(got.stats)
+        assert [s["iterations"] for s in got.stats["stages"]] == [s["iterations"] for s in ref.stats["stages"]]
+        assert got.stats["sigma_px"] == pytest.approx(ref.stats["sigma_px"], rel=1e-6)
+        assert rms_mm(got.poses, syn.true_poses) == pytest.approx(rms_mm(ref.poses, syn.true_poses), rel=0.02)
+        assert (got.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 3
+        assert (~got.stats["inlier_obs"]).sum() > 0.5 * syn.outlier_obs.sum()  # not all in
+    # the labels catch what they should (test_robust_ba's case): tracks that jump by 6-25 px are out, clean
+    # tracks in
+    syn = make_problem(rng, jump=0.08)
+    inlier = schur.solve_robust_schur(syn.problem, RobustSchedule(), device=device).stats["inlier_obs"]
+    assert (~inlier[syn.outlier_obs]).mean() > 0.95
+    assert (~inlier[~syn.outlier_points[syn.problem.obs_point]]).mean() < 0.01
+
+
+@DEVICES
+def test_fixed_poses_stay_fixed_and_the_rest_agree_with_gtsam(device):
+    syn = make_problem(np.random.default_rng(1), n_views=6, n_points=200)
+    fixed = np.array([True, True, False, False, False, False])
+    p = dataclasses.replace(syn.problem, fixed=fixed)
+    ref, got = ba.solve(p, 0.5, "cauchy", 3.0), schur.solve_schur(p, 0.5, "cauchy", 3.0, device=device)
+    np.testing.assert_array_equal(got.poses[fixed], p.poses[fixed])
+    assert np.abs(got.poses[~fixed] - p.poses[~fixed]).max() > 1e-5
+    # GTSAM holds them by a prior of sigma 1e-7, which lets them (and so the rest) move by that much
+    np.testing.assert_allclose(got.poses, ref.poses, atol=1e-6)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-6)
+    # every pose fixed (a map held at two views): the points alone are refined
+    held = dataclasses.replace(p, fixed=np.ones(6, bool))
+    got = schur.solve_schur(held, 0.5, "cauchy", 3.0, device=device)
+    np.testing.assert_array_equal(got.poses, p.poses)
+    np.testing.assert_allclose(got.points, ba.solve(held, 0.5, "cauchy", 3.0).points, atol=1e-6)
+
+
+def test_priors_pull_the_poses_to_them():
+    syn = make_problem(np.random.default_rng(2), n_views=5, n_points=150)
+    p = syn.problem
+    # 1e-6 rad, 0.3 um: tighter than 750 observations at 0.5 px can argue with
+    tight = dataclasses.replace(p, prior_covs=np.repeat(np.diag([1e-12] * 3 + [1e-13] * 3)[None], 5, 0),
+                                poses=syn.true_poses.copy())
+    got = schur.solve_schur(tight, 0.5, None)
+    # started at the truth, a very tight prior takes each pose to its (wrong) prior
+    assert max(pose_error(a, b)[0] for a, b in zip(got.poses, p.prior_poses)) < 2e-6
+    np.testing.assert_allclose(got.poses, ba.solve(tight, 0.5, None).poses, atol=1e-10)
+    assert max(pose_error(a, b)[0] for a, b in zip(p.prior_poses, syn.true_poses)) > 2e-4
+    loose = schur.solve_schur(dataclasses.replace(tight, prior_covs=p.prior_covs), 0.5, None)
+    assert rms_mm(loose.poses, syn.true_poses) < 0.7 * rms_mm(p.prior_poses, syn.true_poses)
+
+
+@DEVICES
+def test_rig_ties_hold_a_stereo_pair_as_gtsam_does(device):
+    syn = make_problem(np.random.default_rng(6), n_views=8, n_points=300, jump=0.03)
+    p = syn.problem
+    pairs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])  # reference camera, partner
+    T_ij = np.array([inv_T(syn.true_poses[i]) @ syn.true_poses[j] for i, j in pairs])
+    has_prior = np.ones(8, bool)
+    has_prior[pairs[:, 1]] = False
+    tied = dataclasses.replace(p, has_prior=has_prior, tie_pairs=pairs, tie_T=T_ij,
+                               tie_covs=np.repeat(np.diag([1e-4**2] * 3 + [1e-5**2] * 3)[None], 4, 0))
+    schedule = RobustSchedule()
+    ref, got = ba.solve_robust(tied, schedule), schur.solve_robust_schur(tied, schedule, device=device)
+    # each partner with a prior of its own instead: the pair's relative pose is as loose as two priors
+    loose = schur.solve_robust_schur(dataclasses.replace(p, has_prior=np.ones(8, bool)), schedule, device=device)
+
+    def pair_error(poses):
+        return max(pose_error(inv_T(poses[i]) @ poses[j], T)[0] for (i, j), T in zip(pairs, T_ij))
+
+    assert pair_error(got.poses) < 0.25 * pair_error(loose.poses)
+    assert pair_error(got.poses) < 1e-4
+    np.testing.assert_allclose(got.poses, ref.poses, atol=1e-8)
+    assert (got.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 2
+
+
+@DEVICES
+def test_chunked_elimination_equals_one_block(monkeypatch, device):
+    """A final pass eliminates its landmarks chunk by chunk (bounded memory); a local window in one block."""
+    syn = make_problem(np.random.default_rng(7), n_views=20, n_points=600)
+    p = dataclasses.replace(syn.problem, fixed=np.arange(20) < 2)
+    monkeypatch.setattr(schur, "CHUNK_POINTS", 10_000)
+    one = schur.solve_schur(p, 0.5, "cauchy", 3.0, device=device)
+    assert len(schur._layout(schur.pose_major(p)[0]).chunks) == 1
+    monkeypatch.setattr(schur, "CHUNK_ENTRIES", 20_000)
+    assert len(schur._layout(schur.pose_major(p)[0]).chunks) >= 10
+    chunked = schur.solve_schur(p, 0.5, "cauchy", 3.0, device=device)
+    assert chunked.iterations == one.iterations > 1
+    np.testing.assert_allclose(chunked.poses, one.poses, atol=1e-10)
+    np.testing.assert_allclose(chunked.points, one.points, atol=1e-10)
+
+
+def test_the_mapper_uses_the_configured_solver():
+    K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+    assert Mapper(K, MapperConfig()).solve_ba is schur.solve_robust_schur
+    assert Mapper(K, MapperConfig(ba_solver="gtsam")).solve_ba is ba.solve_robust
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres': use schur or gtsam"):
+        Mapper(K, MapperConfig(ba_solver="ceres"))
+
+
+def test_a_live_run_refuses_an_unknown_solver_before_it_starts():
+    from lapreco_hil.config import PipelineConfig
+    from lapreco_hil.runtime.live import LiveRun
+
+    config = PipelineConfig()
+    config = dataclasses.replace(config, mapper=dataclasses.replace(config.mapper, ba_solver="ceres"))
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres'"):
+        LiveRun(None, None, None, config, tracker="opencv", device="cpu")
