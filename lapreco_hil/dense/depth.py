@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined",
           "views_agree", "supported", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
+PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
@@ -412,7 +413,7 @@ def _centre(view: KeyframeView) -> np.ndarray:
 def choose_sources(ref: KeyframeView, candidates: list[KeyframeView], n: int) -> list[KeyframeView]:
     """Up to ``n`` neighbours of ``ref`` for multi-view stereo, best first: a stereo partner (same rig reference)
     first, then views whose triangulation angle at the scene depth lies between 2 and 30 degrees and that see
-    much of what ``ref`` sees, ranked by overlap times closeness of the angle to about 8 degrees (wide enough for
+    much of what ``ref`` sees, ranked by overlap times closeness of the angle to PREFERRED_ANGLE_DEG (wide enough for
     depth resolution, narrow enough that windows still look alike)."""
     near, far = ref.depth_range_m or (DEFAULT_SCENE_DEPTH_M, DEFAULT_SCENE_DEPTH_M)
     z = 0.5 * (near + far)
@@ -447,6 +448,6 @@ def choose_sources(ref: KeyframeView, candidates: list[KeyframeView], n: int) ->
         overlap = float(np.mean(front & (u >= 0) & (u <= cw - 1) & (v >= 0) & (v <= ch - 1)))
         if overlap < 0.3:
             continue
-        ranked.append((overlap * math.exp(-math.log(angle / 8.0) ** 2 / (2 * 0.6 ** 2)), cand))
+        ranked.append((overlap * math.exp(-math.log(angle / PREFERRED_ANGLE_DEG) ** 2 / (2 * 0.6 ** 2)), cand))
     ranked.sort(key=lambda item: -item[0])
     return (partners + [c for _, c in ranked])[:n]
