@@ -129,7 +129,7 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
     the alpha shape of the inlier points (``surface_note`` says why, when the dense surface was asked for)."""
     t0 = time.perf_counter()
     points, colors = m.points[m.inlier], m.colors[m.inlier]
-    if dense is None and config.surface.mode == "dense" and surface_note is None:
+    if dense is None and config.surface.mode == "dense" and surface_note is None:  # (asked for, not built)
         surface_note = "no dense surface was built (its stage was switched off after an error); the alpha shape instead"
         log.warning("dense surface off: %s", surface_note)
     mesh = dense.mesh if dense is not None else alpha_shape(points, colors, config.surface.alpha_factor)

@@ -60,7 +60,8 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
             "features": features, "tracks": report["tracks"], "frames": f,
             "sustained_fps": report["throughput_fps"], "latency_ms": report["latency_ms"],
             "stage_ms": report["stage_ms"], "wall_s": report.get("wall_s"), "queue_depth": report.get("queue_depth", {}),
-            "live": report.get("live", {}), "inliers": report["inliers"]}
+            "live": report.get("live", {}), "inliers": report["inliers"], "surface": report.get("surface"),
+            "dense": report.get("dense")}
 
 
 def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), fps: float = 10.0,
@@ -113,6 +114,24 @@ def bench_ba(repeats: int = 3, device: str = "cpu") -> dict:
     from lapreco_hil.warp_device import resolve_device
 
     return run(repeats=repeats, device=resolve_device(device))
+
+
+def bench_dense(device: str = "auto", resolutions=None, views: int = 4, repeats: int = 5) -> dict:
+    """The dense surface's steps per keyframe: a depth map (multi-view stereo, simulated liver keyframes, accuracy
+    against the renderer's depth) and its integration, take-out and put-back in the TSDF volume and the meshing
+    (the simulated skull's true depth maps), at each resolution (default: 1920x1080 and 384x288)."""
+    from lapreco_hil.bench.dense import bench_depth
+    from lapreco_hil.bench.fusion import bench_fusion
+    from lapreco_hil.warp_device import resolve_device
+
+    device = resolve_device(device)
+    rows = []
+    for resolution in resolutions or [(1920, 1080), (384, 288)]:
+        rows.append({"resolution": list(resolution),
+                     "depth": bench_depth(device, tuple(resolution), views, repeats),
+                     "fusion": bench_fusion(device, tuple(resolution), repeats=max(1, min(repeats, 3)))})
+    return {"benchmark": "dense", "device": device, "views": views, "repeats": repeats, "rows": rows,
+            "machine": platform.node(), "processor": platform.processor(), "cpu_threads": os.cpu_count()}
 
 
 def bench_robot(links=("serial", "canopen"), rates=(100.0, 500.0), seconds: float = 5.0) -> dict:

@@ -102,7 +102,9 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     if not write:
         if mcap_log is not None:
             mcap_log.close()
-        return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")}}
+        dense = live.dense_result.stats if live.dense_result is not None else None
+        return {**fields, **metrics, **{k: result.stats[k] for k in ("tracks", "keyframes", "landmarks", "inliers")},
+                "surface": "dense" if dense is not None else "alpha", "dense": dense}
     if record:
         fields["recorded_session"] = record
     try:

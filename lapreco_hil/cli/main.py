@@ -12,9 +12,9 @@ from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative,
                                   resolution, seed)
 
 _positive_int = positive_int  # the calibration parsers take it as an argument
-SURFACE_CHOICES = ("dense", "alpha")
-SURFACE_HELP = ("the surface: dense (multi-view stereo fused in a TSDF: mesh.ply and dense.ply) or alpha (the "
-                "sparse points' alpha shape) (default: the config's [surface] mode)")
+SURFACE_CHOICES = ("auto", "dense", "alpha")
+SURFACE_HELP = ("the surface: dense (multi-view stereo fused in a TSDF: mesh.ply and dense.ply), alpha (the sparse "
+                "points' alpha shape) or auto (dense offline, alpha live) (default: the config's [surface] mode, auto)")
 
 
 def build_parser() -> ArgumentParser:
@@ -162,6 +162,14 @@ def build_parser() -> ArgumentParser:
                           "cuda, cuda:N or auto")
     bench_ba.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_ba.set_defaults(func=_cmd_bench_ba)
+    bench_dn = bench_sub.add_parser("dense", help="the dense surface per keyframe: depth map, TSDF integration, meshing")
+    bench_dn.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
+    bench_dn.add_argument("--resolution", type=resolution, action="append", default=None,
+                          help="WxH, repeatable (default: 1920x1080 and 384x288)")
+    bench_dn.add_argument("--views", type=positive_int, default=4, help="source views per depth map (default 4)")
+    bench_dn.add_argument("--repeats", type=positive_int, default=5)
+    bench_dn.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    bench_dn.set_defaults(func=_cmd_bench_dense)
     bench_fe = bench_sub.add_parser("frontend", help="Warp front-end vs the OpenCV baseline, per stage")
     bench_fe.add_argument("--device", default="auto", help="Warp device: auto | cpu | cuda")
     bench_fe.add_argument("--resolution", type=resolution, nargs="+", default=[(1920, 1080)])
@@ -300,6 +308,18 @@ def _cmd_bench_ba(args) -> int:
 
     result = bench_ba(repeats=args.repeats, device=args.device)
     print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def _cmd_bench_dense(args) -> int:
+    from lapreco_hil.app.bench import bench_dense
+    from lapreco_hil.bench import dense, fusion
+
+    result = bench_dense(device=args.device, resolutions=args.resolution, views=args.views, repeats=args.repeats)
+    for row in result["rows"]:
+        print(dense.format_table(row["depth"]))
+        print(fusion.format_table(row["fusion"]))
     _write_json(args.json, result)
     return 0
 

@@ -240,7 +240,7 @@ class TsdfVolume:
             w = self.w_sum.numpy()[:n * bv].reshape(n, 8, 8, 8).copy()
             d = self.d_sum.numpy()[:n * bv].reshape(n, 8, 8, 8).copy()
             c = self.c_sum.numpy()[:n * bv].reshape(n, 8, 8, 8, 3).copy()
-        held = (w != 0).reshape(n, -1).any(axis=1)
+        held = (w != 0).reshape(n, bv).any(axis=1)  # (an empty volume: n = 0)
         order = np.argsort(keys[held], kind="stable")
         keys, w, d, c = keys[held][order], w[held][order], d[held][order], c[held][order]
         weight = w / self.k.W_SCALE

@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 DepthFn = Callable[[KeyframeView, list, DepthConfig, str], DepthMap]
 SourcesFn = Callable[[KeyframeView, list, int], list]
-SURFACE_MODES = ("dense", "alpha")
+SURFACE_MODES = ("auto", "dense", "alpha")
 DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
 CANDIDATE_FACTOR = 3  # decoded keyframe images cached: 3 x n views (and a few more)
 CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest the reference (poses only)
@@ -329,14 +329,21 @@ def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier
     return out
 
 
-def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None
-                      ) -> tuple[DenseSurface | None, str | None]:
-    """The run's DenseSurface when ``[surface] mode`` is "dense" (None for "alpha"), or (None, why) with one
-    warning when multi-view stereo is not there: the run then makes the alpha shape."""
+def surface_mode(config: PipelineConfig, live: bool = False) -> str:
+    """The surface a run makes: "dense" or "alpha" (``[surface] mode = "auto"``: dense offline, alpha live)."""
     mode = config.surface.mode
     if mode not in SURFACE_MODES:
-        raise ConfigError(f"[surface] mode = '{mode}': use dense or alpha")
-    if mode == "alpha":
+        raise ConfigError(f"[surface] mode = '{mode}': use auto, dense or alpha")
+    if mode == "auto":
+        return "alpha" if live else "dense"
+    return mode
+
+
+def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None,
+                      live: bool = False) -> tuple[DenseSurface | None, str | None]:
+    """The run's DenseSurface when its surface is dense (``surface_mode``; None for alpha), or (None, why) with
+    one warning when multi-view stereo is not there: the run then makes the alpha shape."""
+    if surface_mode(config, live) == "alpha":
         return None, None
     depth_fn, sources_fn, why = stereo_functions()
     if depth_fn is None:

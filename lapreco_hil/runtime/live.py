@@ -80,7 +80,7 @@ class LiveRun:
         if camera is not None:
             from lapreco_hil.dense.surface import dense_surface_for
 
-            surface, self.surface_note = dense_surface_for(camera, config, device, stereo)
+            surface, self.surface_note = dense_surface_for(camera, config, device, stereo, live=True)
             if surface is not None:
                 view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
                 self.dense = Dense(surface, self.links, self.metrics, device=device,
