@@ -30,11 +30,11 @@ def format_table(r: dict) -> str:
         f"live pipeline, {r['resolution']} at {r['fps_target']:g} fps for {r['seconds']:g} s ({r['device']}, "
         f"{r['tracker']} tracker, {r['source']} source, {r['machine']})",
         "| sustained fps | frames in | mapped | dropped (source / capture / mapper) | latency p50 / p95 / p99 ms "
-        "| keyframes' BA deferred | resection deferred | final BA s |",
+        "| keyframes' BA deferred | resection deferred | map's end s (its global BA s) |",
         "|---|---|---|---|---|---|---|---|",
         f"| {r['sustained_fps']:.1f} | {f['in']} | {f['processed']} | {f['dropped']} ({f['dropped_source']} / "
         f"{f['dropped_capture']} / {f['mapper_skipped']}) | {lat.get('p50', 0):.0f} / {lat.get('p95', 0):.0f} / "
         f"{lat.get('p99', 0):.0f} | {r['live'].get('local_ba_skipped', 0)} "
         f"({r['live'].get('local_ba_deferred_share', 0):.1%}) | {r['live'].get('resection_skipped', 0)} | "
-        f"{_seconds(r['live'].get('final_ba_s'))} |",
+        f"{_seconds(r['live'].get('final_ba_s'))} ({_seconds(r['live'].get('final_global_ba_s'))}) |",
     ])

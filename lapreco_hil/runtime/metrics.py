@@ -84,7 +84,9 @@ class LiveMetrics:
                      "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
                      "stage_errors": dict(errors), "disabled_stages": sorted(disabled),
                      "interrupted": interrupted,
+                     # the map's end after capture stops: all of it, and its global BA alone
                      "final_ba_s": result.stats.get("final_ba_wall_s"),
+                     "final_global_ba_s": result.stats.get("final_ba_s"),
                      # the mapper process's own time, by kind of work (the usual bottleneck)
                      "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
                      # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
