@@ -7,7 +7,7 @@ what it writes and what it counts are given to its constructor.
   frame is not mapped, counted). Takes every frame capture kept: LK needs consecutive frames.
 - ``Results``: the mapper's messages -> latency, counters, free slots, the refined pose of the live view.
 - ``Surface``: the mapper's map snapshot -> the live mesh every ``surface_period_s`` (or the dense surface's
-  mesh), the textured view every ``view_period_s``.
+  mesh), the textured view every ``view_period_s`` (no view: no live mesh).
 - ``Dense``: keyframe images (kept by tracking until the mapper names its keyframes) and poses -> depth maps
   fused into the TSDF volume, re-fused when local BA moves a keyframe, its mesh every ``surface_period_s``.
 - ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture)."""
@@ -305,7 +305,9 @@ class Surface:
                 now = time.monotonic()
                 if self.dense is not None:
                     self.mesh = self.dense.mesh  # (rebuilt by the dense stage)
-                elif now >= next_mesh:
+                elif view is not None and now >= next_mesh:
+                    # (the live view is the mesh's one reader: without it nothing is rebuilt, a full alpha shape
+                    # every couple of seconds held the GIL from tracking for 200 ms at 1080p)
                     # until the first mesh exists, look again soon: the view should show it as soon as there is one
                     next_mesh = now + (rt.surface_period_s if self.mesh is not None else min(rt.surface_period_s, 0.1))
                     v, pts, cols = self.snapshot.read()
