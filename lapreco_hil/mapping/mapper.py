@@ -669,14 +669,13 @@ class Mapper:
 
     def _frame_poses(self) -> np.ndarray:
         """Every frame's refined pose against the final map: keyframes from the global BA, the others by
-        pose-only refinement started from the keyframe corrections interpolated in time (live, as at retirement,
-        the interpolated corrections alone: a 2-minute run at 60 fps has 7200 frames, a minute of resections
-        after capture stops)."""
+        pose-only refinement started from the keyframe corrections interpolated in time (the corrections alone
+        leave the live demo's frames 1.8x closer to the truth than raw FK instead of 5x)."""
         if not self.keyframes:
             return np.array([f.T_prior for f in self.frames])
         kt, corr = self.retirement.corrections(self.keyframes)
         for f in self.retirement.take_frames(self.frames):
-            self._settle_frame(f, kt, corr, resect=self.schedule.resect_on_retire)
+            self._settle_frame(f, kt, corr)
         return np.array([f.T_refined for f in self.frames])
 
     def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray], resect: bool = True) -> None:
