@@ -224,8 +224,11 @@ def test_lapreco_run_logs_live_to_mcap(source, tmp_path):
     report = json.loads((out / "report.json").read_text())
     msgs = read_mcap(mcap)
     n_in = report["frames"]["in"]
-    assert report["mcap"]["error"] is None and report["mcap"]["topics"]["/camera/image/compressed"] == n_in
-    assert len(msgs["/camera/image/compressed"]) == n_in - report["mcap"]["dropped_frames"] > 0
+    logged = report["mcap"]["topics"]["/camera/image/compressed"]
+    # a logger that falls behind (JPEG encoding on a loaded machine) drops frames and counts them, never the run's
+    assert report["mcap"]["error"] is None
+    assert logged == n_in - report["mcap"]["dropped_frames"] - report["frames"]["dropped_record"] > 0
+    assert len(msgs["/camera/image/compressed"]) == logged
     assert [t for t, _, _ in msgs["/tf"]] == [t for t, _, _ in msgs["/camera/image/compressed"]]
     import pyvista as pv
 
