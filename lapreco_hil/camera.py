@@ -156,10 +156,12 @@ class CameraModel:
             (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10),
         ).reshape(-1, 2)
 
-    def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """cv2.remap maps from the distorted frame to the undistorted image with the same K."""
-        return cv2.initUndistortRectifyMap(self.K, self.dist_array, None, self.K, (self.width, self.height),
-                                           cv2.CV_32FC1)
+    def undistort_maps(self, K: np.ndarray | None = None,
+                       size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """cv2.remap maps from the distorted frame to the undistorted pinhole image with ``K`` (default: the same
+        K) at ``size`` (default: the same size)."""
+        return cv2.initUndistortRectifyMap(self.K, self.dist_array, None, self.K if K is None else K,
+                                           size or (self.width, self.height), cv2.CV_32FC1)
 
     @property
     def field_of_view(self) -> FieldOfView | None:

@@ -31,6 +31,7 @@ from lapreco_hil.dense.fusion import TsdfVolume
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.geometry import rotation_angle
+from lapreco_hil.mapping.prediction import depth_span
 
 log = logging.getLogger(__name__)
 
@@ -300,32 +301,26 @@ class DenseSurface:
 def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):
     """cv2.remap maps from ``camera``'s distorted frame to the pinhole ``K`` (default: its own) at ``size``, and its
     field of view in that undistorted image (bool H x W: the lens's circle, and nothing outside the frame)."""
-    K = camera.K if K is None else K
-    size = (camera.width, camera.height) if size is None else size
-    mx, my = cv2.initUndistortRectifyMap(camera.K, camera.dist_array, None, K, size, cv2.CV_32FC1)
+    mx, my = camera.undistort_maps(K, size)
     mask = cv2.remap(camera.fov_mask(), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return mx, my, mask > 0
 
 
 def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier: np.ndarray,
                  min_points: int = 8) -> dict[int, tuple[float, float] | None]:
-    """Per keyframe, the depths its inlier landmarks span (2nd to 98th percentile) with a margin (x0.8, x1.25);
-    None where it sees fewer than ``min_points`` of them (its observations let go, or too few)."""
+    """Per keyframe, the depths its inlier landmarks span (``mapping.prediction.depth_span``: 2nd to 98th
+    percentile with a margin); None where it sees fewer than ``min_points`` of them (its observations let go, or
+    too few)."""
     lm = dict(zip(np.asarray(landmark_ids)[inlier].tolist(), np.asarray(points)[inlier]))
     out = {}
     for kf in keyframes:
         ids = [t for t in np.asarray(kf.track_ids).tolist() if t in lm] if kf.track_ids is not None else []
-        if len(ids) < min_points:
+        if not ids:
             out[kf.id] = None
             continue
         X = np.array([lm[t] for t in ids])
         T = kf.T_world_camera
-        z = ((X - T[:3, 3]) @ T[:3, :3])[:, 2]
-        z = z[z > 0]
-        if len(z) < min_points:
-            out[kf.id] = None
-            continue
-        out[kf.id] = (float(0.8 * np.percentile(z, 2)), float(1.25 * np.percentile(z, 98)))
+        out[kf.id] = depth_span(((X - T[:3, 3]) @ T[:3, :3])[:, 2], min_points)
     return out
 
 
