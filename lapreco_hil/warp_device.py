@@ -65,3 +65,19 @@ def device_lock(device) -> threading.RLock:
     key = str(device)
     with _DEVICE_LOCKS_GUARD:
         return _DEVICE_LOCKS.setdefault(key, threading.RLock())
+
+
+def preload_kernels(package: str, device) -> float:
+    """Compile and load every Warp module under ``package`` (e.g. ``lapreco_hil.frontend.warp``) on ``device``
+    now, returning the seconds it took. Warp compiles a module at its first launch; a live stage that meets a
+    kernel for the first time mid-run (the first frame with a motion, the first BA) would stall for the
+    compile — seconds on a machine whose kernel cache is cold — while capture goes on and drops frames."""
+    import importlib
+    import time
+
+    wp = init_warp()
+    t0 = time.perf_counter()
+    wp.load_module(importlib.import_module(package), device=str(device), recursive=True)
+    seconds = time.perf_counter() - t0
+    log.info("warp: %s loaded on %s in %.2f s", package, device, seconds)
+    return seconds

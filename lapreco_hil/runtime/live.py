@@ -35,6 +35,7 @@ from lapreco_hil.runtime.coverage import ViewCoverage
 from lapreco_hil.runtime.health import HealthMonitor
 from lapreco_hil.runtime.messages import MapperFailed
 from lapreco_hil.runtime.metrics import LiveMetrics
+from lapreco_hil.warp_device import preload_kernels
 from lapreco_hil.runtime.processes import MapperProcesses
 from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
 from lapreco_hil.runtime.stages import (Capture, Dense, LatestView, RecentFrames, Record, Results, StageLinks,
@@ -151,6 +152,12 @@ class LiveRun:
             self.tracking.frontend = self._make_frontend()
             if hasattr(self.tracking.frontend, "warm_up"):
                 self.tracking.frontend.warm_up()
+        if self.dense is not None:
+            # its first depth map would otherwise compile under the device lock and stall tracking
+            import lapreco_hil.dense.depth  # noqa: F401  (the kernel modules, imported)
+            import lapreco_hil.dense.fusion  # noqa: F401
+
+            preload_kernels("lapreco_hil.dense.warp", self.dense.device)
         sup = self.supervisor
         sup.start_processes()
         stages = {"capture": self.capture.run, "tracking": self.tracking.run,

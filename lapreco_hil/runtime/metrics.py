@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 
 import numpy as np
 
@@ -18,6 +19,8 @@ class LiveMetrics:
         self.depth: dict[str, list[int]] = collections.defaultdict(list)
         self.first_arrival_ns = 0
         self.last_done_ns = 0
+        self.started_ns = time.monotonic_ns()
+        self.event_span_ns: dict[str, list[int]] = {}  # an event's first and last time (drops: when, not only how many)
 
     def add(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -26,6 +29,13 @@ class LiveMetrics:
     def set(self, key: str, value: int) -> None:
         with self._lock:
             self.counts[key] = value
+
+    def mark(self, key: str) -> None:
+        """``add(key)``, remembering when the first and the last of them happened."""
+        now = time.monotonic_ns()
+        with self._lock:
+            self.counts[key] += 1
+            self.event_span_ns.setdefault(key, [now, now])[1] = now
 
     def get(self, key: str) -> int:
         return self.counts.get(key, 0)
@@ -49,8 +59,11 @@ class LiveMetrics:
         lat_ms = np.array(self.latency_ns, float) * 1e-6
         pct = {"p50": float(np.percentile(lat_ms, 50)), "p95": float(np.percentile(lat_ms, 95)),
                "p99": float(np.percentile(lat_ms, 99)), "max": float(lat_ms.max())} if len(lat_ms) else {}
-        stage_ms = {k: {"mean": float(np.mean(v) * 1e3), "p95": float(np.percentile(v, 95) * 1e3)}
+        stage_ms = {k: {"mean": float(np.mean(v) * 1e3), "p95": float(np.percentile(v, 95) * 1e3),
+                        "max": float(np.max(v) * 1e3)}
                     for k, v in self.stage_s.items() if v}
+        # seconds into the run of each marked event's first and last occurrence
+        spans = {k: [round((t - self.started_ns) * 1e-9, 3) for t in v] for k, v in self.event_span_ns.items()}
         processed = c.get("frames_processed", 0)
         frames_in = c.get("frames_in", 0)
         return {
@@ -62,7 +75,8 @@ class LiveMetrics:
                        "without_pose_by_cause": poses.without_pose.as_dict(),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0),
                        "mapper_skipped": c.get("mapper_skipped", 0), "tracking_errors": c.get("tracking_errors", 0),
-                       "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0)},
+                       "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0),
+                       "dropped_capture_span_s": spans.get("dropped_capture")},
             # the pose source's samples refused (the keys keep their first name: a tracker's refusals are here too)
             "pose_source": getattr(poses, "source", "robot"),
             "robot_samples_rejected": poses.rejected,  # (a given-pose source refuses nothing)

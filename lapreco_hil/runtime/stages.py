@@ -127,7 +127,7 @@ class Capture:
             with links.cond:
                 if len(links.capture_q) >= self.capture_queue:
                     links.capture_q.popleft()
-                    m.add("dropped_capture")
+                    m.mark("dropped_capture")
                 links.capture_q.append((frame, arrival))
                 m.sample_depth("capture", len(links.capture_q))
                 if self.recording and "record" not in links.disabled:

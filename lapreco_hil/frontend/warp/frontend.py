@@ -22,7 +22,7 @@ import warp as wp
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.warp_device import device_lock
+from lapreco_hil.warp_device import device_lock, preload_kernels
 from lapreco_hil.frontend import epipolar
 from lapreco_hil.frontend.image import HIGHPASS_GAIN, LOG_OFFSET, shading_sigma_px, to_u8, tracker_image
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
@@ -397,8 +397,10 @@ class WarpFrontEnd:
             wp.copy(dst, src)
 
     def warm_up(self) -> None:
-        """Compile every kernel and capture both frame graphs on black frames (no corners, so no tracks are
-        left behind), so a live run's first frames do not wait tens of seconds for them."""
+        """Compile every kernel (those only frames with a motion launch as well) and capture both frame graphs
+        on black frames (no corners, so no tracks are left behind), so a live run's first frames do not wait tens
+        of seconds for them."""
+        preload_kernels("lapreco_hil.frontend.warp", self.device)  # the motion path's kernels too
         black = np.zeros((self.height, self.width, 3), np.uint8)
         for k in range(4):  # both buffer parities, eager then captured
             self.process(Frame(black, k, k))
