@@ -21,8 +21,9 @@ from lapreco_hil.app.run import run_live
 
 def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = None, fps: float | None = None,
                    seconds: float = 20.0, features: int | None = None, source: str = "auto",
-                   tracker: str = "auto", scene: str = "skull", session: str | None = None) -> dict:
-    """The live runtime in real time. Defaults: 1920x1080 at 60 fps with 2000 features on a GPU, 384x288 at
+                   tracker: str = "auto", scene: str = "skull", session: str | None = None,
+                   surface: str = "auto") -> dict:
+    """The live runtime in real time (``surface``: ``[surface] mode``). Defaults: 1920x1080 at 60 fps with 2000 features on a GPU, 384x288 at
     25 fps with 800 on a CPU. Source 'replay' (and 'auto'): a session recorded first (or ``session``), replayed
     in real time; 'sim': the simulated world rendered live."""
     from lapreco_hil.bench.pipeline import bench_config
@@ -35,7 +36,7 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
     tracker = resolve_tracker(tracker, device)
     if source == "auto" or session is not None:
         source = "replay"
-    config = bench_config(features)
+    config = bench_config(features, surface)
     frames = int(round(fps * seconds))
     with tempfile.TemporaryDirectory() as tmp:
         ctx = DeviceContext(device=device)

@@ -13,11 +13,12 @@ from dataclasses import replace
 from lapreco_hil.config import PipelineConfig
 
 
-def bench_config(features: int) -> PipelineConfig:
-    """The defaults with ``features`` tracked. The final global BA after capture stops is timed apart from the
-    live figures (report.json ``live.final_ba_s``)."""
+def bench_config(features: int, surface: str = "auto") -> PipelineConfig:
+    """The defaults with ``features`` tracked and the ``[surface] mode``. The final global BA after capture stops
+    is timed apart from the live figures (report.json ``live.final_ba_s``)."""
     config = PipelineConfig()
-    return replace(config, tracker=replace(config.tracker, max_features=features))
+    return replace(config, tracker=replace(config.tracker, max_features=features),
+                   surface=replace(config.surface, mode=surface))
 
 
 def _seconds(s) -> str:
