@@ -314,4 +314,4 @@ def test_the_kernels_compile_for_cuda(warp_cpu, tmp_path):
             pytest.skip(f"no CUDA compiler in this Warp build: {exc}")
         raise
     ptx = Path(outputs[0]).read_text()
-    assert ".entry" in ptx and "sweep_cols" in ptx and "warp_samples" in ptx
+    assert ".entry" in ptx and "sweep_cols" in ptx and "warp_samples" in ptx and "sweep_window" in ptx
