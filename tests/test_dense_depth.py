@@ -81,6 +81,77 @@ def test_the_geometric_check_drops_depths_the_sources_contradict(sheet, warp_cpu
     assert checked.stats["funnel"]["geometry_agrees"] >= 0.95 * checked.stats["funnel"]["supported"]
 
 
+def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_cpu):
+    """The CPU's window sums (sliding along rows, then columns) and CUDA's (each window row from its taps, slid
+    down a band of rows) are the same sums in another order: the ZNCC volumes agree to float rounding (the
+    variance's cancellation makes it about 1e-3 on the faintest windows), and so do the depth maps."""
+    from lapreco_hil.dense.depth import DepthEstimator
+
+    views, truths = sheet
+    maps, volumes = {}, {}
+    for sweep in ("sliding", "windowed"):
+        estimator = DepthEstimator(DepthConfig(), DEVICE, sweep=sweep)
+        maps[sweep] = estimator.compute(views[0], views[1:])
+        planes = maps[sweep].stats["planes"]
+        volumes[sweep] = (estimator.coarse.zncc.numpy()[:, :planes].copy(), estimator.fine.zncc.numpy().copy())
+        assert estimator.sweep == sweep
+    for level in (0, 1):
+        a, b = volumes["sliding"][level], volumes["windowed"][level]
+        scored = (a > -1.5) & (b > -1.5)
+        # the same windows have a score but for the few at the texture threshold, where rounding decides
+        assert np.mean((a > -1.5) != (b > -1.5)) < 1e-3 * np.mean(scored)
+        assert np.abs(a - b)[scored].max() < 5e-3
+        assert np.mean(np.abs(a - b)[scored] < 1e-4) > 0.95
+    a, b = maps["sliding"], maps["windowed"]
+    both = a.valid & b.valid
+    assert np.count_nonzero(a.valid != b.valid) <= 0.002 * np.count_nonzero(a.valid)
+    diff = np.abs(a.depth_m[both] - b.depth_m[both])
+    # a parabola through nearly equal scores moves the most, by a fraction of a plane (at 75 mm)
+    assert diff.max() < 0.5e-3 and np.mean(diff < 0.01e-3) > 0.995 and np.median(diff) < 1e-6
+    with pytest.raises(ConfigError, match="sweep 'tiles'"):
+        DepthEstimator(DepthConfig(), DEVICE, sweep="tiles")
+
+
+def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, warp_cpu):
+    """The estimator keeps prepared views by kf_id: the maps are those of a fresh estimator, a keyframe's image
+    is prepared once however often it is a source, a changed image under the same kf_id is prepared again, and
+    more keyframes than the cache holds push out the least recently used."""
+    from lapreco_hil.dense.depth import FUNNEL, DepthEstimator
+
+    views, _ = sheet
+    estimator = DepthEstimator(dataclasses.replace(DepthConfig(), cached_views=5), DEVICE)
+    first = estimator.compute(views[0], views[1:])
+    assert first.stats["prepared"] == [0, 1, 2, 3, 4]
+    again = estimator.compute(views[0], views[1:])
+    assert again.stats["prepared"] == []
+    assert np.array_equal(again.depth_m, first.depth_m) and np.array_equal(again.confidence, first.confidence)
+    assert again.stats["funnel"] == first.stats["funnel"]
+    # the funnel is counted on the device: the same as counting the codes here
+    counts = np.bincount(estimator.rejection_codes().ravel(), minlength=len(FUNNEL))
+    assert again.stats["funnel"] == {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL[:-1])}
+
+    # a source whose image changed (the same kf_id): prepared again, and the map is a fresh estimator's
+    shifted = dataclasses.replace(views[2], colour=np.roll(views[2].colour, 3, axis=1))
+    changed = estimator.compute(views[0], [views[1], shifted, views[3], views[4]])
+    assert changed.stats["prepared"] == [2]
+    fresh = DepthEstimator(DepthConfig(), DEVICE).compute(views[0], [views[1], shifted, views[3], views[4]])
+    assert np.array_equal(changed.depth_m, fresh.depth_m)
+    assert not np.array_equal(changed.depth_m, first.depth_m)
+
+    # another reference among the same keyframes prepares nothing; a sixth keyframe pushes out the least
+    # recently used (cached_views=5)
+    assert estimator.compute(views[1], [views[0], views[3]]).stats["prepared"] == []
+    extra = dataclasses.replace(views[4], kf_id=9)
+    assert estimator.compute(views[0], [views[1], extra]).stats["prepared"] == [9]
+    assert estimator.compute(views[0], [views[1], shifted]).stats["prepared"] == [2]  # pushed out by 9
+    estimator.forget(0)
+    assert estimator.compute(views[0], [views[1], shifted]).stats["prepared"] == [0]
+    with pytest.raises(ReconstructionError, match="repeat"):
+        estimator.compute(views[0], [views[1], views[1]])
+    with pytest.raises(ReconstructionError, match="its own source"):
+        estimator.compute(views[0], [views[1], dataclasses.replace(views[0], T_world_camera=views[2].T_world_camera)])
+
+
 def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu):
     from lapreco_hil.dense.depth import DepthEstimator, highlight_mask
 

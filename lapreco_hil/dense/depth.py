@@ -225,22 +225,23 @@ class DepthEstimator:
         self._shape = shape
 
     # --- steps ------------------------------------------------------------------------------------------------
-    def _slots(self, views: list[KeyframeView]) -> list[int]:
+    def _slots(self, views: list[KeyframeView]) -> tuple[list[int], list[int]]:
         """Each view's slot in the prepared-view cache, preparing those that are not there (or whose image
-        changed); the least recently used others make room."""
+        changed; the least recently used others make room), and the kf_ids it prepared."""
         needed = {v.kf_id for v in views}
-        slots = []
+        slots, prepared = [], []
         for view in views:
             fingerprint = _fingerprint(view)
             entry = self._cached.get(view.kf_id)
             if entry is None or entry[1] != fingerprint:
                 slot = entry[0] if entry is not None else self._free_slot(needed)
                 self._prepare(view, slot)
+                prepared.append(view.kf_id)
                 entry = (slot, fingerprint)
                 self._cached[view.kf_id] = entry
             self._cached.move_to_end(view.kf_id)
             slots.append(entry[0])
-        return slots
+        return slots, prepared
 
     def _free_slot(self, needed: set) -> int:
         used = {slot for slot, _ in self._cached.values()}
@@ -363,7 +364,7 @@ class DepthEstimator:
         b_c, b_f = self.b[:n_src], self.b[n_src:]
         t0 = self._sync_time(times, "setup_ms", t0)
 
-        slots = self._slots([ref] + list(sources))
+        slots, prepared = self._slots([ref] + list(sources))
         self.src_slots.assign(np.array(slots[1:], np.int32))
         fine, coarse = self.fine, self.coarse
         ref_full, ref_half = self.full_grey[slots[0]], self.half_grey[slots[0]]
@@ -407,7 +408,8 @@ class DepthEstimator:
         self._sync_time(times, "download_ms", t0)
         times["total_ms"] = round(sum(times.values()), 3)
         stats = {"funnel": funnel, "times_ms": times, "planes": n_planes, "depth_range_m": (near, far),
-                 "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given]}
+                 "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
+                 "prepared": prepared}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
