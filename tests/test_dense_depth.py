@@ -152,6 +152,27 @@ def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, war
         estimator.compute(views[0], [views[1], dataclasses.replace(views[0], T_world_camera=views[2].T_world_camera)])
 
 
+def test_a_depth_map_handed_out_is_never_overwritten(sheet, warp_cpu):
+    """Depth maps come out in the estimator's own host buffers (page-locked from CUDA), reused only once no map
+    refers to them: maps kept while more are computed (more than it keeps buffers) stay as they were."""
+    from lapreco_hil.dense.depth import HOST_BUFFERS, DepthEstimator
+
+    views, _ = sheet
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    held = []
+    for i in range(HOST_BUFFERS + 2):
+        ref = views[i % len(views)]
+        depth_map = estimator.compute(ref, [v for v in views if v is not ref])
+        held.append((depth_map, depth_map.depth_m.copy(), depth_map.confidence.copy()))
+    assert not np.array_equal(held[0][1], held[1][1])
+    for depth_map, depth, confidence in held:
+        assert np.array_equal(depth_map.depth_m, depth) and np.array_equal(depth_map.confidence, confidence)
+    # a buffer no map refers to any more is the next map's (no allocation per map)
+    held.clear()
+    address = estimator.compute(views[0], views[1:]).depth_m.__array_interface__["data"][0]
+    assert estimator.compute(views[1], views[2:]).depth_m.__array_interface__["data"][0] == address
+
+
 def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu):
     from lapreco_hil.dense.depth import DepthEstimator, highlight_mask
 

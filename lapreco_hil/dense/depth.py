@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import sys
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -47,7 +48,8 @@ PREFERRED_ANGLE_DEG = 5.0
 SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
 # overhead, short enough for millions of threads at half 1080p
-WINDOW_BAND_ROWS = 32  # choose_sources ranks views by how close their triangulation angle is to this
+WINDOW_BAND_ROWS = 32
+HOST_BUFFERS = 3  # host buffers for depth maps an estimator keeps (page-locked from CUDA; 16.6 MB each at 1080p)  # choose_sources ranks views by how close their triangulation angle is to this
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
@@ -104,14 +106,14 @@ class _Sweep:
 
 
 def _fingerprint(view: KeyframeView) -> bytes:
-    """What tells a cached view's image from another with the same kf_id: a digest of every 8th pixel of every
-    8th row of the colour and the mask (a keyframe's image does not change; ``DepthEstimator.forget`` is for a
+    """What tells a cached view's image from another with the same kf_id: a digest of every 16th pixel of every
+    16th row of the colour and the mask (0.07 ms at 1080p) (a keyframe's image does not change; ``DepthEstimator.forget`` is for a
     caller whose does)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(repr(view.colour.shape).encode())
-    digest.update(np.ascontiguousarray(view.colour[::8, ::8]).tobytes())
+    digest.update(np.ascontiguousarray(view.colour[::16, ::16]).tobytes())
     if view.mask is not None:
-        digest.update(np.ascontiguousarray(view.mask[::8, ::8], np.uint8).tobytes())
+        digest.update(np.ascontiguousarray(view.mask[::16, ::16], np.uint8).tobytes())
     return digest.digest()
 
 
@@ -136,6 +138,11 @@ class DepthEstimator:
         self._check_shape: tuple | None = None
         self._view_shape: tuple | None = None
         self._cached: OrderedDict[int, tuple[int, bytes]] = OrderedDict()  # kf_id -> (slot, fingerprint), LRU first
+        self._host_buffers: list[tuple[object, np.ndarray]] = []
+        self._host_refs = 0
+        self._host_spare = None
+        self._pinned = False
+        self._host_counts = None
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
@@ -179,10 +186,12 @@ class DepthEstimator:
             self.agree = wp.zeros((h, w), dtype=int)
             self.supported = wp.zeros((h, w), dtype=wp.uint8)
             self.src_depth = wp.zeros((h, w), dtype=float)
-        self._host_out = self._host_counts = None
-        if wp.get_device(self.device).is_cuda:
-            # page-locked: a download at the bus's speed, not through the driver's staging buffers
-            self._host_out = wp.empty((2, h, w), dtype=float, device="cpu", pinned=True)
+        # host buffers that depth maps are downloaded into and handed out as they are (page-locked from CUDA: a
+        # download at the bus's speed, and no copy on the host), each reused once no depth map uses it any more
+        self._host_buffers = []
+        self._host_spare = None
+        self._pinned = wp.get_device(self.device).is_cuda
+        if self._pinned:
             self._host_counts = wp.empty(k.CODE_KEPT + 1, dtype=int, device="cpu", pinned=True)
         self._check_shape = (h, w)
 
@@ -416,12 +425,31 @@ class DepthEstimator:
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:
         """(2, H, W) depth and confidence, and the funnel codes' histogram, as host arrays of their own."""
-        if self._host_out is None:  # the CPU device: the buffers are host memory already
-            return self.out.numpy().copy(), self.counts.numpy().copy()
-        self.wp.copy(self._host_out, self.out)
-        self.wp.copy(self._host_counts, self.counts)
+        if self._pinned:
+            self.wp.copy(self._host_counts, self.counts)
+        host, array = self._host_buffer()
+        self.wp.copy(host, self.out)
         self.wp.synchronize_device(self.device)
-        return self._host_out.numpy().copy(), self._host_counts.numpy().copy()
+        counts = (self._host_counts if self._pinned else self.counts).numpy().copy()
+        if host is self._host_spare:  # every kept buffer is in use: the spare is copied out
+            return array.copy(), counts
+        return array, counts
+
+    def _host_buffer(self) -> tuple[object, np.ndarray]:
+        """A host (2, H, W) buffer no depth map uses: a kept one whose array nothing outside this estimator
+        refers to (a depth map's arrays are views of it), else a new one up to HOST_BUFFERS, else the spare."""
+        for entry in self._host_buffers:
+            if sys.getrefcount(entry[1]) <= self._host_refs:
+                return entry
+        if len(self._host_buffers) < HOST_BUFFERS:
+            buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
+            entry = (buffer, buffer.numpy())
+            self._host_buffers.append(entry)
+            self._host_refs = sys.getrefcount(entry[1])  # this estimator's own references (the same each time)
+            return entry
+        if self._host_spare is None or self._host_spare.shape != self.out.shape:
+            self._host_spare = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
+        return self._host_spare, self._host_spare.numpy()
 
     def rejection_codes(self) -> np.ndarray:
         """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
