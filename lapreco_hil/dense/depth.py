@@ -306,7 +306,8 @@ class DepthEstimator:
                       inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         else:
             bands = math.ceil(h / WINDOW_BAND_ROWS)
-            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, w), device=self.device,
+            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, math.ceil(w / k.WINDOW_COLUMNS)),
+                      device=self.device,
                       inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
                               cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,

@@ -12,10 +12,10 @@ come one of two ways, with the same sums up to float rounding:
 - sliding (``sweep_rows`` then ``sweep_cols``): one thread per (source, plane, row) adding the entering column and
   dropping the leaving one, then per (source, plane, column) down the column: O(1) per pixel whatever the window,
   the cheapest on a CPU, whose threads run long serial loops well;
-- windowed (``sweep_window``): one thread per (source, plane, band of rows, column) sums each window row from its
-  taps and slides the rows down its band. Neighbouring threads are neighbouring columns (coalesced on a GPU),
-  nothing but the samples goes through memory (the sliding way writes 24 bytes of row sums per source, plane and
-  pixel), and there are millions of short threads instead of a few hundred thousand long ones.
+- windowed (``sweep_window``): one thread per (source, plane, band of rows, four columns) sums each window row
+  from its taps and slides the rows down its band. Neighbouring threads are neighbouring columns (coalesced on a
+  GPU), nothing but the samples goes through memory (the sliding way writes 24 bytes of row sums per source,
+  plane and pixel), and there are millions of short threads instead of a few hundred thousand long ones.
 """
 
 from __future__ import annotations
@@ -259,37 +259,68 @@ def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r
         acc -= _row_sum(sums, s, p, y - r, x)
 
 
+WINDOW_COLUMNS = 4  # neighbouring columns per thread of sweep_window
+
+
 @wp.func
-def _window_row(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
-                r: int) -> vec6:
-    """The sums of one window row (x - r .. x + r of row y); zero outside the image."""
-    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+def _window_rows4(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
+                  r: int):
+    """The window-row sums of columns x .. x + 3 of row y: the first from its taps, each next one slid a column
+    (two taps instead of 2r + 1); zero outside the image."""
+    zero = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     if y < 0 or y >= ref.shape[0]:
-        return acc
+        return zero, zero, zero, zero
+    a = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for dx in range(-r, r + 1):
-        acc += _terms(ref, samples, s, p, y, x + dx)
-    return acc
+        a += _terms(ref, samples, s, p, y, x + dx)
+    b = a + _terms(ref, samples, s, p, y, x + 1 + r) - _terms(ref, samples, s, p, y, x - r)
+    c = b + _terms(ref, samples, s, p, y, x + 2 + r) - _terms(ref, samples, s, p, y, x + 1 - r)
+    d = c + _terms(ref, samples, s, p, y, x + 3 + r) - _terms(ref, samples, s, p, y, x + 2 - r)
+    return a, b, c, d
 
 
 @wp.kernel
 def sweep_window(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
                  r: int, band: int, min_std: float, min_valid: float, zncc: wp.array4d(dtype=float)):
-    """One thread per (source, plane, band of ``band`` rows, column): each window row summed from its taps, the
-    rows slid down the band (the leaving row summed again rather than kept: registers, not memory), scored as
-    ``sweep_cols`` does. ``samples`` and ``zncc`` must be different arrays (other threads still read the samples
-    a thread's scores would overwrite)."""
-    s, p, c, x = wp.tid()
+    """One thread per (source, plane, band of ``band`` rows, four neighbouring columns): each window row summed
+    from its taps (then slid over the four columns), the rows slid down the band (the leaving row summed again
+    rather than kept: registers, not memory), scored as ``sweep_cols`` does. ``samples`` and ``zncc`` must be
+    different arrays (other threads still read the samples a thread's scores would overwrite)."""
+    s, p, c, xq = wp.tid()
     h = ref.shape[0]
+    w = ref.shape[1]
+    x = xq * WINDOW_COLUMNS
     y0 = c * band
     y1 = wp.min(y0 + band, h)
     total = float((2 * r + 1) * (2 * r + 1))
-    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc0 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc1 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc2 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc3 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for yi in range(y0 - r, y0 + r):
-        acc += _window_row(ref, samples, s, p, yi, x, r)
+        a, b, cc, d = _window_rows4(ref, samples, s, p, yi, x, r)
+        acc0 += a
+        acc1 += b
+        acc2 += cc
+        acc3 += d
     for y in range(y0, y1):
-        acc += _window_row(ref, samples, s, p, y + r, x, r)
-        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
-        acc -= _window_row(ref, samples, s, p, y - r, x, r)
+        a, b, cc, d = _window_rows4(ref, samples, s, p, y + r, x, r)
+        acc0 += a
+        acc1 += b
+        acc2 += cc
+        acc3 += d
+        zncc[s, p, y, x] = _zncc(acc0, ref_std[y, x], total, min_std, min_valid)
+        if x + 1 < w:
+            zncc[s, p, y, x + 1] = _zncc(acc1, ref_std[y, x + 1], total, min_std, min_valid)
+        if x + 2 < w:
+            zncc[s, p, y, x + 2] = _zncc(acc2, ref_std[y, x + 2], total, min_std, min_valid)
+        if x + 3 < w:
+            zncc[s, p, y, x + 3] = _zncc(acc3, ref_std[y, x + 3], total, min_std, min_valid)
+        a, b, cc, d = _window_rows4(ref, samples, s, p, y - r, x, r)
+        acc0 -= a
+        acc1 -= b
+        acc2 -= cc
+        acc3 -= d
 
 
 @wp.func
