@@ -3,11 +3,12 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
 
 1. Each view to centred grey; the reference's field of view (``KeyframeView.mask``) and saturated specular
    highlights (near-white, low saturation, dilated) are excluded in every view, so a source's highlight spoils
-   only that view's score.
+   only that view's score. Prepared views stay on the device by kf_id (``[depth] cached_views``): a keyframe is
+   the source of several others and is uploaded and prepared once.
 2. Half resolution: fronto-parallel planes evenly spaced in inverse depth over the keyframe's landmark range (a
    configured default without one), spaced so that no source's image moves more than ``coarse_step_px`` between
-   planes. Per plane and source, ZNCC over a window by sliding sums (O(1) per pixel whatever the window); a
-   plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
+   planes. Per plane and source, ZNCC over a window, its sums made per device (``DepthEstimator``'s ``sweep``):
+   sliding along rows then columns on the CPU, per pixel from the window's taps on CUDA; a plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
    plane, parabola through its neighbours, and the second-best local maximum for the margin.
 3. Full resolution: ``fine_planes`` planes about the coarse depth (bilinear) spanning +-``fine_range_px`` of
    image motion, again with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
@@ -473,8 +474,7 @@ class DepthEstimator:
         self.depth.assign(np.ascontiguousarray(depth_map.depth_m, np.float32))
         self.confidence.assign(np.ascontiguousarray(depth_map.confidence, np.float32))
         self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps)
-        depth = self.depth.numpy().copy()
-        confidence = self.confidence.numpy().copy()
+        (depth, confidence), _ = self._download()
         stats = dict(depth_map.stats or {})
         stats["funnel"] = dict(stats.get("funnel", {}), geometry_agrees=int(np.count_nonzero(depth > 0)))
         stats["geometric_sources"] = [m.kf_id for m in source_maps]
