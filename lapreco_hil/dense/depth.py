@@ -50,6 +50,7 @@ SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
 # overhead, short enough for millions of threads at half 1080p
 WINDOW_BAND_ROWS = 32
+COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
 HOST_BUFFERS = 3  # host buffers for depth maps an estimator keeps (page-locked from CUDA; 16.6 MB each at 1080p)  # choose_sources ranks views by how close their triangulation angle is to this
 
 
@@ -409,7 +410,8 @@ class DepthEstimator:
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
         self.counts.zero_()
-        wp.launch(k.count_codes, dim=(h, w), device=self.device, inputs=[self.code, self.counts])
+        wp.launch(k.count_codes, dim=(h, math.ceil(w / COUNT_SPAN)), device=self.device,
+                  inputs=[self.code, COUNT_SPAN, self.counts])
         t0 = self._sync_time(times, "checks_ms", t0)
 
         out, counts = self._download()
