@@ -51,7 +51,9 @@ SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator
 # overhead, short enough for millions of threads at half 1080p
 WINDOW_BAND_ROWS = 32
 COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
-HOST_BUFFERS = 3  # host buffers for depth maps an estimator keeps (page-locked from CUDA; 16.6 MB each at 1080p)  # choose_sources ranks views by how close their triangulation angle is to this
+# host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
+# takes milliseconds: worth it for an estimator that makes many maps)
+HOST_BUFFERS = 3  # choose_sources ranks views by how close their triangulation angle is to this
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
@@ -125,9 +127,12 @@ class DepthEstimator:
     keyframes' prepared images there: a keyframe is the source of several others, and is prepared once.
 
     ``sweep`` picks how the window sums are made (see plane_sweep's docstring): "sliding" (the CPU's default) or
-    "windowed" (CUDA's); both give the same depth maps up to float rounding."""
+    "windowed" (CUDA's); both give the same depth maps up to float rounding. Depth maps come out in
+    ``host_buffers`` kept host buffers (page-locked from CUDA), each reused once no map refers to it (0: a new
+    pageable buffer per map, for an estimator that makes one map)."""
 
-    def __init__(self, config: DepthConfig, device: str, sweep: str | None = None) -> None:
+    def __init__(self, config: DepthConfig, device: str, sweep: str | None = None,
+                 host_buffers: int = HOST_BUFFERS) -> None:
         self.wp = init_warp()
         self.config = config
         self.device = device
@@ -142,7 +147,7 @@ class DepthEstimator:
         self._cached: OrderedDict[int, tuple[int, bytes]] = OrderedDict()  # kf_id -> (slot, fingerprint), LRU first
         self._host_buffers: list[tuple[object, np.ndarray]] = []
         self._host_refs = 0
-        self._host_spare = None
+        self._keep_host_buffers = host_buffers
         self._pinned = False
         self._host_counts = None
         if config.default_near_m >= config.default_far_m:
@@ -191,9 +196,8 @@ class DepthEstimator:
         # host buffers that depth maps are downloaded into and handed out as they are (page-locked from CUDA: a
         # download at the bus's speed, and no copy on the host), each reused once no depth map uses it any more
         self._host_buffers = []
-        self._host_spare = None
         self._pinned = wp.get_device(self.device).is_cuda
-        if self._pinned:
+        if self._pinned and self._keep_host_buffers > 0:
             self._host_counts = wp.empty(k.CODE_KEPT + 1, dtype=int, device="cpu", pinned=True)
         self._check_shape = (h, w)
 
@@ -429,31 +433,30 @@ class DepthEstimator:
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:
         """(2, H, W) depth and confidence, and the funnel codes' histogram, as host arrays of their own."""
-        if self._pinned:
-            self.wp.copy(self._host_counts, self.counts)
         host, array = self._host_buffer()
         self.wp.copy(host, self.out)
+        counts = self.counts
+        if self._host_counts is not None:
+            self.wp.copy(self._host_counts, self.counts)
+            counts = self._host_counts
         self.wp.synchronize_device(self.device)
-        counts = (self._host_counts if self._pinned else self.counts).numpy().copy()
-        if host is self._host_spare:  # every kept buffer is in use: the spare is copied out
-            return array.copy(), counts
-        return array, counts
+        return array, counts.numpy().copy()
 
     def _host_buffer(self) -> tuple[object, np.ndarray]:
-        """A host (2, H, W) buffer no depth map uses: a kept one whose array nothing outside this estimator
-        refers to (a depth map's arrays are views of it), else a new one up to HOST_BUFFERS, else the spare."""
+        """A host (2, H, W) buffer no depth map uses: a kept one whose array nothing outside this estimator refers
+        to (a depth map's arrays are views of it), else a new kept one up to ``host_buffers``, else a new one that
+        is handed out and not kept."""
         for entry in self._host_buffers:
             if sys.getrefcount(entry[1]) <= self._host_refs:
                 return entry
-        if len(self._host_buffers) < HOST_BUFFERS:
+        if len(self._host_buffers) < self._keep_host_buffers:
             buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
             entry = (buffer, buffer.numpy())
             self._host_buffers.append(entry)
             self._host_refs = sys.getrefcount(entry[1])  # this estimator's own references (the same each time)
             return entry
-        if self._host_spare is None or self._host_spare.shape != self.out.shape:
-            self._host_spare = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
-        return self._host_spare, self._host_spare.numpy()
+        buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu")
+        return buffer, buffer.numpy()
 
     def rejection_codes(self) -> np.ndarray:
         """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
@@ -513,7 +516,7 @@ def compute_depth(ref: KeyframeView, sources: list[KeyframeView], config: DepthC
     """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
     that source's own depth map) adds the forward-backward geometric check for the sources it holds. For many
     keyframes keep one :class:`DepthEstimator`: it reuses its device buffers."""
-    return DepthEstimator(config, device).compute(ref, sources, source_depths)
+    return DepthEstimator(config, device, host_buffers=0).compute(ref, sources, source_depths)
 
 
 def compute_depths(views: list[KeyframeView], config: DepthConfig, device: str,
