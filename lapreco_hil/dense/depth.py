@@ -8,7 +8,8 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
 2. Half resolution: fronto-parallel planes evenly spaced in inverse depth over the keyframe's landmark range (a
    configured default without one), spaced so that no source's image moves more than ``coarse_step_px`` between
    planes. Per plane and source, ZNCC over a window, its sums made per device (``DepthEstimator``'s ``sweep``):
-   sliding along rows then columns on the CPU, per pixel from the window's taps on CUDA; a plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
+   sliding along rows then columns on the CPU, per pixel from the window's taps on CUDA; a plane's score is the
+   mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
    plane, parabola through its neighbours, and the second-best local maximum for the margin.
 3. Full resolution: ``fine_planes`` planes about the coarse depth (bilinear) spanning +-``fine_range_px`` of
    image motion, again with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range", "off_edges", "refined",
           "views_agree", "supported", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
-PREFERRED_ANGLE_DEG = 5.0
+PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
 SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
 # overhead, short enough for millions of threads at half 1080p
@@ -53,7 +54,7 @@ WINDOW_BAND_ROWS = 32
 COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
 # host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
 # takes milliseconds: worth it for an estimator that makes many maps)
-HOST_BUFFERS = 3  # choose_sources ranks views by how close their triangulation angle is to this
+HOST_BUFFERS = 3
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
@@ -111,8 +112,8 @@ class _Sweep:
 
 def _fingerprint(view: KeyframeView) -> bytes:
     """What tells a cached view's image from another with the same kf_id: a digest of every 16th pixel of every
-    16th row of the colour and the mask (0.07 ms at 1080p) (a keyframe's image does not change; ``DepthEstimator.forget`` is for a
-    caller whose does)."""
+    16th row of the colour and the mask, 0.07 ms at 1080p (a keyframe's image does not change;
+    ``DepthEstimator.forget`` is for a caller whose does)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(repr(view.colour.shape).encode())
     digest.update(np.ascontiguousarray(view.colour[::16, ::16]).tobytes())
@@ -215,7 +216,6 @@ class DepthEstimator:
             self.full_grey = wp.zeros((slots, h, w), dtype=float)
             self.half_grey = wp.zeros((slots, h // 2, w // 2), dtype=float)
             self.state = wp.zeros((slots, h, w), dtype=wp.uint8)
-            self.slots = wp.zeros(n_views, dtype=int)
         self._cached.clear()
         self._view_shape = (h, w, slots)
 
