@@ -407,3 +407,15 @@ def test_the_kernels_compile_for_cuda(warp_cpu, tmp_path):
         raise
     ptx = Path(outputs[0]).read_text()
     assert ".entry" in ptx and "sweep_cols" in ptx and "warp_samples" in ptx and "sweep_window" in ptx
+
+
+def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp_cpu):
+    from lapreco_hil.bench.dense import bench_depth, format_table
+
+    result = bench_depth(DEVICE, (128, 96), 2, 1, scene="sheet")
+    steps = {"setup_ms", "prepare_ms", "coarse_sweep_ms", "fine_sweep_ms", "checks_ms", "download_ms"}
+    assert set(result["steps_ms"]) == steps and set(result["cold_steps_ms"]) == steps
+    assert result["sweep"] == ("sliding" if DEVICE == "cpu" else "windowed")
+    assert result["accuracy"]["kept"] > 0.5 * result["funnel"]["textured"]
+    assert bool(result["device_ms"]) == DEVICE.startswith("cuda")  # the GPU's own time per kernel and copy
+    assert "every view prepared" in format_table(result)

@@ -10,14 +10,18 @@ The sweep's depth range is the true depth's 1st-99th percentile widened by 10%, 
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
+import re
 import time
 
 import numpy as np
 
 from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.types import KeyframeView
+
+log = logging.getLogger(__name__)
 
 WORLD_OFFSETS_S = (0.0, 0.6, -0.6, 1.2, -1.2, 1.8, -1.8, 2.4, -2.4)  # keyframe times about the reference's
 SHEET_OFFSETS_MM = ((0, 0), (6, 0), (-6, 0), (0, 6), (0, -6), (9, 9), (-9, -9), (9, -9), (-9, 9))
@@ -119,6 +123,25 @@ def depth_errors(depth_m: np.ndarray, truth_m: np.ndarray) -> dict:
             "over_1mm": float(np.mean(err > 1.0)), "over_5mm": float(np.mean(err > 5.0))}
 
 
+def _device_activities(wp, device: str, run) -> dict:
+    """GPU time (ms) per kernel and memory operation of one ``run()``, summed by name (Warp's CUDA activity
+    timing; a kernel's module hash is left off its name), largest first."""
+    try:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        try:
+            run()
+        finally:
+            results = wp.timing_end()
+    except RuntimeError as exc:  # the figures without the breakdown rather than none
+        log.warning("no GPU activity timing on %s: %s", device, exc)
+        return {}
+    totals: dict[str, float] = {}
+    for result in results:
+        name = re.sub(r"_[0-9a-f]{8}$", "", result.name.removeprefix("forward kernel "))
+        totals[name] = totals.get(name, 0.0) + float(result.elapsed)
+    return dict(sorted(((k, round(v, 4)) for k, v in totals.items()), key=lambda item: -item[1]))
+
+
 def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
                 config: DepthConfig | None = None, sweep: str | None = None) -> dict:
     """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
@@ -164,6 +187,7 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         cpu.append(cpu_ms)
         for name, ms in depth_map.stats["times_ms"].items():
             steps.setdefault(name, []).append(ms)
+    activities = _device_activities(wp, device, lambda: timed(ref.kf_id)) if wp.get_device(device).is_cuda else {}
     # the sources' own maps (each against the others) for the forward-backward check
     source_maps = [estimator.compute(s, [v for v in keyframes if v is not s]) for s in sources]
     checked = estimator.check_geometry(depth_map, source_maps)
@@ -177,6 +201,8 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         "process_cpu_ms": float(np.median(cpu)), "load_average": os.getloadavg()[0],
         "steps_ms": {k: float(np.median(v)) for k, v in steps.items() if k != "total_ms"},
         "cold_steps_ms": {k: float(np.median(v)) for k, v in cold_steps.items() if k != "total_ms"},
+        # GPU time per kernel and copy of one steady-state map (CUDA only): where the device's time goes
+        "device_ms": activities,
         "funnel": checked.stats["funnel"],
         "accuracy": depth_errors(depth_map.depth_m, truths[0]),
         "accuracy_checked": depth_errors(checked.depth_m, truths[0]),
@@ -207,4 +233,5 @@ def format_table(result: dict) -> str:
         f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
         "in-view pixels",
         "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
-    ])
+    ] + ([f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
+        f"{k} {v:.2f}" for k, v in list(result["device_ms"].items())[:10])] if result.get("device_ms") else []))
