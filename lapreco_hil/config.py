@@ -183,6 +183,9 @@ class DepthConfig:
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too
+    # keyframes whose prepared images (grey at full and half resolution) stay on the device to be sources again:
+    # a keyframe is the source of several others (about 10 MB each at 1080p; at least the views of one depth map)
+    cached_views: int = ranged(12, ge=1)
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,98 @@ def test_the_geometric_check_drops_depths_the_sources_contradict(sheet, warp_cpu
     assert checked.stats["funnel"]["geometry_agrees"] >= 0.95 * checked.stats["funnel"]["supported"]
 
 
+def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_cpu):
+    """The CPU's window sums (sliding along rows, then columns) and CUDA's (each window row from its taps, slid
+    down a band of rows) are the same sums in another order: the ZNCC volumes agree to float rounding (the
+    variance's cancellation makes it about 1e-3 on the faintest windows), and so do the depth maps."""
+    from lapreco_hil.dense.depth import DepthEstimator
+
+    views, truths = sheet
+    maps, volumes = {}, {}
+    for sweep in ("sliding", "windowed"):
+        estimator = DepthEstimator(DepthConfig(), DEVICE, sweep=sweep)
+        maps[sweep] = estimator.compute(views[0], views[1:])
+        planes = maps[sweep].stats["planes"]
+        volumes[sweep] = (estimator.coarse.zncc.numpy()[:, :planes].copy(), estimator.fine.zncc.numpy().copy())
+        assert estimator.sweep == sweep
+    for level in (0, 1):
+        a, b = volumes["sliding"][level], volumes["windowed"][level]
+        scored = (a > -1.5) & (b > -1.5)
+        # the same windows have a score but for the few at the texture threshold, where rounding decides
+        assert np.mean((a > -1.5) != (b > -1.5)) < 1e-3 * np.mean(scored)
+        assert np.abs(a - b)[scored].max() < 5e-3
+        assert np.mean(np.abs(a - b)[scored] < 1e-4) > 0.95
+    a, b = maps["sliding"], maps["windowed"]
+    both = a.valid & b.valid
+    assert np.count_nonzero(a.valid != b.valid) <= 0.002 * np.count_nonzero(a.valid)
+    diff = np.abs(a.depth_m[both] - b.depth_m[both])
+    # a parabola through nearly equal scores moves the most, by a fraction of a plane (at 75 mm)
+    assert diff.max() < 0.5e-3 and np.mean(diff < 0.01e-3) > 0.995 and np.median(diff) < 1e-6
+    with pytest.raises(ConfigError, match="sweep 'tiles'"):
+        DepthEstimator(DepthConfig(), DEVICE, sweep="tiles")
+
+
+def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, warp_cpu):
+    """The estimator keeps prepared views by kf_id: the maps are those of a fresh estimator, a keyframe's image
+    is prepared once however often it is a source, a changed image under the same kf_id is prepared again, and
+    more keyframes than the cache holds push out the least recently used."""
+    from lapreco_hil.dense.depth import FUNNEL, DepthEstimator
+
+    views, _ = sheet
+    estimator = DepthEstimator(dataclasses.replace(DepthConfig(), cached_views=5), DEVICE)
+    first = estimator.compute(views[0], views[1:])
+    assert first.stats["prepared"] == [0, 1, 2, 3, 4]
+    again = estimator.compute(views[0], views[1:])
+    assert again.stats["prepared"] == []
+    assert np.array_equal(again.depth_m, first.depth_m) and np.array_equal(again.confidence, first.confidence)
+    assert again.stats["funnel"] == first.stats["funnel"]
+    # the funnel is counted on the device: the same as counting the codes here
+    counts = np.bincount(estimator.rejection_codes().ravel(), minlength=len(FUNNEL))
+    assert again.stats["funnel"] == {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL[:-1])}
+
+    # a source whose image changed (the same kf_id): prepared again, and the map is a fresh estimator's
+    shifted = dataclasses.replace(views[2], colour=np.roll(views[2].colour, 3, axis=1))
+    changed = estimator.compute(views[0], [views[1], shifted, views[3], views[4]])
+    assert changed.stats["prepared"] == [2]
+    fresh = DepthEstimator(DepthConfig(), DEVICE).compute(views[0], [views[1], shifted, views[3], views[4]])
+    assert np.array_equal(changed.depth_m, fresh.depth_m)
+    assert not np.array_equal(changed.depth_m, first.depth_m)
+
+    # another reference among the same keyframes prepares nothing; a sixth keyframe pushes out the least
+    # recently used (cached_views=5)
+    assert estimator.compute(views[1], [views[0], views[3]]).stats["prepared"] == []
+    extra = dataclasses.replace(views[4], kf_id=9)
+    assert estimator.compute(views[0], [views[1], extra]).stats["prepared"] == [9]
+    assert estimator.compute(views[0], [views[1], shifted]).stats["prepared"] == [2]  # pushed out by 9
+    estimator.forget(0)
+    assert estimator.compute(views[0], [views[1], shifted]).stats["prepared"] == [0]
+    with pytest.raises(ReconstructionError, match="repeat"):
+        estimator.compute(views[0], [views[1], views[1]])
+    with pytest.raises(ReconstructionError, match="its own source"):
+        estimator.compute(views[0], [views[1], dataclasses.replace(views[0], T_world_camera=views[2].T_world_camera)])
+
+
+def test_a_depth_map_handed_out_is_never_overwritten(sheet, warp_cpu):
+    """Depth maps come out in the estimator's own host buffers (page-locked from CUDA), reused only once no map
+    refers to them: maps kept while more are computed (more than it keeps buffers) stay as they were."""
+    from lapreco_hil.dense.depth import HOST_BUFFERS, DepthEstimator
+
+    views, _ = sheet
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    held = []
+    for i in range(HOST_BUFFERS + 2):
+        ref = views[i % len(views)]
+        depth_map = estimator.compute(ref, [v for v in views if v is not ref])
+        held.append((depth_map, depth_map.depth_m.copy(), depth_map.confidence.copy()))
+    assert not np.array_equal(held[0][1], held[1][1])
+    for depth_map, depth, confidence in held:
+        assert np.array_equal(depth_map.depth_m, depth) and np.array_equal(depth_map.confidence, confidence)
+    # a buffer no map refers to any more is the next map's (no allocation per map)
+    held.clear()
+    address = estimator.compute(views[0], views[1:]).depth_m.__array_interface__["data"][0]
+    assert estimator.compute(views[1], views[2:]).depth_m.__array_interface__["data"][0] == address
+
+
 def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu):
     from lapreco_hil.dense.depth import DepthEstimator, highlight_mask
 
@@ -314,4 +406,16 @@ def test_the_kernels_compile_for_cuda(warp_cpu, tmp_path):
             pytest.skip(f"no CUDA compiler in this Warp build: {exc}")
         raise
     ptx = Path(outputs[0]).read_text()
-    assert ".entry" in ptx and "sweep_cols" in ptx and "warp_samples" in ptx
+    assert ".entry" in ptx and "sweep_cols" in ptx and "warp_samples" in ptx and "sweep_window" in ptx
+
+
+def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp_cpu):
+    from lapreco_hil.bench.dense import bench_depth, format_table
+
+    result = bench_depth(DEVICE, (128, 96), 2, 1, scene="sheet")
+    steps = {"setup_ms", "prepare_ms", "coarse_sweep_ms", "fine_sweep_ms", "checks_ms", "download_ms"}
+    assert set(result["steps_ms"]) == steps and set(result["cold_steps_ms"]) == steps
+    assert result["sweep"] == ("sliding" if DEVICE == "cpu" else "windowed")
+    assert result["accuracy"]["kept"] > 0.5 * result["funnel"]["textured"]
+    assert bool(result["device_ms"]) == DEVICE.startswith("cuda")  # the GPU's own time per kernel and copy
+    assert "every view prepared" in format_table(result)

@@ -10,14 +10,18 @@ The sweep's depth range is the true depth's 1st-99th percentile widened by 10%, 
 
 from __future__ import annotations
 
+import logging
 import os
 import platform
+import re
 import time
 
 import numpy as np
 
 from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.types import KeyframeView
+
+log = logging.getLogger(__name__)
 
 WORLD_OFFSETS_S = (0.0, 0.6, -0.6, 1.2, -1.2, 1.8, -1.8, 2.4, -2.4)  # keyframe times about the reference's
 SHEET_OFFSETS_MM = ((0, 0), (6, 0), (-6, 0), (0, 6), (0, -6), (9, 9), (-9, -9), (9, -9), (-9, 9))
@@ -119,11 +123,35 @@ def depth_errors(depth_m: np.ndarray, truth_m: np.ndarray) -> dict:
             "over_1mm": float(np.mean(err > 1.0)), "over_5mm": float(np.mean(err > 5.0))}
 
 
+def _device_activities(wp, device: str, run) -> dict:
+    """GPU time (ms) per kernel and memory operation of one ``run()``, summed by name (Warp's CUDA activity
+    timing; a kernel's module hash is left off its name), largest first."""
+    try:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        try:
+            run()
+        finally:
+            results = wp.timing_end()
+    except RuntimeError as exc:  # the figures without the breakdown rather than none
+        log.warning("no GPU activity timing on %s: %s", device, exc)
+        return {}
+    totals: dict[str, float] = {}
+    for result in results:
+        name = re.sub(r"_[0-9a-f]{8}$", "", result.name.removeprefix("forward kernel "))
+        totals[name] = totals.get(name, 0.0) + float(result.elapsed)
+    return dict(sorted(((k, round(v, 4)) for k, v in totals.items()), key=lambda item: -item[1]))
+
+
 def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
-                config: DepthConfig | None = None) -> dict:
-    """Time ``compute_depth`` of one keyframe against ``views`` source views (after a warm-up that compiles the
-    kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
-    and its accuracy, before and after the geometric check against the sources' own depth maps."""
+                config: DepthConfig | None = None, sweep: str | None = None) -> dict:
+    """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
+    the kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
+    and its accuracy, before and after the geometric check against the sources' own depth maps.
+
+    ``total_ms`` is the steady state of a mapper that keeps one estimator: the reference is new (prepared) and
+    its sources are in the estimator's prepared-view cache (each was a reference before); ``cold_ms`` prepares
+    every view (a fresh estimator's first map, less compiling and allocating). ``sweep``: the estimator's window
+    sums (None: the device's default)."""
     from lapreco_hil.dense.depth import DepthEstimator
     from lapreco_hil.warp_device import init_warp
 
@@ -134,29 +162,47 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     else:
         keyframes, truths, _ = world_keyframes(scene, resolution, views + 1, device)
     ref, sources = keyframes[0], keyframes[1:]
-    estimator = DepthEstimator(cfg, device)
+    estimator = DepthEstimator(cfg, device, sweep=sweep)
     estimator.compute(ref, sources)
-    totals, cpu, steps = [], [], {}
-    for _ in range(max(1, repeats)):
+
+    def timed(forget: int | None) -> tuple[float, float, dict]:
+        if forget is None:
+            estimator.forget()
+        else:
+            estimator.forget(forget)
         wp.synchronize_device(device)
         t0, c0 = time.perf_counter(), time.process_time()
         depth_map = estimator.compute(ref, sources)
         wp.synchronize_device(device)
-        totals.append((time.perf_counter() - t0) * 1e3)
-        cpu.append((time.process_time() - c0) * 1e3)
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, depth_map
+
+    totals, cpu, steps, cold, cold_steps = [], [], {}, [], {}
+    for _ in range(max(1, repeats)):
+        wall, cpu_ms, depth_map = timed(None)
+        cold.append(wall)
+        for name, ms in depth_map.stats["times_ms"].items():
+            cold_steps.setdefault(name, []).append(ms)
+        wall, cpu_ms, depth_map = timed(ref.kf_id)
+        totals.append(wall)
+        cpu.append(cpu_ms)
         for name, ms in depth_map.stats["times_ms"].items():
             steps.setdefault(name, []).append(ms)
+    activities = _device_activities(wp, device, lambda: timed(ref.kf_id)) if wp.get_device(device).is_cuda else {}
     # the sources' own maps (each against the others) for the forward-backward check
     source_maps = [estimator.compute(s, [v for v in keyframes if v is not s]) for s in sources]
     checked = estimator.check_geometry(depth_map, source_maps)
     in_view = (ref.mask if ref.mask is not None else np.ones(truths[0].shape, bool)) & (truths[0] > 0)
     return {
         "device": device, "resolution": f"{resolution[0]}x{resolution[1]}", "scene": scene, "views": views,
-        "repeats": repeats, "planes": depth_map.stats["planes"], "total_ms": float(np.median(totals)),
+        "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep,
+        "total_ms": float(np.median(totals)), "cold_ms": float(np.median(cold)),
         # this process's CPU time: on a shared machine the wall time also counts other processes' turns (Warp's
         # CPU kernels run on one thread, so on the CPU device this is the time on an idle core)
         "process_cpu_ms": float(np.median(cpu)), "load_average": os.getloadavg()[0],
         "steps_ms": {k: float(np.median(v)) for k, v in steps.items() if k != "total_ms"},
+        "cold_steps_ms": {k: float(np.median(v)) for k, v in cold_steps.items() if k != "total_ms"},
+        # GPU time per kernel and copy of one steady-state map (CUDA only): where the device's time goes
+        "device_ms": activities,
         "funnel": checked.stats["funnel"],
         "accuracy": depth_errors(depth_map.depth_m, truths[0]),
         "accuracy_checked": depth_errors(checked.depth_m, truths[0]),
@@ -174,13 +220,18 @@ def format_table(result: dict) -> str:
                 f">5 mm {100 * a['over_5mm']:.2f}% of {a['kept']} px")
 
     steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result["steps_ms"].items())
+    cold_steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result.get("cold_steps_ms", {}).items())
     return "\n".join([
         f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
-        f"coarse planes, on {result['device']} ({result['machine']}; median of {result['repeats']})",
+        f"coarse planes, {result.get('sweep', 'sliding')} sweep, on {result['device']} ({result['machine']}; median "
+        f"of {result['repeats']})",
         f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
-        f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads)",
+        f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); "
+        "the sources prepared before",
+        f"every view prepared: {result.get('cold_ms', float('nan')):.1f} ms wall ({cold_steps} ms)",
         f"sweep only:        {acc(result['accuracy'])}; {100 * result['coverage']:.1f}% of the in-view pixels",
         f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
         "in-view pixels",
         "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
-    ])
+    ] + ([f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
+        f"{k} {v:.2f}" for k, v in list(result["device_ms"].items())[:10])] if result.get("device_ms") else []))

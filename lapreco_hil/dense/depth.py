@@ -3,11 +3,13 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
 
 1. Each view to centred grey; the reference's field of view (``KeyframeView.mask``) and saturated specular
    highlights (near-white, low saturation, dilated) are excluded in every view, so a source's highlight spoils
-   only that view's score.
+   only that view's score. Prepared views stay on the device by kf_id (``[depth] cached_views``): a keyframe is
+   the source of several others and is uploaded and prepared once.
 2. Half resolution: fronto-parallel planes evenly spaced in inverse depth over the keyframe's landmark range (a
    configured default without one), spaced so that no source's image moves more than ``coarse_step_px`` between
-   planes. Per plane and source, ZNCC over a window by sliding sums (O(1) per pixel whatever the window); a
-   plane's score is the mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
+   planes. Per plane and source, ZNCC over a window, its sums made per device (``DepthEstimator``'s ``sweep``):
+   sliding along rows then columns on the CPU, per pixel from the window's taps on CUDA; a plane's score is the
+   mean of its ``best_k`` best sources (an occluded or highlighted view drops out). Best
    plane, parabola through its neighbours, and the second-best local maximum for the margin.
 3. Full resolution: ``fine_planes`` planes about the coarse depth (bilinear) spanning +-``fine_range_px`` of
    image motion, again with a parabola: sub-pixel depth at a fraction of a full-resolution sweep's cost.
@@ -22,9 +24,12 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
+import sys
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +47,14 @@ FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range
           "views_agree", "supported", "geometry_agrees")
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
 PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
+SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
+# rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
+# overhead, short enough for millions of threads at half 1080p
+WINDOW_BAND_ROWS = 32
+COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
+# host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
+# takes milliseconds: worth it for an estimator that makes many maps)
+HOST_BUFFERS = 3
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
@@ -85,12 +98,11 @@ def _max_shift_px(A_b: list, size: tuple[int, int], rho_lo: float, rho_hi: float
 class _Sweep:
     """The device buffers of one sweep level (allocated once per image size and source count)."""
 
-    ref: object  # (h, w) grey
-    src: object  # (S, h, w) grey
     rows: object  # (h, w) vec3: reference window row sums
     std: object  # (h, w) reference window standard deviation, 0 where not textured
     base: object  # (h, w) inverse depth each plane offsets
-    sums: object  # (S, P, h, w) vec4
+    sums: object  # (S, P, h, w) vec6 window row sums: the sliding sweep's (None for the windowed one)
+    samples: object  # (S, P, h, w) warped source grey: the windowed sweep's (the sliding one samples into zncc)
     zncc: object  # (S, P, h, w)
     score: object  # (P, h, w)
     plane: object
@@ -98,16 +110,47 @@ class _Sweep:
     second: object
 
 
+def _fingerprint(view: KeyframeView) -> bytes:
+    """What tells a cached view's image from another with the same kf_id: a digest of every 16th pixel of every
+    16th row of the colour and the mask, 0.07 ms at 1080p (a keyframe's image does not change;
+    ``DepthEstimator.forget`` is for a caller whose does)."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(repr(view.colour.shape).encode())
+    digest.update(np.ascontiguousarray(view.colour[::16, ::16]).tobytes())
+    if view.mask is not None:
+        digest.update(np.ascontiguousarray(view.mask[::16, ::16], np.uint8).tobytes())
+    return digest.digest()
+
+
 class DepthEstimator:
     """Computes depth maps on one device, reusing its buffers from one keyframe to the next (they are made again
-    only when the image size or the number of source views changes)."""
+    only when the image size or the number of source views changes), and keeping the last ``cached_views``
+    keyframes' prepared images there: a keyframe is the source of several others, and is prepared once.
 
-    def __init__(self, config: DepthConfig, device: str) -> None:
+    ``sweep`` picks how the window sums are made (see plane_sweep's docstring): "sliding" (the CPU's default) or
+    "windowed" (CUDA's); both give the same depth maps up to float rounding. Depth maps come out in
+    ``host_buffers`` kept host buffers (page-locked from CUDA), each reused once no map refers to it (0: a new
+    pageable buffer per map, for an estimator that makes one map)."""
+
+    def __init__(self, config: DepthConfig, device: str, sweep: str | None = None,
+                 host_buffers: int = HOST_BUFFERS) -> None:
         self.wp = init_warp()
         self.config = config
         self.device = device
+        if sweep is None:
+            sweep = "windowed" if self.wp.get_device(device).is_cuda else "sliding"
+        if sweep not in SWEEPS:
+            raise ConfigError(f"DepthEstimator sweep {sweep!r} is none of {', '.join(SWEEPS)}")
+        self.sweep = sweep
         self._shape: tuple | None = None
         self._check_shape: tuple | None = None
+        self._view_shape: tuple | None = None
+        self._cached: OrderedDict[int, tuple[int, bytes]] = OrderedDict()  # kf_id -> (slot, fingerprint), LRU first
+        self._host_buffers: list[tuple[object, np.ndarray]] = []
+        self._host_refs = 0
+        self._keep_host_buffers = host_buffers
+        self._pinned = False
+        self._host_counts = None
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
@@ -115,15 +158,25 @@ class DepthEstimator:
             raise ConfigError(f"[depth] min_planes {config.min_planes} must not exceed max_planes "
                               f"{config.max_planes}")
 
+    def forget(self, kf_id: int | None = None) -> None:
+        """Drop a keyframe's prepared image from the device cache (all of them without ``kf_id``): for a caller
+        that changes a keyframe's image in place, and for timing the preparation."""
+        if kf_id is None:
+            self._cached.clear()
+        else:
+            self._cached.pop(kf_id, None)
+
     # --- buffers ----------------------------------------------------------------------------------------------
     def _sweep_buffers(self, h: int, w: int, n_src: int, n_planes: int) -> _Sweep:
         wp = self.wp
+        sliding = self.sweep == "sliding"
+        volume = (n_src, n_planes, h, w)
         return _Sweep(
-            ref=wp.zeros((h, w), dtype=float), src=wp.zeros((n_src, h, w), dtype=float),
             rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float),
             base=wp.zeros((h, w), dtype=float),
-            sums=wp.zeros((n_src, n_planes, h, w), dtype=k.vec6),
-            zncc=wp.zeros((n_src, n_planes, h, w), dtype=float),
+            sums=wp.zeros(volume, dtype=k.vec6) if sliding else None,
+            samples=None if sliding else wp.zeros(volume, dtype=float),
+            zncc=wp.zeros(volume, dtype=float),
             score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
             best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
 
@@ -131,19 +184,46 @@ class DepthEstimator:
         """The output and geometric-check buffers (all that ``check_geometry`` needs)."""
         if self._check_shape == (h, w):
             return
-        with self.wp.ScopedDevice(self.device):
-            self.depth = self.wp.zeros((h, w), dtype=float)
-            self.confidence = self.wp.zeros((h, w), dtype=float)
-            self.code = self.wp.zeros((h, w), dtype=self.wp.uint8)
-            self.agree = self.wp.zeros((h, w), dtype=int)
-            self.supported = self.wp.zeros((h, w), dtype=self.wp.uint8)
-            self.src_depth = self.wp.zeros((h, w), dtype=float)
+        wp = self.wp
+        with wp.ScopedDevice(self.device):
+            self.out = wp.zeros((2, h, w), dtype=float)  # depth, confidence: one download
+            self.depth = self.out[0]
+            self.confidence = self.out[1]
+            self.code = wp.zeros((h, w), dtype=wp.uint8)
+            self.counts = wp.zeros(k.CODE_KEPT + 1, dtype=int)
+            self.agree = wp.zeros((h, w), dtype=int)
+            self.supported = wp.zeros((h, w), dtype=wp.uint8)
+            self.src_depth = wp.zeros((h, w), dtype=float)
+        # host buffers that depth maps are downloaded into and handed out as they are (page-locked from CUDA: a
+        # download at the bus's speed, and no copy on the host), each reused once no depth map uses it any more
+        self._host_buffers = []
+        self._pinned = wp.get_device(self.device).is_cuda
+        if self._pinned and self._keep_host_buffers > 0:
+            self._host_counts = wp.empty(k.CODE_KEPT + 1, dtype=int, device="cpu", pinned=True)
         self._check_shape = (h, w)
+
+    def _ensure_views(self, h: int, w: int, n_views: int) -> None:
+        """The prepared-view cache: grey at full and half resolution and each pixel's state, one slot per view."""
+        slots = max(self.config.cached_views, n_views)
+        if self._view_shape is not None and self._view_shape[:2] == (h, w) and self._view_shape[2] >= n_views:
+            return
+        wp = self.wp
+        with wp.ScopedDevice(self.device):
+            self.colour = wp.zeros((h, w, 3), dtype=wp.uint8)
+            self.mask = wp.zeros((h, w), dtype=wp.uint8)
+            self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
+            self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
+            self.full_grey = wp.zeros((slots, h, w), dtype=float)
+            self.half_grey = wp.zeros((slots, h // 2, w // 2), dtype=float)
+            self.state = wp.zeros((slots, h, w), dtype=wp.uint8)
+        self._cached.clear()
+        self._view_shape = (h, w, slots)
 
     def _ensure(self, h: int, w: int, n_src: int, n_planes: int) -> None:
         """Buffers for this size and source count, and a coarse cost volume of at least ``n_planes`` planes (grown
-        in steps of 16: the volume is the sweep's largest buffer, 24 bytes per source, plane and pixel)."""
+        in steps of 16: the volume is the sweep's largest buffer)."""
         self._ensure_checks(h, w)
+        self._ensure_views(h, w, n_src + 1)
         shape = (h, w, n_src)
         if self._shape == shape:
             if self.coarse.zncc.shape[1] < n_planes:
@@ -151,23 +231,48 @@ class DepthEstimator:
                     self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
             return
         wp = self.wp
-        cfg = self.config
         with wp.ScopedDevice(self.device):
-            self.colour = wp.zeros((h, w, 3), dtype=wp.uint8)
-            self.mask = wp.zeros((h, w), dtype=wp.uint8)
-            self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
-            self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
-            self.full_grey = wp.zeros((n_src + 1, h, w), dtype=float)  # reference first
             self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
-            self.fine = self._sweep_buffers(h, w, n_src, cfg.fine_planes)
+            self.fine = self._sweep_buffers(h, w, n_src, self.config.fine_planes)
+            self.A = wp.zeros(2 * n_src, dtype=wp.mat33)  # the coarse level's plane homographies, then the fine's
+            self.b = wp.zeros(2 * n_src, dtype=wp.vec3)
+            self.src_slots = wp.zeros(n_src, dtype=int)
         self._shape = shape
 
     # --- steps ------------------------------------------------------------------------------------------------
-    def _prepare(self, view: KeyframeView, grey) -> None:
-        """Upload one view's colour and mask; grey with the field of view and dilated highlights excluded."""
+    def _slots(self, views: list[KeyframeView]) -> tuple[list[int], list[int]]:
+        """Each view's slot in the prepared-view cache, preparing those that are not there (or whose image
+        changed; the least recently used others make room), and the kf_ids it prepared."""
+        needed = {v.kf_id for v in views}
+        slots, prepared = [], []
+        for view in views:
+            fingerprint = _fingerprint(view)
+            entry = self._cached.get(view.kf_id)
+            if entry is None or entry[1] != fingerprint:
+                slot = entry[0] if entry is not None else self._free_slot(needed)
+                self._prepare(view, slot)
+                prepared.append(view.kf_id)
+                entry = (slot, fingerprint)
+                self._cached[view.kf_id] = entry
+            self._cached.move_to_end(view.kf_id)
+            slots.append(entry[0])
+        return slots, prepared
+
+    def _free_slot(self, needed: set) -> int:
+        used = {slot for slot, _ in self._cached.values()}
+        free = [i for i in range(self._view_shape[2]) if i not in used]
+        if free:
+            return free[0]
+        victim = next(kf_id for kf_id in self._cached if kf_id not in needed)
+        return self._cached.pop(victim)[0]
+
+    def _prepare(self, view: KeyframeView, slot: int) -> None:
+        """Upload one view's colour and mask into its cache slot: grey with the field of view and dilated
+        highlights excluded, its half-resolution mean, and why each pixel may not be used."""
         wp = self.wp
         cfg = self.config
-        h, w = grey.shape
+        h, w = view.colour.shape[:2]
+        grey = self.full_grey[slot]
         self.colour.assign(np.ascontiguousarray(view.colour, np.uint8))
         if view.mask is None:
             self.mask.fill_(1)
@@ -179,28 +284,38 @@ class DepthEstimator:
         self.highlight.zero_()
         wp.launch(k.dilate_scatter, dim=(h, w), device=self.device,
                   inputs=[self.highlight_flags, cfg.highlight_dilate_px, self.highlight])
-        wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.highlight, grey])
+        wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.mask, self.highlight, grey,
+                                                                     self.state[slot]])
+        wp.launch(k.half_mean, dim=(h // 2, w // 2), device=self.device, inputs=[grey, self.half_grey[slot]])
 
-    def _window_stats(self, level: _Sweep) -> None:
-        h, w = level.ref.shape
+    def _window_stats(self, level: _Sweep, ref) -> None:
+        h, w = ref.shape
         r = self.config.window_radius_px
-        self.wp.launch(k.window_rows, dim=(h, w), device=self.device, inputs=[level.ref, r, level.rows])
+        self.wp.launch(k.window_rows, dim=(h, w), device=self.device, inputs=[ref, r, level.rows])
         self.wp.launch(k.window_cols, dim=(h, w), device=self.device,
                        inputs=[level.rows, r, self.config.min_texture, self.config.min_valid_fraction, level.std])
 
-    def _sweep(self, level: _Sweep, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
+    def _sweep(self, level: _Sweep, ref, src, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
                min_scored: int) -> None:
         wp = self.wp
         cfg = self.config
-        h, w = level.ref.shape
+        h, w = ref.shape
         r = cfg.window_radius_px
-        # the warped samples go into the ZNCC volume, which the column pass overwrites once the rows have summed them
+        sample_into = level.zncc if self.sweep == "sliding" else level.samples
         wp.launch(k.warp_samples, dim=(n_src, n_planes, h, w), device=self.device,
-                  inputs=[level.ref, level.src, A, b, level.base, rho0, drho, level.zncc])
-        wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
-                  inputs=[level.ref, level.zncc, r, level.sums])
-        wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
-                  inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
+                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, sample_into])
+        if self.sweep == "sliding":
+            # the samples are in the ZNCC volume, which the column pass overwrites once the rows have summed them
+            wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
+                      inputs=[ref, level.zncc, r, level.sums])
+            wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
+                      inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
+        else:
+            bands = math.ceil(h / WINDOW_BAND_ROWS)
+            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, math.ceil(w / k.WINDOW_COLUMNS)),
+                      device=self.device,
+                      inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
+                              cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,
                   inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.score, level.plane,
                           level.best, level.second])
@@ -232,12 +347,16 @@ class DepthEstimator:
             if view.size != (w, h):
                 raise ReconstructionError(f"keyframe {view.kf_id} is {view.size[0]}x{view.size[1]}, keyframe "
                                           f"{ref.kf_id} {w}x{h}: multi-view stereo needs views of one size")
+            if view.kf_id == ref.kf_id:
+                raise ReconstructionError(f"keyframe {ref.kf_id} is among its own source views")
+        if len({v.kf_id for v in sources}) != len(sources):
+            raise ReconstructionError(f"keyframe {ref.kf_id}: source views {[v.kf_id for v in sources]} repeat "
+                                      "a keyframe")
         if w < 16 or h < 16:
             raise ReconstructionError(f"keyframe {ref.kf_id}: {w}x{h} is too small for multi-view stereo")
         n_src = len(sources)
         times: dict[str, float] = {}
         t0 = time.perf_counter()
-        # a sweep samples the plane homographies of every source at once: their terms go up as small arrays
         near, far = ref.depth_range_m or (cfg.default_near_m, cfg.default_far_m)
         near, far = max(float(near), 1e-4), float(far)
         if far <= near:
@@ -253,39 +372,35 @@ class DepthEstimator:
         step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
         drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
         rho0_f = -0.5 * (cfg.fine_planes - 1) * drho_f
-        with wp.ScopedDevice(self.device):
-            A_c = wp.array(np.array([a for a, _ in coarse_terms], np.float32), dtype=wp.mat33)
-            b_c = wp.array(np.array([b for _, b in coarse_terms], np.float32), dtype=wp.vec3)
-            A_f = wp.array(np.array([a for a, _ in fine_terms], np.float32), dtype=wp.mat33)
-            b_f = wp.array(np.array([b for _, b in fine_terms], np.float32), dtype=wp.vec3)
+        # a sweep samples the plane homographies of every source at once: their terms go up in two small copies
+        terms = coarse_terms + fine_terms
+        self.A.assign(np.array([a for a, _ in terms], np.float32))
+        self.b.assign(np.array([b for _, b in terms], np.float32))
+        A_c, A_f = self.A[:n_src], self.A[n_src:]
+        b_c, b_f = self.b[:n_src], self.b[n_src:]
         t0 = self._sync_time(times, "setup_ms", t0)
 
-        # the reference last: its mask and highlights stay in the buffers for the funnel
-        for i, view in reversed(list(enumerate([ref] + list(sources)))):
-            self._prepare(view, self.full_grey[i])
+        slots, prepared = self._slots([ref] + list(sources))
+        self.src_slots.assign(np.array(slots[1:], np.int32))
         fine, coarse = self.fine, self.coarse
-        hc, wc = h // 2, w // 2
-        wp.copy(fine.ref, self.full_grey[0])
-        wp.copy(fine.src, self.full_grey, src_offset=h * w, count=n_src * h * w)
-        wp.launch(k.half_mean, dim=(hc, wc), device=self.device, inputs=[self.full_grey[0], coarse.ref])
-        for s in range(n_src):
-            wp.launch(k.half_mean, dim=(hc, wc), device=self.device, inputs=[self.full_grey[s + 1], coarse.src[s]])
-        self._window_stats(coarse)
-        self._window_stats(fine)
+        ref_full, ref_half = self.full_grey[slots[0]], self.half_grey[slots[0]]
+        self._window_stats(coarse, ref_half)
+        self._window_stats(fine, ref_full)
         t0 = self._sync_time(times, "prepare_ms", t0)
 
         coarse.base.zero_()
-        self._sweep(coarse, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
+        self._sweep(coarse, ref_half, self.half_grey, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
                     max(3, math.ceil(cfg.min_scored_fraction * n_planes)))
         t0 = self._sync_time(times, "coarse_sweep_ms", t0)
 
         wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
                   inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
-        self._sweep(fine, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src, cfg.fine_planes)
+        self._sweep(fine, ref_full, self.full_grey, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src,
+                    cfg.fine_planes)
         t0 = self._sync_time(times, "fine_sweep_ms", t0)
 
         wp.launch(k.finalise, dim=(h, w), device=self.device,
-                  inputs=[self.mask, self.highlight, fine.ref, fine.std, coarse.plane, coarse.best, coarse.second,
+                  inputs=[self.state[slots[0]], ref_full, fine.std, coarse.plane, coarse.best, coarse.second,
                           n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
                           fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
                           cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
@@ -298,22 +413,50 @@ class DepthEstimator:
         given = [s for s in sources if source_depths and s.kf_id in source_depths]
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
+        self.counts.zero_()
+        wp.launch(k.count_codes, dim=(h, math.ceil(w / COUNT_SPAN)), device=self.device,
+                  inputs=[self.code, COUNT_SPAN, self.counts])
         t0 = self._sync_time(times, "checks_ms", t0)
 
-        depth = self.depth.numpy().copy()
-        confidence = self.confidence.numpy().copy()
-        code = self.code.numpy()
-        counts = np.bincount(code.ravel(), minlength=k.CODE_KEPT + 1)
+        out, counts = self._download()
         funnel = {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL)}
         if not given:
             funnel.pop("geometry_agrees")
         self._sync_time(times, "download_ms", t0)
         times["total_ms"] = round(sum(times.values()), 3)
         stats = {"funnel": funnel, "times_ms": times, "planes": n_planes, "depth_range_m": (near, far),
-                 "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given]}
+                 "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
+                 "prepared": prepared}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
-        return DepthMap(ref.kf_id, depth, confidence, np.array(ref.K, float), np.array(ref.T_world_camera, float),
+        return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
+
+    def _download(self) -> tuple[np.ndarray, np.ndarray]:
+        """(2, H, W) depth and confidence, and the funnel codes' histogram, as host arrays of their own."""
+        host, array = self._host_buffer()
+        self.wp.copy(host, self.out)
+        counts = self.counts
+        if self._host_counts is not None:
+            self.wp.copy(self._host_counts, self.counts)
+            counts = self._host_counts
+        self.wp.synchronize_device(self.device)
+        return array, counts.numpy().copy()
+
+    def _host_buffer(self) -> tuple[object, np.ndarray]:
+        """A host (2, H, W) buffer no depth map uses: a kept one whose array nothing outside this estimator refers
+        to (a depth map's arrays are views of it), else a new kept one up to ``host_buffers``, else a new one that
+        is handed out and not kept."""
+        for entry in self._host_buffers:
+            if sys.getrefcount(entry[1]) <= self._host_refs:
+                return entry
+        if len(self._host_buffers) < self._keep_host_buffers:
+            buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
+            entry = (buffer, buffer.numpy())
+            self._host_buffers.append(entry)
+            self._host_refs = sys.getrefcount(entry[1])  # this estimator's own references (the same each time)
+            return entry
+        buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu")
+        return buffer, buffer.numpy()
 
     def rejection_codes(self) -> np.ndarray:
         """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
@@ -336,8 +479,7 @@ class DepthEstimator:
         self.depth.assign(np.ascontiguousarray(depth_map.depth_m, np.float32))
         self.confidence.assign(np.ascontiguousarray(depth_map.confidence, np.float32))
         self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps)
-        depth = self.depth.numpy().copy()
-        confidence = self.confidence.numpy().copy()
+        (depth, confidence), _ = self._download()
         stats = dict(depth_map.stats or {})
         stats["funnel"] = dict(stats.get("funnel", {}), geometry_agrees=int(np.count_nonzero(depth > 0)))
         stats["geometric_sources"] = [m.kf_id for m in source_maps]
@@ -374,7 +516,7 @@ def compute_depth(ref: KeyframeView, sources: list[KeyframeView], config: DepthC
     """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
     that source's own depth map) adds the forward-backward geometric check for the sources it holds. For many
     keyframes keep one :class:`DepthEstimator`: it reuses its device buffers."""
-    return DepthEstimator(config, device).compute(ref, sources, source_depths)
+    return DepthEstimator(config, device, host_buffers=0).compute(ref, sources, source_depths)
 
 
 def compute_depths(views: list[KeyframeView], config: DepthConfig, device: str,

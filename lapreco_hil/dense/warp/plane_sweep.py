@@ -1,14 +1,21 @@
 """Kernels of the plane-sweep stereo (private; the host side is lapreco_hil.dense.depth).
 
 Images are grey in [-0.5, 0.5] (centred, so the windowed sums keep their float32 precision); a pixel that may not
-be used (outside the field of view, on a dilated highlight) holds ``EXCLUDED``. A sweep samples every source view
-on a set of fronto-parallel planes in inverse depth rho, ``rho = base[y, x] + rho0 + plane * drho`` (base is 0 for
-the coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window:
-one thread per (source, plane, pixel) samples the source (source pixel = A @ (x, y, 1) + rho * b, with
-A = K_s R_s_r K_r^-1 and b = K_s t_s_r: the plane homography written for inverse depth); then the window sums
-slide, one thread per (source, plane, row) adding the entering column and dropping the leaving one, then one
-thread per (source, plane, column) doing the same down the column, so a plane costs O(1) per pixel whatever the
-window, and every step is one launch over all sources and planes.
+be used (outside the field of view, on a dilated highlight) holds ``EXCLUDED``. Every view's grey lives in a slot
+of the estimator's per-keyframe cache; ``slots[s]`` names source s's. A sweep samples every source view on a set
+of fronto-parallel planes in inverse depth rho, ``rho = base[y, x] + rho0 + plane * drho`` (base is 0 for the
+coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window: one
+thread per (source, plane, pixel) samples the source (source pixel = A @ (x, y, 1) + rho * b, with
+A = K_s R_s_r K_r^-1 and b = K_s t_s_r: the plane homography written for inverse depth). The window sums then
+come one of two ways, with the same sums up to float rounding:
+
+- sliding (``sweep_rows`` then ``sweep_cols``): one thread per (source, plane, row) adding the entering column and
+  dropping the leaving one, then per (source, plane, column) down the column: O(1) per pixel whatever the window,
+  the cheapest on a CPU, whose threads run long serial loops well;
+- windowed (``sweep_window``): one thread per (source, plane, band of rows, four columns) sums each window row
+  from its taps and slides the rows down its band. Neighbouring threads are neighbouring columns (coalesced on a
+  GPU), nothing but the samples goes through memory (the sliding way writes 24 bytes of row sums per source,
+  plane and pixel), and there are millions of short threads instead of a few hundred thousand long ones.
 """
 
 from __future__ import annotations
@@ -35,6 +42,11 @@ CODE_VIEWS_DISAGREE = 7
 CODE_UNSUPPORTED = 8
 CODE_GEOMETRY_DISAGREES = 9
 CODE_KEPT = 10
+
+# why a view's pixel may not be used (kept per cached view: the funnel's first two checks of a reference)
+STATE_USABLE = 0
+STATE_OUT_OF_VIEW = 1
+STATE_HIGHLIGHT = 2
 
 
 @wp.kernel
@@ -73,10 +85,17 @@ def dilate_scatter(flags: wp.array2d(dtype=wp.uint8), r: int, dilated: wp.array2
 
 
 @wp.kernel
-def exclude(dilated: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=float)):
+def exclude(mask: wp.array2d(dtype=wp.uint8), dilated: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=float),
+            state: wp.array2d(dtype=wp.uint8)):
+    """Excludes the dilated highlights; ``state`` keeps why a pixel may not be used (the funnel's first checks)."""
     y, x = wp.tid()
-    if dilated[y, x] != wp.uint8(0):
+    if mask[y, x] == wp.uint8(0):
+        state[y, x] = wp.uint8(STATE_OUT_OF_VIEW)
+    elif dilated[y, x] != wp.uint8(0):
         grey[y, x] = EXCLUDED
+        state[y, x] = wp.uint8(STATE_HIGHLIGHT)
+    else:
+        state[y, x] = wp.uint8(STATE_USABLE)
 
 
 @wp.kernel
@@ -137,11 +156,12 @@ def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_val
 
 
 @wp.kernel
-def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), A: wp.array(dtype=wp.mat33),
-                 b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float, drho: float,
-                 samples: wp.array4d(dtype=float)):
-    """One thread per (source, plane, pixel): the source's grey (bilinear) where the reference pixel's ray meets
-    the plane; EXCLUDED where either view may not be used there or the point falls outside the source."""
+def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
+                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float,
+                 drho: float, samples: wp.array4d(dtype=float)):
+    """One thread per (source, plane, pixel): the source's grey (bilinear; source s is ``src[slots[s]]``) where the
+    reference pixel's ray meets the plane; EXCLUDED where either view may not be used there or the point falls
+    outside the source."""
     s, p, y, x = wp.tid()
     samples[s, p, y, x] = EXCLUDED
     if ref[y, x] < -1.0:
@@ -154,16 +174,17 @@ def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), A: 
     v = q[1] / q[2]
     hs = src.shape[1]
     ws = src.shape[2]
+    i = slots[s]
     if u < 0.0 or v < 0.0 or u > float(ws - 1) or v > float(hs - 1):
         return
     x0 = wp.min(int(u), ws - 2)
     y0 = wp.min(int(v), hs - 2)
     fx = u - float(x0)
     fy = v - float(y0)
-    a00 = src[s, y0, x0]
-    a01 = src[s, y0, x0 + 1]
-    a10 = src[s, y0 + 1, x0]
-    a11 = src[s, y0 + 1, x0 + 1]
+    a00 = src[i, y0, x0]
+    a01 = src[i, y0, x0 + 1]
+    a10 = src[i, y0 + 1, x0]
+    a11 = src[i, y0 + 1, x0 + 1]
     if wp.min(wp.min(a00, a01), wp.min(a10, a11)) < -1.0:
         return
     samples[s, p, y, x] = (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
@@ -204,6 +225,23 @@ def _row_sum(sums: wp.array4d(dtype=vec6), s: int, p: int, y: int, x: int) -> ve
     return sums[s, p, y, x]
 
 
+@wp.func
+def _zncc(acc: vec6, std_ref: float, total: float, min_std: float, min_valid: float) -> float:
+    """ZNCC of a window's sums on its usable pixels (at least ``min_valid`` of the window; the reference window
+    must be textured); NO_SCORE where undefined."""
+    score = NO_SCORE
+    n = acc[5]
+    if n >= min_valid * total and std_ref > 0.0:
+        mw = acc[0] / n
+        vw = acc[1] / n - mw * mw
+        mg = acc[3] / n
+        vg = acc[4] / n - mg * mg
+        lim = min_std * min_std
+        if vw > lim and vg > lim:
+            score = (acc[2] / n - mw * mg) / wp.sqrt(vw * vg)
+    return score
+
+
 @wp.kernel
 def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r: int, min_std: float,
                min_valid: float, zncc: wp.array4d(dtype=float)):
@@ -217,18 +255,72 @@ def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r
         acc += _row_sum(sums, s, p, yi, x)
     for y in range(h):
         acc += _row_sum(sums, s, p, y + r, x)
-        score = NO_SCORE
-        n = acc[5]
-        if n >= min_valid * total and ref_std[y, x] > 0.0:
-            mw = acc[0] / n
-            vw = acc[1] / n - mw * mw
-            mg = acc[3] / n
-            vg = acc[4] / n - mg * mg
-            lim = min_std * min_std
-            if vw > lim and vg > lim:
-                score = (acc[2] / n - mw * mg) / wp.sqrt(vw * vg)
-        zncc[s, p, y, x] = score
+        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
         acc -= _row_sum(sums, s, p, y - r, x)
+
+
+WINDOW_COLUMNS = 4  # neighbouring columns per thread of sweep_window
+
+
+@wp.func
+def _window_rows4(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
+                  r: int):
+    """The window-row sums of columns x .. x + 3 of row y: the first from its taps, each next one slid a column
+    (two taps instead of 2r + 1); zero outside the image."""
+    zero = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if y < 0 or y >= ref.shape[0]:
+        return zero, zero, zero, zero
+    a = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for dx in range(-r, r + 1):
+        a += _terms(ref, samples, s, p, y, x + dx)
+    b = a + _terms(ref, samples, s, p, y, x + 1 + r) - _terms(ref, samples, s, p, y, x - r)
+    c = b + _terms(ref, samples, s, p, y, x + 2 + r) - _terms(ref, samples, s, p, y, x + 1 - r)
+    d = c + _terms(ref, samples, s, p, y, x + 3 + r) - _terms(ref, samples, s, p, y, x + 2 - r)
+    return a, b, c, d
+
+
+@wp.kernel
+def sweep_window(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
+                 r: int, band: int, min_std: float, min_valid: float, zncc: wp.array4d(dtype=float)):
+    """One thread per (source, plane, band of ``band`` rows, four neighbouring columns): each window row summed
+    from its taps (then slid over the four columns), the rows slid down the band (the leaving row summed again
+    rather than kept: registers, not memory), scored as ``sweep_cols`` does. ``samples`` and ``zncc`` must be
+    different arrays (other threads still read the samples a thread's scores would overwrite)."""
+    s, p, c, xq = wp.tid()
+    h = ref.shape[0]
+    w = ref.shape[1]
+    x = xq * WINDOW_COLUMNS
+    y0 = c * band
+    y1 = wp.min(y0 + band, h)
+    total = float((2 * r + 1) * (2 * r + 1))
+    acc0 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc1 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc2 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc3 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for yi in range(y0 - r, y0 + r):
+        a, b, cc, d = _window_rows4(ref, samples, s, p, yi, x, r)
+        acc0 += a
+        acc1 += b
+        acc2 += cc
+        acc3 += d
+    for y in range(y0, y1):
+        a, b, cc, d = _window_rows4(ref, samples, s, p, y + r, x, r)
+        acc0 += a
+        acc1 += b
+        acc2 += cc
+        acc3 += d
+        zncc[s, p, y, x] = _zncc(acc0, ref_std[y, x], total, min_std, min_valid)
+        if x + 1 < w:
+            zncc[s, p, y, x + 1] = _zncc(acc1, ref_std[y, x + 1], total, min_std, min_valid)
+        if x + 2 < w:
+            zncc[s, p, y, x + 2] = _zncc(acc2, ref_std[y, x + 2], total, min_std, min_valid)
+        if x + 3 < w:
+            zncc[s, p, y, x + 3] = _zncc(acc3, ref_std[y, x + 3], total, min_std, min_valid)
+        a, b, cc, d = _window_rows4(ref, samples, s, p, y - r, x, r)
+        acc0 -= a
+        acc1 -= b
+        acc2 -= cc
+        acc3 -= d
 
 
 @wp.func
@@ -346,8 +438,7 @@ def upsample_rho(plane: wp.array2d(dtype=float), rho0: float, drho: float, rho_f
 
 
 @wp.kernel
-def finalise(mask: wp.array2d(dtype=wp.uint8), highlight: wp.array2d(dtype=wp.uint8),
-             grey: wp.array2d(dtype=float), fine_std: wp.array2d(dtype=float),
+def finalise(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=float), fine_std: wp.array2d(dtype=float),
              coarse_plane: wp.array2d(dtype=float), coarse_best: wp.array2d(dtype=float),
              coarse_second: wp.array2d(dtype=float), n_coarse: int, edge_radius: int, max_jump: float,
              edge_zncc: float,
@@ -364,10 +455,10 @@ def finalise(mask: wp.array2d(dtype=wp.uint8), highlight: wp.array2d(dtype=wp.ui
     wc = coarse_plane.shape[1]
     yc = wp.min(y / 2, hc - 1)
     xc = wp.min(x / 2, wc - 1)
-    if mask[y, x] == wp.uint8(0):
+    if state[y, x] == wp.uint8(STATE_OUT_OF_VIEW):
         code[y, x] = wp.uint8(CODE_OUT_OF_VIEW)
         return
-    if highlight[y, x] != wp.uint8(0) or grey[y, x] < -1.0:
+    if state[y, x] == wp.uint8(STATE_HIGHLIGHT) or grey[y, x] < -1.0:
         code[y, x] = wp.uint8(CODE_HIGHLIGHT)
         return
     if fine_std[y, x] <= 0.0:
@@ -516,3 +607,25 @@ def apply_agreement(agree: wp.array2d(dtype=int), min_agree: int, depth: wp.arra
         depth[y, x] = 0.0
         confidence[y, x] = 0.0
         code[y, x] = wp.uint8(CODE_GEOMETRY_DISAGREES)
+
+
+@wp.kernel
+def count_codes(code: wp.array2d(dtype=wp.uint8), span: int, counts: wp.array(dtype=int)):
+    """A histogram of the funnel codes (into a zeroed ``counts``): the funnel without downloading the codes. One
+    thread per ``span`` pixels of a row adds each run of one code at once: codes come in regions, so a few atomic
+    adds per thread instead of one per pixel on 11 addresses (which a GPU would serialise)."""
+    y, c = wp.tid()
+    x0 = c * span
+    x1 = wp.min(x0 + span, code.shape[1])
+    run = int(0)
+    current = int(-1)
+    for x in range(x0, x1):
+        value = int(code[y, x])
+        if value != current:
+            if run > 0:
+                wp.atomic_add(counts, current, run)
+            current = value
+            run = 0
+        run += 1
+    if run > 0:
+        wp.atomic_add(counts, current, run)
