@@ -380,16 +380,21 @@ class Dense:
                     spans = {int(k): (None if not np.all(np.isfinite(r)) else (float(r[0]), float(r[1])))
                              for k, r in zip(msg.keyframe_ids, msg.depth_ranges)}
                     self.surface.set_depth_ranges(spans)
-                    with device_lock(self.device):
-                        moved = self.surface.update_poses(dict(zip(msg.keyframe_ids.tolist(), msg.poses)))
+                    moved = 0
+                    for kf_id, T in zip(msg.keyframe_ids.tolist(), msg.poses):
+                        # the device in turns per keyframe, so tracking waits for one keyframe's work at most
+                        with device_lock(self.device):
+                            moved += self.surface.update_poses({kf_id: T})
                     m.add("dense_refused", moved)
             # every keyframe but the newest has a neighbour on each side by now: its depth map; one that has no
             # source view yet is tried again while it is among the newest few
             ready = self.order[:-1]
             if ready:
                 t0 = time.perf_counter()
-                with device_lock(self.device):
-                    fused = self.surface.fuse_pending(set(ready))
+                fused = 0
+                for kf_id in ready:
+                    with device_lock(self.device):
+                        fused += self.surface.fuse_pending({kf_id})
                 waiting = [k for k in ready if k in self.surface.without_sources][-RETRY_KEYFRAMES:]
                 self.order = waiting + self.order[-1:]
                 if fused:
