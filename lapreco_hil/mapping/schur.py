@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
+import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
@@ -55,6 +56,10 @@ MIN_MODEL_FIDELITY = 1e-3
 # the work grows with the track lengths, not with the map's size, and the memory stays bounded
 CHUNK_POINTS = 256
 CHUNK_ENTRIES = 4_000_000
+# landmarks whose first free poses fall in one bin of this many are ordered by their last one
+CHUNK_FIRST_BIN = 16
+# a chunk grows while its dense update costs at most this many times its landmarks' own blocks
+CHUNK_WASTE = 1.5
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
@@ -93,6 +98,36 @@ def single_threaded_blas():
     finally:
         for set_threads, n in zip(setters, previous):
             set_threads(n)
+
+
+@functools.cache
+def _dsyrk():
+    """BLAS's dsyrk (Fortran interface, LP64) from scipy's public Cython BLAS: it updates a block of a larger
+    matrix in place (its leading dimension), which the Python wrapper cannot (it copies a strided block)."""
+    capsule = scipy.linalg.cython_blas.__pyx_capi__["dsyrk"]
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype, api.PyCapsule_GetName.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    pointer = api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule))
+    i, d = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_double)
+    return ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, i, i, d, ctypes.c_void_p, i, d,
+                            ctypes.c_void_p, i)(pointer)
+
+
+def _subtract_gram(S: np.ndarray, block: slice, Z: np.ndarray) -> None:
+    """S[block, block] -= Z^T Z in S's lower triangle, in place (S: C-ordered square float64; Z: C-ordered
+    (rows, block's width))."""
+    n, (rows, width) = S.shape[0], Z.shape
+    assert S.flags.c_contiguous and Z.flags.c_contiguous and S.dtype == Z.dtype == np.float64
+    assert block.stop - block.start == width and block.stop <= n
+    if not rows or not width:
+        return
+    c = ctypes.c_int
+    # Fortran sees S's transpose: its upper triangle is S's lower one; it sees Z^T, (width x rows)
+    _dsyrk()(b"U", b"N", ctypes.byref(c(width)), ctypes.byref(c(rows)), ctypes.byref(ctypes.c_double(-1.0)),
+             Z.ctypes.data, ctypes.byref(c(width)), ctypes.byref(ctypes.c_double(1.0)),
+             S.ctypes.data + 8 * (block.start * n + block.start), ctypes.byref(c(n)))
 
 
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
@@ -211,7 +246,7 @@ class _Chunk:
     obs: np.ndarray  # their observations by free poses
     dest: np.ndarray  # (3, 6, len(obs)) where each observation's W block goes in the chunk's (n, 3, 6 m) block
     n_cols: int
-    idx: np.ndarray
+    idx: np.ndarray | slice  # their rows/columns of the camera system
 
 
 @dataclass
@@ -230,6 +265,60 @@ class _Layout:
     kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
 
 
+def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int) -> list[_Chunk]:
+    """The landmarks cut into elimination chunks. A chunk's cost is its dense block's update of the camera
+    system, (3 x its landmarks) x (6 x the span of its poses)^2, against the sum of its landmarks' own
+    (3 x 6 x track)^2: landmarks are taken in the order of (first free pose // CHUNK_FIRST_BIN, last free
+    pose), so that neighbours share their span, and a chunk grows while its cost stays within CHUNK_WASTE of
+    that sum (long tracks of a slow sweep: a chunk of the first pose's landmarks alone spans the longest track
+    among them, several times the cost), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries."""
+    seen = obs_col >= 0
+    first = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first, obs_point[seen], obs_col[seen])
+    last = np.full(n_points, -1, np.int64)
+    np.maximum.at(last, obs_point[seen], obs_col[seen])
+    views = np.bincount(obs_point[seen], minlength=n_points)
+    point_order = np.lexsort((last, first // CHUNK_FIRST_BIN))
+    point_order = point_order[first[point_order] < n_free]
+    rank = np.empty(n_points, np.int64)
+    rank[point_order] = np.arange(len(point_order))
+    by_rank = np.flatnonzero(seen)
+    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
+    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
+    # greedy cuts on the spans (a list pass: one per solve, a few ms for thousands of landmarks)
+    cuts, j = [0], 0
+    fs, ls, vs = first[point_order].tolist(), last[point_order].tolist(), views[point_order].tolist()
+    while j < len(fs):
+        lo, hi, span_f, span_l, own = j, j + 1, fs[j], ls[j], vs[j] ** 2
+        while hi < len(fs) and hi - lo < CHUNK_POINTS:
+            f, l_ = min(span_f, fs[hi]), max(span_l, ls[hi])
+            width = l_ - f + 1
+            if ((hi - lo + 1) * width * width > CHUNK_WASTE * (own + vs[hi] ** 2)
+                    or (hi - lo + 1) * 18 * width > CHUNK_ENTRIES):
+                break
+            span_f, span_l, own, hi = f, l_, own + vs[hi] ** 2, hi + 1
+        cuts.append(hi)
+        j = hi
+    chunks, j, c = [], 0, 1
+    while j < len(fs):
+        hi = cuts[c]
+        while True:  # (a chunk whose poses are not one run can still be too wide: halve it)
+            obs = by_rank[starts[j]:starts[hi]]
+            cols = np.unique(obs_col[obs])
+            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
+                break
+            hi = j + max(1, (hi - j) // 2)
+        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
+        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
+                                                                + np.arange(6)[None, :])[:, :, None]
+        run = cols[-1] - cols[0] + 1 == len(cols)  # its poses are one run: the camera system's block is a slice
+        idx = slice(6 * int(cols[0]), 6 * int(cols[-1]) + 6) if run else (6 * cols[:, None] + np.arange(6)).ravel()
+        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), idx))
+        j = hi
+        c += j == cuts[c]
+    return chunks
+
+
 def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"."""
@@ -242,32 +331,7 @@ def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
     obs_col = col[p.obs_pose]
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
     unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
-    # landmarks in the order of the first free pose that sees them (a long map's tracks then share their poses
-    # with their neighbours), cut into chunks of at most CHUNK_POINTS whose dense block stays under CHUNK_ENTRIES
-    seen = obs_col >= 0
-    first_col = np.full(n_points, np.iinfo(np.int64).max)
-    np.minimum.at(first_col, obs_point[seen], obs_col[seen])
-    point_order = np.argsort(first_col, kind="stable")
-    point_order = point_order[first_col[point_order] < len(free)]
-    rank = np.empty(n_points, np.int64)
-    rank[point_order] = np.arange(len(point_order))
-    by_rank = np.flatnonzero(seen)
-    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
-    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
-    chunks, j = [], 0
-    while j < len(point_order):
-        hi = min(len(point_order), j + CHUNK_POINTS)
-        while True:
-            obs = by_rank[starts[j]:starts[hi]]
-            cols = np.unique(obs_col[obs])
-            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
-                break
-            hi = j + max(1, (hi - j) // 2)
-        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
-        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
-                                                                + np.arange(6)[None, :])[:, :, None]
-        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
-        j = hi
+    chunks = _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
     kernels = None
@@ -524,8 +588,10 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
             else:
                 np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
             Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
-        ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
-        S[np.ix_(ch.idx, ch.idx)] -= ZtZ
+        if isinstance(ch.idx, slice):
+            _subtract_gram(S, ch.idx, Z)
+        else:
+            S[np.ix_(ch.idx, ch.idx)] -= scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
         rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
