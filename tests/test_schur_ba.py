@@ -109,11 +109,14 @@ def test_kernels_linearise_as_numpy_does(loss):
     a = schur._linearize(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     b = schur._linearize(p, dev, p.poses, p.points, 0.7, loss, 2.5)
     for x, y in ((a.Hcc, b.Hcc), (a.gc, b.gc), (a.Hpp, b.Hpp), (a.gp, b.gp),
-                 (np.transpose(a.W, (2, 0, 1)), b.W)):
+                 (np.transpose(a.W, (2, 0, 1)), dev.kernels.W_host())):
         np.testing.assert_allclose(y, x, rtol=1e-12, atol=1e-9 * np.abs(x).max())
     assert b.error0 == pytest.approx(a.error0, rel=1e-12)
     e_ref = schur._error(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     assert schur._error(p, dev, p.poses, p.points, 0.7, loss, 2.5) == pytest.approx(e_ref, rel=1e-12)
+    for behind in (np.nan, np.inf):  # the residuals the robust scale and the labels are taken from
+        np.testing.assert_allclose(schur._reprojection(p, dev, p.poses, p.points, False, behind),
+                                   schur._reprojection(p, ref, p.poses, p.points, False, behind), atol=1e-9)
     timing = schur._new_timing()
     step_ref, step_dev = schur._solve_damped(ref, a, 1e-3, timing), schur._solve_damped(dev, b, 1e-3, timing)
     for x, y in zip(step_ref, step_dev):  # to 1 nm: Tukey leaves some landmarks one weighted view (ill-conditioned)

@@ -12,9 +12,11 @@ Poses are T_world_camera; observations are undistorted pixels of the pinhole cam
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
+from operator import itemgetter
 
 import numpy as np
 
@@ -31,7 +33,7 @@ from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.schur import solve_robust_schur
+from lapreco_hil.mapping.schur import all_cores, solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -508,10 +510,12 @@ class Mapper:
         free = np.zeros(0, np.int64)
         if scope.every_view:
             # every view of each landmark (retired keyframes' too: their arrays may be gone, the tracks keep them)
-            obs = [(k, uv) for t in point_ids.tolist() for k, uv in self.tracks[t]]
-            kfi = np.array([k for k, _ in obs], np.int64)
-            tids = np.repeat(point_ids, [len(self.tracks[t]) for t in point_ids.tolist()])
-            uvs = np.array([uv for _, uv in obs])
+            # (hundreds of thousands of views in a long map's final pass: flattened once, no tuple per view)
+            seen_by = [self.tracks[t] for t in point_ids.tolist()]
+            obs = list(itertools.chain.from_iterable(seen_by))
+            kfi = np.fromiter(map(itemgetter(0), obs), np.int64, len(obs))
+            tids = np.repeat(point_ids, [len(s) for s in seen_by])
+            uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
         else:
             sel = np.isin(tids, point_ids)
@@ -528,7 +532,7 @@ class Mapper:
             fixed=(kf_ids < first_active) | self._poses_held(),
             prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
             prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
-            points=np.array([landmarks[t] for t in point_ids.tolist()]),
+            points=np.stack(list(map(landmarks.__getitem__, point_ids.tolist()))),
             obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs, has_prior=has_prior,
             tie_pairs=tie_pairs, tie_T=tie_T, tie_covs=tie_covs)
 
@@ -612,7 +616,7 @@ class Mapper:
         reprojection = {}
         if problem is not None:
             if cfg.final_global_ba:
-                result = self.solve_ba(problem, self.final_schedule)
+                result = self._solve_final(problem)
                 self._apply(problem, result)
                 good = result.stats["inlier_obs"]
                 threshold = result.stats["inlier_threshold_px"]
@@ -666,6 +670,13 @@ class Mapper:
         stats["frame_poses_s"] = time.perf_counter() - t1
         return MapResult(self.keyframes, self.frames, frame_poses, ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
+
+    def _solve_final(self, problem: ba.BAProblem) -> ba.BAResult:
+        """The final pass, on every core where the solver can use them: nothing else runs at the map's end,
+        and a long map's camera system is thousands wide (docs/benchmarks.md, session 11)."""
+        if self.solve_ba is solve_robust_schur:
+            return solve_robust_schur(problem, self.final_schedule, blas_threads=all_cores())
+        return self.solve_ba(problem, self.final_schedule)
 
     def _frame_poses(self) -> np.ndarray:
         """Every frame's refined pose against the final map: keyframes from the global BA, the others by

@@ -30,6 +30,7 @@ import ctypes
 import dataclasses
 import functools
 import logging
+import os
 import time
 from dataclasses import dataclass
 
@@ -86,18 +87,27 @@ def _openblas_libraries() -> tuple:
 
 
 @contextlib.contextmanager
-def single_threaded_blas():
-    """BLAS on one thread for this thread, while inside. The solver's products and factorisations are a few
-    hundred wide: OpenBLAS's worker threads gain little there and, on cores shared with the tracker and the other
-    processes (the live runtime, a loaded machine), their spinning made solves 10-30x slower
-    (docs/benchmarks.md)."""
+def _blas_threads(n: int = 1):
+    """BLAS on ``n`` threads for this thread, while inside. One by default: the solver's products and
+    factorisations of a local window are a few hundred wide, OpenBLAS's worker threads gain little there and,
+    on cores shared with the tracker and the other processes (the live runtime, a loaded machine), their
+    spinning made solves 10-30x slower (docs/benchmarks.md). A final pass over a long map (a camera system
+    thousands wide, nothing else running) takes the machine's cores."""
     setters = _openblas_libraries()
-    previous = [set_threads(1) for set_threads in setters]
+    previous = [set_threads(max(1, int(n))) for set_threads in setters]
     try:
         yield
     finally:
-        for set_threads, n in zip(setters, previous):
-            set_threads(n)
+        for set_threads, m in zip(setters, previous):
+            set_threads(m)
+
+
+def all_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
 
 
 @functools.cache
@@ -285,22 +295,37 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     by_rank = np.flatnonzero(seen)
     by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
     starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
-    # greedy cuts on the spans (a list pass: one per solve, a few ms for thousands of landmarks)
-    cuts, j = [0], 0
-    fs, ls, vs = first[point_order].tolist(), last[point_order].tolist(), views[point_order].tolist()
-    while j < len(fs):
-        lo, hi, span_f, span_l, own = j, j + 1, fs[j], ls[j], vs[j] ** 2
-        while hi < len(fs) and hi - lo < CHUNK_POINTS:
-            f, l_ = min(span_f, fs[hi]), max(span_l, ls[hi])
-            width = l_ - f + 1
-            if ((hi - lo + 1) * width * width > CHUNK_WASTE * (own + vs[hi] ** 2)
-                    or (hi - lo + 1) * 18 * width > CHUNK_ENTRIES):
-                break
-            span_f, span_l, own, hi = f, l_, own + vs[hi] ** 2, hi + 1
-        cuts.append(hi)
-        j = hi
+    # greedy cuts on the spans, taken a run of equal spans at a time (a local window's landmarks mostly share
+    # theirs: a few runs, not a Python step per landmark)
+    if not len(point_order):
+        return []
+    key = np.stack([first[point_order], last[point_order]])
+    change = np.flatnonzero(np.any(key[:, 1:] != key[:, :-1], axis=0)) + 1
+    run_start = np.concatenate([[0], change]).tolist()
+    run_end = run_start[1:] + [len(point_order)]
+    sq = views[point_order].astype(np.int64) ** 2
+    run_sq = np.add.reduceat(sq, run_start).tolist()
+    fs, ls = key[0][run_start].tolist(), key[1][run_start].tolist()
+    cuts, lo, span_f, span_l, own = [0], 0, 0, -1, 0
+    for r, (a, b) in enumerate(zip(run_start, run_end)):
+        pos = a
+        while pos < b:
+            if pos > lo:  # does this run (or its head) join the open chunk?
+                f, l_ = min(span_f, fs[r]), max(span_l, ls[r])
+                width = l_ - f + 1
+                room = CHUNK_POINTS - (pos - lo)
+                take = min(b - pos, room, max(0, CHUNK_ENTRIES // (18 * width) - (pos - lo)))
+                per = run_sq[r] / (b - a)
+                if take > 0 and (pos - lo + take) * width * width <= CHUNK_WASTE * (own + take * per):
+                    span_f, span_l, own, pos = f, l_, own + take * per, pos + take
+                    continue
+                cuts.append(pos)
+            lo, span_f, span_l = pos, fs[r], ls[r]
+            take = max(1, min(b - pos, CHUNK_POINTS, CHUNK_ENTRIES // (18 * (span_l - span_f + 1))))
+            own, pos = take * run_sq[r] / (b - a), pos + take
+    cuts.append(len(point_order))
     chunks, j, c = [], 0, 1
-    while j < len(fs):
+    while j < len(point_order):
         hi = cuts[c]
         while True:  # (a chunk whose poses are not one run can still be too wide: halve it)
             obs = by_rank[starts[j]:starts[hi]]
@@ -359,7 +384,7 @@ class _Linear:
     gc: np.ndarray  # (6F,)
     Hpp: np.ndarray  # (N, 3, 3)
     gp: np.ndarray  # (N, 3)
-    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); (O, 3, 6) from kernels
+    W: np.ndarray | None  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); None: on the device
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
 
@@ -417,6 +442,8 @@ def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndar
                   behind: float | None = None):
     """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
     (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+    if lay.kernels is not None and not jacobians and behind is not None:
+        return lay.kernels.residuals(poses, points, behind)
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     r = np.column_stack([ru, rv])
     if behind is not None:
@@ -462,7 +489,8 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
 
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
     if lay.kernels is not None:
-        W, Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        W = None  # on the device
         n_free = len(lay.free)
         Hcc = np.zeros((6 * n_free, 6 * n_free))
         for c in range(n_free):
@@ -574,7 +602,9 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     on_device = lay.kernels is not None and lay.unique_pairs
     if on_device:
         lay.kernels.set_landmark_factors(np.column_stack(L))
-    W = lin.W if lay.kernels is None else np.transpose(lin.W, (1, 2, 0))  # (3, 6, O)
+    W = lin.W  # (3, 6, O)
+    if lay.kernels is not None and not on_device:
+        W = np.transpose(lay.kernels.W_host(), (1, 2, 0))
     for n, ch in enumerate(lay.chunks):
         n_c = len(ch.points)
         # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
@@ -703,15 +733,16 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
-                max_iterations: int = 15, device: str = "cpu") -> BAResult:
+                max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1) -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
-    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp)."""
+    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp);
+    ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
     lay = _layout(p, device)
     timing = _new_timing()
-    with single_threaded_blas():
+    with _blas_threads(blas_threads):
         poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
                                                  pixel_sigma, loss or "none", k, max_iterations, timing)
     residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
@@ -719,11 +750,12 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                     {"timing": timing, "iteration_timing": per_it})
 
 
-def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu") -> BAResult:
+def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
+                       blas_threads: int = 1) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
     (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
-    and per stage ``iteration_timing``). ``device`` as ``solve_schur``'s."""
+    and per stage ``iteration_timing``). ``device`` and ``blas_threads`` as ``solve_schur``'s."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
@@ -736,7 +768,7 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
         r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
         sigma = pixel_sigma(p, r, schedule)
         stage_timing = _new_timing()
-        with single_threaded_blas():
+        with _blas_threads(blas_threads):
             poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
                                                      stage.iterations, stage_timing)
         for key in timing:

@@ -133,6 +133,19 @@ def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int3
 
 
 @wp.kernel
+def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+               uv: wp.array(dtype=wp.vec2d), R: wp.array(dtype=wp.mat33d), t: wp.array(dtype=wp.vec3d),
+               X: wp.array(dtype=wp.vec3d), K: wp.vec4d, behind: wp.float64, r: wp.array(dtype=wp.vec2d)):
+    """Each observation's reprojection residual, ``behind`` in both where the point is behind the camera."""
+    o = wp.tid()
+    Xc = _camera_point(R[obs_pose[o]], t[obs_pose[o]], X[obs_point[o]])
+    if Xc[2] > wp.float64(0.0):
+        r[o] = wp.vec2d(K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0], K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1])
+    else:
+        r[o] = wp.vec2d(behind, behind)
+
+
+@wp.kernel
 def _whitened_blocks(obs: wp.array(dtype=wp.int32), dest: wp.array(dtype=wp.int64), width: wp.int64,
                      obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
                      Z: wp.array(dtype=wp.float64)):
@@ -191,8 +204,8 @@ class ObservationKernels:
                 wp.array(np.ascontiguousarray(points, np.float64), dtype=wp.vec3d, device=d))
 
     def linearize(self, poses, points, sigma: float, loss: str, k: float):
-        """(W (O, 3, 6), Hpp (N, 3, 3), gp (N, 3), pose blocks (F, 6, 6), pose gradients (F, 6),
-        sum of s |r|^2) at the given state."""
+        """(Hpp (N, 3, 3), gp (N, 3), pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2) at the
+        given state."""
         R, t, X = self._state(poses, points)
         with device_lock(self.device):
             for a in (self.Hpp, self.gp, self.Hcc, self.gc, self.scalar):
@@ -201,8 +214,24 @@ class ObservationKernels:
                       inputs=[self.obs_pose, self.obs_point, self.obs_col, self.uv, R, t, X, self.K, 1.0 / sigma,
                               float(k), LOSS_CODES[loss]],
                       outputs=[self.W, self.Hpp, self.gp, self.Hcc, self.gc, self.scalar])
-        return (self.W.numpy(), self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free],
-                self.gc.numpy()[:self.n_free], float(self.scalar.numpy()[0]))
+        # W stays on the device (read by ``whitened_blocks``, ``w_times_step``; ``W_host`` where needed)
+        return (self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free], self.gc.numpy()[:self.n_free],
+                float(self.scalar.numpy()[0]))
+
+    def W_host(self) -> np.ndarray:
+        """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
+        return self.W.numpy()
+
+    def residuals(self, poses, points, behind: float) -> np.ndarray:
+        """(O, 2) reprojection residuals at the given state, ``behind`` where the point is behind the camera."""
+        R, t, X = self._state(poses, points)
+        if not hasattr(self, "r"):
+            self.r = wp.zeros(self.n_obs, dtype=wp.vec2d, device=self.device)
+        with device_lock(self.device):
+            wp.launch(_residuals, dim=self.n_obs, device=self.device,
+                      inputs=[self.obs_pose, self.obs_point, self.uv, R, t, X, self.K, float(behind)],
+                      outputs=[self.r])
+        return self.r.numpy().copy()
 
     def error(self, poses, points, sigma: float, loss: str, k: float) -> float:
         """The sum of the reprojection losses at the given state."""
