@@ -344,9 +344,9 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     return chunks
 
 
-def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
+def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
-    that is "numpy"."""
+    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``)."""
     n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -363,7 +363,7 @@ def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
     if device != "numpy":
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
-        kernels = ObservationKernels(p, obs_col, len(free), device)
+        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur)
     return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
                    whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
 
@@ -590,6 +590,8 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     None where it is not positive definite (a landmark left with one weighted view is singular along its ray
     to the damping's precision: GTSAM's elimination throws IndeterminateSystemException there, and lambda
     grows)."""
+    if lay.kernels is not None and lay.kernels.schur_on_device:
+        return _solve_damped_on_device(lay, lin, lam, timing)
     t0 = time.perf_counter()
     L = _cholesky3(lin.Hpp + lam * np.eye(3))
     if L is None:
@@ -644,6 +646,43 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
             dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1
             x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", W[a], dc_of_obs)) for a in range(3)])
     dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
+    timing["solve_s"] += time.perf_counter() - t1
+    return dc.reshape(-1, 6), dp
+
+
+def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """The damped camera system's solution by its Cholesky factor (S's lower triangle); None where it is not
+    positive definite."""
+    if not len(rhs):
+        return np.zeros(0)
+    try:
+        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
+                                    check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    return dc if np.all(np.isfinite(dc)) else None
+
+
+def _solve_damped_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict):
+    """``_solve_damped`` with the landmarks eliminated on the kernels' device: a handful of launches, the camera
+    system (6F x 6F) and one flag read back, the host solving it, the landmarks' moves read back."""
+    t0 = time.perf_counter()
+    eliminated = lay.kernels.schur_complement(lam)
+    if eliminated is None:
+        timing["schur_s"] += time.perf_counter() - t0
+        return None
+    M, r = eliminated
+    n6 = len(r)
+    S = lin.Hcc + lam * np.eye(n6)
+    S -= M  # (its lower triangle: what the factorisation reads)
+    rhs = r - lin.gc
+    t1 = time.perf_counter()
+    timing["schur_s"] += t1 - t0
+    dc = _solve_camera_system(S, rhs)
+    if dc is None:
+        timing["solve_s"] += time.perf_counter() - t1
+        return None
+    dp = lay.kernels.back_substitute(dc.reshape(-1, 6))
     timing["solve_s"] += time.perf_counter() - t1
     return dc.reshape(-1, 6), dp
 
@@ -716,6 +755,12 @@ def _check_device(device: str) -> str:
     return resolve_device(device)
 
 
+def _device_schur(device: str, asked: bool | None) -> bool:
+    if device == "numpy":
+        return False
+    return device.startswith("cuda") if asked is None else bool(asked)
+
+
 def _new_timing() -> dict:
     return {"linearize_s": 0.0, "schur_s": 0.0, "solve_s": 0.0, "error_s": 0.0}
 
@@ -733,14 +778,18 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
-                max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1) -> BAResult:
+                max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1,
+                device_schur: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
     ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp);
-    ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``)."""
+    ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``);
+    ``device_schur``: eliminate the landmarks on the kernels' device (one launch summing every landmark's block
+    into the camera system by atomics, which only a GPU does fast) instead of chunk by chunk through host BLAS;
+    None: on CUDA devices only."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device)
+    lay = _layout(p, device, _device_schur(device, device_schur))
     timing = _new_timing()
     with _blas_threads(blas_threads):
         poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
@@ -751,15 +800,15 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
-                       blas_threads: int = 1) -> BAResult:
+                       blas_threads: int = 1, device_schur: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
     (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
-    and per stage ``iteration_timing``). ``device`` and ``blas_threads`` as ``solve_schur``'s."""
+    and per stage ``iteration_timing``). ``device``, ``blas_threads`` and ``device_schur`` as ``solve_schur``'s."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device)
+    lay = _layout(p, device, _device_schur(device, device_schur))
     poses, points = np.array(p.poses, float), np.array(p.points, float)
     stages, iterations = [], 0
     initial_error = final_error = 0.0

@@ -176,11 +176,116 @@ def _w_times_step(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=w
         wp.atomic_add(out, obs_point[o], W[o] @ dc[c])
 
 
+@wp.func
+def _whiten(l: vec6d, Wo: mat36d) -> mat36d:
+    """L^-1 W for a landmark's Cholesky factor l (l11 l21 l22 l31 l32 l33)."""
+    z = mat36d()
+    for b in range(6):
+        z0 = Wo[0, b] / l[0]
+        z1 = (Wo[1, b] - l[1] * z0) / l[2]
+        z[0, b] = z0
+        z[1, b] = z1
+        z[2, b] = (Wo[2, b] - l[3] * z0 - l[4] * z1) / l[5]
+    return z
+
+
+@wp.func
+def _add_block(M: wp.array(dtype=wp.float64), n6: int, row: int, col: int, za: mat36d, zb: mat36d,
+               both: bool):
+    """M[6 row.., 6 col..] += za^T zb (and its transpose too when ``both``: the two views of a point by one pose)."""
+    for a in range(6):
+        for b in range(6):
+            v = za[0, a] * zb[0, b] + za[1, a] * zb[1, b] + za[2, a] * zb[2, b]
+            if both:
+                v += zb[0, a] * za[0, b] + zb[1, a] * za[1, b] + zb[2, a] * za[2, b]
+            wp.atomic_add(M, (6 * row + a) * n6 + 6 * col + b, v)
+
+
+@wp.kernel
+def _landmark_factors(Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d), lam: wp.float64,
+                      L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), failed: wp.array(dtype=wp.int32)):
+    """Each landmark's damped block's Cholesky factor (as ``schur._cholesky3``) and L^-1 gp; ``failed`` counts
+    the blocks that are not positive definite (a pivot <= 0 or NaN, LAPACK's test)."""
+    j = wp.tid()
+    V = Hpp[j]
+    zero = wp.float64(0.0)
+    d1 = V[0, 0] + lam
+    if not (d1 > zero):
+        wp.atomic_add(failed, 0, 1)
+        return
+    l11 = wp.sqrt(d1)
+    l21 = V[1, 0] / l11
+    l31 = V[2, 0] / l11
+    d2 = V[1, 1] + lam - l21 * l21
+    if not (d2 > zero):
+        wp.atomic_add(failed, 0, 1)
+        return
+    l22 = wp.sqrt(d2)
+    l32 = (V[2, 1] - l31 * l21) / l22
+    d3 = V[2, 2] + lam - l31 * l31 - l32 * l32
+    if not (d3 > zero):
+        wp.atomic_add(failed, 0, 1)
+        return
+    l33 = wp.sqrt(d3)
+    L[j] = vec6d(l11, l21, l22, l31, l32, l33)
+    g = gp[j]
+    y0 = g[0] / l11
+    y1 = (g[1] - l21 * y0) / l22
+    Lg[j] = wp.vec3d(y0, y1, (g[2] - l31 * y0 - l32 * y1) / l33)
+
+
+@wp.kernel
+def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.int32),
+                  obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                  W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), n6: int,
+                  M: wp.array(dtype=wp.float64), r: wp.array(dtype=wp.float64)):
+    """The landmarks' eliminated blocks summed into the camera system, one thread per observation by a free
+    pose (``pm_obs``: grouped by landmark; ``pm_end``: the end of its landmark's group): with z = L^-1 W,
+    M += z_a^T z_b for this observation a and each later one b of its landmark, in M's lower block triangle
+    (diagonal blocks whole), and r += z_a^T L^-1 gp."""
+    n = wp.tid()
+    o = pm_obs[n]
+    j = obs_point[o]
+    l = L[j]
+    za = _whiten(l, W[o])
+    ca = obs_col[o]
+    lg = Lg[j]
+    for b in range(6):
+        wp.atomic_add(r, 6 * ca + b, za[0, b] * lg[0] + za[1, b] * lg[1] + za[2, b] * lg[2])
+    _add_block(M, n6, ca, ca, za, za, False)
+    for m in range(n + 1, pm_end[n]):
+        ob = pm_obs[m]
+        zb = _whiten(l, W[ob])
+        cb = obs_col[ob]
+        if ca > cb:
+            _add_block(M, n6, ca, cb, za, zb, False)
+        elif ca < cb:
+            _add_block(M, n6, cb, ca, zb, za, False)
+        else:
+            _add_block(M, n6, ca, ca, za, zb, True)
+
+
+@wp.kernel
+def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
+                     dp: wp.array(dtype=wp.vec3d)):
+    """Each landmark's move: dp = -V^-1 (gp + sum of W dc), V = L L^T."""
+    j = wp.tid()
+    l = L[j]
+    x = gp[j] + Wdc[j]
+    y0 = x[0] / l[0]
+    y1 = (x[1] - l[1] * y0) / l[2]
+    y2 = (x[2] - l[3] * y0 - l[4] * y1) / l[5]
+    u2 = y2 / l[5]
+    u1 = (y1 - l[4] * u2) / l[2]
+    u0 = (y0 - l[1] * u1 - l[3] * u2) / l[0]
+    dp[j] = -wp.vec3d(u0, u1, u2)
+
+
 class ObservationKernels:
     """A pose-major problem's observations on a Warp device, and the launches over them (each under the
     device's lock, which threads driving one device take turns through: ``warp_device.device_lock``)."""
 
-    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str) -> None:
+    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
         self.device = device
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
         self.K = wp.vec4d(float(p.K[0, 0]), float(p.K[1, 1]), float(p.K[0, 2]), float(p.K[1, 2]))
@@ -196,16 +301,38 @@ class ObservationKernels:
         self.scalar = wp.zeros(1, dtype=wp.float64, device=device)
         self.Wdc = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
         self._chunks: dict[int, tuple] = {}
+        self.R = wp.zeros(len(p.poses), dtype=wp.mat33d, device=device)
+        self.t = wp.zeros(len(p.poses), dtype=wp.vec3d, device=device)
+        self.X = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+        # the camera system's elimination on the device (``schur_complement``): observations by free poses
+        # grouped by landmark, each with the end of its landmark's group
+        self.schur_on_device = bool(schur_on_device)
+        if self.schur_on_device:
+            obs_point = np.asarray(p.obs_point, np.int64)
+            pm = np.flatnonzero(np.asarray(obs_col) >= 0)
+            pm = pm[np.argsort(obs_point[pm], kind="stable")]
+            ends = np.searchsorted(obs_point[pm], obs_point[pm], side="right")
+            self.n_pm = len(pm)
+            self.pm_obs = wp.array(pm.astype(np.int32), dtype=wp.int32, device=device)
+            self.pm_end = wp.array(ends.astype(np.int32), dtype=wp.int32, device=device)
+            self.L = wp.zeros(self.n_points, dtype=vec6d, device=device)
+            self.Lg = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+            self.failed = wp.zeros(1, dtype=wp.int32, device=device)
+            self.M = wp.zeros(max(36 * n_free * n_free, 1), dtype=wp.float64, device=device)
+            self.r = wp.zeros(max(6 * n_free, 1), dtype=wp.float64, device=device)
+            self.dc = wp.zeros(max(n_free, 1), dtype=vec6d, device=device)
+            self.dp = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
 
     def _state(self, poses: np.ndarray, points: np.ndarray):
-        d = self.device
-        return (wp.array(np.ascontiguousarray(poses[:, :3, :3]), dtype=wp.mat33d, device=d),
-                wp.array(np.ascontiguousarray(poses[:, :3, 3]), dtype=wp.vec3d, device=d),
-                wp.array(np.ascontiguousarray(points, np.float64), dtype=wp.vec3d, device=d))
+        """The state copied into the device's arrays (no allocation per call)."""
+        self.R.assign(np.ascontiguousarray(poses[:, :3, :3], np.float64))
+        self.t.assign(np.ascontiguousarray(poses[:, :3, 3], np.float64))
+        self.X.assign(np.ascontiguousarray(points, np.float64))
+        return self.R, self.t, self.X
 
     def linearize(self, poses, points, sigma: float, loss: str, k: float):
-        """(Hpp (N, 3, 3), gp (N, 3), pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2) at the
-        given state."""
+        """(Hpp (N, 3, 3), None where the elimination is on the device; gp (N, 3), pose blocks (F, 6, 6), pose
+        gradients (F, 6), sum of s |r|^2) at the given state."""
         R, t, X = self._state(poses, points)
         with device_lock(self.device):
             for a in (self.Hpp, self.gp, self.Hcc, self.gc, self.scalar):
@@ -214,9 +341,10 @@ class ObservationKernels:
                       inputs=[self.obs_pose, self.obs_point, self.obs_col, self.uv, R, t, X, self.K, 1.0 / sigma,
                               float(k), LOSS_CODES[loss]],
                       outputs=[self.W, self.Hpp, self.gp, self.Hcc, self.gc, self.scalar])
-        # W stays on the device (read by ``whitened_blocks``, ``w_times_step``; ``W_host`` where needed)
-        return (self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free], self.gc.numpy()[:self.n_free],
-                float(self.scalar.numpy()[0]))
+        # W stays on the device (read by ``whitened_blocks``, ``w_times_step``; ``W_host`` where needed), and
+        # so do the landmark blocks where the elimination runs here
+        return (None if self.schur_on_device else self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free],
+                self.gc.numpy()[:self.n_free], float(self.scalar.numpy()[0]))
 
     def W_host(self) -> np.ndarray:
         """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
@@ -225,13 +353,13 @@ class ObservationKernels:
     def residuals(self, poses, points, behind: float) -> np.ndarray:
         """(O, 2) reprojection residuals at the given state, ``behind`` where the point is behind the camera."""
         R, t, X = self._state(poses, points)
-        if not hasattr(self, "r"):
-            self.r = wp.zeros(self.n_obs, dtype=wp.vec2d, device=self.device)
+        if not hasattr(self, "residual"):
+            self.residual = wp.zeros(self.n_obs, dtype=wp.vec2d, device=self.device)
         with device_lock(self.device):
             wp.launch(_residuals, dim=self.n_obs, device=self.device,
                       inputs=[self.obs_pose, self.obs_point, self.uv, R, t, X, self.K, float(behind)],
-                      outputs=[self.r])
-        return self.r.numpy().copy()
+                      outputs=[self.residual])
+        return self.residual.numpy().copy()
 
     def error(self, poses, points, sigma: float, loss: str, k: float) -> float:
         """The sum of the reprojection losses at the given state."""
@@ -270,3 +398,35 @@ class ObservationKernels:
             wp.launch(_w_times_step, dim=self.n_obs, device=self.device,
                       inputs=[self.obs_point, self.obs_col, self.W, step], outputs=[self.Wdc])
         return self.Wdc.numpy()
+
+    def schur_complement(self, lam: float):
+        """The landmarks eliminated at damping ``lam``, on the device: (M (6F, 6F): the sum of W^T V^-1 W in its
+        lower block triangle, r (6F,): the sum of W^T V^-1 gp), or None where a landmark's damped block is not
+        positive definite. Read back: M, r and a flag."""
+        d = self.device
+        with device_lock(d):
+            self.failed.zero_()
+            self.M.zero_()
+            self.r.zero_()
+            wp.launch(_landmark_factors, dim=self.n_points, device=d, inputs=[self.Hpp, self.gp, float(lam)],
+                      outputs=[self.L, self.Lg, self.failed])
+            wp.launch(_schur_blocks, dim=self.n_pm, device=d,
+                      inputs=[self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                              6 * self.n_free], outputs=[self.M, self.r])
+        if int(self.failed.numpy()[0]):
+            return None
+        n6 = 6 * self.n_free
+        return self.M.numpy()[:n6 * n6].reshape(n6, n6), self.r.numpy()[:n6]
+
+    def back_substitute(self, dc: np.ndarray) -> np.ndarray:
+        """(N, 3): each landmark's move -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors."""
+        d = self.device
+        self.dc.assign(np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
+        with device_lock(d):
+            self.Wdc.zero_()
+            if self.n_free:
+                wp.launch(_w_times_step, dim=self.n_obs, device=d,
+                          inputs=[self.obs_point, self.obs_col, self.W, self.dc], outputs=[self.Wdc])
+            wp.launch(_back_substitute, dim=self.n_points, device=d, inputs=[self.L, self.gp, self.Wdc],
+                      outputs=[self.dp])
+        return self.dp.numpy()
