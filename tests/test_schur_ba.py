@@ -328,6 +328,10 @@ def test_the_mapper_uses_the_configured_solver():
     assert Mapper(K, MapperConfig(ba_solver="gtsam")).solve_ba is ba.solve_robust
     with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres': use schur or gtsam"):
         Mapper(K, MapperConfig(ba_solver="ceres"))
+    on_numpy = Mapper(K, MapperConfig(ba_device="numpy")).solve_ba
+    assert on_numpy.func is schur.solve_robust_schur and on_numpy.keywords == {"device": "numpy"}
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_device = 'tpu': use cpu, numpy, cuda or cuda:N"):
+        Mapper(K, MapperConfig(ba_device="tpu"))
 
 
 def test_a_live_run_refuses_an_unknown_solver_before_it_starts():

@@ -12,6 +12,7 @@ Poses are T_world_camera; observations are undistorted pixels of the pinhole cam
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import time
@@ -124,9 +125,15 @@ BA_SOLVERS = {"schur": solve_robust_schur, "gtsam": ba.solve_robust}
 
 
 def ba_solver(config: MapperConfig):
-    """The robust BA solver ``[mapper] ba_solver`` names: ``solve(problem, schedule) -> BAResult``."""
+    """The robust BA solver ``[mapper] ba_solver`` names: ``solve(problem, schedule) -> BAResult`` (the Schur
+    solver's kernels on ``[mapper] ba_device``)."""
     if config.ba_solver not in BA_SOLVERS:
         raise ConfigError(f"[mapper] ba_solver = '{config.ba_solver}': use {' or '.join(BA_SOLVERS)}")
+    device = config.ba_device
+    if device not in ("cpu", "numpy") and not device.startswith("cuda"):
+        raise ConfigError(f"[mapper] ba_device = '{device}': use cpu, numpy, cuda or cuda:N")
+    if config.ba_solver == "schur" and device != "cpu":
+        return functools.partial(solve_robust_schur, device=device)
     return BA_SOLVERS[config.ba_solver]
 
 
@@ -674,8 +681,9 @@ class Mapper:
     def _solve_final(self, problem: ba.BAProblem) -> ba.BAResult:
         """The final pass, on every core where the solver can use them: nothing else runs at the map's end,
         and a long map's camera system is thousands wide (docs/benchmarks.md, session 11)."""
-        if self.solve_ba is solve_robust_schur:
-            return solve_robust_schur(problem, self.final_schedule, blas_threads=all_cores())
+        if self.config.ba_solver == "schur":
+            return solve_robust_schur(problem, self.final_schedule, device=self.config.ba_device,
+                                      blas_threads=all_cores())
         return self.solve_ba(problem, self.final_schedule)
 
     def _frame_poses(self) -> np.ndarray:

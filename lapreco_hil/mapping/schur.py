@@ -61,6 +61,8 @@ CHUNK_ENTRIES = 4_000_000
 CHUNK_FIRST_BIN = 16
 # a chunk grows while its dense update costs at most this many times its landmarks' own blocks
 CHUNK_WASTE = 1.5
+# the kernels make the blocks of consecutive chunks in one launch, up to this many entries (64 MB) at once
+BATCH_ENTRIES = 8_000_000
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
@@ -268,6 +270,7 @@ class _Layout:
     pose_starts: np.ndarray  # (P + 1,) each pose's run of observations (they are pose-major)
     n_points: int
     chunks: list[_Chunk]
+    batches: list[tuple[int, int]]  # runs of chunks whose blocks the kernels make in one launch
     unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
@@ -364,7 +367,16 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
         kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur)
-    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
+    batches, first, entries = [], 0, 0
+    for i, ch in enumerate(chunks):
+        size = 18 * len(ch.points) * ch.n_cols
+        if i > first and entries + size > BATCH_ENTRIES:
+            batches.append((first, i))
+            first, entries = i, 0
+        entries += size
+    if chunks:
+        batches.append((first, len(chunks)))
+    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
                    whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
 
 
@@ -607,24 +619,29 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     W = lin.W  # (3, 6, O)
     if lay.kernels is not None and not on_device:
         W = np.transpose(lay.kernels.W_host(), (1, 2, 0))
-    for n, ch in enumerate(lay.chunks):
-        n_c = len(ch.points)
-        # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
-        dense = lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols
-        if on_device:
-            Z = lay.kernels.whitened_blocks(n, ch, dense)  # L^-1 W: S -= Z^T Z
-        else:
-            Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
-            if lay.unique_pairs:
-                Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+    for b, (first, stop) in enumerate(lay.batches):
+        chunks = lay.chunks[first:stop]
+        sizes = [18 * len(ch.points) * ch.n_cols for ch in chunks]
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        # every landmark of a chunk seen by every one of its poses (a local window): each entry is written
+        dense = lay.unique_pairs and all(len(ch.obs) == len(ch.points) * ch.n_cols for ch in chunks)
+        Zs = lay.kernels.whitened_batch(b, chunks, offsets, dense) if on_device else None
+        for i, ch in enumerate(chunks):
+            n_c = len(ch.points)
+            if on_device:
+                Z = Zs[offsets[i]:offsets[i + 1]].reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
             else:
-                np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
-            Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
-        if isinstance(ch.idx, slice):
-            _subtract_gram(S, ch.idx, Z)
-        else:
-            S[np.ix_(ch.idx, ch.idx)] -= scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
-        rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
+                Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
+                if lay.unique_pairs:
+                    Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+                else:
+                    np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
+                Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
+            if isinstance(ch.idx, slice):
+                _subtract_gram(S, ch.idx, Z)
+            else:
+                S[np.ix_(ch.idx, ch.idx)] -= scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
+            rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
     dc = np.zeros(0)

@@ -167,6 +167,22 @@ def _whitened_blocks(obs: wp.array(dtype=wp.int32), dest: wp.array(dtype=wp.int6
 
 
 @wp.kernel
+def _whitened_batch(obs: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.int64), width: wp.array(dtype=wp.int64),
+                    obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
+                    Z: wp.array(dtype=wp.float64)):
+    """``_whitened_blocks`` for several chunks at once, laid one after the other in Z: each observation's place
+    (``base``) and its chunk's row length (``width``)."""
+    n = wp.tid()
+    z = _whiten(L[obs_point[obs[n]]], W[obs[n]])
+    w = width[n]
+    for b in range(6):
+        col = base[n] + wp.int64(b)
+        Z[col] = z[0, b]
+        Z[col + w] = z[1, b]
+        Z[col + w + w] = z[2, b]
+
+
+@wp.kernel
 def _w_times_step(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
                   W: wp.array(dtype=mat36d), dc: wp.array(dtype=vec6d), out: wp.array(dtype=wp.vec3d)):
     """Sum of W_o dc over each landmark's observations (the back-substitution's right-hand side)."""
@@ -374,6 +390,27 @@ class ObservationKernels:
     def set_landmark_factors(self, L: np.ndarray) -> None:
         """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_blocks``."""
         self.L = wp.array(np.ascontiguousarray(L, np.float64), dtype=vec6d, device=self.device)
+
+    def whitened_batch(self, key, chunks, offsets, dense: bool) -> np.ndarray:
+        """Consecutive chunks' dense L^-1 W blocks in one launch, laid one after the other from ``offsets``
+        (flat; chunk i's is ``Z[offsets[i]:offsets[i + 1]].reshape(3 x landmarks, 6 x poses)``); ``key`` names
+        the batch (its index arrays stay on the device)."""
+        d = self.device
+        if key not in self._chunks:
+            self._chunks[key] = (
+                wp.array(np.concatenate([np.asarray(c.obs, np.int32) for c in chunks]), dtype=wp.int32, device=d),
+                wp.array(np.concatenate([c.dest[0, 0] + o for c, o in zip(chunks, offsets)]).astype(np.int64),
+                         dtype=wp.int64, device=d),
+                wp.array(np.concatenate([np.full(len(c.obs), 6 * c.n_cols, np.int64) for c in chunks]),
+                         dtype=wp.int64, device=d),
+                wp.zeros(int(offsets[-1]), dtype=wp.float64, device=d))
+        obs, base, width, Z = self._chunks[key]
+        with device_lock(d):
+            if not dense:
+                Z.zero_()
+            wp.launch(_whitened_batch, dim=obs.shape[0], device=d,
+                      inputs=[obs, base, width, self.obs_point, self.W, self.L], outputs=[Z])
+        return Z.numpy()
 
     def whitened_blocks(self, n: int, chunk, dense: bool) -> np.ndarray:
         """Chunk ``n``'s dense L^-1 W (landmarks x 3, 6 x poses), by ``set_landmark_factors``' factors."""
