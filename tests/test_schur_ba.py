@@ -284,14 +284,18 @@ def test_a_slow_sweeps_chunks_follow_its_tracks_and_agree_with_gtsam(monkeypatch
                                ba.solve(gappy, 0.5, "cauchy", 3.0).poses, atol=1e-8)
 
 
-@pytest.mark.parametrize("case", ["outliers", "twice", "fixed", "tied"])
+@pytest.mark.parametrize("case", ["outliers", "twice", "fixed", "tied", "sweep"])
 def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
     """The device's elimination (one launch, atomics: a GPU's way) against the host's chunked BLAS one, on the
     kernels' device: the same steps, the same answers and labels; and GTSAM's answer under gross outliers."""
     syn = make_problem(np.random.default_rng(12), n_views=8, n_points=400, jump=0.03, highlight=0.02,
                        instrument=0.02)
     p = syn.problem
-    if case == "twice":
+    if case == "sweep":  # long tracks, two poses fixed
+        syn = make_sweep_problem(np.random.default_rng(13), n_views=30, n_points=200, min_track=5, max_track=25,
+                                 step_m=0.0005)
+        p = syn.problem
+    elif case == "twice":
         again = np.arange(0, len(p.obs_pose), 5)
         p = dataclasses.replace(p, obs_pose=np.concatenate([p.obs_pose, p.obs_pose[again]]),
                                 obs_point=np.concatenate([p.obs_point, p.obs_point[again]]),

@@ -679,11 +679,11 @@ class Mapper:
                          n_inlier_obs, stats)
 
     def _solve_final(self, problem: ba.BAProblem) -> ba.BAResult:
-        """The final pass, on every core where the solver can use them: nothing else runs at the map's end,
-        and a long map's camera system is thousands wide (docs/benchmarks.md, session 11)."""
+        """The final pass, its camera system (thousands wide for a long map) on ``[mapper] final_ba_threads``
+        BLAS threads (docs/benchmarks.md, session 11)."""
         if self.config.ba_solver == "schur":
             return solve_robust_schur(problem, self.final_schedule, device=self.config.ba_device,
-                                      blas_threads=all_cores())
+                                      blas_threads=self.config.final_ba_threads or all_cores())
         return self.solve_ba(problem, self.final_schedule)
 
     def _frame_poses(self) -> np.ndarray:

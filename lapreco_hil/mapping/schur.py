@@ -59,6 +59,8 @@ CHUNK_POINTS = 256
 CHUNK_ENTRIES = 4_000_000
 # landmarks whose first free poses fall in one bin of this many are ordered by their last one
 CHUNK_FIRST_BIN = 16
+# a problem of at most this many free poses (a local window) is cut into chunks of CHUNK_POINTS as they come
+CHUNK_DENSE_POSES = 32
 # a chunk grows while its dense update costs at most this many times its landmarks' own blocks
 CHUNK_WASTE = 1.5
 # the kernels make the blocks of consecutive chunks in one launch, up to this many entries (64 MB) at once
@@ -278,61 +280,70 @@ class _Layout:
     kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
 
 
-def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int) -> list[_Chunk]:
-    """The landmarks cut into elimination chunks. A chunk's cost is its dense block's update of the camera
-    system, (3 x its landmarks) x (6 x the span of its poses)^2, against the sum of its landmarks' own
-    (3 x 6 x track)^2: landmarks are taken in the order of (first free pose // CHUNK_FIRST_BIN, last free
-    pose), so that neighbours share their span, and a chunk grows while its cost stays within CHUNK_WASTE of
-    that sum (long tracks of a slow sweep: a chunk of the first pose's landmarks alone spans the longest track
-    among them, several times the cost), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries."""
-    seen = obs_col >= 0
-    first = np.full(n_points, np.iinfo(np.int64).max)
-    np.minimum.at(first, obs_point[seen], obs_col[seen])
-    last = np.full(n_points, -1, np.int64)
-    np.maximum.at(last, obs_point[seen], obs_col[seen])
-    views = np.bincount(obs_point[seen], minlength=n_points)
-    point_order = np.lexsort((last, first // CHUNK_FIRST_BIN))
-    point_order = point_order[first[point_order] < n_free]
-    rank = np.empty(n_points, np.int64)
-    rank[point_order] = np.arange(len(point_order))
-    by_rank = np.flatnonzero(seen)
-    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
-    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
-    # greedy cuts on the spans, taken a run of equal spans at a time (a local window's landmarks mostly share
-    # theirs: a few runs, not a Python step per landmark)
-    if not len(point_order):
-        return []
-    key = np.stack([first[point_order], last[point_order]])
-    change = np.flatnonzero(np.any(key[:, 1:] != key[:, :-1], axis=0)) + 1
+def _greedy_cuts(first: np.ndarray, last: np.ndarray, views: np.ndarray) -> list[int]:
+    """Where to cut landmarks (in ``_chunks``' order; their first and last free poses and their views) into
+    chunks: a chunk grows while its dense update, landmarks x (its span of poses)^2, stays within CHUNK_WASTE of
+    their own blocks' sum (views^2), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries. Landmarks of one span
+    are taken together (a Python step per distinct span, not per landmark)."""
+    change = np.flatnonzero((first[1:] != first[:-1]) | (last[1:] != last[:-1])) + 1
     run_start = np.concatenate([[0], change]).tolist()
-    run_end = run_start[1:] + [len(point_order)]
-    sq = views[point_order].astype(np.int64) ** 2
+    run_end = run_start[1:] + [len(first)]
+    sq = views.astype(np.int64) ** 2
     run_sq = np.add.reduceat(sq, run_start).tolist()
-    fs, ls = key[0][run_start].tolist(), key[1][run_start].tolist()
-    cuts, lo, span_f, span_l, own = [0], 0, 0, -1, 0
+    fs, ls = first[run_start].tolist(), last[run_start].tolist()
+    cuts, lo, span_f, span_l, own = [0], 0, 0, -1, 0.0
     for r, (a, b) in enumerate(zip(run_start, run_end)):
-        pos = a
+        pos, per = a, run_sq[r] / (b - a)
         while pos < b:
             if pos > lo:  # does this run (or its head) join the open chunk?
                 f, l_ = min(span_f, fs[r]), max(span_l, ls[r])
                 width = l_ - f + 1
-                room = CHUNK_POINTS - (pos - lo)
-                take = min(b - pos, room, max(0, CHUNK_ENTRIES // (18 * width) - (pos - lo)))
-                per = run_sq[r] / (b - a)
+                take = min(b - pos, CHUNK_POINTS - (pos - lo), max(0, CHUNK_ENTRIES // (18 * width) - (pos - lo)))
                 if take > 0 and (pos - lo + take) * width * width <= CHUNK_WASTE * (own + take * per):
                     span_f, span_l, own, pos = f, l_, own + take * per, pos + take
                     continue
                 cuts.append(pos)
             lo, span_f, span_l = pos, fs[r], ls[r]
             take = max(1, min(b - pos, CHUNK_POINTS, CHUNK_ENTRIES // (18 * (span_l - span_f + 1))))
-            own, pos = take * run_sq[r] / (b - a), pos + take
-    cuts.append(len(point_order))
+            own, pos = take * per, pos + take
+    cuts.append(len(first))
+    return cuts
+
+
+def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int) -> list[_Chunk]:
+    """The landmarks cut into elimination chunks. A chunk's cost is its dense block's update of the camera
+    system, (3 x its landmarks) x (6 x the span of its poses)^2, against the sum of its landmarks' own
+    (3 x 6 x track)^2: landmarks are taken in the order of (first free pose // CHUNK_FIRST_BIN, last free
+    pose), so that neighbours share their span, and a chunk grows while its cost stays within CHUNK_WASTE of
+    that sum (long tracks of a slow sweep: a chunk of the first pose's landmarks alone spans the longest track
+    among them, several times the cost), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries (``_greedy_cuts``).
+    A problem of a few poses (a local window) is cut every CHUNK_POINTS landmarks: few chunks, few launches."""
+    seen = obs_col >= 0
+    first = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first, obs_point[seen], obs_col[seen])
+    last = np.full(n_points, -1, np.int64)
+    np.maximum.at(last, obs_point[seen], obs_col[seen])
+    views = np.bincount(obs_point[seen], minlength=n_points)
+    point_order = np.lexsort((first, last, first // CHUNK_FIRST_BIN))
+    point_order = point_order[first[point_order] < n_free]
+    rank = np.empty(n_points, np.int64)
+    rank[point_order] = np.arange(len(point_order))
+    by_rank = np.flatnonzero(seen)
+    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
+    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
+    if not len(point_order):
+        return []
+    if n_free <= CHUNK_DENSE_POSES:
+        # a local window: its dense updates are small whatever the chunks, their count is what costs
+        cuts = list(range(0, len(point_order), CHUNK_POINTS)) + [len(point_order)]
+    else:
+        cuts = _greedy_cuts(first[point_order], last[point_order], views[point_order])
     chunks, j, c = [], 0, 1
     while j < len(point_order):
         hi = cuts[c]
         while True:  # (a chunk whose poses are not one run can still be too wide: halve it)
             obs = by_rank[starts[j]:starts[hi]]
-            cols = np.unique(obs_col[obs])
+            cols = np.flatnonzero(np.bincount(obs_col[obs], minlength=n_free))
             if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
                 break
             hi = j + max(1, (hi - j) // 2)
@@ -358,7 +369,8 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
-    unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
+    pairs = np.sort(obs_point * (n_poses + 1) + p.obs_pose)  # (a sort: numpy's hashed unique is slower here)
+    unique_pairs = not np.any(pairs[1:] == pairs[:-1])
     chunks = _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)

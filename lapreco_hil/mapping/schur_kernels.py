@@ -309,7 +309,7 @@ class ObservationKernels:
         self.obs_point = wp.array(np.asarray(p.obs_point, np.int32), dtype=wp.int32, device=device)
         self.obs_col = wp.array(np.asarray(obs_col, np.int32), dtype=wp.int32, device=device)
         self.uv = wp.array(np.ascontiguousarray(p.obs_uv, np.float64), dtype=wp.vec2d, device=device)
-        self.W = wp.zeros(self.n_obs, dtype=mat36d, device=device)
+        self.W = wp.empty(self.n_obs, dtype=mat36d, device=device)  # (written whole by each linearisation)
         self.Hpp = wp.zeros(self.n_points, dtype=wp.mat33d, device=device)
         self.gp = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
         self.Hcc = wp.zeros(max(n_free, 1), dtype=wp.spatial_matrixd, device=device)
@@ -317,9 +317,9 @@ class ObservationKernels:
         self.scalar = wp.zeros(1, dtype=wp.float64, device=device)
         self.Wdc = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
         self._chunks: dict[int, tuple] = {}
-        self.R = wp.zeros(len(p.poses), dtype=wp.mat33d, device=device)
-        self.t = wp.zeros(len(p.poses), dtype=wp.vec3d, device=device)
-        self.X = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+        self.R = wp.empty(len(p.poses), dtype=wp.mat33d, device=device)
+        self.t = wp.empty(len(p.poses), dtype=wp.vec3d, device=device)
+        self.X = wp.empty(self.n_points, dtype=wp.vec3d, device=device)
         # the camera system's elimination on the device (``schur_complement``): observations by free poses
         # grouped by landmark, each with the end of its landmark's group
         self.schur_on_device = bool(schur_on_device)
