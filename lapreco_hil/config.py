@@ -131,9 +131,9 @@ class MapperConfig:
     # where the Schur solver's per-observation kernels run: "cpu" (Warp's CPU device), "cuda"/"cuda:N" (the
     # landmarks are then eliminated on the GPU too) or "numpy"
     ba_device: str = "cpu"
-    # BLAS threads of the final pass's camera system (thousands wide for a long map); 0: every core. One by
-    # default: on cores other processes share, OpenBLAS's spinning threads made it several times slower
-    final_ba_threads: int = ranged(1, ge=0)
+    # BLAS threads of the final pass's camera system (thousands wide for a long map); 0: every core of a machine
+    # of 8 or more, one on a smaller one (on 2 shared cores OpenBLAS's spinning threads made it 7x slower)
+    final_ba_threads: int = ranged(0, ge=0)
     # bounded memory for long runs: past this many keyframes the oldest ``retire_batch`` are retired (their
     # landmarks labelled and frozen, their observations let go); 0 keeps every keyframe active
     active_keyframes: int = ranged(400, ge=0)

@@ -326,6 +326,23 @@ def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
         assert (dev.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 3
 
 
+def test_the_final_pass_takes_every_core_of_a_large_machine_only(monkeypatch):
+    """BLAS threads for the final pass: every core of a machine of 8 or more, one on a small (shared) one, as
+    many as ``[mapper] final_ba_threads`` says where it is set."""
+    from lapreco_hil.mapping import mapper as mapper_module
+
+    monkeypatch.setattr(schur, "all_cores", lambda: 16)
+    assert schur.final_pass_threads() == 16
+    monkeypatch.setattr(schur, "all_cores", lambda: 2)
+    assert schur.final_pass_threads() == 1
+    asked = []
+    monkeypatch.setattr(mapper_module, "solve_robust_schur", lambda problem, schedule, **kw: asked.append(kw))
+    K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+    Mapper(K, MapperConfig())._solve_final(None)
+    Mapper(K, MapperConfig(final_ba_threads=3, ba_device="numpy"))._solve_final(None)
+    assert asked == [{"device": "cpu", "blas_threads": 1}, {"device": "numpy", "blas_threads": 3}]
+
+
 def test_the_mapper_uses_the_configured_solver():
     K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
     assert Mapper(K, MapperConfig()).solve_ba is schur.solve_robust_schur

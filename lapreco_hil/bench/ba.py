@@ -151,11 +151,11 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
     rows["schur_final_ba_300kf_15+15"] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations,
                                           "pose_rms_mm": _pose_rms_mm(rl.poses, long_truth),
                                           "timing": rl.stats["timing"]}
-    # the final pass of a slow sweep: 400 keyframes, tracks of 20-300 views (the camera system is dense), on every
-    # core as the mapper's final pass runs it, and on one
+    # the final pass of a slow sweep: 400 keyframes, tracks of 20-300 views (the camera system is dense), its BLAS
+    # on one thread and on every core (the mapper's final pass: every core of a machine of 8 or more)
     sweep = make_sweep_problem(np.random.default_rng(seed))
-    for threads, name in ((all_cores(), "schur_final_ba_sweep_400kf_15+15"),
-                          (1, "schur_final_ba_sweep_400kf_15+15_1_thread")):
+    for threads, name in ((1, "schur_final_ba_sweep_400kf_15+15_1_thread"),
+                          (all_cores(), "schur_final_ba_sweep_400kf_15+15_all_cores")):
         t, rl = _median_time(lambda n=threads: solve_robust_schur(sweep.problem, final, device=device,
                                                                   blas_threads=n), 1, cpu)
         rows[name] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations, "blas_threads": threads,

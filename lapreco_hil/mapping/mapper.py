@@ -34,7 +34,7 @@ from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.schur import all_cores, solve_robust_schur
+from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -689,7 +689,7 @@ class Mapper:
         BLAS threads (docs/benchmarks.md, session 11)."""
         if self.config.ba_solver == "schur":
             return solve_robust_schur(problem, self.final_schedule, device=self.config.ba_device,
-                                      blas_threads=self.config.final_ba_threads or all_cores())
+                                      blas_threads=self.config.final_ba_threads or final_pass_threads())
         return self.solve_ba(problem, self.final_schedule)
 
     def _frame_poses(self) -> np.ndarray:

@@ -114,6 +114,17 @@ def all_cores() -> int:
         return os.cpu_count() or 1
 
 
+# a machine with fewer cores is taken to be shared (a developer's, CI's): one BLAS thread there
+MIN_CORES_FOR_THREADS = 8
+
+
+def final_pass_threads() -> int:
+    """BLAS threads for a final pass when none are configured: every core of a machine of MIN_CORES_FOR_THREADS
+    or more (nothing else runs at the map's end), one on a smaller one."""
+    cores = all_cores()
+    return cores if cores >= MIN_CORES_FOR_THREADS else 1
+
+
 @functools.cache
 def _dsyrk():
     """BLAS's dsyrk (Fortran interface, LP64) from scipy's public Cython BLAS: it updates a block of a larger
