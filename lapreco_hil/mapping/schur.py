@@ -19,8 +19,10 @@ What is kept identical to GTSAM, so that the optimum and the path to it are the 
 Fixed poses are left out of the unknowns (GTSAM holds them with a 1e-7 prior: the same to that precision).
 The camera system is dense (6 free poses x 6 free poses): a local window's is a few hundred wide, a final
 pass over a few hundred keyframes a few thousand. It is assembled point-chunk by point-chunk, each chunk's
-landmark blocks eliminated into the rows of the poses that see it, so memory stays bounded however many
-landmarks there are; it is solved by a dense Cholesky factorisation.
+landmark blocks eliminated into the rows of the poses that see it by one BLAS rank-k update in place, so memory
+stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
+that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
+instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
 """
 
 from __future__ import annotations

@@ -1,11 +1,12 @@
 """Warp kernels for the Schur-complement bundle adjustment's per-observation work (one thread per observation):
 linearisation (residual, Jacobians, robust weight, and their sums into the landmark and pose blocks), the
-reprojection error, the landmark elimination's whitened blocks, and the back-substitution's products. On Warp's
+reprojection error and residuals, the landmark elimination's whitened blocks (for the host's BLAS), or the whole
+elimination into the camera system (atomics: a GPU's way), and the back-substitution. On Warp's
 CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
 they run on the GPU. Float64 throughout, as GTSAM computes.
 
 ``ObservationKernels`` holds a problem's fixed arrays on the device and launches the kernels; the host
-(``schur.py``) keeps the LM logic, the small dense camera system and its Cholesky factorisation.
+(``schur.py``) keeps the LM logic, the dense camera system and its Cholesky factorisation.
 """
 
 from __future__ import annotations
@@ -146,32 +147,12 @@ def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
 
 
 @wp.kernel
-def _whitened_blocks(obs: wp.array(dtype=wp.int32), dest: wp.array(dtype=wp.int64), width: wp.int64,
-                     obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
-                     Z: wp.array(dtype=wp.float64)):
-    """Z = L^-1 W of each observation of a chunk (L: its landmark's Cholesky factor l11 l21 l22 l31 l32 l33),
-    written where its block goes in the chunk's dense (landmarks x 3, 6 x poses) matrix."""
-    n = wp.tid()
-    o = obs[n]
-    l = L[obs_point[o]]
-    Wo = W[o]
-    base = dest[n]
-    for b in range(6):
-        z0 = Wo[0, b] / l[0]
-        z1 = (Wo[1, b] - l[1] * z0) / l[2]
-        z2 = (Wo[2, b] - l[3] * z0 - l[4] * z1) / l[5]
-        col = base + wp.int64(b)
-        Z[col] = z0
-        Z[col + width] = z1
-        Z[col + width + width] = z2
-
-
-@wp.kernel
 def _whitened_batch(obs: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.int64), width: wp.array(dtype=wp.int64),
                     obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
                     Z: wp.array(dtype=wp.float64)):
-    """``_whitened_blocks`` for several chunks at once, laid one after the other in Z: each observation's place
-    (``base``) and its chunk's row length (``width``)."""
+    """Z = L^-1 W of each observation of a run of chunks (L: its landmark's Cholesky factor), written where its
+    block goes in its chunk's dense (landmarks x 3, 6 x poses) matrix, the chunks' matrices laid one after the other
+    in Z: each observation's place (``base``) and its chunk's row length (``width``)."""
     n = wp.tid()
     z = _whiten(L[obs_point[obs[n]]], W[obs[n]])
     w = width[n]
@@ -357,7 +338,7 @@ class ObservationKernels:
                       inputs=[self.obs_pose, self.obs_point, self.obs_col, self.uv, R, t, X, self.K, 1.0 / sigma,
                               float(k), LOSS_CODES[loss]],
                       outputs=[self.W, self.Hpp, self.gp, self.Hcc, self.gc, self.scalar])
-        # W stays on the device (read by ``whitened_blocks``, ``w_times_step``; ``W_host`` where needed), and
+        # W stays on the device (read by ``whitened_batch``, ``w_times_step``; ``W_host`` where needed), and
         # so do the landmark blocks where the elimination runs here
         return (None if self.schur_on_device else self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free],
                 self.gc.numpy()[:self.n_free], float(self.scalar.numpy()[0]))
@@ -388,7 +369,7 @@ class ObservationKernels:
         return float(self.scalar.numpy()[0])
 
     def set_landmark_factors(self, L: np.ndarray) -> None:
-        """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_blocks``."""
+        """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_batch``."""
         self.L = wp.array(np.ascontiguousarray(L, np.float64), dtype=vec6d, device=self.device)
 
     def whitened_batch(self, key, chunks, offsets, dense: bool) -> np.ndarray:
@@ -411,21 +392,6 @@ class ObservationKernels:
             wp.launch(_whitened_batch, dim=obs.shape[0], device=d,
                       inputs=[obs, base, width, self.obs_point, self.W, self.L], outputs=[Z])
         return Z.numpy()
-
-    def whitened_blocks(self, n: int, chunk, dense: bool) -> np.ndarray:
-        """Chunk ``n``'s dense L^-1 W (landmarks x 3, 6 x poses), by ``set_landmark_factors``' factors."""
-        d = self.device
-        if n not in self._chunks:
-            self._chunks[n] = (wp.array(np.asarray(chunk.obs, np.int32), dtype=wp.int32, device=d),
-                               wp.array(np.ascontiguousarray(chunk.dest[0, 0], np.int64), dtype=wp.int64, device=d),
-                               wp.zeros(len(chunk.points) * 18 * chunk.n_cols, dtype=wp.float64, device=d))
-        obs, dest, Z = self._chunks[n]
-        with device_lock(d):
-            if not dense:
-                Z.zero_()
-            wp.launch(_whitened_blocks, dim=len(chunk.obs), device=d,
-                      inputs=[obs, dest, wp.int64(6 * chunk.n_cols), self.obs_point, self.W, self.L], outputs=[Z])
-        return Z.numpy().reshape(3 * len(chunk.points), 6 * chunk.n_cols)
 
     def w_times_step(self, dc: np.ndarray) -> np.ndarray:
         """(N, 3): the sum of W_o dc over each landmark's observations."""
