@@ -145,7 +145,8 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
     t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device="numpy"), repeats, cpu)
     rows["schur_numpy_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
     if device.startswith("cuda"):  # the landmarks eliminated chunk by chunk through host BLAS instead of on the GPU
-        t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device=device, device_schur=False), repeats, cpu)
+        t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device=device, device_schur=False), repeats,
+                              cpu)
         rows["schur_host_elimination_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
     # a final pass over a long session's map (GTSAM's PCG path takes minutes here: docs/benchmarks.md)
     long_problem, long_truth = long_session_problem(np.random.default_rng(seed))

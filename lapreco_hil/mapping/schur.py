@@ -374,7 +374,7 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``)."""
-    n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
+    n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
     col = np.full(n_poses, -1, np.int64)
