@@ -384,7 +384,8 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
     pairs = np.sort(obs_point * (n_poses + 1) + p.obs_pose)  # (a sort: numpy's hashed unique is slower here)
     unique_pairs = not np.any(pairs[1:] == pairs[:-1])
-    chunks = _chunks(obs_point, obs_col, n_points, len(free))
+    # (the device's elimination needs no chunks)
+    chunks = [] if device_schur and device != "numpy" else _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
     kernels = None
