@@ -18,7 +18,7 @@ from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping import schur
 from lapreco_hil.mapping.mapper import Mapper
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.synthetic import make_problem
+from lapreco_hil.mapping.synthetic import make_problem, make_sweep_problem
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 DEVICES = pytest.mark.parametrize("device", ["numpy", DEVICE])
@@ -109,11 +109,14 @@ def test_kernels_linearise_as_numpy_does(loss):
     a = schur._linearize(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     b = schur._linearize(p, dev, p.poses, p.points, 0.7, loss, 2.5)
     for x, y in ((a.Hcc, b.Hcc), (a.gc, b.gc), (a.Hpp, b.Hpp), (a.gp, b.gp),
-                 (np.transpose(a.W, (2, 0, 1)), b.W)):
+                 (np.transpose(a.W, (2, 0, 1)), dev.kernels.W_host())):
         np.testing.assert_allclose(y, x, rtol=1e-12, atol=1e-9 * np.abs(x).max())
     assert b.error0 == pytest.approx(a.error0, rel=1e-12)
     e_ref = schur._error(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     assert schur._error(p, dev, p.poses, p.points, 0.7, loss, 2.5) == pytest.approx(e_ref, rel=1e-12)
+    for behind in (np.nan, np.inf):  # the residuals the robust scale and the labels are taken from
+        np.testing.assert_allclose(schur._reprojection(p, dev, p.poses, p.points, False, behind),
+                                   schur._reprojection(p, ref, p.poses, p.points, False, behind), atol=1e-9)
     timing = schur._new_timing()
     step_ref, step_dev = schur._solve_damped(ref, a, 1e-3, timing), schur._solve_damped(dev, b, 1e-3, timing)
     for x, y in zip(step_ref, step_dev):  # to 1 nm: Tukey leaves some landmarks one weighted view (ill-conditioned)
@@ -248,12 +251,108 @@ def test_chunked_elimination_equals_one_block(monkeypatch, device):
     np.testing.assert_allclose(chunked.points, one.points, atol=1e-10)
 
 
+def test_a_slow_sweeps_chunks_follow_its_tracks_and_agree_with_gtsam(monkeypatch):
+    """A slow sweep's final pass (tracks of many views, the camera system dense): the landmarks are chunked by
+    their span of poses at a bounded cost over their own blocks, and the answer is GTSAM's; chunks whose poses
+    are not one run (a track that skips keyframes) are eliminated as well as those that are."""
+    syn = make_sweep_problem(np.random.default_rng(11), n_views=40, n_points=300, min_track=5, max_track=30,
+                             step_m=0.0005, jump=0.05)
+    p = syn.problem
+    lay = schur._layout(schur.pose_major(p)[0])
+    own = np.bincount(p.obs_point[~p.fixed[p.obs_pose]]).astype(float) ** 2
+    cost = sum(len(c.points) * c.n_cols**2 for c in lay.chunks)
+    assert len(lay.chunks) > 3 and cost <= schur.CHUNK_WASTE * own.sum()
+    assert all(isinstance(c.idx, slice) for c in lay.chunks)
+    schedule = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 8), RobustStage("tukey", TUKEY_C, 8)))
+    ref = ba.solve_robust(p, schedule)
+    got = schur.solve_robust_schur(p, schedule)
+    assert rms_mm(got.poses, syn.true_poses) == pytest.approx(rms_mm(ref.poses, syn.true_poses), rel=0.02)
+    assert rms_mm(got.poses, syn.true_poses) < 0.5 * rms_mm(p.prior_poses, syn.true_poses)
+    assert (got.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() == 0
+    assert (~got.stats["inlier_obs"][syn.outlier_obs]).mean() > 0.9
+    # every landmark a chunk of its own (no waste) gives the same steps
+    monkeypatch.setattr(schur, "CHUNK_POINTS", 1)
+    single = schur.solve_robust_schur(p, schedule)
+    np.testing.assert_allclose(single.poses, got.poses, atol=1e-10)
+    np.testing.assert_array_equal(single.stats["inlier_obs"], got.stats["inlier_obs"])
+    # tracks that skip every fourth keyframe: chunks whose poses are not one run
+    monkeypatch.undo()
+    keep = (p.obs_pose % 4 != 1) | (p.obs_pose < 2)
+    gappy = dataclasses.replace(p, obs_pose=p.obs_pose[keep], obs_point=p.obs_point[keep], obs_uv=p.obs_uv[keep])
+    assert not all(isinstance(c.idx, slice) for c in schur._layout(schur.pose_major(gappy)[0]).chunks)
+    np.testing.assert_allclose(schur.solve_schur(gappy, 0.5, "cauchy", 3.0).poses,
+                               ba.solve(gappy, 0.5, "cauchy", 3.0).poses, atol=1e-8)
+
+
+@pytest.mark.parametrize("case", ["outliers", "twice", "fixed", "tied", "sweep"])
+def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
+    """The device's elimination (one launch, atomics: a GPU's way) against the host's chunked BLAS one, on the
+    kernels' device: the same steps, the same answers and labels; and GTSAM's answer under gross outliers."""
+    syn = make_problem(np.random.default_rng(12), n_views=8, n_points=400, jump=0.03, highlight=0.02,
+                       instrument=0.02)
+    p = syn.problem
+    if case == "sweep":  # long tracks, two poses fixed
+        syn = make_sweep_problem(np.random.default_rng(13), n_views=30, n_points=200, min_track=5, max_track=25,
+                                 step_m=0.0005)
+        p = syn.problem
+    elif case == "twice":
+        again = np.arange(0, len(p.obs_pose), 5)
+        p = dataclasses.replace(p, obs_pose=np.concatenate([p.obs_pose, p.obs_pose[again]]),
+                                obs_point=np.concatenate([p.obs_point, p.obs_point[again]]),
+                                obs_uv=np.concatenate([p.obs_uv, p.obs_uv[again] + 0.7]))
+    elif case == "fixed":
+        p = dataclasses.replace(p, fixed=np.arange(8) < 3)
+    elif case == "tied":
+        pairs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
+        has_prior = np.ones(8, bool)
+        has_prior[pairs[:, 1]] = False
+        p = dataclasses.replace(p, has_prior=has_prior, tie_pairs=pairs,
+                                tie_T=np.array([inv_T(syn.true_poses[i]) @ syn.true_poses[j] for i, j in pairs]),
+                                tie_covs=np.repeat(np.diag([1e-4**2] * 3 + [1e-5**2] * 3)[None], 4, 0))
+    host = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=False)
+    dev = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=True)
+    assert [s["iterations"] for s in dev.stats["stages"]] == [s["iterations"] for s in host.stats["stages"]]
+    np.testing.assert_allclose(dev.poses, host.poses, atol=1e-9)
+    # the landmarks that keep inlier views by two poses; one that Tukey leaves a single weighted view (or two by
+    # one pose) is free along its ray, and moves by the round-off
+    inlier_pairs = np.unique(np.column_stack([p.obs_point, p.obs_pose])[dev.stats["inlier_obs"]], axis=0)
+    kept = np.bincount(inlier_pairs[:, 0], minlength=len(p.points)) >= 2
+    assert kept.mean() > 0.9
+    np.testing.assert_allclose(dev.points[kept], host.points[kept], atol=1e-8)
+    np.testing.assert_array_equal(dev.stats["inlier_obs"], host.stats["inlier_obs"])
+    if case == "outliers":
+        ref = ba.solve_robust(p, RobustSchedule())
+        assert rms_mm(dev.poses, syn.true_poses) == pytest.approx(rms_mm(ref.poses, syn.true_poses), rel=0.02)
+        assert (dev.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 3
+
+
+def test_the_final_pass_takes_every_core_of_a_large_machine_only(monkeypatch):
+    """BLAS threads for the final pass: every core of a machine of 8 or more, one on a small (shared) one, as
+    many as ``[mapper] final_ba_threads`` says where it is set."""
+    from lapreco_hil.mapping import mapper as mapper_module
+
+    monkeypatch.setattr(schur, "all_cores", lambda: 16)
+    assert schur.final_pass_threads() == 16
+    monkeypatch.setattr(schur, "all_cores", lambda: 2)
+    assert schur.final_pass_threads() == 1
+    asked = []
+    monkeypatch.setattr(mapper_module, "solve_robust_schur", lambda problem, schedule, **kw: asked.append(kw))
+    K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
+    Mapper(K, MapperConfig())._solve_final(None)
+    Mapper(K, MapperConfig(final_ba_threads=3, ba_device="numpy"))._solve_final(None)
+    assert asked == [{"device": "cpu", "blas_threads": 1}, {"device": "numpy", "blas_threads": 3}]
+
+
 def test_the_mapper_uses_the_configured_solver():
     K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
     assert Mapper(K, MapperConfig()).solve_ba is schur.solve_robust_schur
     assert Mapper(K, MapperConfig(ba_solver="gtsam")).solve_ba is ba.solve_robust
     with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres': use schur or gtsam"):
         Mapper(K, MapperConfig(ba_solver="ceres"))
+    on_numpy = Mapper(K, MapperConfig(ba_device="numpy")).solve_ba
+    assert on_numpy.func is schur.solve_robust_schur and on_numpy.keywords == {"device": "numpy"}
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_device = 'tpu': use cpu, numpy, cuda or cuda:N"):
+        Mapper(K, MapperConfig(ba_device="tpu"))
 
 
 def test_a_live_run_refuses_an_unknown_solver_before_it_starts():

@@ -1,6 +1,7 @@
 """``lapreco bench ba``: one local-BA window of 10 keyframes x 2000 points (~20k observations) with 5% gross
-outliers, solved the ways the live loop could solve it (GTSAM, the Schur-complement solver), and a final pass
-over a long session's map, timed on this machine."""
+outliers, solved the ways the live loop could solve it (GTSAM, the Schur-complement solver), and final passes
+over a long session's map (short tracks) and over a slow sweep's (400 keyframes, tracks of 20-300 views), timed
+on this machine."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ from gtsam.symbol_shorthand import L, X
 from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
-from lapreco_hil.mapping.schur import solve_robust_schur
-from lapreco_hil.mapping.synthetic import make_problem
+from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
+from lapreco_hil.mapping.synthetic import make_problem, make_sweep_problem
 
 
 def _pose_rms_mm(poses, truth) -> float:
@@ -143,6 +144,10 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
     rows["schur_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
     t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device="numpy"), repeats, cpu)
     rows["schur_numpy_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
+    if device.startswith("cuda"):  # the landmarks eliminated chunk by chunk through host BLAS instead of on the GPU
+        t, rsw = _median_time(lambda: solve_robust_schur(warm, quick, device=device, device_schur=False), repeats,
+                              cpu)
+        rows["schur_host_elimination_mad_cauchy_tukey_warm_3+3"] = _schur_row(t, cpu["s"], rsw, rw, syn)
     # a final pass over a long session's map (GTSAM's PCG path takes minutes here: docs/benchmarks.md)
     long_problem, long_truth = long_session_problem(np.random.default_rng(seed))
     final = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStage("tukey", TUKEY_C, 15)))
@@ -150,6 +155,20 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
     rows["schur_final_ba_300kf_15+15"] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations,
                                           "pose_rms_mm": _pose_rms_mm(rl.poses, long_truth),
                                           "timing": rl.stats["timing"]}
+    # the final pass of a slow sweep: 400 keyframes, tracks of 20-300 views (the camera system is dense), its BLAS
+    # on one thread, and on as many as the mapper's final pass takes here where that is more (every core of a
+    # machine of 8 or more)
+    sweep = make_sweep_problem(np.random.default_rng(seed))
+    sweep_rows = [(1, "schur_final_ba_sweep_400kf_15+15_1_thread")]
+    if final_pass_threads() > 1:
+        sweep_rows.append((final_pass_threads(), "schur_final_ba_sweep_400kf_15+15_all_cores"))
+    for threads, name in sweep_rows:
+        t, rl = _median_time(lambda n=threads: solve_robust_schur(sweep.problem, final, device=device,
+                                                                  blas_threads=n), 1, cpu)
+        rows[name] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations, "blas_threads": threads,
+                      "pose_rms_mm": _pose_rms_mm(rl.poses, sweep.true_poses),
+                      "outlier_obs_labelled_inlier": int((rl.stats["inlier_obs"] & sweep.outlier_obs).sum()),
+                      "timing": rl.stats["timing"]}
     t, built = _median_time(lambda: ba._build(p, ba.robust_pixel_noise(1.0, "cauchy", 2.0)), repeats)
     rows["graph_build_only"] = {"s": t}
     graph, pose_keys, point_keys, _ = built
@@ -172,6 +191,14 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
         "final_ba_problem": {"keyframes": int(len(long_problem.poses)), "points": int(len(long_problem.points)),
                              "observations": int(len(long_problem.obs_uv)),
                              "prior_pose_rms_mm": _pose_rms_mm(long_problem.prior_poses, long_truth)},
+        "sweep_final_ba_problem": {
+            "keyframes": int(len(sweep.problem.poses)), "points": int(len(sweep.problem.points)),
+            "observations": int(len(sweep.problem.obs_uv)),
+            "track_views_min_mean_max": [int(np.bincount(sweep.problem.obs_point).min()),
+                                         float(np.bincount(sweep.problem.obs_point).mean()),
+                                         int(np.bincount(sweep.problem.obs_point).max())],
+            "outlier_obs": int(sweep.outlier_obs.sum()),
+            "prior_pose_rms_mm": _pose_rms_mm(sweep.problem.prior_poses, sweep.true_poses)},
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                     "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?"},
         "repeats": repeats,
@@ -187,6 +214,9 @@ def format_table(result: dict) -> str:
              f"final BA: {result['final_ba_problem']['keyframes']} keyframes x {result['final_ba_problem']['points']} "
              f"points, {result['final_ba_problem']['observations']} observations; prior pose RMS "
              f"{result['final_ba_problem']['prior_pose_rms_mm']:.3f} mm",
+             "sweep final BA: {keyframes} keyframes x {points} points, {observations} observations, track views "
+             "{track_views_min_mean_max}; prior pose RMS {prior_pose_rms_mm:.3f} mm".format(
+                 **result["sweep_final_ba_problem"]) if "sweep_final_ba_problem" in result else "",
              f"Schur solver rows: kernels on Warp device {result.get('schur_device', 'cpu')} (schur_numpy_*: numpy)",
              f"{'method':38s} {'time ms':>9s} {'CPU ms':>8s} {'pose RMS mm':>12s} {'iterations':>10s} "
              f"{'labels != gtsam':>15s}"]

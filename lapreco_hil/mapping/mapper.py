@@ -12,9 +12,12 @@ Poses are T_world_camera; observations are undistorted pixels of the pinhole cam
 
 from __future__ import annotations
 
+import functools
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
+from operator import itemgetter
 
 import numpy as np
 
@@ -31,7 +34,7 @@ from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.schur import solve_robust_schur
+from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate
 
 log = logging.getLogger(__name__)
@@ -51,6 +54,12 @@ def _spread(seen: list, n: int) -> list:
     if m <= n:
         return seen
     return [seen[(i * (m - 1) + (n - 1) // 2) // (n - 1)] for i in range(n)]  # distinct: m > n
+
+
+def _distinct(values: np.ndarray) -> np.ndarray:
+    """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4)."""
+    s = np.sort(values)
+    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
 
 
 @dataclass(frozen=True)
@@ -122,9 +131,15 @@ BA_SOLVERS = {"schur": solve_robust_schur, "gtsam": ba.solve_robust}
 
 
 def ba_solver(config: MapperConfig):
-    """The robust BA solver ``[mapper] ba_solver`` names: ``solve(problem, schedule) -> BAResult``."""
+    """The robust BA solver ``[mapper] ba_solver`` names: ``solve(problem, schedule) -> BAResult`` (the Schur
+    solver's kernels on ``[mapper] ba_device``)."""
     if config.ba_solver not in BA_SOLVERS:
         raise ConfigError(f"[mapper] ba_solver = '{config.ba_solver}': use {' or '.join(BA_SOLVERS)}")
+    device = config.ba_device
+    if device not in ("cpu", "numpy") and not device.startswith("cuda"):
+        raise ConfigError(f"[mapper] ba_device = '{device}': use cpu, numpy, cuda or cuda:N")
+    if config.ba_solver == "schur" and device != "cpu":
+        return functools.partial(solve_robust_schur, device=device)
     return BA_SOLVERS[config.ba_solver]
 
 
@@ -501,22 +516,24 @@ class Mapper:
         uvs = np.concatenate([kf.uv for kf in reach]) if reach else np.zeros((0, 2))
         kfi = np.repeat(np.array([kf.id for kf in reach], np.int64), [len(kf.track_ids) for kf in reach])
         landmarks = self.landmarks
-        point_ids = np.array([t for t in np.unique(tids[kfi >= scope.points_from]).tolist() if t in landmarks],
+        point_ids = np.array([t for t in _distinct(tids[kfi >= scope.points_from]).tolist() if t in landmarks],
                              np.int64)
         if not len(point_ids):
             return None
         free = np.zeros(0, np.int64)
         if scope.every_view:
             # every view of each landmark (retired keyframes' too: their arrays may be gone, the tracks keep them)
-            obs = [(k, uv) for t in point_ids.tolist() for k, uv in self.tracks[t]]
-            kfi = np.array([k for k, _ in obs], np.int64)
-            tids = np.repeat(point_ids, [len(self.tracks[t]) for t in point_ids.tolist()])
-            uvs = np.array([uv for _, uv in obs])
+            # (hundreds of thousands of views in a long map's final pass: flattened once, no tuple per view)
+            seen_by = [self.tracks[t] for t in point_ids.tolist()]
+            obs = list(itertools.chain.from_iterable(seen_by))
+            kfi = np.fromiter(map(itemgetter(0), obs), np.int64, len(obs))
+            tids = np.repeat(point_ids, [len(s) for s in seen_by])
+            uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
         else:
             sel = np.isin(tids, point_ids)
             tids, uvs, kfi = tids[sel], uvs[sel], kfi[sel]
-        seen = np.unique(kfi)
+        seen = _distinct(kfi)
         first_active = self.first_active
         kf_ids = np.concatenate([np.union1d(free, seen[seen >= first_active]), seen[seen < first_active]])
         index = np.zeros(len(self.keyframes), np.int64)
@@ -528,7 +545,7 @@ class Mapper:
             fixed=(kf_ids < first_active) | self._poses_held(),
             prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
             prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
-            points=np.array([landmarks[t] for t in point_ids.tolist()]),
+            points=np.stack(list(map(landmarks.__getitem__, point_ids.tolist()))),
             obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs, has_prior=has_prior,
             tie_pairs=tie_pairs, tie_T=tie_T, tie_covs=tie_covs)
 
@@ -612,7 +629,7 @@ class Mapper:
         reprojection = {}
         if problem is not None:
             if cfg.final_global_ba:
-                result = self.solve_ba(problem, self.final_schedule)
+                result = self._solve_final(problem)
                 self._apply(problem, result)
                 good = result.stats["inlier_obs"]
                 threshold = result.stats["inlier_threshold_px"]
@@ -666,6 +683,14 @@ class Mapper:
         stats["frame_poses_s"] = time.perf_counter() - t1
         return MapResult(self.keyframes, self.frames, frame_poses, ids, points, colors, inlier, n_obs,
                          n_inlier_obs, stats)
+
+    def _solve_final(self, problem: ba.BAProblem) -> ba.BAResult:
+        """The final pass, its camera system (thousands wide for a long map) on ``[mapper] final_ba_threads``
+        BLAS threads (docs/benchmarks.md, session 11)."""
+        if self.config.ba_solver == "schur":
+            return solve_robust_schur(problem, self.final_schedule, device=self.config.ba_device,
+                                      blas_threads=self.config.final_ba_threads or final_pass_threads())
+        return self.solve_ba(problem, self.final_schedule)
 
     def _frame_poses(self) -> np.ndarray:
         """Every frame's refined pose against the final map: keyframes from the global BA, the others by

@@ -19,8 +19,10 @@ What is kept identical to GTSAM, so that the optimum and the path to it are the 
 Fixed poses are left out of the unknowns (GTSAM holds them with a 1e-7 prior: the same to that precision).
 The camera system is dense (6 free poses x 6 free poses): a local window's is a few hundred wide, a final
 pass over a few hundred keyframes a few thousand. It is assembled point-chunk by point-chunk, each chunk's
-landmark blocks eliminated into the rows of the poses that see it, so memory stays bounded however many
-landmarks there are; it is solved by a dense Cholesky factorisation.
+landmark blocks eliminated into the rows of the poses that see it by one BLAS rank-k update in place, so memory
+stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
+that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
+instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
 """
 
 from __future__ import annotations
@@ -30,12 +32,14 @@ import ctypes
 import dataclasses
 import functools
 import logging
+import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
+import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
@@ -55,6 +59,14 @@ MIN_MODEL_FIDELITY = 1e-3
 # the work grows with the track lengths, not with the map's size, and the memory stays bounded
 CHUNK_POINTS = 256
 CHUNK_ENTRIES = 4_000_000
+# landmarks whose first free poses fall in one bin of this many are ordered by their last one
+CHUNK_FIRST_BIN = 16
+# a problem of at most this many free poses (a local window) is cut into chunks of CHUNK_POINTS as they come
+CHUNK_DENSE_POSES = 32
+# a chunk grows while its dense update costs at most this many times its landmarks' own blocks
+CHUNK_WASTE = 1.5
+# the kernels make the blocks of consecutive chunks in one launch, up to this many entries (64 MB) at once
+BATCH_ENTRIES = 8_000_000
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
@@ -81,18 +93,68 @@ def _openblas_libraries() -> tuple:
 
 
 @contextlib.contextmanager
-def single_threaded_blas():
-    """BLAS on one thread for this thread, while inside. The solver's products and factorisations are a few
-    hundred wide: OpenBLAS's worker threads gain little there and, on cores shared with the tracker and the other
-    processes (the live runtime, a loaded machine), their spinning made solves 10-30x slower
-    (docs/benchmarks.md)."""
+def _blas_threads(n: int = 1):
+    """BLAS on ``n`` threads for this thread, while inside. One by default: the solver's products and
+    factorisations of a local window are a few hundred wide, OpenBLAS's worker threads gain little there and,
+    on cores shared with the tracker and the other processes (the live runtime, a loaded machine), their
+    spinning made solves 10-30x slower (docs/benchmarks.md). A final pass over a long map (a camera system
+    thousands wide, nothing else running) takes the machine's cores."""
     setters = _openblas_libraries()
-    previous = [set_threads(1) for set_threads in setters]
+    previous = [set_threads(max(1, int(n))) for set_threads in setters]
     try:
         yield
     finally:
-        for set_threads, n in zip(setters, previous):
-            set_threads(n)
+        for set_threads, m in zip(setters, previous):
+            set_threads(m)
+
+
+def all_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+# a machine with fewer cores is taken to be shared (a developer's, CI's): one BLAS thread there
+MIN_CORES_FOR_THREADS = 8
+
+
+def final_pass_threads() -> int:
+    """BLAS threads for a final pass when none are configured: every core of a machine of MIN_CORES_FOR_THREADS
+    or more (nothing else runs at the map's end), one on a smaller one."""
+    cores = all_cores()
+    return cores if cores >= MIN_CORES_FOR_THREADS else 1
+
+
+@functools.cache
+def _dsyrk():
+    """BLAS's dsyrk (Fortran interface, LP64) from scipy's public Cython BLAS: it updates a block of a larger
+    matrix in place (its leading dimension), which the Python wrapper cannot (it copies a strided block)."""
+    capsule = scipy.linalg.cython_blas.__pyx_capi__["dsyrk"]
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype, api.PyCapsule_GetName.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    pointer = api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule))
+    i, d = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_double)
+    return ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, i, i, d, ctypes.c_void_p, i, d,
+                            ctypes.c_void_p, i)(pointer)
+
+
+def _subtract_gram(S: np.ndarray, block: slice, Z: np.ndarray) -> None:
+    """S[block, block] -= Z^T Z in S's lower triangle, in place (S: C-ordered square float64; Z: C-ordered
+    (rows, block's width))."""
+    n, (rows, width) = S.shape[0], Z.shape
+    assert S.flags.c_contiguous and Z.flags.c_contiguous and S.dtype == Z.dtype == np.float64
+    assert block.stop - block.start == width and block.stop <= n
+    if not rows or not width:
+        return
+    c = ctypes.c_int
+    # Fortran sees S's transpose: its upper triangle is S's lower one; it sees Z^T, (width x rows)
+    _dsyrk()(b"U", b"N", ctypes.byref(c(width)), ctypes.byref(c(rows)), ctypes.byref(ctypes.c_double(-1.0)),
+             Z.ctypes.data, ctypes.byref(c(width)), ctypes.byref(ctypes.c_double(1.0)),
+             S.ctypes.data + 8 * (block.start * n + block.start), ctypes.byref(c(n)))
 
 
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
@@ -211,7 +273,7 @@ class _Chunk:
     obs: np.ndarray  # their observations by free poses
     dest: np.ndarray  # (3, 6, len(obs)) where each observation's W block goes in the chunk's (n, 3, 6 m) block
     n_cols: int
-    idx: np.ndarray
+    idx: np.ndarray | slice  # their rows/columns of the camera system
 
 
 @dataclass
@@ -223,6 +285,7 @@ class _Layout:
     pose_starts: np.ndarray  # (P + 1,) each pose's run of observations (they are pose-major)
     n_points: int
     chunks: list[_Chunk]
+    batches: list[tuple[int, int]]  # runs of chunks whose blocks the kernels make in one launch
     unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
@@ -230,10 +293,88 @@ class _Layout:
     kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
 
 
-def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
+def _greedy_cuts(first: np.ndarray, last: np.ndarray, views: np.ndarray) -> list[int]:
+    """Where to cut landmarks (in ``_chunks``' order; their first and last free poses and their views) into
+    chunks: a chunk grows while its dense update, landmarks x (its span of poses)^2, stays within CHUNK_WASTE of
+    their own blocks' sum (views^2), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries. Landmarks of one span
+    are taken together (a Python step per distinct span, not per landmark)."""
+    change = np.flatnonzero((first[1:] != first[:-1]) | (last[1:] != last[:-1])) + 1
+    run_start = np.concatenate([[0], change]).tolist()
+    run_end = run_start[1:] + [len(first)]
+    sq = views.astype(np.int64) ** 2
+    run_sq = np.add.reduceat(sq, run_start).tolist()
+    fs, ls = first[run_start].tolist(), last[run_start].tolist()
+    cuts, lo, span_f, span_l, own = [0], 0, 0, -1, 0.0
+    for r, (a, b) in enumerate(zip(run_start, run_end)):
+        pos, per = a, run_sq[r] / (b - a)
+        while pos < b:
+            if pos > lo:  # does this run (or its head) join the open chunk?
+                f, l_ = min(span_f, fs[r]), max(span_l, ls[r])
+                width = l_ - f + 1
+                take = min(b - pos, CHUNK_POINTS - (pos - lo), max(0, CHUNK_ENTRIES // (18 * width) - (pos - lo)))
+                if take > 0 and (pos - lo + take) * width * width <= CHUNK_WASTE * (own + take * per):
+                    span_f, span_l, own, pos = f, l_, own + take * per, pos + take
+                    continue
+                cuts.append(pos)
+            lo, span_f, span_l = pos, fs[r], ls[r]
+            take = max(1, min(b - pos, CHUNK_POINTS, CHUNK_ENTRIES // (18 * (span_l - span_f + 1))))
+            own, pos = take * per, pos + take
+    cuts.append(len(first))
+    return cuts
+
+
+def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int) -> list[_Chunk]:
+    """The landmarks cut into elimination chunks. A chunk's cost is its dense block's update of the camera
+    system, (3 x its landmarks) x (6 x the span of its poses)^2, against the sum of its landmarks' own
+    (3 x 6 x track)^2: landmarks are taken in the order of (first free pose // CHUNK_FIRST_BIN, last free
+    pose), so that neighbours share their span, and a chunk grows while its cost stays within CHUNK_WASTE of
+    that sum (long tracks of a slow sweep: a chunk of the first pose's landmarks alone spans the longest track
+    among them, several times the cost), up to CHUNK_POINTS landmarks and CHUNK_ENTRIES entries (``_greedy_cuts``).
+    A problem of a few poses (a local window) is cut every CHUNK_POINTS landmarks: few chunks, few launches."""
+    seen = obs_col >= 0
+    first = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first, obs_point[seen], obs_col[seen])
+    last = np.full(n_points, -1, np.int64)
+    np.maximum.at(last, obs_point[seen], obs_col[seen])
+    views = np.bincount(obs_point[seen], minlength=n_points)
+    point_order = np.lexsort((first, last, first // CHUNK_FIRST_BIN))
+    point_order = point_order[first[point_order] < n_free]
+    rank = np.empty(n_points, np.int64)
+    rank[point_order] = np.arange(len(point_order))
+    by_rank = np.flatnonzero(seen)
+    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
+    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
+    if not len(point_order):
+        return []
+    if n_free <= CHUNK_DENSE_POSES:
+        # a local window: its dense updates are small whatever the chunks, their count is what costs
+        cuts = list(range(0, len(point_order), CHUNK_POINTS)) + [len(point_order)]
+    else:
+        cuts = _greedy_cuts(first[point_order], last[point_order], views[point_order])
+    chunks, j, c = [], 0, 1
+    while j < len(point_order):
+        hi = cuts[c]
+        while True:  # (a chunk whose poses are not one run can still be too wide: halve it)
+            obs = by_rank[starts[j]:starts[hi]]
+            cols = np.flatnonzero(np.bincount(obs_col[obs], minlength=n_free))
+            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
+                break
+            hi = j + max(1, (hi - j) // 2)
+        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
+        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
+                                                                + np.arange(6)[None, :])[:, :, None]
+        run = cols[-1] - cols[0] + 1 == len(cols)  # its poses are one run: the camera system's block is a slice
+        idx = slice(6 * int(cols[0]), 6 * int(cols[-1]) + 6) if run else (6 * cols[:, None] + np.arange(6)).ravel()
+        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), idx))
+        j = hi
+        c += j == cuts[c]
+    return chunks
+
+
+def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
-    that is "numpy"."""
-    n_poses, n_points, n_obs = len(p.poses), len(p.points), len(p.obs_pose)
+    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``)."""
+    n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
     col = np.full(n_poses, -1, np.int64)
@@ -241,41 +382,27 @@ def _layout(p: BAProblem, device: str = "numpy") -> _Layout:
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
-    unique_pairs = len(np.unique(obs_point * (n_poses + 1) + p.obs_pose)) == n_obs
-    # landmarks in the order of the first free pose that sees them (a long map's tracks then share their poses
-    # with their neighbours), cut into chunks of at most CHUNK_POINTS whose dense block stays under CHUNK_ENTRIES
-    seen = obs_col >= 0
-    first_col = np.full(n_points, np.iinfo(np.int64).max)
-    np.minimum.at(first_col, obs_point[seen], obs_col[seen])
-    point_order = np.argsort(first_col, kind="stable")
-    point_order = point_order[first_col[point_order] < len(free)]
-    rank = np.empty(n_points, np.int64)
-    rank[point_order] = np.arange(len(point_order))
-    by_rank = np.flatnonzero(seen)
-    by_rank = by_rank[np.argsort(rank[obs_point[by_rank]], kind="stable")]
-    starts = np.searchsorted(rank[obs_point[by_rank]], np.arange(len(point_order) + 1))
-    chunks, j = [], 0
-    while j < len(point_order):
-        hi = min(len(point_order), j + CHUNK_POINTS)
-        while True:
-            obs = by_rank[starts[j]:starts[hi]]
-            cols = np.unique(obs_col[obs])
-            if (hi - j) * 18 * len(cols) <= CHUNK_ENTRIES or hi - j <= 1:
-                break
-            hi = j + max(1, (hi - j) // 2)
-        row, local, width = rank[obs_point[obs]] - j, np.searchsorted(cols, obs_col[obs]), 6 * len(cols)
-        dest = (row * 3 * width + 6 * local)[None, None, :] + (np.arange(3)[:, None] * width
-                                                                + np.arange(6)[None, :])[:, :, None]
-        chunks.append(_Chunk(point_order[j:hi], obs, dest, len(cols), (6 * cols[:, None] + np.arange(6)).ravel()))
-        j = hi
+    pairs = np.sort(obs_point * (n_poses + 1) + p.obs_pose)  # (a sort: numpy's hashed unique is slower here)
+    unique_pairs = not np.any(pairs[1:] == pairs[:-1])
+    # (the device's elimination needs no chunks)
+    chunks = [] if device_schur and device != "numpy" else _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
     kernels = None
     if device != "numpy":
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
-        kernels = ObservationKernels(p, obs_col, len(free), device)
-    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, unique_pairs, prior_idx,
+        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur)
+    batches, first, entries = [], 0, 0
+    for i, ch in enumerate(chunks):
+        size = 18 * len(ch.points) * ch.n_cols
+        if i > first and entries + size > BATCH_ENTRIES:
+            batches.append((first, i))
+            first, entries = i, 0
+        entries += size
+    if chunks:
+        batches.append((first, len(chunks)))
+    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
                    whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
 
 
@@ -295,7 +422,7 @@ class _Linear:
     gc: np.ndarray  # (6F,)
     Hpp: np.ndarray  # (N, 3, 3)
     gp: np.ndarray  # (N, 3)
-    W: np.ndarray  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); (O, 3, 6) from kernels
+    W: np.ndarray | None  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); None: on the device
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
 
@@ -353,6 +480,8 @@ def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndar
                   behind: float | None = None):
     """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
     (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
+    if lay.kernels is not None and not jacobians and behind is not None:
+        return lay.kernels.residuals(poses, points, behind)
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     r = np.column_stack([ru, rv])
     if behind is not None:
@@ -398,7 +527,8 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
 
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
     if lay.kernels is not None:
-        W, Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
+        W = None  # on the device
         n_free = len(lay.free)
         Hcc = np.zeros((6 * n_free, 6 * n_free))
         for c in range(n_free):
@@ -498,6 +628,8 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     None where it is not positive definite (a landmark left with one weighted view is singular along its ray
     to the damping's precision: GTSAM's elimination throws IndeterminateSystemException there, and lambda
     grows)."""
+    if lay.kernels is not None and lay.kernels.schur_on_device:
+        return _solve_damped_on_device(lay, lin, lam, timing)
     t0 = time.perf_counter()
     L = _cholesky3(lin.Hpp + lam * np.eye(3))
     if L is None:
@@ -510,23 +642,32 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     on_device = lay.kernels is not None and lay.unique_pairs
     if on_device:
         lay.kernels.set_landmark_factors(np.column_stack(L))
-    W = lin.W if lay.kernels is None else np.transpose(lin.W, (1, 2, 0))  # (3, 6, O)
-    for n, ch in enumerate(lay.chunks):
-        n_c = len(ch.points)
-        # every landmark of the chunk seen by every one of its poses (a local window): each entry is written
-        dense = lay.unique_pairs and len(ch.obs) == n_c * ch.n_cols
-        if on_device:
-            Z = lay.kernels.whitened_blocks(n, ch, dense)  # L^-1 W: S -= Z^T Z
-        else:
-            Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
-            if lay.unique_pairs:
-                Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+    W = lin.W  # (3, 6, O)
+    if lay.kernels is not None and not on_device:
+        W = np.transpose(lay.kernels.W_host(), (1, 2, 0))
+    for b, (first, stop) in enumerate(lay.batches):
+        chunks = lay.chunks[first:stop]
+        sizes = [18 * len(ch.points) * ch.n_cols for ch in chunks]
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        # every landmark of a chunk seen by every one of its poses (a local window): each entry is written
+        dense = lay.unique_pairs and all(len(ch.obs) == len(ch.points) * ch.n_cols for ch in chunks)
+        Zs = lay.kernels.whitened_batch(b, chunks, offsets, dense) if on_device else None
+        for i, ch in enumerate(chunks):
+            n_c = len(ch.points)
+            if on_device:
+                Z = Zs[offsets[i]:offsets[i + 1]].reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
             else:
-                np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
-            Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
-        ZtZ = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
-        S[np.ix_(ch.idx, ch.idx)] -= ZtZ
-        rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
+                Wd = (np.empty if dense else np.zeros)((n_c, 3, 6 * ch.n_cols))
+                if lay.unique_pairs:
+                    Wd.ravel()[ch.dest] = W[:, :, ch.obs]
+                else:
+                    np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
+                Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
+            if isinstance(ch.idx, slice):
+                _subtract_gram(S, ch.idx, Z)
+            else:
+                S[np.ix_(ch.idx, ch.idx)] -= scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
+            rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
     dc = np.zeros(0)
@@ -548,6 +689,43 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
             dc_of_obs = np.vstack([dc.reshape(-1, 6), np.zeros((1, 6))])[lay.obs_col].T  # fixed poses: row -1
             x += np.column_stack([_to_points(lay, np.einsum("bo,bo->o", W[a], dc_of_obs)) for a in range(3)])
     dp = -_backward(L, _forward(L, x[:, :, None])[:, :, 0])
+    timing["solve_s"] += time.perf_counter() - t1
+    return dc.reshape(-1, 6), dp
+
+
+def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """The damped camera system's solution by its Cholesky factor (S's lower triangle); None where it is not
+    positive definite."""
+    if not len(rhs):
+        return np.zeros(0)
+    try:
+        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
+                                    check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    return dc if np.all(np.isfinite(dc)) else None
+
+
+def _solve_damped_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict):
+    """``_solve_damped`` with the landmarks eliminated on the kernels' device: a handful of launches, the camera
+    system (6F x 6F) and one flag read back, the host solving it, the landmarks' moves read back."""
+    t0 = time.perf_counter()
+    eliminated = lay.kernels.schur_complement(lam)
+    if eliminated is None:
+        timing["schur_s"] += time.perf_counter() - t0
+        return None
+    M, r = eliminated
+    n6 = len(r)
+    S = lin.Hcc + lam * np.eye(n6)
+    S -= M  # (its lower triangle: what the factorisation reads)
+    rhs = r - lin.gc
+    t1 = time.perf_counter()
+    timing["schur_s"] += t1 - t0
+    dc = _solve_camera_system(S, rhs)
+    if dc is None:
+        timing["solve_s"] += time.perf_counter() - t1
+        return None
+    dp = lay.kernels.back_substitute(dc.reshape(-1, 6))
     timing["solve_s"] += time.perf_counter() - t1
     return dc.reshape(-1, 6), dp
 
@@ -620,6 +798,12 @@ def _check_device(device: str) -> str:
     return resolve_device(device)
 
 
+def _device_schur(device: str, asked: bool | None) -> bool:
+    if device == "numpy":
+        return False
+    return device.startswith("cuda") if asked is None else bool(asked)
+
+
 def _new_timing() -> dict:
     return {"linearize_s": 0.0, "schur_s": 0.0, "solve_s": 0.0, "error_s": 0.0}
 
@@ -637,15 +821,20 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
-                max_iterations: int = 15, device: str = "cpu") -> BAResult:
+                max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1,
+                device_schur: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
-    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp)."""
+    ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp);
+    ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``);
+    ``device_schur``: eliminate the landmarks on the kernels' device (one launch summing every landmark's block
+    into the camera system by atomics, which only a GPU does fast) instead of chunk by chunk through host BLAS;
+    None: on CUDA devices only."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device)
+    lay = _layout(p, device, _device_schur(device, device_schur))
     timing = _new_timing()
-    with single_threaded_blas():
+    with _blas_threads(blas_threads):
         poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
                                                  pixel_sigma, loss or "none", k, max_iterations, timing)
     residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
@@ -653,15 +842,16 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                     {"timing": timing, "iteration_timing": per_it})
 
 
-def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu") -> BAResult:
+def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
+                       blas_threads: int = 1, device_schur: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
     (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
-    and per stage ``iteration_timing``). ``device`` as ``solve_schur``'s."""
+    and per stage ``iteration_timing``). ``device``, ``blas_threads`` and ``device_schur`` as ``solve_schur``'s."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device)
+    lay = _layout(p, device, _device_schur(device, device_schur))
     poses, points = np.array(p.poses, float), np.array(p.points, float)
     stages, iterations = [], 0
     initial_error = final_error = 0.0
@@ -670,7 +860,7 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
         r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
         sigma = pixel_sigma(p, r, schedule)
         stage_timing = _new_timing()
-        with single_threaded_blas():
+        with _blas_threads(blas_threads):
             poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
                                                      stage.iterations, stage_timing)
         for key in timing:

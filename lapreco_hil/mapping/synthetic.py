@@ -68,3 +68,43 @@ def make_problem(rng: np.random.Generator, n_views: int = 10, n_points: int = 60
                         pts + rng.normal(0, init_point_noise, pts.shape), obs_pose, obs_point,
                         uv.reshape(-1, 2))
     return SyntheticBA(problem, poses, pts, bad_obs.ravel(), kind != 0)
+
+
+def make_sweep_problem(rng: np.random.Generator, n_views: int = 400, n_points: int = 5000,
+                       min_track: int = 20, max_track: int = 300, step_m: float = 0.0002,
+                       pixel_noise: float = 0.5, rot_sigma: float = 0.003, trans_sigma: float = 0.0004,
+                       jump: float = 0.05, fixed_views: int = 2, init_point_noise: float = 0.0005) -> SyntheticBA:
+    """A long session's final pass as a slowly moving scope makes it: ``n_views`` keyframes ``step_m`` apart
+    along a sweep over tissue with relief (1080p camera), each landmark seen by a contiguous run of
+    ``min_track``..``max_track`` keyframes (uniform, cut at the sweep's end) from a random first one, robot priors
+    drawn from their covariance, the first ``fixed_views`` keyframes fixed (retired), ``jump`` of the tracks
+    jumping 6-25 px half-way (the later half of their views corrupted)."""
+    K = np.array([[1400.0, 0, 960], [0, 1400.0, 540], [0, 0, 1]])
+    s = step_m * np.arange(n_views)
+    eyes = np.column_stack([s, 0.004 * np.sin(s * 40), 0.002 * np.cos(s * 25)])
+    true = np.array([look_at(e, e + np.array([0.0, 0.0, 0.1]), np.array([0, -1.0, 0])) for e in eyes])
+    priors = np.array([T @ make_T(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
+                                  rng.normal(0, trans_sigma, 3)) for T in true])
+    length = rng.integers(min_track, max_track + 1, n_points)
+    first = rng.integers(0, n_views - min_track + 1, n_points)
+    length = np.minimum(length, n_views - first)
+    # each landmark lies near the middle of its run's views, within the part of the image it stays in
+    mid = eyes[first + length // 2]
+    half_travel = 0.5 * step_m * length
+    spread = np.maximum(0.002, 0.05 - half_travel)[:, None]
+    xy = mid[:, :2] + rng.uniform(-1.0, 1.0, (n_points, 2)) * spread * np.array([1.0, 0.6])
+    pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
+    obs_point = np.repeat(np.arange(n_points), length)
+    within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)
+    obs_pose = first[obs_point] + within
+    T_cw = np.linalg.inv(true)[obs_pose]
+    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
+    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
+    jumped_track = rng.random(n_points) < jump
+    bad = jumped_track[obs_point] & (within >= length[obs_point] // 2)
+    uv[bad] += rng.uniform(6, 25, (int(bad.sum()), 2)) * rng.choice([-1, 1], (int(bad.sum()), 2))
+    cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+    problem = BAProblem(K, np.arange(n_views), priors.copy(), np.arange(n_views) < fixed_views, priors,
+                        np.repeat(cov[None], n_views, 0), np.arange(n_points),
+                        pts + rng.normal(0, init_point_noise, pts.shape), obs_pose, obs_point, uv)
+    return SyntheticBA(problem, true, pts, bad, jumped_track)
