@@ -11,7 +11,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from lapreco_hil.config import PipelineConfig
+from lapreco_hil.config import PipelineConfig, load_config
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.warp_device import resolve_device
@@ -22,8 +22,9 @@ from lapreco_hil.app.run import run_live
 def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = None, fps: float | None = None,
                    seconds: float = 20.0, features: int | None = None, source: str = "auto",
                    tracker: str = "auto", scene: str = "skull", session: str | None = None,
-                   surface: str = "auto") -> dict:
-    """The live runtime in real time (``surface``: ``[surface] mode``). Defaults: 1920x1080 at 60 fps with 2000 features on a GPU, 384x288 at
+                   surface: str = "auto", config: str | None = None) -> dict:
+    """The live runtime in real time (``surface``: ``[surface] mode``; ``config``: a TOML file the bench's
+    features and surface mode are set on). Defaults: 1920x1080 at 60 fps with 2000 features on a GPU, 384x288 at
     25 fps with 800 on a CPU. Source 'replay' (and 'auto'): a session recorded first (or ``session``), replayed
     in real time; 'sim': the simulated world rendered live."""
     from lapreco_hil.bench.pipeline import bench_config
@@ -36,7 +37,7 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
     tracker = resolve_tracker(tracker, device)
     if source == "auto" or session is not None:
         source = "replay"
-    config = bench_config(features, surface)
+    config = bench_config(features, surface, load_config(config))
     frames = int(round(fps * seconds))
     with tempfile.TemporaryDirectory() as tmp:
         ctx = DeviceContext(device=device)

@@ -13,10 +13,10 @@ from dataclasses import replace
 from lapreco_hil.config import PipelineConfig
 
 
-def bench_config(features: int, surface: str = "auto") -> PipelineConfig:
-    """The defaults with ``features`` tracked and the ``[surface] mode``. The final global BA after capture stops
-    is timed apart from the live figures (report.json ``live.final_ba_s``)."""
-    config = PipelineConfig()
+def bench_config(features: int, surface: str = "auto", config: PipelineConfig | None = None) -> PipelineConfig:
+    """``config`` (the defaults) with ``features`` tracked and the ``[surface] mode``. The final global BA after
+    capture stops is timed apart from the live figures (report.json ``live.final_ba_s``)."""
+    config = config or PipelineConfig()
     return replace(config, tracker=replace(config.tracker, max_features=features),
                    surface=replace(config.surface, mode=surface))
 

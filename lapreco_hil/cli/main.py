@@ -205,6 +205,8 @@ def build_parser() -> ArgumentParser:
                          help="replay this recorded session in real time (resolution and fps are the session's)")
     bench_p.add_argument("--tracker", default="auto", help="warp | opencv | auto")
     bench_p.add_argument("--surface", choices=SURFACE_CHOICES, default="auto", help=SURFACE_HELP)
+    bench_p.add_argument("--config", default=None,
+                         help="pipeline configuration (TOML) under the bench's own features and surface mode")
     bench_p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_p.set_defaults(func=_cmd_bench_pipeline)
     bench_k = bench_sub.add_parser("soak", help="the live runtime for a long time: memory growth, latency drift")
@@ -245,7 +247,7 @@ def _cmd_bench_pipeline(args) -> int:
     from lapreco_hil.bench.pipeline import format_table
 
     result = bench_pipeline(args.device, args.resolution, args.fps, args.seconds, args.features, args.source,
-                            args.tracker, session=args.session, surface=args.surface)
+                            args.tracker, session=args.session, surface=args.surface, config=args.config)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
