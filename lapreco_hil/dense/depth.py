@@ -302,8 +302,8 @@ class DepthEstimator:
         h, w = ref.shape
         r = cfg.window_radius_px
         sample_into = level.zncc if self.sweep == "sliding" else level.samples
-        wp.launch(k.warp_samples, dim=(n_src, n_planes, h, w), device=self.device,
-                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, sample_into])
+        wp.launch(k.warp_samples, dim=(n_src, h, w), device=self.device,
+                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, n_planes, sample_into])
         if self.sweep == "sliding":
             # the samples are in the ZNCC volume, which the column pass overwrites once the rows have summed them
             wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
@@ -312,7 +312,7 @@ class DepthEstimator:
                       inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         else:
             bands = math.ceil(h / WINDOW_BAND_ROWS)
-            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, math.ceil(w / k.WINDOW_COLUMNS)),
+            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, w),
                       device=self.device,
                       inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
                               cfg.min_valid_fraction, level.zncc])

@@ -155,28 +155,18 @@ def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_val
         std[y, x] = wp.sqrt(v)
 
 
-@wp.kernel
-def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
-                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float,
-                 drho: float, samples: wp.array4d(dtype=float)):
-    """One thread per (source, plane, pixel): the source's grey (bilinear; source s is ``src[slots[s]]``) where the
-    reference pixel's ray meets the plane; EXCLUDED where either view may not be used there or the point falls
-    outside the source."""
-    s, p, y, x = wp.tid()
-    samples[s, p, y, x] = EXCLUDED
-    if ref[y, x] < -1.0:
-        return
-    rho = base[y, x] + rho0 + float(p) * drho
-    q = A[s] * wp.vec3(float(x), float(y), 1.0) + rho * b[s]
+@wp.func
+def _bilinear(src: wp.array3d(dtype=float), i: int, q: wp.vec3) -> float:
+    """Source ``i``'s grey (bilinear) at the homogeneous pixel q; EXCLUDED behind the camera, outside the image or
+    next to an excluded pixel."""
     if q[2] <= 1.0e-9:
-        return
+        return EXCLUDED
     u = q[0] / q[2]
     v = q[1] / q[2]
     hs = src.shape[1]
     ws = src.shape[2]
-    i = slots[s]
     if u < 0.0 or v < 0.0 or u > float(ws - 1) or v > float(hs - 1):
-        return
+        return EXCLUDED
     x0 = wp.min(int(u), ws - 2)
     y0 = wp.min(int(v), hs - 2)
     fx = u - float(x0)
@@ -186,8 +176,31 @@ def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slo
     a10 = src[i, y0 + 1, x0]
     a11 = src[i, y0 + 1, x0 + 1]
     if wp.min(wp.min(a00, a01), wp.min(a10, a11)) < -1.0:
-        return
-    samples[s, p, y, x] = (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+        return EXCLUDED
+    return (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+
+
+@wp.kernel
+def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
+                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float,
+                 drho: float, n_planes: int, samples: wp.array4d(dtype=float)):
+    """One thread per (source, pixel), looping over the planes: the source's grey (bilinear; source s is
+    ``src[slots[s]]``) where the reference pixel's ray meets each plane; EXCLUDED where either view may not be used
+    there or the point falls outside the source. The plane-independent part of the homography is computed once
+    per pixel, and neighbouring threads write neighbouring pixels of each plane (one coalesced store per
+    sample)."""
+    s, y, x = wp.tid()
+    i = slots[s]
+    usable = ref[y, x] >= -1.0
+    q0 = A[s] * wp.vec3(float(x), float(y), 1.0)
+    bs = b[s]
+    rho_base = base[y, x] + rho0
+    for p in range(n_planes):
+        val = EXCLUDED
+        if usable:
+            rho = rho_base + float(p) * drho
+            val = _bilinear(src, i, q0 + rho * bs)
+        samples[s, p, y, x] = val
 
 
 @wp.func
@@ -259,68 +272,44 @@ def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r
         acc -= _row_sum(sums, s, p, y - r, x)
 
 
-WINDOW_COLUMNS = 4  # neighbouring columns per thread of sweep_window
-
-
 @wp.func
-def _window_rows4(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
-                  r: int):
-    """The window-row sums of columns x .. x + 3 of row y: the first from its taps, each next one slid a column
-    (two taps instead of 2r + 1); zero outside the image."""
-    zero = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+def _window_row(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
+                r: int) -> vec6:
+    """The sums (w, w^2, w g, g, g^2, usable count) over the window row of pixel (x, y), from its 2r + 1 taps
+    (clipped to the image: outside counts as unusable); zero for a row outside the image. Branch-free per tap:
+    an unusable sample (EXCLUDED, also where the reference is) weighs 0."""
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     if y < 0 or y >= ref.shape[0]:
-        return zero, zero, zero, zero
-    a = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    for dx in range(-r, r + 1):
-        a += _terms(ref, samples, s, p, y, x + dx)
-    b = a + _terms(ref, samples, s, p, y, x + 1 + r) - _terms(ref, samples, s, p, y, x - r)
-    c = b + _terms(ref, samples, s, p, y, x + 2 + r) - _terms(ref, samples, s, p, y, x + 1 - r)
-    d = c + _terms(ref, samples, s, p, y, x + 3 + r) - _terms(ref, samples, s, p, y, x + 2 - r)
-    return a, b, c, d
+        return acc
+    for xx in range(wp.max(x - r, 0), wp.min(x + r + 1, ref.shape[1])):
+        val = samples[s, p, y, xx]
+        m = wp.where(val >= -1.0, 1.0, 0.0)
+        wv = val * m
+        gv = ref[y, xx] * m
+        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+    return acc
 
 
 @wp.kernel
 def sweep_window(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
                  r: int, band: int, min_std: float, min_valid: float, zncc: wp.array4d(dtype=float)):
-    """One thread per (source, plane, band of ``band`` rows, four neighbouring columns): each window row summed
-    from its taps (then slid over the four columns), the rows slid down the band (the leaving row summed again
-    rather than kept: registers, not memory), scored as ``sweep_cols`` does. ``samples`` and ``zncc`` must be
-    different arrays (other threads still read the samples a thread's scores would overwrite)."""
-    s, p, c, xq = wp.tid()
+    """One thread per (source, plane, band of ``band`` rows, column): each window row summed from its taps, the
+    rows slid down the band (the leaving row summed again rather than kept: registers, not memory), scored as
+    ``sweep_cols`` does. Neighbouring threads are neighbouring columns: every load and store of a warp is one
+    contiguous run. ``samples`` and ``zncc`` must be different arrays (other threads still read the samples a
+    thread's scores would overwrite)."""
+    s, p, c, x = wp.tid()
     h = ref.shape[0]
-    w = ref.shape[1]
-    x = xq * WINDOW_COLUMNS
     y0 = c * band
     y1 = wp.min(y0 + band, h)
     total = float((2 * r + 1) * (2 * r + 1))
-    acc0 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc1 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc2 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc3 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for yi in range(y0 - r, y0 + r):
-        a, b, cc, d = _window_rows4(ref, samples, s, p, yi, x, r)
-        acc0 += a
-        acc1 += b
-        acc2 += cc
-        acc3 += d
+        acc += _window_row(ref, samples, s, p, yi, x, r)
     for y in range(y0, y1):
-        a, b, cc, d = _window_rows4(ref, samples, s, p, y + r, x, r)
-        acc0 += a
-        acc1 += b
-        acc2 += cc
-        acc3 += d
-        zncc[s, p, y, x] = _zncc(acc0, ref_std[y, x], total, min_std, min_valid)
-        if x + 1 < w:
-            zncc[s, p, y, x + 1] = _zncc(acc1, ref_std[y, x + 1], total, min_std, min_valid)
-        if x + 2 < w:
-            zncc[s, p, y, x + 2] = _zncc(acc2, ref_std[y, x + 2], total, min_std, min_valid)
-        if x + 3 < w:
-            zncc[s, p, y, x + 3] = _zncc(acc3, ref_std[y, x + 3], total, min_std, min_valid)
-        a, b, cc, d = _window_rows4(ref, samples, s, p, y - r, x, r)
-        acc0 -= a
-        acc1 -= b
-        acc2 -= cc
-        acc3 -= d
+        acc += _window_row(ref, samples, s, p, y + r, x, r)
+        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
+        acc -= _window_row(ref, samples, s, p, y - r, x, r)
 
 
 @wp.func
