@@ -81,16 +81,20 @@ def test_the_geometric_check_drops_depths_the_sources_contradict(sheet, warp_cpu
     assert checked.stats["funnel"]["geometry_agrees"] >= 0.95 * checked.stats["funnel"]["supported"]
 
 
-def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_cpu):
+@pytest.mark.parametrize("radius, near_share, same_depth_share", [(3, 0.95, 0.995), (2, 0.9, 0.98)])
+def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_cpu, radius, near_share,
+                                                                   same_depth_share):
     """The CPU's window sums (sliding along rows, then columns) and CUDA's (each window row from its taps, slid
     down a band of rows) are the same sums in another order: the ZNCC volumes agree to float rounding (the
-    variance's cancellation makes it about 1e-3 on the faintest windows), and so do the depth maps."""
+    variance's cancellation makes it about 1e-3 on the faintest windows), and so do the depth maps. Radius 3
+    (7x7, the default) runs the windowed sweep's ring kernel, 2 its general one (a 5x5 window's variance cancels
+    more: 92% of its fine scores agree within 1e-4, all within 4e-3, and 98.3% of its depths within 0.01 mm)."""
     from lapreco_hil.dense.depth import DepthEstimator
 
     views, truths = sheet
     maps, volumes = {}, {}
     for sweep in ("sliding", "windowed"):
-        estimator = DepthEstimator(DepthConfig(), DEVICE, sweep=sweep)
+        estimator = DepthEstimator(DepthConfig(window_radius_px=radius), DEVICE, sweep=sweep)
         maps[sweep] = estimator.compute(views[0], views[1:])
         planes = maps[sweep].stats["planes"]
         volumes[sweep] = (estimator.coarse.zncc.numpy()[:, :planes].copy(), estimator.fine.zncc.numpy().copy())
@@ -101,13 +105,13 @@ def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_
         # the same windows have a score but for the few at the texture threshold, where rounding decides
         assert np.mean((a > -1.5) != (b > -1.5)) < 1e-3 * np.mean(scored)
         assert np.abs(a - b)[scored].max() < 5e-3
-        assert np.mean(np.abs(a - b)[scored] < 1e-4) > 0.95
+        assert np.mean(np.abs(a - b)[scored] < 1e-4) > near_share
     a, b = maps["sliding"], maps["windowed"]
     both = a.valid & b.valid
     assert np.count_nonzero(a.valid != b.valid) <= 0.002 * np.count_nonzero(a.valid)
     diff = np.abs(a.depth_m[both] - b.depth_m[both])
     # a parabola through nearly equal scores moves the most, by a fraction of a plane (at 75 mm)
-    assert diff.max() < 0.5e-3 and np.mean(diff < 0.01e-3) > 0.995 and np.median(diff) < 1e-6
+    assert diff.max() < 0.5e-3 and np.mean(diff < 0.01e-3) > same_depth_share and np.median(diff) < 1e-6
     with pytest.raises(ConfigError, match="sweep 'tiles'"):
         DepthEstimator(DepthConfig(), DEVICE, sweep="tiles")
 

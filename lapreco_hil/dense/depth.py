@@ -49,8 +49,8 @@ DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with n
 PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
 SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
-# overhead, short enough for millions of threads at half 1080p
-WINDOW_BAND_ROWS = 32
+# overhead, short enough for millions of threads at half 1080p; a multiple of 7 (sweep_window_ring's unrolled ring)
+WINDOW_BAND_ROWS = 56
 COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
 # host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
 # takes milliseconds: worth it for an estimator that makes many maps)
@@ -311,11 +311,15 @@ class DepthEstimator:
             wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
                       inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         else:
-            bands = math.ceil(h / WINDOW_BAND_ROWS)
-            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, w),
-                      device=self.device,
-                      inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
-                              cfg.min_valid_fraction, level.zncc])
+            dim = (n_src, n_planes, math.ceil(h / WINDOW_BAND_ROWS), w)
+            if r == k.RING_RADIUS:
+                wp.launch(k.sweep_window_ring, dim=dim, device=self.device,
+                          inputs=[ref, level.samples, level.std, WINDOW_BAND_ROWS, cfg.min_texture,
+                                  cfg.min_valid_fraction, level.zncc])
+            else:
+                wp.launch(k.sweep_window, dim=dim, device=self.device,
+                          inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
+                                  cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,
                   inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.score, level.plane,
                           level.best, level.second])

@@ -312,6 +312,55 @@ def sweep_window(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float),
         acc -= _window_row(ref, samples, s, p, y - r, x, r)
 
 
+RING_RADIUS = 3  # the window radius (7x7, the default) that sweep_window_ring keeps its window rows for
+
+
+@wp.func
+def _ring_step(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
+               s: int, p: int, y: int, y1: int, x: int, total: float, min_std: float, min_valid: float, acc: vec6,
+               leaving: vec6, zncc: wp.array4d(dtype=float)):
+    """One row of sweep_window_ring: the entering window row (y + RING_RADIUS) summed and added, row y scored
+    (rows from y1 on belong to the next band or lie outside the image), the leaving row (kept from when it
+    entered) taken off. Returns the sums and the entering row."""
+    entering = _window_row(ref, samples, s, p, y + RING_RADIUS, x, RING_RADIUS)
+    acc = acc + entering
+    if y < y1:
+        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
+    return acc - leaving, entering
+
+
+@wp.kernel(launch_bounds=(256, 2))
+def sweep_window_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float),
+                      ref_std: wp.array2d(dtype=float), band: int, min_std: float, min_valid: float,
+                      zncc: wp.array4d(dtype=float)):
+    """sweep_window for the radius RING_RADIUS (3: a 7x7 window): the window's 7 row sums stay in registers (a
+    ring, unrolled over 7 rows), so each window row is summed from its taps once instead of twice. ``band``
+    should be a multiple of 7 (the rows past a band's end up to the next multiple are summed for nothing)."""
+    s, p, c, x = wp.tid()
+    h = ref.shape[0]
+    r = RING_RADIUS
+    y0 = c * band
+    y1 = wp.min(y0 + band, h)
+    total = float((2 * r + 1) * (2 * r + 1))
+    # rows y0 - 3 .. y0 + 2 in slots 0 .. 5; row y enters slot (y - y0 + 6) % 7 and leaves slot (y - y0) % 7
+    h0 = _window_row(ref, samples, s, p, y0 - 3, x, r)
+    h1 = _window_row(ref, samples, s, p, y0 - 2, x, r)
+    h2 = _window_row(ref, samples, s, p, y0 - 1, x, r)
+    h3 = _window_row(ref, samples, s, p, y0, x, r)
+    h4 = _window_row(ref, samples, s, p, y0 + 1, x, r)
+    h5 = _window_row(ref, samples, s, p, y0 + 2, x, r)
+    h6 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc = h0 + h1 + h2 + h3 + h4 + h5
+    for y in range(y0, y1, 7):
+        acc, h6 = _ring_step(ref, samples, ref_std, s, p, y, y1, x, total, min_std, min_valid, acc, h0, zncc)
+        acc, h0 = _ring_step(ref, samples, ref_std, s, p, y + 1, y1, x, total, min_std, min_valid, acc, h1, zncc)
+        acc, h1 = _ring_step(ref, samples, ref_std, s, p, y + 2, y1, x, total, min_std, min_valid, acc, h2, zncc)
+        acc, h2 = _ring_step(ref, samples, ref_std, s, p, y + 3, y1, x, total, min_std, min_valid, acc, h3, zncc)
+        acc, h3 = _ring_step(ref, samples, ref_std, s, p, y + 4, y1, x, total, min_std, min_valid, acc, h4, zncc)
+        acc, h4 = _ring_step(ref, samples, ref_std, s, p, y + 5, y1, x, total, min_std, min_valid, acc, h5, zncc)
+        acc, h5 = _ring_step(ref, samples, ref_std, s, p, y + 6, y1, x, total, min_std, min_valid, acc, h6, zncc)
+
+
 @wp.func
 def _best_k_mean(zncc: wp.array4d(dtype=float), n_src: int, k: int, p: int, y: int, x: int) -> float:
     """Mean of the k best scores of the sources at one plane (an occluded view does not spoil it); NO_SCORE
