@@ -104,7 +104,6 @@ class _Sweep:
     sums: object  # (S, P, h, w) vec6 window row sums: the sliding sweep's (None for the windowed one)
     samples: object  # (S, P, h, w) warped source grey: the windowed sweep's (the sliding one samples into zncc)
     zncc: object  # (S, P, h, w)
-    score: object  # (P, h, w)
     plane: object
     best: object
     second: object
@@ -177,7 +176,7 @@ class DepthEstimator:
             sums=wp.zeros(volume, dtype=k.vec6) if sliding else None,
             samples=None if sliding else wp.zeros(volume, dtype=float),
             zncc=wp.zeros(volume, dtype=float),
-            score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
+            plane=wp.zeros((h, w), dtype=float),
             best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
 
     def _ensure_checks(self, h: int, w: int) -> None:
@@ -321,8 +320,8 @@ class DepthEstimator:
                           inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
                                   cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,
-                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.score, level.plane,
-                          level.best, level.second])
+                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.plane, level.best,
+                          level.second])
 
     def _sync_time(self, times: dict, name: str, t0: float) -> float:
         self.wp.synchronize_device(self.device)

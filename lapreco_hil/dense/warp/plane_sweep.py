@@ -383,40 +383,109 @@ def _best_k_mean(zncc: wp.array4d(dtype=float), n_src: int, k: int, p: int, y: i
     return total / float(k)
 
 
+@wp.func
+def _plane_score(zncc: wp.array4d(dtype=float), n_src: int, k: int, p: int, y: int, x: int) -> float:
+    """``_best_k_mean`` reading each source's score once: the best two in one pass (k of 1 or 2, the default; the
+    same sums in the same order), the general selection for a larger k."""
+    if k > 2:
+        return _best_k_mean(zncc, n_src, k, p, y, x)
+    b1 = float(NO_SCORE)
+    b2 = float(NO_SCORE)
+    for s in range(n_src):
+        z = zncc[s, p, y, x]
+        if z > b1:
+            b2 = b1
+            b1 = z
+        elif z > b2:
+            b2 = z
+    if b1 <= NO_SCORE + 0.5:
+        return NO_SCORE
+    if k == 1:
+        return b1
+    if b2 <= NO_SCORE + 0.5:
+        return NO_SCORE
+    return (b1 + b2) / 2.0
+
+
+@wp.func
+def _apart(i: int, b: int) -> bool:
+    """Plane i is a local maximum (i >= 0) other than the best plane b and its neighbours."""
+    return i >= 0 and (i < b - 1 or i > b + 1)
+
+
 @wp.kernel
 def select_plane(zncc: wp.array4d(dtype=float), n_src: int, n_planes: int, k: int, min_scored: int,
-                 score: wp.array3d(dtype=float),
                  plane: wp.array2d(dtype=float), best: wp.array2d(dtype=float), second: wp.array2d(dtype=float)):
     """Per pixel: the plane of the best combined score, refined by a parabola through its neighbours, the best
     score, and the second-best local maximum (the margin measures uniqueness). -1 where fewer than
     ``min_scored`` planes have a score: near the edge of the sources' views only a few planes land inside them,
-    and the best of a few is no match."""
+    and the best of a few is no match. One pass over the planes, nothing written but the results: each plane's
+    score is known once the next is (a local maximum), and the four highest local maxima are kept, enough to
+    find the highest apart from the best plane and its two neighbours."""
     y, x = wp.tid()
     b_val = float(NO_SCORE)
     b_idx = int(-1)
+    b_lo = float(NO_SCORE)
+    b_hi = float(NO_SCORE)
     scored = int(0)
-    for p in range(n_planes):
-        c = _best_k_mean(zncc, n_src, k, p, y, x)
-        score[p, y, x] = c
-        if c > NO_SCORE + 0.5:
-            scored += 1
-        if c > b_val:
-            b_val = c
-            b_idx = p
+    before = float(NO_SCORE)  # the score of plane p - 2
+    last = float(NO_SCORE)  # of plane p - 1
+    m0 = float(NO_SCORE)  # the highest local maxima, highest first, and their planes
+    m1 = float(NO_SCORE)
+    m2 = float(NO_SCORE)
+    m3 = float(NO_SCORE)
+    i0 = int(-1)
+    i1 = int(-1)
+    i2 = int(-1)
+    i3 = int(-1)
+    for p in range(n_planes + 1):
+        c = float(NO_SCORE)
+        if p < n_planes:
+            c = _plane_score(zncc, n_src, k, p, y, x)
+            if c > NO_SCORE + 0.5:
+                scored += 1
+            if c > b_val:
+                b_val = c
+                b_idx = p
+                b_lo = last
+            elif p == b_idx + 1:
+                b_hi = c
+        # plane p - 1 is a local maximum if it is at least both neighbours (NO_SCORE beyond the ends)
+        if p >= 1 and last > NO_SCORE and last >= before and last >= c and last > m3:
+            q = p - 1
+            if last > m2:
+                m3 = m2
+                i3 = i2
+                if last > m1:
+                    m2 = m1
+                    i2 = i1
+                    if last > m0:
+                        m1 = m0
+                        i1 = i0
+                        m0 = last
+                        i0 = q
+                    else:
+                        m1 = last
+                        i1 = q
+                else:
+                    m2 = last
+                    i2 = q
+            else:
+                m3 = last
+                i3 = q
+        before = last
+        last = c
     if scored < min_scored:
         b_idx = -1
     sec = float(NO_SCORE)
-    for p in range(n_planes):
-        if p < b_idx - 1 or p > b_idx + 1:
-            c = score[p, y, x]
-            lo = NO_SCORE
-            hi = NO_SCORE
-            if p > 0:
-                lo = score[p - 1, y, x]
-            if p < n_planes - 1:
-                hi = score[p + 1, y, x]
-            if c >= lo and c >= hi and c > sec:
-                sec = c
+    if _apart(i0, b_idx):
+        sec = m0
+    elif _apart(i1, b_idx):
+        sec = m1
+    elif _apart(i2, b_idx):
+        sec = m2
+    elif _apart(i3, b_idx):
+        sec = m3
     best[y, x] = b_val
     second[y, x] = sec
     if b_idx < 0:
@@ -424,8 +493,8 @@ def select_plane(zncc: wp.array4d(dtype=float), n_src: int, n_planes: int, k: in
         return
     f = float(b_idx)
     if b_idx > 0 and b_idx < n_planes - 1:
-        lo = score[b_idx - 1, y, x]
-        hi = score[b_idx + 1, y, x]
+        lo = b_lo
+        hi = b_hi
         if lo > NO_SCORE + 0.5 and hi > NO_SCORE + 0.5:
             den = lo - 2.0 * b_val + hi
             if den < -1.0e-6:
