@@ -150,6 +150,7 @@ class DepthEstimator:
         self._keep_host_buffers = host_buffers
         self._pinned = False
         self._host_counts = None
+        self._staging: list = []  # page-locked upload buffers (colour, mask): (warp array, its numpy view, event)
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
@@ -215,6 +216,11 @@ class DepthEstimator:
             self.full_grey = wp.zeros((slots, h, w), dtype=float)
             self.half_grey = wp.zeros((slots, h // 2, w // 2), dtype=float)
             self.state = wp.zeros((slots, h, w), dtype=wp.uint8)
+        self._staging = []
+        if wp.get_device(self.device).is_cuda and self._keep_host_buffers > 0:
+            for shape in ((h, w, 3), (h, w)):  # colour, mask
+                host = wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=True)
+                self._staging.append((host, host.numpy(), None))
         self._cached.clear()
         self._view_shape = (h, w, slots)
 
@@ -272,11 +278,11 @@ class DepthEstimator:
         cfg = self.config
         h, w = view.colour.shape[:2]
         grey = self.full_grey[slot]
-        self.colour.assign(np.ascontiguousarray(view.colour, np.uint8))
+        self._upload(0, self.colour, view.colour)
         if view.mask is None:
             self.mask.fill_(1)
         else:
-            self.mask.assign(np.ascontiguousarray(view.mask, np.uint8))
+            self._upload(1, self.mask, view.mask)
         wp.launch(k.prepare_view, dim=(h, w), device=self.device,
                   inputs=[self.colour, self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
                           self.highlight_flags])
@@ -286,6 +292,21 @@ class DepthEstimator:
         wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.mask, self.highlight, grey,
                                                                      self.state[slot]])
         wp.launch(k.half_mean, dim=(h // 2, w // 2), device=self.device, inputs=[grey, self.half_grey[slot]])
+
+    def _upload(self, index: int, target, data: np.ndarray) -> None:
+        """``data`` (cast to uint8) into the device array ``target``: on CUDA, for an estimator that keeps host
+        buffers, through kept page-locked staging buffer ``index`` (a copy at the bus's speed that the GPU makes
+        while the host goes on; a pageable one is staged by the driver, at a third of that), each reused once its
+        last upload has been read."""
+        if not self._staging:
+            target.assign(np.ascontiguousarray(data, np.uint8))
+            return
+        host, array, uploaded = self._staging[index]
+        if uploaded is not None:
+            self.wp.synchronize_event(uploaded)
+        np.copyto(array, data, casting="unsafe")
+        self.wp.copy(target, host)
+        self._staging[index] = (host, array, self.wp.get_stream(self.device).record_event())
 
     def _window_stats(self, level: _Sweep, ref) -> None:
         h, w = ref.shape
