@@ -5,17 +5,18 @@ be used (outside the field of view, on a dilated highlight) holds ``EXCLUDED``. 
 of the estimator's per-keyframe cache; ``slots[s]`` names source s's. A sweep samples every source view on a set
 of fronto-parallel planes in inverse depth rho, ``rho = base[y, x] + rho0 + plane * drho`` (base is 0 for the
 coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window: one
-thread per (source, plane, pixel) samples the source (source pixel = A @ (x, y, 1) + rho * b, with
+thread per (source, pixel) samples the source on every plane (source pixel = A @ (x, y, 1) + rho * b, with
 A = K_s R_s_r K_r^-1 and b = K_s t_s_r: the plane homography written for inverse depth). The window sums then
 come one of two ways, with the same sums up to float rounding:
 
 - sliding (``sweep_rows`` then ``sweep_cols``): one thread per (source, plane, row) adding the entering column and
   dropping the leaving one, then per (source, plane, column) down the column: O(1) per pixel whatever the window,
   the cheapest on a CPU, whose threads run long serial loops well;
-- windowed (``sweep_window``): one thread per (source, plane, band of rows, four columns) sums each window row
-  from its taps and slides the rows down its band. Neighbouring threads are neighbouring columns (coalesced on a
-  GPU), nothing but the samples goes through memory (the sliding way writes 24 bytes of row sums per source,
-  plane and pixel), and there are millions of short threads instead of a few hundred thousand long ones.
+- windowed (``sweep_window``, ``sweep_window_ring`` for a 7x7 window): one thread per (source, plane, band of
+  rows, column) sums each window row from its taps and slides the rows down its band (the ring kernel keeps
+  the window's rows in registers). Neighbouring threads are neighbouring columns (coalesced on a GPU), nothing
+  but the samples goes through memory (the sliding way writes 24 bytes of row sums per source, plane and
+  pixel), and there are millions of short threads instead of a few hundred thousand long ones.
 """
 
 from __future__ import annotations
