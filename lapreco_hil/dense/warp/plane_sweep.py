@@ -317,13 +317,33 @@ RING_RADIUS = 3  # the window radius (7x7, the default) that sweep_window_ring k
 
 
 @wp.func
+def _window_row_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int,
+                     x: int) -> vec6:
+    """``_window_row`` for the radius RING_RADIUS as a loop of constant length (unrolled: the row's loads are
+    issued together, no loop control); a column outside the image is read at the nearest side and weighs 0
+    (adding zeros leaves the sums as they were: the same sums in the same order)."""
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if y < 0 or y >= ref.shape[0]:
+        return acc
+    w = ref.shape[1]
+    for dx in range(wp.static(-RING_RADIUS), wp.static(RING_RADIUS + 1)):
+        xx = wp.clamp(x + dx, 0, w - 1)
+        val = samples[s, p, y, xx]
+        m = wp.where(xx == x + dx, wp.where(val >= -1.0, 1.0, 0.0), 0.0)
+        wv = val * m
+        gv = ref[y, xx] * m
+        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+    return acc
+
+
+@wp.func
 def _ring_step(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
                s: int, p: int, y: int, y1: int, x: int, total: float, min_std: float, min_valid: float, acc: vec6,
                leaving: vec6, zncc: wp.array4d(dtype=float)):
     """One row of sweep_window_ring: the entering window row (y + RING_RADIUS) summed and added, row y scored
     (rows from y1 on belong to the next band or lie outside the image), the leaving row (kept from when it
     entered) taken off. Returns the sums and the entering row."""
-    entering = _window_row(ref, samples, s, p, y + RING_RADIUS, x, RING_RADIUS)
+    entering = _window_row_ring(ref, samples, s, p, y + RING_RADIUS, x)
     acc = acc + entering
     if y < y1:
         zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
@@ -344,12 +364,12 @@ def sweep_window_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=fl
     y1 = wp.min(y0 + band, h)
     total = float((2 * r + 1) * (2 * r + 1))
     # rows y0 - 3 .. y0 + 2 in slots 0 .. 5; row y enters slot (y - y0 + 6) % 7 and leaves slot (y - y0) % 7
-    h0 = _window_row(ref, samples, s, p, y0 - 3, x, r)
-    h1 = _window_row(ref, samples, s, p, y0 - 2, x, r)
-    h2 = _window_row(ref, samples, s, p, y0 - 1, x, r)
-    h3 = _window_row(ref, samples, s, p, y0, x, r)
-    h4 = _window_row(ref, samples, s, p, y0 + 1, x, r)
-    h5 = _window_row(ref, samples, s, p, y0 + 2, x, r)
+    h0 = _window_row_ring(ref, samples, s, p, y0 - 3, x)
+    h1 = _window_row_ring(ref, samples, s, p, y0 - 2, x)
+    h2 = _window_row_ring(ref, samples, s, p, y0 - 1, x)
+    h3 = _window_row_ring(ref, samples, s, p, y0, x)
+    h4 = _window_row_ring(ref, samples, s, p, y0 + 1, x)
+    h5 = _window_row_ring(ref, samples, s, p, y0 + 2, x)
     h6 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     acc = h0 + h1 + h2 + h3 + h4 + h5
     for y in range(y0, y1, 7):
