@@ -49,8 +49,8 @@ DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with n
 PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
 SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
-# overhead, short enough for millions of threads at half 1080p
-WINDOW_BAND_ROWS = 32
+# overhead, short enough for millions of threads at half 1080p; a multiple of 7 (sweep_window_ring's unrolled ring)
+WINDOW_BAND_ROWS = 56
 COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
 # host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
 # takes milliseconds: worth it for an estimator that makes many maps)
@@ -104,7 +104,6 @@ class _Sweep:
     sums: object  # (S, P, h, w) vec6 window row sums: the sliding sweep's (None for the windowed one)
     samples: object  # (S, P, h, w) warped source grey: the windowed sweep's (the sliding one samples into zncc)
     zncc: object  # (S, P, h, w)
-    score: object  # (P, h, w)
     plane: object
     best: object
     second: object
@@ -151,6 +150,7 @@ class DepthEstimator:
         self._keep_host_buffers = host_buffers
         self._pinned = False
         self._host_counts = None
+        self._staging: list = []  # page-locked upload buffers (colour, mask): (warp array, its numpy view, event)
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
@@ -177,7 +177,7 @@ class DepthEstimator:
             sums=wp.zeros(volume, dtype=k.vec6) if sliding else None,
             samples=None if sliding else wp.zeros(volume, dtype=float),
             zncc=wp.zeros(volume, dtype=float),
-            score=wp.zeros((n_planes, h, w), dtype=float), plane=wp.zeros((h, w), dtype=float),
+            plane=wp.zeros((h, w), dtype=float),
             best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
 
     def _ensure_checks(self, h: int, w: int) -> None:
@@ -216,6 +216,11 @@ class DepthEstimator:
             self.full_grey = wp.zeros((slots, h, w), dtype=float)
             self.half_grey = wp.zeros((slots, h // 2, w // 2), dtype=float)
             self.state = wp.zeros((slots, h, w), dtype=wp.uint8)
+        self._staging = []
+        if wp.get_device(self.device).is_cuda and self._keep_host_buffers > 0:
+            for shape in ((h, w, 3), (h, w)):  # colour, mask
+                host = wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=True)
+                self._staging.append((host, host.numpy(), None))
         self._cached.clear()
         self._view_shape = (h, w, slots)
 
@@ -273,11 +278,11 @@ class DepthEstimator:
         cfg = self.config
         h, w = view.colour.shape[:2]
         grey = self.full_grey[slot]
-        self.colour.assign(np.ascontiguousarray(view.colour, np.uint8))
+        self._upload(0, self.colour, view.colour)
         if view.mask is None:
             self.mask.fill_(1)
         else:
-            self.mask.assign(np.ascontiguousarray(view.mask, np.uint8))
+            self._upload(1, self.mask, view.mask)
         wp.launch(k.prepare_view, dim=(h, w), device=self.device,
                   inputs=[self.colour, self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
                           self.highlight_flags])
@@ -287,6 +292,21 @@ class DepthEstimator:
         wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.mask, self.highlight, grey,
                                                                      self.state[slot]])
         wp.launch(k.half_mean, dim=(h // 2, w // 2), device=self.device, inputs=[grey, self.half_grey[slot]])
+
+    def _upload(self, index: int, target, data: np.ndarray) -> None:
+        """``data`` (cast to uint8) into the device array ``target``: on CUDA, for an estimator that keeps host
+        buffers, through kept page-locked staging buffer ``index`` (a copy at the bus's speed that the GPU makes
+        while the host goes on; a pageable one is staged by the driver, at a third of that), each reused once its
+        last upload has been read."""
+        if not self._staging:
+            target.assign(np.ascontiguousarray(data, np.uint8))
+            return
+        host, array, uploaded = self._staging[index]
+        if uploaded is not None:
+            self.wp.synchronize_event(uploaded)
+        np.copyto(array, data, casting="unsafe")
+        self.wp.copy(target, host)
+        self._staging[index] = (host, array, self.wp.get_stream(self.device).record_event())
 
     def _window_stats(self, level: _Sweep, ref) -> None:
         h, w = ref.shape
@@ -302,8 +322,8 @@ class DepthEstimator:
         h, w = ref.shape
         r = cfg.window_radius_px
         sample_into = level.zncc if self.sweep == "sliding" else level.samples
-        wp.launch(k.warp_samples, dim=(n_src, n_planes, h, w), device=self.device,
-                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, sample_into])
+        wp.launch(k.warp_samples, dim=(n_src, h, w), device=self.device,
+                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, n_planes, sample_into])
         if self.sweep == "sliding":
             # the samples are in the ZNCC volume, which the column pass overwrites once the rows have summed them
             wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
@@ -311,14 +331,18 @@ class DepthEstimator:
             wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
                       inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         else:
-            bands = math.ceil(h / WINDOW_BAND_ROWS)
-            wp.launch(k.sweep_window, dim=(n_src, n_planes, bands, math.ceil(w / k.WINDOW_COLUMNS)),
-                      device=self.device,
-                      inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
-                              cfg.min_valid_fraction, level.zncc])
+            dim = (n_src, n_planes, math.ceil(h / WINDOW_BAND_ROWS), w)
+            if r == k.RING_RADIUS:
+                wp.launch(k.sweep_window_ring, dim=dim, device=self.device,
+                          inputs=[ref, level.samples, level.std, WINDOW_BAND_ROWS, cfg.min_texture,
+                                  cfg.min_valid_fraction, level.zncc])
+            else:
+                wp.launch(k.sweep_window, dim=dim, device=self.device,
+                          inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
+                                  cfg.min_valid_fraction, level.zncc])
         wp.launch(k.select_plane, dim=(h, w), device=self.device,
-                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.score, level.plane,
-                          level.best, level.second])
+                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.plane, level.best,
+                          level.second])
 
     def _sync_time(self, times: dict, name: str, t0: float) -> float:
         self.wp.synchronize_device(self.device)

@@ -5,17 +5,18 @@ be used (outside the field of view, on a dilated highlight) holds ``EXCLUDED``. 
 of the estimator's per-keyframe cache; ``slots[s]`` names source s's. A sweep samples every source view on a set
 of fronto-parallel planes in inverse depth rho, ``rho = base[y, x] + rho0 + plane * drho`` (base is 0 for the
 coarse sweep, the coarse estimate for the fine one), and scores each plane by ZNCC over a square window: one
-thread per (source, plane, pixel) samples the source (source pixel = A @ (x, y, 1) + rho * b, with
+thread per (source, pixel) samples the source on every plane (source pixel = A @ (x, y, 1) + rho * b, with
 A = K_s R_s_r K_r^-1 and b = K_s t_s_r: the plane homography written for inverse depth). The window sums then
 come one of two ways, with the same sums up to float rounding:
 
 - sliding (``sweep_rows`` then ``sweep_cols``): one thread per (source, plane, row) adding the entering column and
   dropping the leaving one, then per (source, plane, column) down the column: O(1) per pixel whatever the window,
   the cheapest on a CPU, whose threads run long serial loops well;
-- windowed (``sweep_window``): one thread per (source, plane, band of rows, four columns) sums each window row
-  from its taps and slides the rows down its band. Neighbouring threads are neighbouring columns (coalesced on a
-  GPU), nothing but the samples goes through memory (the sliding way writes 24 bytes of row sums per source,
-  plane and pixel), and there are millions of short threads instead of a few hundred thousand long ones.
+- windowed (``sweep_window``, ``sweep_window_ring`` for a 7x7 window): one thread per (source, plane, band of
+  rows, column) sums each window row from its taps and slides the rows down its band (the ring kernel keeps
+  the window's rows in registers). Neighbouring threads are neighbouring columns (coalesced on a GPU), nothing
+  but the samples goes through memory (the sliding way writes 24 bytes of row sums per source, plane and
+  pixel), and there are millions of short threads instead of a few hundred thousand long ones.
 """
 
 from __future__ import annotations
@@ -155,28 +156,18 @@ def window_cols(rows: wp.array2d(dtype=wp.vec3), r: int, min_std: float, min_val
         std[y, x] = wp.sqrt(v)
 
 
-@wp.kernel
-def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
-                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float,
-                 drho: float, samples: wp.array4d(dtype=float)):
-    """One thread per (source, plane, pixel): the source's grey (bilinear; source s is ``src[slots[s]]``) where the
-    reference pixel's ray meets the plane; EXCLUDED where either view may not be used there or the point falls
-    outside the source."""
-    s, p, y, x = wp.tid()
-    samples[s, p, y, x] = EXCLUDED
-    if ref[y, x] < -1.0:
-        return
-    rho = base[y, x] + rho0 + float(p) * drho
-    q = A[s] * wp.vec3(float(x), float(y), 1.0) + rho * b[s]
+@wp.func
+def _bilinear(src: wp.array3d(dtype=float), i: int, q: wp.vec3) -> float:
+    """Source ``i``'s grey (bilinear) at the homogeneous pixel q; EXCLUDED behind the camera, outside the image or
+    next to an excluded pixel."""
     if q[2] <= 1.0e-9:
-        return
+        return EXCLUDED
     u = q[0] / q[2]
     v = q[1] / q[2]
     hs = src.shape[1]
     ws = src.shape[2]
-    i = slots[s]
     if u < 0.0 or v < 0.0 or u > float(ws - 1) or v > float(hs - 1):
-        return
+        return EXCLUDED
     x0 = wp.min(int(u), ws - 2)
     y0 = wp.min(int(v), hs - 2)
     fx = u - float(x0)
@@ -186,8 +177,31 @@ def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slo
     a10 = src[i, y0 + 1, x0]
     a11 = src[i, y0 + 1, x0 + 1]
     if wp.min(wp.min(a00, a01), wp.min(a10, a11)) < -1.0:
-        return
-    samples[s, p, y, x] = (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+        return EXCLUDED
+    return (a00 * (1.0 - fx) + a01 * fx) * (1.0 - fy) + (a10 * (1.0 - fx) + a11 * fx) * fy
+
+
+@wp.kernel
+def warp_samples(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
+                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=float), rho0: float,
+                 drho: float, n_planes: int, samples: wp.array4d(dtype=float)):
+    """One thread per (source, pixel), looping over the planes: the source's grey (bilinear; source s is
+    ``src[slots[s]]``) where the reference pixel's ray meets each plane; EXCLUDED where either view may not be used
+    there or the point falls outside the source. The plane-independent part of the homography is computed once
+    per pixel, and neighbouring threads write neighbouring pixels of each plane (one coalesced store per
+    sample)."""
+    s, y, x = wp.tid()
+    i = slots[s]
+    usable = ref[y, x] >= -1.0
+    q0 = A[s] * wp.vec3(float(x), float(y), 1.0)
+    bs = b[s]
+    rho_base = base[y, x] + rho0
+    for p in range(n_planes):
+        val = EXCLUDED
+        if usable:
+            rho = rho_base + float(p) * drho
+            val = _bilinear(src, i, q0 + rho * bs)
+        samples[s, p, y, x] = val
 
 
 @wp.func
@@ -259,68 +273,113 @@ def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r
         acc -= _row_sum(sums, s, p, y - r, x)
 
 
-WINDOW_COLUMNS = 4  # neighbouring columns per thread of sweep_window
-
-
 @wp.func
-def _window_rows4(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
-                  r: int):
-    """The window-row sums of columns x .. x + 3 of row y: the first from its taps, each next one slid a column
-    (two taps instead of 2r + 1); zero outside the image."""
-    zero = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+def _window_row(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
+                r: int) -> vec6:
+    """The sums (w, w^2, w g, g, g^2, usable count) over the window row of pixel (x, y), from its 2r + 1 taps
+    (clipped to the image: outside counts as unusable); zero for a row outside the image. Branch-free per tap:
+    an unusable sample (EXCLUDED, also where the reference is) weighs 0."""
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     if y < 0 or y >= ref.shape[0]:
-        return zero, zero, zero, zero
-    a = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    for dx in range(-r, r + 1):
-        a += _terms(ref, samples, s, p, y, x + dx)
-    b = a + _terms(ref, samples, s, p, y, x + 1 + r) - _terms(ref, samples, s, p, y, x - r)
-    c = b + _terms(ref, samples, s, p, y, x + 2 + r) - _terms(ref, samples, s, p, y, x + 1 - r)
-    d = c + _terms(ref, samples, s, p, y, x + 3 + r) - _terms(ref, samples, s, p, y, x + 2 - r)
-    return a, b, c, d
+        return acc
+    for xx in range(wp.max(x - r, 0), wp.min(x + r + 1, ref.shape[1])):
+        val = samples[s, p, y, xx]
+        m = wp.where(val >= -1.0, 1.0, 0.0)
+        wv = val * m
+        gv = ref[y, xx] * m
+        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+    return acc
 
 
 @wp.kernel
 def sweep_window(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
                  r: int, band: int, min_std: float, min_valid: float, zncc: wp.array4d(dtype=float)):
-    """One thread per (source, plane, band of ``band`` rows, four neighbouring columns): each window row summed
-    from its taps (then slid over the four columns), the rows slid down the band (the leaving row summed again
-    rather than kept: registers, not memory), scored as ``sweep_cols`` does. ``samples`` and ``zncc`` must be
-    different arrays (other threads still read the samples a thread's scores would overwrite)."""
-    s, p, c, xq = wp.tid()
+    """One thread per (source, plane, band of ``band`` rows, column): each window row summed from its taps, the
+    rows slid down the band (the leaving row summed again rather than kept: registers, not memory), scored as
+    ``sweep_cols`` does. Neighbouring threads are neighbouring columns: every load and store of a warp is one
+    contiguous run. ``samples`` and ``zncc`` must be different arrays (other threads still read the samples a
+    thread's scores would overwrite)."""
+    s, p, c, x = wp.tid()
     h = ref.shape[0]
-    w = ref.shape[1]
-    x = xq * WINDOW_COLUMNS
     y0 = c * band
     y1 = wp.min(y0 + band, h)
     total = float((2 * r + 1) * (2 * r + 1))
-    acc0 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc1 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc2 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    acc3 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for yi in range(y0 - r, y0 + r):
-        a, b, cc, d = _window_rows4(ref, samples, s, p, yi, x, r)
-        acc0 += a
-        acc1 += b
-        acc2 += cc
-        acc3 += d
+        acc += _window_row(ref, samples, s, p, yi, x, r)
     for y in range(y0, y1):
-        a, b, cc, d = _window_rows4(ref, samples, s, p, y + r, x, r)
-        acc0 += a
-        acc1 += b
-        acc2 += cc
-        acc3 += d
-        zncc[s, p, y, x] = _zncc(acc0, ref_std[y, x], total, min_std, min_valid)
-        if x + 1 < w:
-            zncc[s, p, y, x + 1] = _zncc(acc1, ref_std[y, x + 1], total, min_std, min_valid)
-        if x + 2 < w:
-            zncc[s, p, y, x + 2] = _zncc(acc2, ref_std[y, x + 2], total, min_std, min_valid)
-        if x + 3 < w:
-            zncc[s, p, y, x + 3] = _zncc(acc3, ref_std[y, x + 3], total, min_std, min_valid)
-        a, b, cc, d = _window_rows4(ref, samples, s, p, y - r, x, r)
-        acc0 -= a
-        acc1 -= b
-        acc2 -= cc
-        acc3 -= d
+        acc += _window_row(ref, samples, s, p, y + r, x, r)
+        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
+        acc -= _window_row(ref, samples, s, p, y - r, x, r)
+
+
+RING_RADIUS = 3  # the window radius (7x7, the default) that sweep_window_ring keeps its window rows for
+
+
+@wp.func
+def _window_row_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int,
+                     x: int) -> vec6:
+    """``_window_row`` for the radius RING_RADIUS as a loop of constant length (unrolled: the row's loads are
+    issued together, no loop control); a column outside the image is read at the nearest side and weighs 0
+    (adding zeros leaves the sums as they were: the same sums in the same order)."""
+    acc = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if y < 0 or y >= ref.shape[0]:
+        return acc
+    w = ref.shape[1]
+    for dx in range(wp.static(-RING_RADIUS), wp.static(RING_RADIUS + 1)):
+        xx = wp.clamp(x + dx, 0, w - 1)
+        val = samples[s, p, y, xx]
+        m = wp.where(xx == x + dx, wp.where(val >= -1.0, 1.0, 0.0), 0.0)
+        wv = val * m
+        gv = ref[y, xx] * m
+        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+    return acc
+
+
+@wp.func
+def _ring_step(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), ref_std: wp.array2d(dtype=float),
+               s: int, p: int, y: int, y1: int, x: int, total: float, min_std: float, min_valid: float, acc: vec6,
+               leaving: vec6, zncc: wp.array4d(dtype=float)):
+    """One row of sweep_window_ring: the entering window row (y + RING_RADIUS) summed and added, row y scored
+    (rows from y1 on belong to the next band or lie outside the image), the leaving row (kept from when it
+    entered) taken off. Returns the sums and the entering row."""
+    entering = _window_row_ring(ref, samples, s, p, y + RING_RADIUS, x)
+    acc = acc + entering
+    if y < y1:
+        zncc[s, p, y, x] = _zncc(acc, ref_std[y, x], total, min_std, min_valid)
+    return acc - leaving, entering
+
+
+@wp.kernel(launch_bounds=(256, 2))
+def sweep_window_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float),
+                      ref_std: wp.array2d(dtype=float), band: int, min_std: float, min_valid: float,
+                      zncc: wp.array4d(dtype=float)):
+    """sweep_window for the radius RING_RADIUS (3: a 7x7 window): the window's 7 row sums stay in registers (a
+    ring, unrolled over 7 rows), so each window row is summed from its taps once instead of twice. ``band``
+    should be a multiple of 7 (the rows past a band's end up to the next multiple are summed for nothing)."""
+    s, p, c, x = wp.tid()
+    h = ref.shape[0]
+    r = RING_RADIUS
+    y0 = c * band
+    y1 = wp.min(y0 + band, h)
+    total = float((2 * r + 1) * (2 * r + 1))
+    # rows y0 - 3 .. y0 + 2 in slots 0 .. 5; row y enters slot (y - y0 + 6) % 7 and leaves slot (y - y0) % 7
+    h0 = _window_row_ring(ref, samples, s, p, y0 - 3, x)
+    h1 = _window_row_ring(ref, samples, s, p, y0 - 2, x)
+    h2 = _window_row_ring(ref, samples, s, p, y0 - 1, x)
+    h3 = _window_row_ring(ref, samples, s, p, y0, x)
+    h4 = _window_row_ring(ref, samples, s, p, y0 + 1, x)
+    h5 = _window_row_ring(ref, samples, s, p, y0 + 2, x)
+    h6 = vec6(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    acc = h0 + h1 + h2 + h3 + h4 + h5
+    for y in range(y0, y1, 7):
+        acc, h6 = _ring_step(ref, samples, ref_std, s, p, y, y1, x, total, min_std, min_valid, acc, h0, zncc)
+        acc, h0 = _ring_step(ref, samples, ref_std, s, p, y + 1, y1, x, total, min_std, min_valid, acc, h1, zncc)
+        acc, h1 = _ring_step(ref, samples, ref_std, s, p, y + 2, y1, x, total, min_std, min_valid, acc, h2, zncc)
+        acc, h2 = _ring_step(ref, samples, ref_std, s, p, y + 3, y1, x, total, min_std, min_valid, acc, h3, zncc)
+        acc, h3 = _ring_step(ref, samples, ref_std, s, p, y + 4, y1, x, total, min_std, min_valid, acc, h4, zncc)
+        acc, h4 = _ring_step(ref, samples, ref_std, s, p, y + 5, y1, x, total, min_std, min_valid, acc, h5, zncc)
+        acc, h5 = _ring_step(ref, samples, ref_std, s, p, y + 6, y1, x, total, min_std, min_valid, acc, h6, zncc)
 
 
 @wp.func
@@ -345,40 +404,109 @@ def _best_k_mean(zncc: wp.array4d(dtype=float), n_src: int, k: int, p: int, y: i
     return total / float(k)
 
 
+@wp.func
+def _plane_score(zncc: wp.array4d(dtype=float), n_src: int, k: int, p: int, y: int, x: int) -> float:
+    """``_best_k_mean`` reading each source's score once: the best two in one pass (k of 1 or 2, the default; the
+    same sums in the same order), the general selection for a larger k."""
+    if k > 2:
+        return _best_k_mean(zncc, n_src, k, p, y, x)
+    b1 = float(NO_SCORE)
+    b2 = float(NO_SCORE)
+    for s in range(n_src):
+        z = zncc[s, p, y, x]
+        if z > b1:
+            b2 = b1
+            b1 = z
+        elif z > b2:
+            b2 = z
+    if b1 <= NO_SCORE + 0.5:
+        return NO_SCORE
+    if k == 1:
+        return b1
+    if b2 <= NO_SCORE + 0.5:
+        return NO_SCORE
+    return (b1 + b2) / 2.0
+
+
+@wp.func
+def _apart(i: int, b: int) -> bool:
+    """Plane i is a local maximum (i >= 0) other than the best plane b and its neighbours."""
+    return i >= 0 and (i < b - 1 or i > b + 1)
+
+
 @wp.kernel
 def select_plane(zncc: wp.array4d(dtype=float), n_src: int, n_planes: int, k: int, min_scored: int,
-                 score: wp.array3d(dtype=float),
                  plane: wp.array2d(dtype=float), best: wp.array2d(dtype=float), second: wp.array2d(dtype=float)):
     """Per pixel: the plane of the best combined score, refined by a parabola through its neighbours, the best
     score, and the second-best local maximum (the margin measures uniqueness). -1 where fewer than
     ``min_scored`` planes have a score: near the edge of the sources' views only a few planes land inside them,
-    and the best of a few is no match."""
+    and the best of a few is no match. One pass over the planes, nothing written but the results: each plane's
+    score is known once the next is (a local maximum), and the four highest local maxima are kept, enough to
+    find the highest apart from the best plane and its two neighbours."""
     y, x = wp.tid()
     b_val = float(NO_SCORE)
     b_idx = int(-1)
+    b_lo = float(NO_SCORE)
+    b_hi = float(NO_SCORE)
     scored = int(0)
-    for p in range(n_planes):
-        c = _best_k_mean(zncc, n_src, k, p, y, x)
-        score[p, y, x] = c
-        if c > NO_SCORE + 0.5:
-            scored += 1
-        if c > b_val:
-            b_val = c
-            b_idx = p
+    before = float(NO_SCORE)  # the score of plane p - 2
+    last = float(NO_SCORE)  # of plane p - 1
+    m0 = float(NO_SCORE)  # the highest local maxima, highest first, and their planes
+    m1 = float(NO_SCORE)
+    m2 = float(NO_SCORE)
+    m3 = float(NO_SCORE)
+    i0 = int(-1)
+    i1 = int(-1)
+    i2 = int(-1)
+    i3 = int(-1)
+    for p in range(n_planes + 1):
+        c = float(NO_SCORE)
+        if p < n_planes:
+            c = _plane_score(zncc, n_src, k, p, y, x)
+            if c > NO_SCORE + 0.5:
+                scored += 1
+            if c > b_val:
+                b_val = c
+                b_idx = p
+                b_lo = last
+            elif p == b_idx + 1:
+                b_hi = c
+        # plane p - 1 is a local maximum if it is at least both neighbours (NO_SCORE beyond the ends)
+        if p >= 1 and last > NO_SCORE and last >= before and last >= c and last > m3:
+            q = p - 1
+            if last > m2:
+                m3 = m2
+                i3 = i2
+                if last > m1:
+                    m2 = m1
+                    i2 = i1
+                    if last > m0:
+                        m1 = m0
+                        i1 = i0
+                        m0 = last
+                        i0 = q
+                    else:
+                        m1 = last
+                        i1 = q
+                else:
+                    m2 = last
+                    i2 = q
+            else:
+                m3 = last
+                i3 = q
+        before = last
+        last = c
     if scored < min_scored:
         b_idx = -1
     sec = float(NO_SCORE)
-    for p in range(n_planes):
-        if p < b_idx - 1 or p > b_idx + 1:
-            c = score[p, y, x]
-            lo = NO_SCORE
-            hi = NO_SCORE
-            if p > 0:
-                lo = score[p - 1, y, x]
-            if p < n_planes - 1:
-                hi = score[p + 1, y, x]
-            if c >= lo and c >= hi and c > sec:
-                sec = c
+    if _apart(i0, b_idx):
+        sec = m0
+    elif _apart(i1, b_idx):
+        sec = m1
+    elif _apart(i2, b_idx):
+        sec = m2
+    elif _apart(i3, b_idx):
+        sec = m3
     best[y, x] = b_val
     second[y, x] = sec
     if b_idx < 0:
@@ -386,8 +514,8 @@ def select_plane(zncc: wp.array4d(dtype=float), n_src: int, n_planes: int, k: in
         return
     f = float(b_idx)
     if b_idx > 0 and b_idx < n_planes - 1:
-        lo = score[b_idx - 1, y, x]
-        hi = score[b_idx + 1, y, x]
+        lo = b_lo
+        hi = b_hi
         if lo > NO_SCORE + 0.5 and hi > NO_SCORE + 0.5:
             den = lo - 2.0 * b_val + hi
             if den < -1.0e-6:
