@@ -128,9 +128,9 @@ class MapperConfig:
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)
     ba_solver: str = "schur"
-    # where the Schur solver's per-observation kernels run: "cpu" (Warp's CPU device), "cuda"/"cuda:N" (the
-    # landmarks are then eliminated on the GPU too) or "numpy"
-    ba_device: str = "cpu"
+    # where the Schur solver's per-observation kernels run: "auto" (CUDA where Warp sees one, else the CPU),
+    # "cpu" (Warp's CPU device), "cuda"/"cuda:N" (the landmarks are then eliminated on the GPU too) or "numpy"
+    ba_device: str = "auto"
     # BLAS threads of the final pass's camera system (thousands wide for a long map); 0: every core of a machine
     # of 8 or more, one on a smaller one (on 2 shared cores OpenBLAS's spinning threads made it 7x slower)
     final_ba_threads: int = ranged(0, ge=0)

@@ -338,20 +338,28 @@ def test_the_final_pass_takes_every_core_of_a_large_machine_only(monkeypatch):
     asked = []
     monkeypatch.setattr(mapper_module, "solve_robust_schur", lambda problem, schedule, **kw: asked.append(kw))
     K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
-    Mapper(K, MapperConfig())._solve_final(None)
+    Mapper(K, MapperConfig(ba_device="cpu"))._solve_final(None)
     Mapper(K, MapperConfig(final_ba_threads=3, ba_device="numpy"))._solve_final(None)
     assert asked == [{"device": "cpu", "blas_threads": 1}, {"device": "numpy", "blas_threads": 3}]
 
 
 def test_the_mapper_uses_the_configured_solver():
     K = np.array([[450.0, 0, 320], [0, 450.0, 240], [0, 0, 1]])
-    assert Mapper(K, MapperConfig()).solve_ba is schur.solve_robust_schur
+    assert Mapper(K, MapperConfig(ba_device="cpu")).solve_ba is schur.solve_robust_schur
+    # the default, auto: CUDA where Warp sees one, else the CPU
+    from lapreco_hil.warp_device import resolve_device
+
+    on_auto = Mapper(K, MapperConfig()).solve_ba
+    if resolve_device("auto") == "cpu":
+        assert on_auto is schur.solve_robust_schur
+    else:
+        assert on_auto.keywords == {"device": resolve_device("auto")}
     assert Mapper(K, MapperConfig(ba_solver="gtsam")).solve_ba is ba.solve_robust
     with pytest.raises(ConfigError, match=r"\[mapper\] ba_solver = 'ceres': use schur or gtsam"):
         Mapper(K, MapperConfig(ba_solver="ceres"))
     on_numpy = Mapper(K, MapperConfig(ba_device="numpy")).solve_ba
     assert on_numpy.func is schur.solve_robust_schur and on_numpy.keywords == {"device": "numpy"}
-    with pytest.raises(ConfigError, match=r"\[mapper\] ba_device = 'tpu': use cpu, numpy, cuda or cuda:N"):
+    with pytest.raises(ConfigError, match=r"\[mapper\] ba_device = 'tpu': use auto, cpu, numpy, cuda or cuda:N"):
         Mapper(K, MapperConfig(ba_device="tpu"))
 
 

@@ -136,8 +136,12 @@ def ba_solver(config: MapperConfig):
     if config.ba_solver not in BA_SOLVERS:
         raise ConfigError(f"[mapper] ba_solver = '{config.ba_solver}': use {' or '.join(BA_SOLVERS)}")
     device = config.ba_device
-    if device not in ("cpu", "numpy") and not device.startswith("cuda"):
-        raise ConfigError(f"[mapper] ba_device = '{device}': use cpu, numpy, cuda or cuda:N")
+    if device not in ("auto", "cpu", "numpy") and not device.startswith("cuda"):
+        raise ConfigError(f"[mapper] ba_device = '{device}': use auto, cpu, numpy, cuda or cuda:N")
+    if device == "auto":
+        from lapreco_hil.warp_device import resolve_device
+
+        device = resolve_device("auto")
     if config.ba_solver == "schur" and device != "cpu":
         return functools.partial(solve_robust_schur, device=device)
     return BA_SOLVERS[config.ba_solver]
