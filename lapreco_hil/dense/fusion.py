@@ -484,8 +484,8 @@ def chunk_pieces(keys: np.ndarray, tsdf: np.ndarray, colour: np.ndarray, voxel_m
         observed = np.isfinite(grid_t)
         if not observed.any() or np.nanmin(grid_t) > 0 or np.nanmax(grid_t) < 0:
             continue
-        image = pv.ImageData(dimensions=(n, n, n), spacing=(voxel_m,) * 3,
-                             origin=tuple((np.array(c) * S * B + 0.5) * voxel_m))
+        # in voxel units from integer origins: a seam vertex comes out bit for bit the same from both chunks
+        image = pv.ImageData(dimensions=(n, n, n), spacing=(1.0, 1.0, 1.0), origin=tuple(np.array(c) * S * B))
         image.point_data["tsdf"] = np.where(observed, grid_t, 1.0).ravel()  # [z, y, x] in C order: x fastest
         image.point_data["observed"] = observed.astype(np.float32).ravel()
         image.point_data["colour"] = grid_c.reshape(-1, 3)
@@ -513,17 +513,35 @@ def chunk_pieces(keys: np.ndarray, tsdf: np.ndarray, colour: np.ndarray, voxel_m
 
 
 def join_pieces(pieces: list, voxel_m: float) -> pv.PolyData:
-    """The chunks' pieces as one mesh: seams welded, "RGB" uint8 and unit "Normals" out of the surface."""
+    """The chunks' pieces (vertices in voxel units) as one mesh in metres: seams welded, "RGB" uint8 and unit
+    "Normals" out of the surface; vertices no kept triangle uses are let go."""
     meshes = [p for p in pieces if p is not None]
     if not meshes:
         return pv.PolyData()
-    # the chunks' seam vertices are computed twice (the same voxels, origins that round apart): welded here;
-    # vertices no triangle kept are let go
-    mesh = pv.merge(meshes, merge_points=False).clean(tolerance=1e-3 * voxel_m, absolute=True)
-    normals = np.asarray(mesh.point_data["Normals"], float)
+    points = np.concatenate([np.asarray(m.points, np.float32) for m in meshes])
+    normals = np.concatenate([np.asarray(m.point_data["Normals"], float) for m in meshes])
+    colour = np.concatenate([np.asarray(m.point_data["colour"], float) for m in meshes])
+    offsets = np.cumsum([0] + [m.n_points for m in meshes[:-1]])
+    triangles = np.concatenate([m.faces.reshape(-1, 4)[:, 1:] + o for m, o in zip(meshes, offsets)])
+    # a seam vertex is computed by both chunks from the same two voxels at the same integer coordinates: equal
+    # bits, so an exact match welds them
+    rows = np.ascontiguousarray(points).view(np.dtype((np.void, 12))).ravel()
+    _, first_all, inverse_all = np.unique(rows, return_index=True, return_inverse=True)
+    welded = first_all[inverse_all.ravel()][triangles]
+    # a vertex on a voxel's corner (tsdf exactly 0) is shared by its edges: their triangles collapse to nothing
+    triangles = triangles[(welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2]) &
+                          (welded[:, 0] != welded[:, 2])]
+    used = np.zeros(len(points), bool)
+    used[triangles.ravel()] = True
+    _, first, inverse = np.unique(rows[used], return_index=True, return_inverse=True)
+    remap = np.full(len(points), -1, np.int64)
+    remap[np.flatnonzero(used)] = inverse.ravel()
+    keep = np.flatnonzero(used)[first]
+    tri = remap[triangles]
+    out = pv.PolyData((points[keep].astype(float) + 0.5) * voxel_m,
+                      np.hstack([np.full((len(tri), 1), 3), tri]).ravel())
     # VTK's contour normals follow the gradient's negative; the TSDF grows towards the cameras
-    normals = -normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    out = pv.PolyData(np.asarray(mesh.points, float), mesh.faces)
-    out.point_data["RGB"] = np.clip(np.round(np.asarray(mesh.point_data["colour"])), 0, 255).astype(np.uint8)
-    out.point_data["Normals"] = normals
+    n = -normals[keep]
+    out.point_data["RGB"] = np.clip(np.round(colour[keep]), 0, 255).astype(np.uint8)
+    out.point_data["Normals"] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return out
