@@ -320,7 +320,8 @@ class TsdfVolume:
         # a fixed number of threads striding over the active blocks' voxels: the count stays on the device
         threads = min(self.capacity * k.BLOCK_VOXELS, INTEGRATE_THREADS)
         self._launch(k.integrate_voxels, threads,
-                     [threads, self.active, self.counts, self.block_key, self.in_depth, self.in_conf, job["weight_scale"],
+                     [threads, self.active, self.counts, self.block_key, self.in_depth, self.in_conf,
+                      job["weight_scale"],
                       self.in_colour, intr, wp.mat33(*Tcw[:3, :3].astype(np.float32).ravel()),
                       wp.vec3(*Tcw[:3, 3].astype(np.float32)), self.trunc_m, self.voxel_m, int(job["sign"]),
                       self.w_sum, self.d_sum, self.c_sum])

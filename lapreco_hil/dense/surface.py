@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -83,6 +84,7 @@ class _View:
     K: np.ndarray | None = None
     T_fused: np.ndarray | None = None
     integration: int | None = None
+    encoding: Future | None = None  # the map's PNG encoding, under way in the surface's encoder thread
 
 
 class DenseSurface:
@@ -116,6 +118,8 @@ class DenseSurface:
         self.depth_failures = 0
         self.without_sources: set[int] = set()  # keyframes no neighbour could serve as a stereo source for
         self.released = 0
+        # one thread PNG-encodes the fused maps, so the fusing thread does not wait for it
+        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dense-png")
 
     # --- images -------------------------------------------------------------------------------------------
     def _maps(self, camera: int):
@@ -194,24 +198,28 @@ class DenseSurface:
 
     # --- fusion -------------------------------------------------------------------------------------------
     def _stored_map(self, v: _View) -> DepthMap:
+        self._encoded(v)
         depth = cv2.imdecode(np.frombuffer(v.depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
         conf = cv2.imdecode(np.frombuffer(v.confidence_png, np.uint8), cv2.IMREAD_UNCHANGED)
-        return DepthMap(v.kf_id, depth.astype(np.float32) * np.float32(DEPTH_UNIT_M),
-                        conf.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+        return _dequantised(v, depth, conf)
+
+    @staticmethod
+    def _encoded(v: _View) -> None:
+        """Wait for the view's map to be PNG-encoded (if it is being)."""
+        if v.encoding is not None:
+            v.depth_png, v.confidence_png = v.encoding.result()
+            v.encoding = None
 
     def _keep_map(self, v: _View, depth: DepthMap) -> DepthMap:
-        """Store the map as it will be fused (quantised, PNG) and return that stored map."""
-        d = np.nan_to_num(np.asarray(depth.depth_m, np.float64))
-        steps = np.round(d / DEPTH_UNIT_M)
-        valid = (steps > 0) & (steps < 65536)
-        d16 = np.where(valid, steps, 0).astype(np.uint16)
-        c8 = np.round(np.clip(np.nan_to_num(depth.confidence), 0.0, 1.0) * 255.0).astype(np.uint8)
-        c8[~valid] = 0
-        v.depth_png = cv2.imencode(".png", d16)[1].tobytes()
-        v.confidence_png = cv2.imencode(".png", c8)[1].tobytes()
+        """Store the map as it will be fused (quantised; PNG-encoded in the encoder thread, off the caller's
+        path: cv2 lets go of the GIL) and return that stored map, as decoding the PNGs would give it back."""
+        d16, c8 = quantised(depth)
         v.K = np.array(depth.K, float)
         v.T_fused = np.array(depth.T_world_camera, float)
-        return self._stored_map(v)
+        self._encoded(v)  # (a map made again for the same keyframe: the old encoding first)
+        v.depth_png = v.confidence_png = None
+        v.encoding = self._encoder.submit(_encode_pngs, d16, c8)
+        return _dequantised(v, d16, c8)
 
     def _sources(self, ref: KeyframeView) -> list[KeyframeView]:
         n = self.config.depth.source_views
@@ -278,6 +286,8 @@ class DenseSurface:
     def report(self, mesh: pv.PolyData | None = None) -> dict:
         """report.json's ``dense``: points, triangles, keyframes fused, memory, timings."""
         vol = self.volume
+        for v in self.views.values():
+            self._encoded(v)
         kept = sum(len(v.jpeg) + len(v.depth_png or b"") + len(v.confidence_png or b"") for v in self.views.values())
         return {
             "points": int(mesh.n_points) if mesh is not None else None,
@@ -296,6 +306,28 @@ class DenseSurface:
                           "integration_per_keyframe_s": self.timings["integration_s"] /
                           max(self.fused + self.refused, 1)},
         }
+
+
+def quantised(depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
+    """A map as kept: depth in DEPTH_UNIT_M steps (uint16; 0 where none or beyond the range) and confidence in
+    1/255 steps (uint8; 0 where there is no depth). Float32 arithmetic: what it gives defines the kept map."""
+    d = np.nan_to_num(np.asarray(depth.depth_m, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    steps = np.rint(d * np.float32(1.0 / DEPTH_UNIT_M))
+    valid = (steps > 0) & (steps < 65536)
+    d16 = np.where(valid, steps, 0).astype(np.uint16)
+    c = np.nan_to_num(np.asarray(depth.confidence, np.float32), nan=0.0)
+    c8 = np.rint(np.clip(c, 0.0, 1.0) * np.float32(255.0)).astype(np.uint8)
+    c8[~valid] = 0
+    return d16, c8
+
+
+def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:
+    return DepthMap(v.kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                    c8.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+
+
+def _encode_pngs(d16: np.ndarray, c8: np.ndarray) -> tuple[bytes, bytes]:
+    return cv2.imencode(".png", d16)[1].tobytes(), cv2.imencode(".png", c8)[1].tobytes()
 
 
 def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):
