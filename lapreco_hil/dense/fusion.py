@@ -245,6 +245,7 @@ class TsdfVolume:
             self.in_depth = wp.zeros((h, w), dtype=wp.float32, device=self.device)
             self.in_conf = wp.zeros((h, w), dtype=wp.float32, device=self.device)
             self.in_colour = wp.zeros((h, w, 3), dtype=wp.uint8, device=self.device)
+            self.in_weight = wp.zeros((h, w), dtype=wp.int32, device=self.device)
             if self.is_cuda:
                 self.stage = [wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
                               for a in (self.in_depth, self.in_conf, self.in_colour)]
@@ -307,8 +308,8 @@ class TsdfVolume:
         intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
         h, w = self._inputs_shape
         insert = int(job["insert"])
-        self._launch(k.reset_map_counts, k.N_COUNTS - 1, [self.counts])
-        self._launch(k.touch_blocks, (h, w), [self.in_depth, self.in_conf, job["weight_scale"], intr,
+        self._launch(k.prepare_map, (h, w), [self.in_conf, job["weight_scale"], self.in_weight, self.counts])
+        self._launch(k.touch_blocks, (h, w), [self.in_depth, self.in_weight, intr,
                                               wp.mat33(*T[:3, :3].astype(np.float32).ravel()),
                                               wp.vec3(*T[:3, 3].astype(np.float32)), self.trunc_m, self.voxel_m, 1,
                                               insert, self._stamp, self.slot_bits, self.slot_keys, self.slot_stamp,
@@ -320,8 +321,7 @@ class TsdfVolume:
         # a fixed number of threads striding over the active blocks' voxels: the count stays on the device
         threads = min(self.capacity * k.BLOCK_VOXELS, INTEGRATE_THREADS)
         self._launch(k.integrate_voxels, threads,
-                     [threads, self.active, self.counts, self.block_key, self.in_depth, self.in_conf,
-                      job["weight_scale"],
+                     [threads, self.active, self.counts, self.block_key, self.in_depth, self.in_weight,
                       self.in_colour, intr, wp.mat33(*Tcw[:3, :3].astype(np.float32).ravel()),
                       wp.vec3(*Tcw[:3, 3].astype(np.float32)), self.trunc_m, self.voxel_m, int(job["sign"]),
                       self.w_sum, self.d_sum, self.c_sum])

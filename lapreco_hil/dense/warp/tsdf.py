@@ -105,14 +105,19 @@ def pixel_weight(confidence: float, weight_scale: float) -> int:
 
 
 @wp.kernel
-def reset_map_counts(counts: wp.array(dtype=int)):
-    i = wp.tid()
-    counts[COUNT_NEW + i] = 0
+def prepare_map(confidence: wp.array2d(dtype=wp.float32), weight_scale: float, weight: wp.array2d(dtype=wp.int32),
+                counts: wp.array(dtype=int)):
+    """Each pixel's integer weight (once per map, not once per voxel that looks at it); the first thread also
+    sets the map's counts to 0 (one launch for both)."""
+    y, x = wp.tid()
+    weight[y, x] = pixel_weight(confidence[y, x], weight_scale)
+    if y == 0 and x == 0:
+        for i in range(COUNT_NEW, N_COUNTS):
+            counts[i] = 0
 
 
 @wp.kernel
-def touch_blocks(depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dtype=wp.float32),
-                 weight_scale: float, intr: wp.vec4, R_wc: wp.mat33, t_wc: wp.vec3, trunc_m: float, voxel_m: float,
+def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32), intr: wp.vec4, R_wc: wp.mat33, t_wc: wp.vec3, trunc_m: float, voxel_m: float,
                  stride: int, insert: int, stamp: int, slot_bits: int, slot_keys: wp.array(dtype=wp.int64),
                  slot_stamp: wp.array(dtype=int), counts: wp.array(dtype=int)):
     """Every block the truncation band of a pixel's depth crosses is stamped (and, when ``insert``, claimed):
@@ -123,7 +128,7 @@ def touch_blocks(depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dty
     if y >= depth.shape[0] or x >= depth.shape[1]:
         return
     d = depth[y, x]
-    if not (d > 0.0) or pixel_weight(confidence[y, x], weight_scale) <= 0:
+    if not (d > 0.0) or weight[y, x] <= 0:
         return
     ray = wp.vec3((float(x) - intr[2]) / intr[0], (float(y) - intr[3]) / intr[1], 1.0)
     block_m = voxel_m * float(BLOCK)
@@ -181,8 +186,7 @@ def collect_blocks(slot_keys: wp.array(dtype=wp.int64), slot_stamp: wp.array(dty
 
 @wp.func
 def integrate_voxel(tid: int, active: wp.array(dtype=int), block_key: wp.array(dtype=wp.int64),
-                    depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dtype=wp.float32),
-                    weight_scale: float, colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
+                    depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32), colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
                     t_cw: wp.vec3, trunc_m: float, voxel_m: float, sign: int, w_sum: wp.array(dtype=wp.int32),
                     d_sum: wp.array(dtype=wp.int32), c_sum: wp.array(dtype=wp.vec3i)):
     a = tid // BLOCK_VOXELS
@@ -203,7 +207,7 @@ def integrate_voxel(tid: int, active: wp.array(dtype=int), block_key: wp.array(d
     if px < 0 or py < 0 or px >= depth.shape[1] or py >= depth.shape[0]:
         return
     d = depth[py, px]
-    wq = pixel_weight(confidence[py, px], weight_scale)
+    wq = weight[py, px]
     if not (d > 0.0) or wq <= 0:
         return
     sdf = d - z
@@ -222,8 +226,8 @@ def integrate_voxel(tid: int, active: wp.array(dtype=int), block_key: wp.array(d
 @wp.kernel
 def integrate_voxels(threads: int, active: wp.array(dtype=int), counts: wp.array(dtype=int),
                      block_key: wp.array(dtype=wp.int64),
-                     depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dtype=wp.float32),
-                     weight_scale: float, colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
+                     depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32),
+                     colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
                      t_cw: wp.vec3, trunc_m: float, voxel_m: float, sign: int, w_sum: wp.array(dtype=wp.int32),
                      d_sum: wp.array(dtype=wp.int32), c_sum: wp.array(dtype=wp.vec3i)):
     """The voxels of the active blocks (counts[COUNT_ACTIVE] of them, read on the device: the host never waits
@@ -233,8 +237,8 @@ def integrate_voxels(threads: int, active: wp.array(dtype=int), counts: wp.array
     n = counts[COUNT_ACTIVE] * BLOCK_VOXELS
     tid = wp.tid()
     while tid < n:
-        integrate_voxel(tid, active, block_key, depth, confidence, weight_scale, colour, intr, R_cw, t_cw, trunc_m,
-                        voxel_m, sign, w_sum, d_sum, c_sum)
+        integrate_voxel(tid, active, block_key, depth, weight, colour, intr, R_cw, t_cw, trunc_m, voxel_m, sign,
+                        w_sum, d_sum, c_sum)
         tid += threads
 
 
