@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 CHUNK_BLOCKS = 8  # a meshing chunk is 8^3 blocks (64^3 voxels)
 VOXEL_BYTES = 20  # int32 weight, int32 weight x tsdf, 3 x int32 weight x colour
-FIRST_CAPACITY = 1024  # blocks in the pool at first; it doubles up to max_blocks
+FIRST_CAPACITY = 1024  # blocks in the pool at first; it grows by half (or as needed) up to max_blocks
 # threads of the voxel update, striding over the active blocks' voxels (about two per core of a large GPU)
 INTEGRATE_THREADS = 1 << 18
 
@@ -172,7 +172,7 @@ class TsdfVolume:
         protected = np.zeros(self.n_blocks, bool)
         protected[slot_block[stamped & (slot_block >= 0) & (slot_block < self.n_blocks)]] = True
         if self.capacity < self.max_blocks:
-            capacity = min(self.max_blocks, max(total, 2 * self.capacity))
+            capacity = min(self.max_blocks, max(total, self.capacity + self.capacity // 2))  # by half: less idle pool
             self._rebuild(np.arange(self.n_blocks), capacity)
             if total <= self.capacity:
                 return
