@@ -78,7 +78,7 @@ def test_a_moving_instrument_leaves_no_surface_in_the_fused_mesh(fused_with_inst
     tool, tissue = fused_with_instrument["tool"], fused_with_instrument["tissue"]
     points = fused_with_instrument["stereo"]
     assert len(tool) > 5000 and len(points) > 5000  # the instrument was in view; the tissue was fused
-    # measured: 0 of 14460 fused points on the moving instrument (9423 instrument pixels in the five views)
+    # measured: 0 of 14474 fused points on the moving instrument (9423 instrument pixels in the five views)
     assert np.count_nonzero(on_instrument(points, tool, tissue)) <= 0.001 * len(points)
     # the tissue around it keeps its accuracy (measured: median 0.15 mm, none beyond 5 mm)
     d = surface_distances(points, tissue)
@@ -88,7 +88,7 @@ def test_a_moving_instrument_leaves_no_surface_in_the_fused_mesh(fused_with_inst
 def test_fused_depth_that_has_the_instrument_puts_it_in_the_mesh(fused_with_instrument):
     """The control: fusion itself does not carve a moving instrument away (each map's band only reaches 2 mm
     about its own surface), so it is the depth maps' multi-view checks that keep it out, and the check above
-    finds an instrument where one was fused."""
+    finds an instrument where one was fused (measured: 9000 of 175198 fused points on it)."""
     tool, tissue = fused_with_instrument["tool"], fused_with_instrument["tissue"]
     assert np.count_nonzero(on_instrument(fused_with_instrument["rendered"], tool, tissue)) > 1000
 
