@@ -131,3 +131,31 @@ def test_the_fusion_kernels_compile_for_cuda(warp_cpu, tmp_path):
         raise
     ptx = Path(outputs[0]).read_text()
     assert ".entry" in ptx and "integrate_voxels" in ptx and "collect_blocks" in ptx and "prepare_map" in ptx
+
+
+def test_blocks_a_map_found_no_room_for_are_fused_once_the_pool_has_grown(skull_world, monkeypatch):
+    """A map is queued without waiting for the device's block count: in a pool too small for it, the blocks it
+    could not get are fused later from its inputs still on the device. The result is bit for bit the volume of a
+    pool large enough from the start."""
+    from lapreco_hil.dense import fusion
+
+    world = skull_world
+    cam = world.camera
+    maps = []
+    for s in (0.0, 2.5, 5.0):
+        T = world.true_camera_pose(1_000_000_000 + int(s * 1e9))
+        image, depth = world.renderer.render(T)
+        maps.append((DepthMap(len(maps), depth, (depth > 0).astype(np.float32), cam.K, T), image[..., ::-1].copy()))
+    first_pool = fusion.FIRST_CAPACITY
+    grown = TsdfVolume(FusionConfig(), DEVICE)  # starts with first_pool blocks
+    for depth, colour in maps:
+        grown.integrate(depth, colour)
+    monkeypatch.setattr(fusion, "FIRST_CAPACITY", FusionConfig().max_blocks)
+    roomy = TsdfVolume(FusionConfig(), DEVICE)
+    for depth, colour in maps:
+        roomy.integrate(depth, colour)
+    a, b = grown.raw_blocks(), roomy.raw_blocks()
+    assert grown.stats.refilled_blocks > 0 and roomy.stats.refilled_blocks == 0
+    assert grown.stats.unallocated_blocks == 0
+    assert a.keys() == b.keys() and len(a) > first_pool
+    assert all(np.array_equal(x, y) for k in a for x, y in zip(a[k], b[k]))
