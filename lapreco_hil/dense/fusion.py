@@ -6,9 +6,13 @@ truncation bands), claimed in a hash table on the device, and given blocks from 
 memory stays flat over a run of any length. Voxel sums are fixed point (``dense.warp.tsdf``): ``deintegrate``
 takes a map out exactly, which is how a keyframe moved by bundle adjustment is re-fused.
 
+A map is fused without the host waiting for the device (``TsdfVolume``'s docstring says how); the host looks at
+the block counts when the next map comes.
+
 Meshing runs on the host: the blocks are assembled into dense chunks of 8^3 blocks (with a one-voxel apron
 from their neighbours) and contoured with VTK's flying edges; vertices whose cell touches an unobserved voxel
-are dropped, so the mesh has no skin where the volume knows nothing.
+are dropped, so the mesh has no skin where the volume knows nothing. Each chunk's piece is kept, and an
+extraction contours again only the chunks that maps touched since the last one.
 """
 
 from __future__ import annotations
