@@ -250,6 +250,8 @@ class TsdfVolume:
             self.in_conf = wp.zeros((h, w), dtype=wp.float32, device=self.device)
             self.in_colour = wp.zeros((h, w, 3), dtype=wp.uint8, device=self.device)
             self.in_weight = wp.zeros((h, w), dtype=wp.int32, device=self.device)
+            self.in_depth_q = wp.zeros((h, w), dtype=wp.uint16, device=self.device)
+            self.in_conf_q = wp.zeros((h, w), dtype=wp.uint8, device=self.device)
             if self.is_cuda:
                 self.stage = [wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
                               for a in (self.in_depth, self.in_conf, self.in_colour)]
@@ -269,39 +271,53 @@ class TsdfVolume:
                 continue
             self.stats.copies += 1
 
-    def integrate(self, depth: DepthMap, colour: np.ndarray | None = None, weight_scale: float = 1.0) -> int:
+    def integrate(self, depth: DepthMap, colour: np.ndarray | None = None, weight_scale: float = 1.0,
+                  quantise: tuple[float, int] | None = None) -> int:
         """Fuse one depth map (weighted by its confidence x ``weight_scale``) with its view's colour (RGB uint8,
         resized to the map where the sizes differ). ``depth.depth_m`` / ``confidence`` / ``colour`` may be
-        Warp arrays on the volume's device (a depth map made there: nothing goes through the host). Returns
-        the map's integration number, which ``deintegrate`` needs to take it out again."""
+        Warp arrays on the volume's device (a depth map made there: nothing goes through the host).
+        ``quantise`` (depth step in metres, confidence steps): the map is quantised on the device as it will be
+        kept, and fused so; ``quantised_map`` gives the quantised map back (a kept map fused again with the same
+        ``quantise`` gives the same integers). Returns the map's integration number, which ``deintegrate``
+        needs to take it out again."""
         with device_lock(self.device):
             self._settle()
             self._reserve()
             self._born += 1
-            self._apply(depth, colour, weight_scale, sign=1, born_limit=-1)
+            self._apply(depth, colour, weight_scale, sign=1, born_limit=-1, quantise=quantise)
             self.stats.integrations += 1
             if self.stats.integrations == 1:
                 self._settle()  # the first map sets how much room to keep ahead (_max_new)
             return self._born
 
     def deintegrate(self, depth: DepthMap, colour: np.ndarray | None = None, weight_scale: float = 1.0,
-                    integration: int | None = None) -> None:
-        """Take out a map integrated before, with the same map, colour, pose and weight (the exact inverse).
-        ``integration`` (what ``integrate`` returned) keeps blocks dropped at the cap and allocated again later
-        from being charged for it; None: every block the map touches."""
+                    integration: int | None = None, quantise: tuple[float, int] | None = None) -> None:
+        """Take out a map integrated before, with the same map, colour, pose, weight and ``quantise`` (the exact
+        inverse). ``integration`` (what ``integrate`` returned) keeps blocks dropped at the cap and allocated
+        again later from being charged for it; None: every block the map touches."""
         with device_lock(self.device):
             self._settle()
             self._apply(depth, colour, weight_scale, sign=-1,
-                        born_limit=self._born if integration is None else int(integration))
+                        born_limit=self._born if integration is None else int(integration), quantise=quantise)
             self.stats.deintegrations += 1
 
-    def _apply(self, depth: DepthMap, colour, weight_scale: float, sign: int, born_limit: int) -> None:
+    def quantised_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last map integrated with ``quantise``, as quantised on the device: (depth steps (H, W) uint16,
+        confidence steps (H, W) uint8). Waits for the device."""
+        with device_lock(self.device):
+            self.stats.waits += int(self.is_cuda)
+            return self.in_depth_q.numpy().copy(), self.in_conf_q.numpy().copy()
+
+    def _apply(self, depth: DepthMap, colour, weight_scale: float, sign: int, born_limit: int,
+               quantise: tuple[float, int] | None = None) -> None:
         self._upload(depth, colour)
         K = np.asarray(depth.K, float)
         T = np.asarray(depth.T_world_camera, float)
+        steps = (0.0, 0.0) if quantise is None else (float(np.float32(1.0) / np.float32(quantise[0])),
+                                                      float(quantise[1]))
         self._stamp += 1
         self._queue({"insert": sign > 0, "sign": sign, "weight_scale": float(weight_scale), "born": self._born,
-                     "born_limit": born_limit, "K": K, "T": T}, only_new=False)
+                     "born_limit": born_limit, "K": K, "T": T, "steps": steps}, only_new=False)
 
     def _queue(self, job: dict, only_new: bool) -> None:
         """The map in the input buffers through the three kernels, with no wait; its counts come back
@@ -312,7 +328,9 @@ class TsdfVolume:
         intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
         h, w = self._inputs_shape
         insert = int(job["insert"])
-        self._launch(k.prepare_map, (h, w), [self.in_conf, job["weight_scale"], self.in_weight, self.counts])
+        # (a refill runs it again on the map already quantised in place: the same integers)
+        self._launch(k.prepare_map, (h, w), [self.in_depth, self.in_conf, job["weight_scale"], *job["steps"],
+                                             self.in_weight, self.in_depth_q, self.in_conf_q, self.counts])
         self._launch(k.touch_blocks, (h, w), [self.in_depth, self.in_weight, intr,
                                               wp.mat33(*T[:3, :3].astype(np.float32).ravel()),
                                               wp.vec3(*T[:3, 3].astype(np.float32)), self.trunc_m, self.voxel_m, 1,

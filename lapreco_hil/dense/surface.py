@@ -40,6 +40,7 @@ DepthFn = Callable[[KeyframeView, list, DepthConfig, str], DepthMap]
 SourcesFn = Callable[[KeyframeView, list, int], list]
 SURFACE_MODES = ("auto", "dense", "alpha")
 DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
+KEPT_STEPS = (DEPTH_UNIT_M, 255)  # a kept map: depth in DEPTH_UNIT_M steps (uint16), confidence in 1/255 (uint8)
 CANDIDATE_FACTOR = 3  # decoded keyframe images cached: 3 x n views (and a few more)
 CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest the reference (poses only)
 
@@ -187,9 +188,9 @@ class DenseSurface:
             depth = self._stored_map(v)
             colour = self._colour(kf_id)
             t0 = time.perf_counter()
-            self.volume.deintegrate(depth, colour, integration=v.integration)
+            self.volume.deintegrate(depth, colour, integration=v.integration, quantise=KEPT_STEPS)
             depth.T_world_camera = v.T_world_camera.copy()
-            v.integration = self.volume.integrate(depth, colour)
+            v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
             v.T_fused = v.T_world_camera.copy()
             self.timings["integration_s"] += time.perf_counter() - t0
             moved += 1
@@ -210,16 +211,17 @@ class DenseSurface:
             v.depth_png, v.confidence_png = v.encoding.result()
             v.encoding = None
 
-    def _keep_map(self, v: _View, depth: DepthMap) -> DepthMap:
-        """Store the map as it will be fused (quantised; PNG-encoded in the encoder thread, off the caller's
-        path: cv2 lets go of the GIL) and return that stored map, as decoding the PNGs would give it back."""
-        d16, c8 = quantised(depth)
+    def _fuse_and_keep(self, v: _View, depth: DepthMap, colour: np.ndarray) -> None:
+        """Fuse a new map as it will be kept (quantised on the device, ``KEPT_STEPS``) and keep that quantised
+        map, PNG-encoded in the encoder thread (off the fusing thread: cv2 lets go of the GIL), so taking it
+        out again later is exact."""
+        v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
+        d16, c8 = self.volume.quantised_map()
         v.K = np.array(depth.K, float)
         v.T_fused = np.array(depth.T_world_camera, float)
         self._encoded(v)  # (a map made again for the same keyframe: the old encoding first)
         v.depth_png = v.confidence_png = None
         v.encoding = self._encoder.submit(_encode_pngs, d16, c8)
-        return _dequantised(v, d16, c8)
 
     def _sources(self, ref: KeyframeView) -> list[KeyframeView]:
         n = self.config.depth.source_views
@@ -255,9 +257,7 @@ class DenseSurface:
             if depth is None or not np.any(depth.valid):
                 self.depth_failures += 1
                 continue
-            v = self.views[kf_id]
-            stored = self._keep_map(v, depth)
-            v.integration = self.volume.integrate(stored, ref.colour)
+            self._fuse_and_keep(self.views[kf_id], depth, ref.colour)
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         self.fused += done
@@ -306,19 +306,6 @@ class DenseSurface:
                           "integration_per_keyframe_s": self.timings["integration_s"] /
                           max(self.fused + self.refused, 1)},
         }
-
-
-def quantised(depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
-    """A map as kept: depth in DEPTH_UNIT_M steps (uint16; 0 where none or beyond the range) and confidence in
-    1/255 steps (uint8; 0 where there is no depth). Float32 arithmetic: what it gives defines the kept map."""
-    d = np.nan_to_num(np.asarray(depth.depth_m, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    steps = np.rint(d * np.float32(1.0 / DEPTH_UNIT_M))
-    valid = (steps > 0) & (steps < 65536)
-    d16 = np.where(valid, steps, 0).astype(np.uint16)
-    c = np.nan_to_num(np.asarray(depth.confidence, np.float32), nan=0.0)
-    c8 = np.rint(np.clip(c, 0.0, 1.0) * np.float32(255.0)).astype(np.uint8)
-    c8[~valid] = 0
-    return d16, c8
 
 
 def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:

@@ -105,12 +105,32 @@ def pixel_weight(confidence: float, weight_scale: float) -> int:
 
 
 @wp.kernel
-def prepare_map(confidence: wp.array2d(dtype=wp.float32), weight_scale: float, weight: wp.array2d(dtype=wp.int32),
+def prepare_map(depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dtype=wp.float32), weight_scale: float,
+                depth_steps: float, confidence_steps: float, weight: wp.array2d(dtype=wp.int32),
+                depth_q: wp.array2d(dtype=wp.uint16), confidence_q: wp.array2d(dtype=wp.uint8),
                 counts: wp.array(dtype=int)):
     """Each pixel's integer weight (once per map, not once per voxel that looks at it); the first thread also
-    sets the map's counts to 0 (one launch for both)."""
+    sets the map's counts to 0 (one launch for both). With ``depth_steps`` > 0 the map is first quantised as it
+    is kept (depth in 1/depth_steps m, uint16, 0 where none or out of range; confidence in 1/confidence_steps,
+    uint8, 0 where there is no depth) into ``depth_q`` / ``confidence_q`` and fused as quantised: a kept map,
+    fused again, quantises to the same integers."""
     y, x = wp.tid()
-    weight[y, x] = pixel_weight(confidence[y, x], weight_scale)
+    c = confidence[y, x]
+    if depth_steps > 0.0:
+        d = depth[y, x]
+        q = float(0.0)
+        if d > 0.0:
+            q = wp.floor(d * depth_steps + 0.5)
+        if q >= 65536.0:
+            q = 0.0
+        cq = float(0.0)
+        if q > 0.0 and c > 0.0:
+            cq = wp.floor(wp.min(c, 1.0) * confidence_steps + 0.5)
+        depth_q[y, x] = wp.uint16(int(q))
+        confidence_q[y, x] = wp.uint8(int(cq))
+        depth[y, x] = q / depth_steps
+        c = cq / confidence_steps
+    weight[y, x] = pixel_weight(c, weight_scale)
     if y == 0 and x == 0:
         for i in range(COUNT_NEW, N_COUNTS):
             counts[i] = 0
