@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -39,6 +40,7 @@ DepthFn = Callable[[KeyframeView, list, DepthConfig, str], DepthMap]
 SourcesFn = Callable[[KeyframeView, list, int], list]
 SURFACE_MODES = ("auto", "dense", "alpha")
 DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
+KEPT_STEPS = (DEPTH_UNIT_M, 255)  # a kept map: depth in DEPTH_UNIT_M steps (uint16), confidence in 1/255 (uint8)
 CANDIDATE_FACTOR = 3  # decoded keyframe images cached: 3 x n views (and a few more)
 CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest the reference (poses only)
 
@@ -83,6 +85,7 @@ class _View:
     K: np.ndarray | None = None
     T_fused: np.ndarray | None = None
     integration: int | None = None
+    encoding: Future | None = None  # the map's PNG encoding, under way in the surface's encoder thread
 
 
 class DenseSurface:
@@ -116,6 +119,8 @@ class DenseSurface:
         self.depth_failures = 0
         self.without_sources: set[int] = set()  # keyframes no neighbour could serve as a stereo source for
         self.released = 0
+        # one thread PNG-encodes the fused maps, so the fusing thread does not wait for it
+        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dense-png")
 
     # --- images -------------------------------------------------------------------------------------------
     def _maps(self, camera: int):
@@ -183,9 +188,9 @@ class DenseSurface:
             depth = self._stored_map(v)
             colour = self._colour(kf_id)
             t0 = time.perf_counter()
-            self.volume.deintegrate(depth, colour, integration=v.integration)
+            self.volume.deintegrate(depth, colour, integration=v.integration, quantise=KEPT_STEPS)
             depth.T_world_camera = v.T_world_camera.copy()
-            v.integration = self.volume.integrate(depth, colour)
+            v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
             v.T_fused = v.T_world_camera.copy()
             self.timings["integration_s"] += time.perf_counter() - t0
             moved += 1
@@ -194,24 +199,29 @@ class DenseSurface:
 
     # --- fusion -------------------------------------------------------------------------------------------
     def _stored_map(self, v: _View) -> DepthMap:
+        self._encoded(v)
         depth = cv2.imdecode(np.frombuffer(v.depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
         conf = cv2.imdecode(np.frombuffer(v.confidence_png, np.uint8), cv2.IMREAD_UNCHANGED)
-        return DepthMap(v.kf_id, depth.astype(np.float32) * np.float32(DEPTH_UNIT_M),
-                        conf.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+        return _dequantised(v, depth, conf)
 
-    def _keep_map(self, v: _View, depth: DepthMap) -> DepthMap:
-        """Store the map as it will be fused (quantised, PNG) and return that stored map."""
-        d = np.nan_to_num(np.asarray(depth.depth_m, np.float64))
-        steps = np.round(d / DEPTH_UNIT_M)
-        valid = (steps > 0) & (steps < 65536)
-        d16 = np.where(valid, steps, 0).astype(np.uint16)
-        c8 = np.round(np.clip(np.nan_to_num(depth.confidence), 0.0, 1.0) * 255.0).astype(np.uint8)
-        c8[~valid] = 0
-        v.depth_png = cv2.imencode(".png", d16)[1].tobytes()
-        v.confidence_png = cv2.imencode(".png", c8)[1].tobytes()
+    @staticmethod
+    def _encoded(v: _View) -> None:
+        """Wait for the view's map to be PNG-encoded (if it is being)."""
+        if v.encoding is not None:
+            v.depth_png, v.confidence_png = v.encoding.result()
+            v.encoding = None
+
+    def _fuse_and_keep(self, v: _View, depth: DepthMap, colour: np.ndarray) -> None:
+        """Fuse a new map as it will be kept (quantised on the device, ``KEPT_STEPS``) and keep that quantised
+        map, PNG-encoded in the encoder thread (off the fusing thread: cv2 lets go of the GIL), so taking it
+        out again later is exact."""
+        v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
+        d16, c8 = self.volume.quantised_map()
         v.K = np.array(depth.K, float)
         v.T_fused = np.array(depth.T_world_camera, float)
-        return self._stored_map(v)
+        self._encoded(v)  # (a map made again for the same keyframe: the old encoding first)
+        v.depth_png = v.confidence_png = None
+        v.encoding = self._encoder.submit(_encode_pngs, d16, c8)
 
     def _sources(self, ref: KeyframeView) -> list[KeyframeView]:
         n = self.config.depth.source_views
@@ -247,9 +257,7 @@ class DenseSurface:
             if depth is None or not np.any(depth.valid):
                 self.depth_failures += 1
                 continue
-            v = self.views[kf_id]
-            stored = self._keep_map(v, depth)
-            v.integration = self.volume.integrate(stored, ref.colour)
+            self._fuse_and_keep(self.views[kf_id], depth, ref.colour)
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         self.fused += done
@@ -278,6 +286,8 @@ class DenseSurface:
     def report(self, mesh: pv.PolyData | None = None) -> dict:
         """report.json's ``dense``: points, triangles, keyframes fused, memory, timings."""
         vol = self.volume
+        for v in self.views.values():
+            self._encoded(v)
         kept = sum(len(v.jpeg) + len(v.depth_png or b"") + len(v.confidence_png or b"") for v in self.views.values())
         return {
             "points": int(mesh.n_points) if mesh is not None else None,
@@ -296,6 +306,15 @@ class DenseSurface:
                           "integration_per_keyframe_s": self.timings["integration_s"] /
                           max(self.fused + self.refused, 1)},
         }
+
+
+def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:
+    return DepthMap(v.kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                    c8.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+
+
+def _encode_pngs(d16: np.ndarray, c8: np.ndarray) -> tuple[bytes, bytes]:
+    return cv2.imencode(".png", d16)[1].tobytes(), cv2.imencode(".png", c8)[1].tobytes()
 
 
 def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):

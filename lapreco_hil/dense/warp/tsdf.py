@@ -65,8 +65,9 @@ def find_slot(slot_keys: wp.array(dtype=wp.int64), key: wp.int64, slot_bits: int
 
 
 @wp.func
-def claim_slot(slot_keys: wp.array(dtype=wp.int64), key: wp.int64, slot_bits: int, n_new: wp.array(dtype=int)) -> int:
-    """The slot holding ``key``, claimed if it is not there yet (counted in ``n_new``); -1 when the table is full."""
+def claim_slot(slot_keys: wp.array(dtype=wp.int64), key: wp.int64, slot_bits: int, counts: wp.array(dtype=int)) -> int:
+    """The slot holding ``key``, claimed if it is not there yet (counted in counts[COUNT_NEW]); -1 when the table
+    is full."""
     n = slot_keys.shape[0]
     s = home_slot(key, slot_bits)
     for _probe in range(n):
@@ -76,7 +77,7 @@ def claim_slot(slot_keys: wp.array(dtype=wp.int64), key: wp.int64, slot_bits: in
         if k == wp.int64(EMPTY):
             old = wp.atomic_cas(slot_keys, s, wp.int64(EMPTY), key)
             if old == wp.int64(EMPTY):
-                wp.atomic_add(n_new, 0, 1)
+                wp.atomic_add(counts, 1, 1)  # COUNT_NEW
                 return s
             if old == key:
                 return s
@@ -84,11 +85,61 @@ def claim_slot(slot_keys: wp.array(dtype=wp.int64), key: wp.int64, slot_bits: in
     return -1
 
 
+# counts: [0] blocks of the pool in use (kept from map to map), [1] slots a map claimed, [2] blocks active for the
+# map, [3] blocks the pool could not give; [1:] start at 0 for each map (reset_map_counts)
+COUNT_POOL = 0
+COUNT_NEW = 1
+COUNT_ACTIVE = 2
+COUNT_REFUSED = 3
+N_COUNTS = 4
+
+
+@wp.func
+def pixel_weight(confidence: float, weight_scale: float) -> int:
+    """A pixel's integer weight: confidence (clipped to [0, 1]; NaN: 0) x weight_scale in 1/W_SCALE steps, at
+    most W_MAX. Computed on the device for integration and de-integration alike, so both use the same integer."""
+    if not (confidence > 0.0):
+        return 0
+    w = int(wp.floor(wp.min(confidence, 1.0) * weight_scale * float(W_SCALE) + 0.5))
+    return wp.min(w, W_MAX)
+
+
 @wp.kernel
-def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32), intr: wp.vec4,
-                 R_wc: wp.mat33, t_wc: wp.vec3, trunc_m: float, voxel_m: float, stride: int, insert: int,
-                 stamp: int, slot_bits: int, slot_keys: wp.array(dtype=wp.int64), slot_stamp: wp.array(dtype=int),
-                 n_new: wp.array(dtype=int)):
+def prepare_map(depth: wp.array2d(dtype=wp.float32), confidence: wp.array2d(dtype=wp.float32), weight_scale: float,
+                depth_steps: float, confidence_steps: float, weight: wp.array2d(dtype=wp.int32),
+                depth_q: wp.array2d(dtype=wp.uint16), confidence_q: wp.array2d(dtype=wp.uint8),
+                counts: wp.array(dtype=int)):
+    """Each pixel's integer weight (once per map, not once per voxel that looks at it); the first thread also
+    sets the map's counts to 0 (one launch for both). With ``depth_steps`` > 0 the map is first quantised as it
+    is kept (depth in 1/depth_steps m, uint16, 0 where none or out of range; confidence in 1/confidence_steps,
+    uint8, 0 where there is no depth) into ``depth_q`` / ``confidence_q`` and fused as quantised: a kept map,
+    fused again, quantises to the same integers."""
+    y, x = wp.tid()
+    c = confidence[y, x]
+    if depth_steps > 0.0:
+        d = depth[y, x]
+        q = float(0.0)
+        if d > 0.0:
+            q = wp.floor(d * depth_steps + 0.5)
+        if q >= 65536.0:
+            q = 0.0
+        cq = float(0.0)
+        if q > 0.0 and c > 0.0:
+            cq = wp.floor(wp.min(c, 1.0) * confidence_steps + 0.5)
+        depth_q[y, x] = wp.uint16(int(q))
+        confidence_q[y, x] = wp.uint8(int(cq))
+        depth[y, x] = q / depth_steps
+        c = cq / confidence_steps
+    weight[y, x] = pixel_weight(c, weight_scale)
+    if y == 0 and x == 0:
+        for i in range(COUNT_NEW, N_COUNTS):
+            counts[i] = 0
+
+
+@wp.kernel
+def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32), intr: wp.vec4, R_wc: wp.mat33, t_wc: wp.vec3, trunc_m: float, voxel_m: float,
+                 stride: int, insert: int, stamp: int, slot_bits: int, slot_keys: wp.array(dtype=wp.int64),
+                 slot_stamp: wp.array(dtype=int), counts: wp.array(dtype=int)):
     """Every block the truncation band of a pixel's depth crosses is stamped (and, when ``insert``, claimed):
     the ray from depth - trunc to depth + trunc, sampled a voxel apart."""
     y0, x0 = wp.tid()
@@ -97,7 +148,7 @@ def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=w
     if y >= depth.shape[0] or x >= depth.shape[1]:
         return
     d = depth[y, x]
-    if d <= 0.0 or weight[y, x] <= 0:
+    if not (d > 0.0) or weight[y, x] <= 0:
         return
     ray = wp.vec3((float(x) - intr[2]) / intr[0], (float(y) - intr[3]) / intr[1], 1.0)
     block_m = voxel_m * float(BLOCK)
@@ -113,7 +164,7 @@ def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=w
                 last = key
                 s = int(-1)
                 if insert != 0:
-                    s = claim_slot(slot_keys, key, slot_bits, n_new)
+                    s = claim_slot(slot_keys, key, slot_bits, counts)
                 else:
                     s = find_slot(slot_keys, key, slot_bits)
                 if s >= 0 and slot_stamp[s] != stamp:
@@ -122,11 +173,13 @@ def touch_blocks(depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=w
 
 @wp.kernel
 def collect_blocks(slot_keys: wp.array(dtype=wp.int64), slot_stamp: wp.array(dtype=int),
-                   slot_block: wp.array(dtype=int), stamp: int, insert: int, born: int, born_limit: int,
-                   capacity: int, block_key: wp.array(dtype=wp.int64), block_born: wp.array(dtype=int),
-                   block_used: wp.array(dtype=int), counters: wp.array(dtype=int), active: wp.array(dtype=int)):
-    """The stamped slots' blocks into ``active`` (counters[1]); a claimed slot gets a block from the pool first
-    (counters[0]: blocks in use; counters[2]: blocks the pool could not give). With ``born_limit`` >= 0 only
+                   slot_block: wp.array(dtype=int), stamp: int, insert: int, only_new: int, born: int,
+                   born_limit: int, capacity: int, block_key: wp.array(dtype=wp.int64),
+                   block_born: wp.array(dtype=int), block_used: wp.array(dtype=int), counts: wp.array(dtype=int),
+                   active: wp.array(dtype=int)):
+    """The stamped slots' blocks into ``active`` (counts[COUNT_ACTIVE]); a claimed slot gets a block from the
+    pool first (counts[COUNT_POOL]; counts[COUNT_REFUSED]: blocks the pool could not give). ``only_new``: only
+    the blocks given now (a map's blocks refused before, once the pool has room). With ``born_limit`` >= 0 only
     blocks allocated by then (a deintegration: a block born later never held that map)."""
     s = wp.tid()
     if slot_stamp[s] != stamp:
@@ -135,30 +188,27 @@ def collect_blocks(slot_keys: wp.array(dtype=wp.int64), slot_stamp: wp.array(dty
     if b < 0:
         if insert == 0:
             return
-        b = wp.atomic_add(counters, 0, 1)
+        b = wp.atomic_add(counts, COUNT_POOL, 1)
         if b >= capacity:
-            wp.atomic_add(counters, 2, 1)
+            wp.atomic_add(counts, COUNT_REFUSED, 1)
             return
         slot_block[s] = b
         block_key[b] = slot_keys[s]
         block_born[b] = born
+    elif only_new != 0:
+        return
     if born_limit >= 0 and block_born[b] > born_limit:
         return
     block_used[b] = stamp
-    i = wp.atomic_add(counters, 1, 1)
+    i = wp.atomic_add(counts, COUNT_ACTIVE, 1)
     active[i] = b
 
 
-@wp.kernel
-def integrate_voxels(active: wp.array(dtype=int), block_key: wp.array(dtype=wp.int64),
-                     depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32),
-                     colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33, t_cw: wp.vec3,
-                     trunc_m: float, voxel_m: float, sign: int, w_sum: wp.array(dtype=wp.int32),
-                     d_sum: wp.array(dtype=wp.int32), c_sum: wp.array(dtype=wp.vec3i)):
-    """One voxel of an active block: its centre projected into the depth map (nearest pixel), the signed
-    distance along the optical axis truncated to [-1, 1] (voxels farther behind than the band are left), added
-    (sign +1) or taken out (sign -1) with the pixel's weight and colour."""
-    tid = wp.tid()
+@wp.func
+def integrate_voxel(tid: int, active: wp.array(dtype=int), block_key: wp.array(dtype=wp.int64),
+                    depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32), colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
+                    t_cw: wp.vec3, trunc_m: float, voxel_m: float, sign: int, w_sum: wp.array(dtype=wp.int32),
+                    d_sum: wp.array(dtype=wp.int32), c_sum: wp.array(dtype=wp.vec3i)):
     a = tid // BLOCK_VOXELS
     v = tid - a * BLOCK_VOXELS
     b = active[a]
@@ -178,7 +228,7 @@ def integrate_voxels(active: wp.array(dtype=int), block_key: wp.array(dtype=wp.i
         return
     d = depth[py, px]
     wq = weight[py, px]
-    if d <= 0.0 or wq <= 0:
+    if not (d > 0.0) or wq <= 0:
         return
     sdf = d - z
     if sdf < -trunc_m:
@@ -191,6 +241,25 @@ def integrate_voxels(active: wp.array(dtype=int), block_key: wp.array(dtype=wp.i
     d_sum[idx] = d_sum[idx] + w * dq
     c_sum[idx] = c_sum[idx] + wp.vec3i(w * int(colour[py, px, 0]), w * int(colour[py, px, 1]),
                                        w * int(colour[py, px, 2]))
+
+
+@wp.kernel
+def integrate_voxels(threads: int, active: wp.array(dtype=int), counts: wp.array(dtype=int),
+                     block_key: wp.array(dtype=wp.int64),
+                     depth: wp.array2d(dtype=wp.float32), weight: wp.array2d(dtype=wp.int32),
+                     colour: wp.array3d(dtype=wp.uint8), intr: wp.vec4, R_cw: wp.mat33,
+                     t_cw: wp.vec3, trunc_m: float, voxel_m: float, sign: int, w_sum: wp.array(dtype=wp.int32),
+                     d_sum: wp.array(dtype=wp.int32), c_sum: wp.array(dtype=wp.vec3i)):
+    """The voxels of the active blocks (counts[COUNT_ACTIVE] of them, read on the device: the host never waits
+    for the count), a fixed number of threads striding over them. Each voxel centre is projected into the depth
+    map (nearest pixel), the signed distance along the optical axis truncated to [-1, 1] (voxels farther behind
+    than the band are left), added (sign +1) or taken out (sign -1) with the pixel's weight and colour."""
+    n = counts[COUNT_ACTIVE] * BLOCK_VOXELS
+    tid = wp.tid()
+    while tid < n:
+        integrate_voxel(tid, active, block_key, depth, weight, colour, intr, R_cw, t_cw, trunc_m, voxel_m, sign,
+                        w_sum, d_sum, c_sum)
+        tid += threads
 
 
 @wp.kernel
@@ -218,9 +287,9 @@ def gather_blocks(order: wp.array(dtype=int), src_w: wp.array(dtype=wp.int32), s
 
 @wp.kernel
 def insert_blocks(block_key: wp.array(dtype=wp.int64), slot_bits: int, slot_keys: wp.array(dtype=wp.int64),
-                  slot_block: wp.array(dtype=int), n_new: wp.array(dtype=int)):
+                  slot_block: wp.array(dtype=int), counts: wp.array(dtype=int)):
     """Rebuild of the table: block b's key into a slot that points at b."""
     b = wp.tid()
-    s = claim_slot(slot_keys, block_key[b], slot_bits, n_new)
+    s = claim_slot(slot_keys, block_key[b], slot_bits, counts)
     if s >= 0:
         slot_block[s] = b
