@@ -475,3 +475,18 @@ def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp
     assert result["accuracy"]["kept"] > 0.5 * result["funnel"]["textured"]
     assert bool(result["device_ms"]) == DEVICE.startswith("cuda")  # the GPU's own time per kernel and copy
     assert "every view prepared" in format_table(result)
+
+
+def test_a_dense_surface_keeps_one_estimator_so_each_keyframe_is_prepared_once(sheet, warp_cpu):
+    """The dense surface's depth function (``stereo_functions``) keeps its estimator: a keyframe prepared as one
+    map's source is not prepared again as the next map's reference; a new config gets a new estimator."""
+    from lapreco_hil.dense.surface import stereo_functions
+
+    views, _ = sheet
+    depth_fn, _, why = stereo_functions()
+    assert why is None
+    config = DepthConfig()
+    assert depth_fn(views[0], views[1:3], config, DEVICE).stats["prepared"] == [0, 1, 2]
+    assert depth_fn(views[1], [views[0], views[2]], config, DEVICE).stats["prepared"] == []
+    assert depth_fn(views[1], [views[0]], dataclasses.replace(config, window_radius_px=2),
+                    DEVICE).stats["prepared"] == [1, 0]

@@ -543,6 +543,22 @@ def compute_depth(ref: KeyframeView, sources: list[KeyframeView], config: DepthC
     return DepthEstimator(config, device, host_buffers=0).compute(ref, sources, source_depths)
 
 
+class KeptEstimator:
+    """``compute_depth`` with one DepthEstimator kept (per config and device): a keyframe is prepared on the
+    device once and serves as a source of its neighbours' maps from the cache, and the buffers (page-locked on
+    CUDA) are reused. A dense surface keeps one for its life."""
+
+    def __init__(self) -> None:
+        self._estimator: DepthEstimator | None = None
+        self._key: tuple[DepthConfig, str] | None = None
+
+    def __call__(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
+                 source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+        if self._key != (config, str(device)):
+            self._estimator, self._key = DepthEstimator(config, device), (config, str(device))
+        return self._estimator.compute(ref, sources, source_depths)
+
+
 def compute_depths(views: list[KeyframeView], config: DepthConfig, device: str,
                    estimator: DepthEstimator | None = None) -> dict[int, DepthMap]:
     """Depth maps of every view against its ``choose_sources`` neighbours, each then checked forward-backward

@@ -46,12 +46,13 @@ CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest
 
 
 def stereo_functions() -> tuple[DepthFn | None, SourcesFn | None, str | None]:
-    """Multi-view stereo's (compute_depth, choose_sources), or (None, None, why) where it cannot be imported."""
+    """Multi-view stereo's (compute_depth with a kept estimator, choose_sources), or (None, None, why) where it
+    cannot be imported."""
     try:
-        from lapreco_hil.dense.depth import choose_sources, compute_depth
+        from lapreco_hil.dense.depth import KeptEstimator, choose_sources
     except ImportError as exc:
         return None, None, f"multi-view stereo is not available ({exc})"
-    return compute_depth, choose_sources, None
+    return KeptEstimator(), choose_sources, None
 
 
 def nearest_views(ref: KeyframeView, candidates: list, n: int) -> list:
