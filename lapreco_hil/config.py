@@ -134,6 +134,10 @@ class MapperConfig:
     # a landmark is an inlier with at least this many inlier observations, making up at least this share
     min_inlier_observations: int = ranged(3, ge=2)
     min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
+    # ...or with two inlier observations (instants) whose rays meet at least this wide (degrees; 0: never):
+    # with the robot's poses known such a pair fixes the depth, and a fast scan sees many points at two instants
+    # only; off by default, as it costs accuracy (docs/results.md, "Fast motion")
+    two_view_parallax_deg: float = ranged(0.0, ge=0.0)
     final_global_ba: bool = True
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)

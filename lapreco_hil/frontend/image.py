@@ -36,9 +36,10 @@ HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN
 # "LK's reach without the motion")
 LK_COARSE_REACH_PX = 2.5
 # the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least
-# SHADING_MIN_SIGMA_PX pixels there (a Gaussian that wide is sampled finely enough for bilinear upsampling)
+# SHADING_MIN_SIGMA_PX pixels there (a Gaussian that wide is sampled finely enough for bilinear upsampling, and
+# the high-pass stays that of the full-resolution blur: a 3 px sigma there changed the simulated runs' points)
 SHADING_MAX_FACTOR = 32
-SHADING_MIN_SIGMA_PX = 3.0
+SHADING_MIN_SIGMA_PX = 12.0
 
 
 def pyramid_levels(config: TrackerConfig, width: int, height: int) -> int:
