@@ -35,11 +35,11 @@ HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN
 # the motion (px on the coarsest level) LK alone still converges from on real frames (docs/benchmarks.md,
 # "LK's reach without the motion")
 LK_COARSE_REACH_PX = 2.5
-# the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least
-# SHADING_MIN_SIGMA_PX pixels there (a Gaussian that wide is sampled finely enough for bilinear upsampling, and
-# the high-pass stays that of the full-resolution blur: a 3 px sigma there changed the simulated runs' points)
+# the baseline's shading estimate: at a resolution reduced by a power of two up to this, keeping its sigma at
+# least SHADING_MIN_SIGMA_PX pixels there; the 3-level sigma (24 px) stays at full resolution, exactly the blur
+# the simulated and real-frame figures were measured with (a coarser one moved them: docs/benchmarks.md, session 11)
 SHADING_MAX_FACTOR = 32
-SHADING_MIN_SIGMA_PX = 12.0
+SHADING_MIN_SIGMA_PX = 16.0
 
 
 def pyramid_levels(config: TrackerConfig, width: int, height: int) -> int:
@@ -62,26 +62,28 @@ def shading_sigma_px(config: TrackerConfig, levels: int) -> float:
     return float(config.shading_sigma_px) * 2.0 ** levels
 
 
-def shading_factor(sigma_px: float) -> int:
-    """The resolution reduction (a power of two) at which a full-resolution ``sigma_px`` blur is taken."""
+def shading_factor(sigma_px: float, max_factor: int = SHADING_MAX_FACTOR,
+                   min_sigma_px: float = SHADING_MIN_SIGMA_PX) -> int:
+    """The resolution reduction (a power of two, at most ``max_factor``) at which a full-resolution ``sigma_px``
+    blur is taken, keeping at least ``min_sigma_px`` of sigma there."""
     factor = 1
-    while factor < SHADING_MAX_FACTOR and sigma_px / (2 * factor) >= SHADING_MIN_SIGMA_PX:
+    while factor < max_factor and sigma_px / (2 * factor) >= min_sigma_px:
         factor *= 2
     return factor
 
 
 def shading_level(log: np.ndarray, sigma_px: float) -> np.ndarray:
     """The Gaussian blur of ``log`` (float32) with a full-resolution ``sigma_px``, taken at reduced resolution:
-    factor x factor block means (blocks past the border: replicated pixels), the blur there (replicated border),
-    bilinear upsampling with pixel centres aligned."""
+    factor x factor block means (blocks past the border: replicated pixels), the blur there (OpenCV's default
+    border, reflected, as the full-resolution blur had), bilinear upsampling with pixel centres aligned."""
     factor = shading_factor(sigma_px)
-    if factor == 1:
-        return cv2.GaussianBlur(log, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
     h, w = log.shape
     hp, wp_ = -(-h // factor) * factor, -(-w // factor) * factor
     padded = cv2.copyMakeBorder(log, 0, hp - h, 0, wp_ - w, cv2.BORDER_REPLICATE) if (hp, wp_) != (h, w) else log
-    low = cv2.resize(padded, (wp_ // factor, hp // factor), interpolation=cv2.INTER_AREA)
-    low = cv2.GaussianBlur(low, (0, 0), sigma_px / factor, borderType=cv2.BORDER_REPLICATE)
+    low = cv2.resize(padded, (wp_ // factor, hp // factor), interpolation=cv2.INTER_AREA) if factor > 1 else log
+    low = cv2.GaussianBlur(low, (0, 0), sigma_px / factor)
+    if factor == 1:
+        return low
     return cv2.resize(low, (wp_, hp), interpolation=cv2.INTER_LINEAR)[:h, :w]
 
 

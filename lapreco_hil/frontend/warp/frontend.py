@@ -42,6 +42,10 @@ LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
 LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 COLOR_ROW = 64  # points per row of the colour remap
+# the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least this many
+# pixels there (a sigma-3 Gaussian is sampled finely enough for bilinear upsampling)
+SHADING_MAX_FACTOR = 8
+SHADING_MIN_SIGMA_PX = 3.0
 # frames of at least this many pixels go up in this many row bands, each copied while the next is converted
 UPLOAD_BANDS = 4
 UPLOAD_BANDS_FROM_PX = 1_000_000
@@ -75,7 +79,7 @@ class WarpFrontEnd:
         # the shading estimate (the log image blurred with sigma) is taken at a reduced resolution, with sigma /
         # factor: the largest power of two that leaves sigma a few pixels there
         sigma = max(self._sigma, 1.0)
-        factor = shading_factor(sigma)
+        factor = max(shading_factor(sigma, SHADING_MAX_FACTOR, SHADING_MIN_SIGMA_PX), 2)
         low_sigma = sigma / factor
         radius = int(np.ceil(3 * low_sigma))
         g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / low_sigma) ** 2)
