@@ -66,13 +66,23 @@ class TrackerConfig:
     quality_level: float = ranged(0.01, gt=0.0, le=1.0)
     block_size: int = ranged(7, ge=3)
     window_px: int = ranged(21, ge=3)
-    pyramid_levels: int = ranged(3, ge=0)
+    # LK's window on the pyramid levels from coarse_from_level up: wider there, so that LK alone (no pose
+    # prediction) holds a large motion on periodic or sparse texture (docs/benchmarks.md, session 11)
+    coarse_window_px: int = ranged(31, ge=3)
+    coarse_from_level: int = ranged(4, ge=0)
+    # LK's pyramid levels above full resolution, or "auto": from the image's size and expected_motion_px
+    # (frontend.image.pyramid_levels)
+    pyramid_levels: int | str = ranged("auto", ge=0)
+    # the image motion per frame (px) LK must reach without a pose prediction ("auto" levels)
+    expected_motion_px: float = ranged(80.0, gt=0.0)
+    # "auto" levels stop where the coarsest level's shorter side would fall below this (px)
+    pyramid_min_coarsest_px: float = ranged(32.0, gt=0.0)
     max_lk_error: float = ranged(30.0, gt=0.0)
     fov_margin_px: float = ranged(12.0, ge=0.0)
     # re-detect when fewer than this share of max_features is alive
     redetect_below: float = ranged(0.9, ge=0.0, le=1.0)
     # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did): the
-    # Gaussian's sigma in pixels of the coarsest pyramid level (x 2^pyramid_levels at full resolution)
+    # Gaussian's sigma in pixels of the coarsest pyramid level (x 2^levels at full resolution)
     shading_sigma_px: float = ranged(3.0, ge=0.0)
     # no new features where the local mean grey level is below this (0-255)
     min_brightness: float = ranged(20.0, ge=0.0, le=255.0)
@@ -124,6 +134,10 @@ class MapperConfig:
     # a landmark is an inlier with at least this many inlier observations, making up at least this share
     min_inlier_observations: int = ranged(3, ge=2)
     min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
+    # ...or with two inlier observations (instants) whose rays meet at least this wide (degrees; 0: never):
+    # with the robot's poses known such a pair fixes the depth, and a fast scan sees many points at two instants
+    # only; off by default, as it costs accuracy (docs/results.md, "Fast motion")
+    two_view_parallax_deg: float = ranged(0.0, ge=0.0)
     final_global_ba: bool = True
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)
@@ -297,6 +311,12 @@ def _coerce(value, hint, accepted: Range | None, name: str, source: str):
             if accepted is not None and (problem := accepted.problem(float(v))):
                 raise ConfigError(f"{source}: {name}: each value {problem}")
         return tuple(float(v) for v in value)
+    if hint == int | str:  # a whole number or "auto"
+        if value == "auto":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f'{source}: {name}: must be a whole number {accepted} or "auto"')
+        hint = int
     if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{source}: {name}: must be true or false")

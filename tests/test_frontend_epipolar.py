@@ -12,7 +12,7 @@ import pytest
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.frontend import epipolar, make_frontend
-from lapreco_hil.frontend.image import tracker_image
+from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 from lapreco_hil.types import Frame, FrameMotion
 
 HAMLYN = Path(__file__).parent / "data" / "hamlyn-phantom-stereo"
@@ -81,7 +81,7 @@ def test_tracker_image_keeps_lk_within_a_pixel_under_gain_change_and_highlights(
     lit = (cv2.blur(gray, (15, 15)) >= cfg.min_brightness).astype(np.uint8) * 255
     pts = cv2.goodFeaturesToTrack(a, 300, cfg.quality_level, cfg.min_distance_px, mask=lit,
                                   blockSize=cfg.block_size).reshape(-1, 1, 2)
-    lk = epipolar.lk_params(cfg.window_px, cfg.pyramid_levels)
+    lk = epipolar.lk_params(cfg.window_px, pyramid_levels(cfg, 360, 288))
     truth = cv2.perspectiveTransform(pts.astype(np.float64), H).reshape(-1, 2)
     inside = (truth[:, 0] > 25) & (truth[:, 1] > 25) & (truth[:, 0] < 335) & (truth[:, 1] < 263)
 
@@ -105,7 +105,9 @@ def test_tracker_image_keeps_lk_within_a_pixel_under_gain_change_and_highlights(
 def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth_known):
     """A real texture on a plane, the camera moved 70 px and rotated 8 degrees between frames: LK from where
     the motion predicts keeps the tracks within a pixel (depth known, or found along the epipolar line with
-    no depth at all); LK from where they were loses them. The frame at 720 x 576 (the phantom video's full
+    no depth at all); LK from where they were loses them on 3 pyramid levels, and (the OpenCV baseline) holds
+    them on the 4 that "auto" picks for this size and 80 px of expected motion (Warp's LK does not yet there:
+    docs/benchmarks.md, session 11). The frame at 720 x 576 (the phantom video's full
     frame): at 360 x 288 the coarsest level is 45 x 36, smaller than two LK windows."""
     left, _, K, _, _ = hamlyn()
     left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
@@ -116,8 +118,8 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
     nxt = cv2.cvtColor(warp_frame(cv2.cvtColor(left, cv2.COLOR_BGR2GRAY), H), cv2.COLOR_GRAY2BGR)
     first = cv2.cvtColor(cv2.cvtColor(left, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
 
-    def run(motion):
-        fe = make_frontend(tracker, cam, TrackerConfig(redetect_below=0.001), DEVICE)
+    def run(motion, levels="auto"):
+        fe = make_frontend(tracker, cam, TrackerConfig(redetect_below=0.001, pyramid_levels=levels), DEVICE)
         obs0 = fe.process(Frame(first, 0, 0))
         if callable(motion):
             motion = motion(obs0)
@@ -129,13 +131,16 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
             return FrameMotion(T, obs0.track_ids, np.full(len(obs0), z0), (0.03, 0.3))
         return FrameMotion(T, depth_range_m=(0.03, 0.3))
 
-    obs0, obs1, err = run(motion)
+    obs0, obs1, err = run(motion, levels=3)
     assert len(err) > 100
     assert np.median(err) < 0.3 and np.mean(err < 1.0) > 0.7, (np.median(err), np.mean(err < 1.0))
     assert obs1.funnel["after_lk"] >= obs1.funnel["after_drift_check"] >= np.sum(err < 1.0) * 0.9
     assert obs0.funnel == {"corners": len(obs0), "after_lk": 0, "after_drift_check": 0}
-    _, _, plain = run(None)
+    _, _, plain = run(None, levels=3)
     assert np.mean(plain < 1.0) < 0.3, np.mean(plain < 1.0)
+    if depth_known and tracker == "opencv":  # (LK alone does not depend on the prediction's kind)
+        _, _, alone = run(None)
+        assert np.mean(alone < 1.0) > 0.5, np.mean(alone < 1.0)  # measured 0.58 (OpenCV; 3 levels: under 0.3)
 
 
 def test_sweep_finds_the_stereo_partner_along_the_epipolar_line():

@@ -86,3 +86,34 @@ def test_new_features_keep_their_distance_from_live_tracks(rng):
     obs = fe.process(make_frame(shifted(I, 5.0, 0.0), 1))
     d = np.linalg.norm(obs.uv[:, None] - obs.uv[None], axis=2) + np.eye(len(obs)) * 1e9
     assert d.min() > 10.0 - 1.5  # tracks may drift together by a pixel, new ones never start closer
+
+
+def test_auto_pyramid_levels_follow_the_expected_motion_and_the_image_size():
+    from lapreco_hil.config import config_from_dict
+    from lapreco_hil.errors import ConfigError
+    from lapreco_hil.frontend.image import pyramid_levels
+
+    cfg = TrackerConfig()  # "auto", 80 px per frame, the coarsest level at least 32 px
+    assert pyramid_levels(cfg, 1920, 1080) == 5  # 80 px -> 2.5 px on the coarsest level (60 x 34)
+    assert pyramid_levels(cfg, 640, 480) == 3  # bounded by the size: 4 levels would leave 30 px
+    assert pyramid_levels(cfg, 360, 288) == 3
+    assert pyramid_levels(TrackerConfig(expected_motion_px=10.0), 1920, 1080) == 2
+    assert pyramid_levels(TrackerConfig(pyramid_levels=4), 360, 288) == 4  # a number is taken as it is
+    assert config_from_dict({"tracker": {"pyramid_levels": 2}}).tracker.pyramid_levels == 2
+    with pytest.raises(ConfigError, match=r'\[tracker\] pyramid_levels .*"auto"'):
+        config_from_dict({"tracker": {"pyramid_levels": "many"}})
+
+
+def test_shading_level_at_reduced_resolution_is_the_full_resolution_blur():
+    from lapreco_hil.frontend.image import shading_factor, shading_level
+
+    rng = np.random.default_rng(3)
+    log = cv2.GaussianBlur(rng.normal(0, 1, (1080, 1920)).astype(np.float32), (0, 0), 8.0) * 20
+    assert shading_factor(24.0) == 1  # 3 levels: the full-resolution blur
+    for sigma, factor in ((48.0, 2), (96.0, 4)):
+        assert shading_factor(sigma) == factor  # the blur runs at sigma 24 px there
+        ours = shading_level(log, sigma)
+        ref = cv2.GaussianBlur(log, (0, 0), sigma)
+        m = int(3 * sigma)  # the borders differ (reflected at reduced resolution)
+        inner = np.abs(ours - ref)[m:-m, m:-m]
+        assert inner.max() < 0.05 * np.abs(ref).max(), (sigma, inner.max(), np.abs(ref).max())

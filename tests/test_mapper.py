@@ -258,3 +258,22 @@ def test_one_problem_builder_gives_the_local_window_and_the_final_pass(rng):
     assert np.array_equal(final.fixed, final.pose_ids < fa) and final.fixed.any()
     assert len(final.obs_pose) == sum(len(m.tracks[t]) for t in final.point_ids.tolist())
     assert (final.pose_ids[final.obs_pose] < m.retirement.emptied).any()  # views kept only by the tracks
+
+
+def test_two_inlier_views_wide_apart_make_an_inlier_only_when_asked():
+    """A point with two inlier observations is an inlier with ``two_view_parallax_deg`` set and its rays that far
+    apart; three inlier observations are needed otherwise (or when the pair is narrow)."""
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    points = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 1.0], [0.0, 0.0, 0.1]])  # wide pair, narrow pair, three views
+    obs_point = np.array([0, 0, 1, 1, 2, 2, 2])
+    centres = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0, 0], [0.01, 0, 0], [0, 0, 0], [0.002, 0, 0], [0.004, 0, 0]],
+                       float)
+    good = np.ones(len(obs_point), bool)
+    off = Mapper(K, MapperConfig())
+    on = Mapper(K, MapperConfig(two_view_parallax_deg=2.5))
+    assert off._inlier_points(obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [False, False, True]
+    assert on._inlier_points(obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [True, False, True]
+    one_bad = good.copy()
+    one_bad[1] = False  # the wide pair's second view is an outlier: one inlier view is not enough
+    assert on._inlier_points(obs_point, one_bad, 3, 3, points=points, obs_centres=centres).tolist() == [False, False,
+                                                                                                         True]

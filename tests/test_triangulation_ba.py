@@ -104,3 +104,18 @@ def test_robust_loss_resists_gross_outliers_where_least_squares_does_not(rng):
     robust = ba.solve(problem, pixel_sigma=0.5, loss="cauchy", k=2.0)
     plain = ba.solve(problem, pixel_sigma=0.5, loss=None)
     assert rms_position_mm(robust.poses, poses) < 0.5 * rms_position_mm(plain.poses, poses)
+
+
+def test_widest_ray_angle_between_a_points_views():
+    from lapreco_hil.mapping.triangulation import widest_ray_angle_deg
+
+    points = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.1], [1.0, 1.0, 1.0]])
+    # point 0 seen from two centres 10 mm apart at 100 mm (5.7 deg), point 1 from three (the widest pair is 0-2:
+    # 11.4 deg), point 2 once
+    centres = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0],
+                        [-0.01, 0.0, 0.0], [0.0, 0.0, 0.0], [0.01, 0.0, 0.0],
+                        [0.0, 0.0, 0.0]])
+    obs_point = np.array([0, 0, 1, 1, 1, 2])
+    angle = widest_ray_angle_deg(points, obs_point, centres, 4)
+    assert np.allclose(angle[:3], [np.degrees(np.arctan(0.1)), 2 * np.degrees(np.arctan(0.1)), 0.0])
+    assert angle[3] == 0.0  # a point with no observation

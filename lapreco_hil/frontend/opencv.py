@@ -15,7 +15,7 @@ from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import epipolar
 from lapreco_hil.frontend.drift import AffineDriftCheck
-from lapreco_hil.frontend.image import tracker_image
+from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
 
 class OpenCVFrontEnd:
@@ -38,7 +38,8 @@ class OpenCVFrontEnd:
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._A = np.zeros((0, 2, 2))
-        self._lk = epipolar.lk_params(config.window_px, config.pyramid_levels)
+        self.levels = pyramid_levels(config, camera.width, camera.height)
+        self._lk = epipolar.lk_params(config.window_px, self.levels)
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:
         xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.camera.width - 1)
@@ -65,21 +66,20 @@ class OpenCVFrontEnd:
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
         # too dark to carry texture (the cavity beyond the light's reach): no detections there
         lit = cv2.blur(gray, (15, 15)) >= cfg.min_brightness
-        gray, intensity = tracker_image(gray, cfg)
+        gray, intensity = tracker_image(gray, cfg, self.levels)
         t1 = time.perf_counter()
         n_lk = 0
         searched = np.zeros(len(self._pts), bool)
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
-                nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, None, **self._lk)
+                nxt, status, err = self._track(gray, pts)
                 predicted = np.ones(len(pts), bool)
             else:
                 guess, searched = self._predict(motion, depth, intensity)
                 predicted = np.isfinite(guess).all(axis=1)
                 guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
-                nxt, status, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess,
-                                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **self._lk)
+                nxt, status, err = self._track(gray, pts, guess)
             nxt = nxt.reshape(-1, 2)
             keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
             if searched.any():
@@ -144,12 +144,34 @@ class OpenCVFrontEnd:
         if self._prev is None or len(self._pts) == 0:
             return empty
         color = undistort_view(image, camera, self._views)
-        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config)
+        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config, self.levels)
         uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float,
                                           self._pts.astype(np.float64), self.camera.K, camera.K,
                                           np.asarray(T_other_this, np.float64), self._depth_range, self._lk)
         return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
+
+    def _track(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None = None):
+        """Pyramidal LK of ``pts`` from the previous image into ``gray`` (from ``guess`` when given):
+        ``coarse_window_px`` on the levels from ``coarse_from_level`` up (LK on those levels' images), then
+        ``window_px`` on the finer ones from where the coarse levels put each track (the Warp kernel's per-level
+        window, in two calls)."""
+        k, levels, cfg = self.config.coarse_from_level, self.levels, self.config
+        flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+        if k > levels or cfg.coarse_window_px == cfg.window_px:
+            return cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess, flags=flags, **self._lk)
+        prev_k, cur_k = self._prev, gray
+        for _ in range(k):
+            prev_k, cur_k = cv2.pyrDown(prev_k), cv2.pyrDown(cur_k)
+        scale = float(2**k)
+        coarse, st_coarse, err = cv2.calcOpticalFlowPyrLK(
+            prev_k, cur_k, pts / scale, None if guess is None else guess / scale, flags=flags,
+            winSize=(cfg.coarse_window_px, cfg.coarse_window_px), maxLevel=levels - k, criteria=self._lk["criteria"])
+        if k == 0:
+            return coarse, st_coarse, err
+        nxt, st, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, (coarse * scale).astype(np.float32),
+                                                flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **dict(self._lk, maxLevel=k - 1))
+        return nxt, st & st_coarse, err
 
     def _filter(self, keep: np.ndarray, positions: np.ndarray) -> None:
         self._pts, self._ids = positions[keep], self._ids[keep]

@@ -35,7 +35,7 @@ from lapreco_hil.mapping.resection import refine_pose
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
 from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
-from lapreco_hil.mapping.triangulation import triangulate
+from lapreco_hil.mapping.triangulation import triangulate, widest_ray_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -365,8 +365,10 @@ class Mapper:
             sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else self.config.sigma_floor_px
             good = np.linalg.norm(r, axis=1) <= self.final_schedule.inlier_threshold_px(sigma)
             obs_kf = np.array([k for k, _, _ in obs], np.int64)
+            centres = np.array([self.keyframes[k].T_world_camera[:3, 3] for k in obs_kf.tolist()]).reshape(-1, 3)
             inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids),
-                                         self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum())
+                                         self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum(),
+                                         points, centres)
             self.archive.add(np.array(with_point, np.int64), points,
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
@@ -388,19 +390,28 @@ class Mapper:
         return np.array([self.keyframes[k].reference is None for k in np.asarray(kf_ids).tolist()], bool)
 
     def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int,
-                       reference_obs: np.ndarray | None = None, n_reference_views: int | None = None) -> np.ndarray:
+                       reference_obs: np.ndarray | None = None, n_reference_views: int | None = None,
+                       points: np.ndarray | None = None, obs_centres: np.ndarray | None = None) -> np.ndarray:
         """A landmark is an inlier with enough inlier observations, making up enough of its observations; with a
         stereo rig, in at least two of the reference camera's keyframes too (where there are two): a stereo match
-        seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch."""
+        seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch. Given the
+        ``points`` and each observation's camera centre, two inlier instants whose rays meet at least
+        ``two_view_parallax_deg`` apart also make an inlier."""
         cfg = self.config
         counts = np.bincount(obs_point[good], minlength=n_points)
         totals = np.bincount(obs_point, minlength=n_points)
         # a point cannot be seen more often than there are keyframes (a two-view stereo pair: 2)
         min_obs = min(cfg.min_inlier_observations, n_views)
-        ok = (counts >= min_obs) & (counts >= cfg.min_inlier_fraction * totals)
+        enough = counts >= min_obs
+        instants = good if reference_obs is None or self.rig is None else good & reference_obs
+        wide = np.zeros(n_points, bool)
+        if points is not None and cfg.two_view_parallax_deg > 0:
+            angle = widest_ray_angle_deg(points, obs_point[instants], obs_centres[instants], n_points)
+            wide = (np.bincount(obs_point[instants], minlength=n_points) >= 2) & (angle >= cfg.two_view_parallax_deg)
+        ok = (enough | wide) & (counts >= cfg.min_inlier_fraction * totals)
         if self.rig is not None and reference_obs is not None:
             in_reference = np.bincount(obs_point[good & reference_obs], minlength=n_points)
-            ok &= in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))
+            ok &= (in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))) | wide
         return ok
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
@@ -645,8 +656,10 @@ class Mapper:
                 e = np.linalg.norm(r, axis=1)
                 good = e <= threshold
             reference_pose = self._is_reference(problem.pose_ids)
+            poses, points = (result.poses, result.points) if cfg.final_global_ba else (problem.poses, problem.points)
             ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids),
-                                     reference_pose[problem.obs_pose], int(reference_pose.sum()))
+                                     reference_pose[problem.obs_pose], int(reference_pose.sum()),
+                                     points, poses[problem.obs_pose][:, :3, 3])
             kept = e[ok[problem.obs_point] & np.isfinite(e)]  # every view of the inlier points
             if len(kept):
                 reprojection = {"median_px": float(np.median(kept)), "p95_px": float(np.percentile(kept, 95)),

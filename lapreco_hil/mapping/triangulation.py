@@ -64,3 +64,23 @@ def triangulate(uv: np.ndarray, seen: np.ndarray, T_world_cameras: np.ndarray, K
     max_err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
     valid = finite & cheiral & (parallax >= min_parallax_deg) & (max_err <= max_error_px) & (seen.sum(1) >= 2)
     return TriangulationResult(X, valid, parallax, max_err)
+
+
+def widest_ray_angle_deg(points: np.ndarray, obs_point: np.ndarray, centres: np.ndarray,
+                         n_points: int) -> np.ndarray:
+    """Per point, the widest angle (degrees) between the rays from its observations' camera ``centres`` (O, 3,
+    one per row of ``obs_point``) to it: how well its views fix its depth. 0 for a point seen once or not at all.
+    Exact for two views; with more, the widest angle to the first view's ray (a lower bound, enough to tell a
+    wide pair from a narrow one)."""
+    if len(obs_point) == 0:
+        return np.zeros(n_points)
+    rays = np.asarray(points)[obs_point] - centres
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    order = np.argsort(obs_point, kind="stable")
+    first = np.full(n_points, -1)
+    first[obs_point[order[::-1]]] = order[::-1]  # each point's first observation
+    cos = np.sum(rays * rays[first[obs_point]], axis=1)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    widest = np.zeros(n_points)
+    np.maximum.at(widest, obs_point, angle)
+    return widest

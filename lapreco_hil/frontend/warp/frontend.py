@@ -24,7 +24,8 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
 from lapreco_hil.frontend import epipolar
-from lapreco_hil.frontend.image import HIGHPASS_GAIN, LOG_OFFSET, shading_sigma_px, to_u8, tracker_image
+from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
+                                        to_u8, tracker_image)
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
@@ -44,10 +45,10 @@ COLOR_ROW = 64  # points per row of the colour remap
 # the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least this many
 # pixels there (a sigma-3 Gaussian is sampled finely enough for bilinear upsampling)
 SHADING_MAX_FACTOR = 8
+SHADING_MIN_SIGMA_PX = 3.0
 # frames of at least this many pixels go up in this many row bands, each copied while the next is converted
 UPLOAD_BANDS = 4
 UPLOAD_BANDS_FROM_PX = 1_000_000
-SHADING_MIN_SIGMA_PX = 3.0
 
 
 class WarpFrontEnd:
@@ -61,7 +62,9 @@ class WarpFrontEnd:
         self.width, self.height = camera.width, camera.height
         W, H = self.width, self.height
         # pyramid layout: one flat array, per-level offsets
-        self.levels = config.pyramid_levels + 1
+        self.pyramid_levels = pyramid_levels(config, W, H)  # above full resolution
+        self.levels = self.pyramid_levels + 1  # with full resolution
+        self._sigma = shading_sigma_px(config, self.pyramid_levels)
         offs, ws, hs, total, w, h = [], [], [], 0, W, H
         for _ in range(self.levels):
             offs.append(total)
@@ -75,10 +78,8 @@ class WarpFrontEnd:
                         borderValue=0)
         # the shading estimate (the log image blurred with sigma) is taken at a reduced resolution, with sigma /
         # factor: the largest power of two that leaves sigma a few pixels there
-        sigma = max(shading_sigma_px(config), 1.0)
-        factor = 2
-        while factor < SHADING_MAX_FACTOR and sigma / (2 * factor) >= SHADING_MIN_SIGMA_PX:
-            factor *= 2
+        sigma = max(self._sigma, 1.0)
+        factor = max(shading_factor(sigma, SHADING_MAX_FACTOR, SHADING_MIN_SIGMA_PX), 2)
         low_sigma = sigma / factor
         radius = int(np.ceil(3 * low_sigma))
         g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / low_sigma) ** 2)
@@ -177,7 +178,7 @@ class WarpFrontEnd:
         self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
         # the OpenCV baseline's LK error (TrackerConfig.max_lk_error) is in the 8-bit units of the image it
         # tracks: HIGHPASS_GAIN per unit of the log high-pass, or 255 for plain intensity in [0, 1]
-        self._lk_error_units = HIGHPASS_GAIN if shading_sigma_px(config) > 0 else 255.0
+        self._lk_error_units = HIGHPASS_GAIN if self._sigma > 0 else 255.0
         self._motion: FrameMotion | None = None  # this frame's, while it is processed
         self._depth_range = FrameMotion(np.eye(4)).depth_range_m  # the last motion's, for match_view
         self._last = (0, 0, np.zeros(0, np.int64), np.zeros((0, 2)))  # the last frame's seq, t_ns, ids, uv
@@ -226,7 +227,7 @@ class WarpFrontEnd:
         pyramid.blur_1d(self._low_log, hw, hh, self._weights, 1, 0, self._low_tmp, dev)
         pyramid.blur_1d(self._low_tmp, hw, hh, self._weights, 0, 1, self._low_lit, dev)
         pyr, gx, gy = self._pyr[self._cur], self._gx[self._cur], self._gy[self._cur]
-        pyramid.level0(self._log, self._low_lit, hw, hh, factor, shading_sigma_px(self.config) > 0, pyr, self._lit,
+        pyramid.level0(self._log, self._low_lit, hw, hh, factor, self._sigma > 0, pyr, self._lit,
                        dev)
         offs, ws, hs = self._lv
         for l in range(1, self.levels):
@@ -242,7 +243,8 @@ class WarpFrontEnd:
         lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
                     self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
-                    self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device)
+                    self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
+                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level)
         tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
         if self._motion is not None:
             # LK back into the previous image from where the swept tracks landed
@@ -498,11 +500,12 @@ class WarpFrontEnd:
                                 camera=camera_index)
         with device_lock(self.device):
             this = self._pyr[self._cur].numpy()[: self.width * self.height].reshape(self.height, self.width)
-        shading = shading_sigma_px(self.config) > 0
+        shading = self._sigma > 0
         this_u8 = to_u8(this) if shading else np.clip(this * 255.0 + 0.5, 0, 255).astype(np.uint8)
         color = undistort_view(image, camera, self._views)
-        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config)
-        lk_params = epipolar.lk_params(self.config.window_px, self.config.pyramid_levels)
+        other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config,
+                                             self.pyramid_levels)
+        lk_params = epipolar.lk_params(self.config.window_px, self.pyramid_levels)
         found_uv, found = epipolar.match_across(this_u8, this, other_u8, other_float, uv, self.camera.K, camera.K,
                                                 np.asarray(T_other_this, np.float64), self._depth_range, lk_params)
         return Observations(seq, t_ns, ids[found].copy(), found_uv[found], colors_at(color, found_uv[found]),

@@ -25,20 +25,27 @@ def _window_origin(x: float, y: float) -> wp.vec4:
 
 
 @wp.func
+def _reflect(x: int, n: int) -> int:
+    """x mirrored into [0, n) about the border pixels (OpenCV's BORDER_REFLECT_101, as its LK pads its levels),
+    then clamped (a window far outside)."""
+    return wp.clamp((n - 1) - wp.abs((n - 1) - wp.abs(x)), 0, n - 1)
+
+
+@wp.func
 def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, k: int, win: int,
                inv_win: float) -> float:
-    """Pixel k (row-major) of a win x win window with origin o (``_window_origin``), bilinear, border
-    replicated. Every pixel of a translated window shares the same sub-pixel fractions. There is no branch:
+    """Pixel k (row-major) of a win x win window with origin o (``_window_origin``), bilinear, the border
+    reflected as OpenCV's LK samples it (a coarse level's window often reaches past it). Every pixel of a translated window shares the same sub-pixel fractions. There is no branch:
     the four addresses are clamped into the image, so the loads of all of a lane's pixels can be in flight at
     once (an iteration waits for memory once, not once per pixel)."""
     row = int((float(k) + 0.5) * inv_win)  # k // win without an integer division
     col = k - row * win
     x0 = int(o[0]) + col
     y0 = int(o[1]) + row
-    xa = wp.clamp(x0, 0, w - 1)
-    xb = wp.clamp(x0 + 1, 0, w - 1)
-    ra = off + wp.clamp(y0, 0, h - 1) * w
-    rb = off + wp.clamp(y0 + 1, 0, h - 1) * w
+    xa = _reflect(x0, w)
+    xb = _reflect(x0 + 1, w)
+    ra = off + _reflect(y0, h) * w
+    rb = off + _reflect(y0 + 1, h) * w
     a = img[ra + xa]
     b = img[ra + xb]
     c = img[rb + xa]
@@ -55,7 +62,8 @@ def _make_lk_track(cache: int):
     @wp.kernel(module="unique", enable_backward=False)
     def _lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
                   cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
-                  hs: wp.array(dtype=int), levels: int, win: int, iterations: int, eps: float, min_eig: float,
+                  hs: wp.array(dtype=int), levels: int, fine_win: int, coarse_win: int, coarse_from: int,
+                  iterations: int, eps: float, min_eig: float,
                   max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
                   guess: wp.array(dtype=wp.vec2), use_guess: wp.array(dtype=wp.int32),
                   out_pts: wp.array(dtype=wp.vec2),
@@ -72,9 +80,6 @@ def _make_lk_track(cache: int):
         if f >= count[0]:
             return  # the launch covers every slot; the live count is on the device (the whole block leaves)
         nl = wp.block_dim()
-        n = win * win
-        r = float(win - 1) * 0.5
-        inv_win = 1.0 / float(win)
         p0 = pts[f]
         # the guess carried down the pyramid (current level units): from where the camera motion predicts the
         # track when use_guess is set (NaN there: not found, the track is lost), else zero
@@ -86,9 +91,15 @@ def _make_lk_track(cache: int):
         abs_sum = float(0.0)  # the last iteration's sum of absolute differences over the window
         sums = int(0)  # block sums so far (their shared buffers alternate)
         eps2 = eps * eps
-        cached = n <= cache * nl
+        n = int(0)
         for li in range(levels):
             lvl = levels - 1 - li
+            # the window: coarse_win on the levels from coarse_from up, fine_win below
+            win = wp.where(lvl >= coarse_from, coarse_win, fine_win)
+            n = win * win
+            r = float(win - 1) * 0.5
+            inv_win = 1.0 / float(win)
+            cached = n <= cache * nl
             off = offs[lvl]
             w = ws[lvl]
             h = hs[lvl]
@@ -124,13 +135,16 @@ def _make_lk_track(cache: int):
             sums += 1
             det = G[0] * G[2] - G[1] * G[1]
             lam = 0.5 * (G[0] + G[2]) - wp.sqrt(wp.max(0.25 * (G[0] - G[2]) * (G[0] - G[2]) + G[1] * G[1], 0.0))
-            if lam / float(n) < min_eig or wp.abs(det) < 1.0e-12:
+            # too little texture in the window: on the finest level the track is lost; on a coarser one (a
+            # wide high-pass leaves little there) the guess carries down unchanged, as OpenCV's LK does
+            weak = lam / float(n) < min_eig or wp.abs(det) < 1.0e-12
+            if weak and lvl == 0:
                 ok = 0
-            inv_det = 1.0 / wp.where(ok == 1, det, 1.0)
+            inv_det = 1.0 / wp.where(weak, 1.0, det)
             nu = wp.vec2(0.0, 0.0)
             last_step = wp.vec2(0.0, 0.0)
             done = int(0)
-            if ok == 0:
+            if ok == 0 or weak:
                 done = 1
             for _it in range(iterations):
                 # every lane holds the same reduced values, so leaving the loop is uniform across the block
@@ -212,10 +226,15 @@ _lk_track = _make_lk_track((22 * 22 + LK_LANES - 1) // LK_LANES)
 def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array, offs: wp.array, ws: wp.array,
              hs: wp.array, levels: int, win: int, iterations: int, eps: float, min_eig: float, max_error: float,
              pts: wp.array, count: wp.array, guess: wp.array, use_guess: wp.array, out_pts: wp.array,
-             status: wp.array, error: wp.array, device) -> None:
+             status: wp.array, error: wp.array, device, coarse_win: int | None = None,
+             coarse_from: int | None = None) -> None:
     """Track ``pts`` (the first ``count[0]`` of them; every slot is launched) from the ``prev`` pyramid into
     ``cur``, from ``guess`` where ``use_guess[0]`` is 1 (NaN: lost), else from where they were: ``out_pts``,
-    ``status`` (1: tracked) and ``error`` (the window's mean absolute difference)."""
+    ``status`` (1: tracked) and ``error`` (the window's mean absolute difference). The window is ``win`` px,
+    ``coarse_win`` on the levels from ``coarse_from`` up (None: ``win`` throughout)."""
+    coarse_win = win if coarse_win is None else coarse_win
+    coarse_from = levels if coarse_from is None else coarse_from
     wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
-        prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, iterations, eps, min_eig, max_error, pts, count,
+        prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, coarse_win, coarse_from, iterations, eps, min_eig,
+        max_error, pts, count,
         guess, use_guess, out_pts, status, error], block_dim=LK_LANES, device=device)
