@@ -73,11 +73,16 @@ def preload_kernels(package: str, device) -> float:
     kernel for the first time mid-run (the first frame with a motion, the first BA) would stall for the
     compile — seconds on a machine whose kernel cache is cold — while capture goes on and drops frames."""
     import importlib
+    import pkgutil
     import time
 
     wp = init_warp()
     t0 = time.perf_counter()
-    wp.load_module(importlib.import_module(package), device=str(device), recursive=True)
+    root = importlib.import_module(package)
+    # load_module(recursive=True) loads the submodules already imported: import them all first
+    for info in pkgutil.walk_packages(getattr(root, "__path__", []), package + "."):
+        importlib.import_module(info.name)
+    wp.load_module(root, device=str(device), recursive=True)
     seconds = time.perf_counter() - t0
     log.info("warp: %s loaded on %s in %.2f s", package, device, seconds)
     return seconds

@@ -12,6 +12,26 @@ def warp_cpu():
 
 
 @pytest.fixture
+def sm90_ptx(warp_cpu, tmp_path):
+    """``ptx(module) -> str``: the PTX Warp's bundled NVRTC makes of a kernel module for an H100 (sm_90). CI has
+    no GPU: CUDA code generation errors (types the CPU build tolerates) show here rather than on the GPU
+    machine. Skips where the Warp build has no NVRTC."""
+    import warp as wp
+    from pathlib import Path
+
+    def ptx(module) -> str:
+        try:
+            outputs = wp.compile_aot_module(module, arch=90, module_dir=tmp_path, use_ptx=True)
+        except RuntimeError as exc:
+            if "nvrtc" in str(exc).lower():
+                pytest.skip(f"no CUDA compiler in this Warp build: {exc}")
+            raise
+        return Path(outputs[0]).read_text()
+
+    return ptx
+
+
+@pytest.fixture
 def rng():
     return np.random.default_rng(12345)
 

@@ -19,7 +19,6 @@ def test_preload_loads_every_frontend_kernel_module_on_the_device():
     """The motion path's kernels (predict) are launched only for frames with a motion; preloading must load them
     with the rest, or a live run compiles them mid-run under the device lock."""
     from lapreco_hil.warp_device import preload_kernels, resolve_device
-    import lapreco_hil.frontend.warp.frontend  # noqa: F401  (imports every kernel module)
 
     device = resolve_device("cpu")
     preload_kernels("lapreco_hil.frontend.warp", device)

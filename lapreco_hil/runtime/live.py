@@ -154,9 +154,6 @@ class LiveRun:
                 self.tracking.frontend.warm_up()
         if self.dense is not None:
             # its first depth map would otherwise compile under the device lock and stall tracking
-            import lapreco_hil.dense.depth  # noqa: F401  (the kernel modules, imported)
-            import lapreco_hil.dense.fusion  # noqa: F401
-
             preload_kernels("lapreco_hil.dense.warp", self.dense.device)
         sup = self.supervisor
         sup.start_processes()

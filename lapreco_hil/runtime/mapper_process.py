@@ -114,7 +114,6 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) 
     solve = ba_solver(mapper_config)
     if mapper_config.ba_solver == "schur" and mapper_config.ba_device != "numpy":
         # compiled now, not in the first window (which the live schedule would then defer)
-        import lapreco_hil.mapping.schur_kernels  # noqa: F401
         from lapreco_hil.warp_device import preload_kernels, resolve_device
 
         preload_kernels("lapreco_hil.mapping.schur_kernels", resolve_device(mapper_config.ba_device))

@@ -274,6 +274,18 @@ def sweep_cols(sums: wp.array4d(dtype=vec6), ref_std: wp.array2d(dtype=float), r
 
 
 @wp.func
+def _tap(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
+         inside: float) -> vec6:
+    """One tap's (w, w^2, w g, g, g^2, 1) of source sample w and reference grey g, weighing 0 where the sample
+    may not be used (EXCLUDED) or ``inside`` is 0 (a clamped column outside the image)."""
+    val = samples[s, p, y, x]
+    m = wp.where(val >= -1.0, inside, 0.0)
+    wv = val * m
+    gv = ref[y, x] * m
+    return vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+
+
+@wp.func
 def _window_row(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), s: int, p: int, y: int, x: int,
                 r: int) -> vec6:
     """The sums (w, w^2, w g, g, g^2, usable count) over the window row of pixel (x, y), from its 2r + 1 taps
@@ -283,11 +295,7 @@ def _window_row(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=float), 
     if y < 0 or y >= ref.shape[0]:
         return acc
     for xx in range(wp.max(x - r, 0), wp.min(x + r + 1, ref.shape[1])):
-        val = samples[s, p, y, xx]
-        m = wp.where(val >= -1.0, 1.0, 0.0)
-        wv = val * m
-        gv = ref[y, xx] * m
-        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+        acc += _tap(ref, samples, s, p, y, xx, 1.0)
     return acc
 
 
@@ -328,11 +336,7 @@ def _window_row_ring(ref: wp.array2d(dtype=float), samples: wp.array4d(dtype=flo
     w = ref.shape[1]
     for dx in range(wp.static(-RING_RADIUS), wp.static(RING_RADIUS + 1)):
         xx = wp.clamp(x + dx, 0, w - 1)
-        val = samples[s, p, y, xx]
-        m = wp.where(xx == x + dx, wp.where(val >= -1.0, 1.0, 0.0), 0.0)
-        wv = val * m
-        gv = ref[y, xx] * m
-        acc += vec6(wv, wv * wv, wv * gv, gv, gv * gv, m)
+        acc += _tap(ref, samples, s, p, y, xx, wp.where(xx == x + dx, 1.0, 0.0))
     return acc
 
 
