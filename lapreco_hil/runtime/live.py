@@ -85,7 +85,8 @@ class LiveRun:
             if surface is not None:
                 view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
                 self.dense = Dense(surface, self.links, self.metrics, device=device,
-                                   period_s=rt.surface_period_s if view else None)
+                                   period_s=rt.surface_period_s if view else None,
+                                   busy_share=rt.dense_busy_share)
                 self.recent = RecentFrames(RECENT_FRAMES)
         self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker,
                                          cameras=len(rig) if rig is not None else 1, rig=stereo,

@@ -337,13 +337,18 @@ class Dense:
     keyframe exists (its neighbours on both sides, the mapper's depth span for it by then), and taken out and
     put back when local BA moves it. The mesh is extracted every ``period_s`` for the live view (None: no view
     wants it; meshing the whole volume takes a CPU second, so then only the final outputs mesh it). On a GPU,
-    each step takes the device in turn with tracking (the device lock), so no kernel lands in a graph being
-    captured."""
+    the depth estimator and the volume take the device in turn with tracking (the device lock) only while they
+    launch and read back, so no kernel lands in a graph being captured; their host work (decoding the kept
+    images and maps, choosing sources) holds no lock, so tracking never waits for it.
+
+    The stage is busy at most ``busy_share`` of the wall time (it shares the process, and Python's lock, with
+    tracking): after each keyframe it rests in proportion, and when several keyframes are ready it fuses the
+    newest (what the live view wants) and leaves the older ones to the final build."""
 
     def __init__(self, surface, links: StageLinks, metrics: LiveMetrics, *, period_s: float | None,
-                 device: str) -> None:
+                 device: str, busy_share: float = 1.0) -> None:
         self.surface, self.links, self.metrics = surface, links, metrics
-        self.period_s, self.device = period_s, device
+        self.period_s, self.device, self.busy_share = period_s, device, busy_share
         self.mesh = None
         self._inbox: collections.deque = collections.deque()  # ("keyframe", id, frame, T) | ("poses", msg)
         self._cond = threading.Condition()
@@ -364,6 +369,7 @@ class Dense:
 
         m = self.metrics
         next_mesh = time.monotonic() + (self.period_s or 0.0)
+        rest_until = 0.0  # no keyframe is fused before this (monotonic s): the stage's busy share
         while not self.links.stop.is_set() and not self.links.finished.is_set():
             with self._cond:
                 if not self._inbox:
@@ -380,25 +386,23 @@ class Dense:
                     spans = {int(k): (None if not np.all(np.isfinite(r)) else (float(r[0]), float(r[1])))
                              for k, r in zip(msg.keyframe_ids, msg.depth_ranges)}
                     self.surface.set_depth_ranges(spans)
-                    moved = 0
-                    for kf_id, T in zip(msg.keyframe_ids.tolist(), msg.poses):
-                        # the device in turns per keyframe, so tracking waits for one keyframe's work at most
-                        with device_lock(self.device):
-                            moved += self.surface.update_poses({kf_id: T})
-                    m.add("dense_refused", moved)
+                    m.add("dense_refused", self.surface.update_poses(dict(zip(msg.keyframe_ids.tolist(),
+                                                                              msg.poses))))
             # every keyframe but the newest has a neighbour on each side by now: its depth map; one that has no
             # source view yet is tried again while it is among the newest few
             ready = self.order[:-1]
-            if ready:
+            if ready and time.monotonic() >= rest_until:
                 t0 = time.perf_counter()
-                fused = 0
-                for kf_id in ready:
-                    with device_lock(self.device):
-                        fused += self.surface.fuse_pending({kf_id})
+                # the newest first; the older ones (the stage had no time for them) wait for the final build
+                newest, older = ready[-1], ready[:-1]
+                fused = self.surface.fuse_pending({newest})
+                m.add("dense_left_to_final", sum(k not in self.surface.without_sources for k in older))
                 waiting = [k for k in ready if k in self.surface.without_sources][-RETRY_KEYFRAMES:]
                 self.order = waiting + self.order[-1:]
+                took = time.perf_counter() - t0
+                rest_until = time.monotonic() + took * (1.0 / self.busy_share - 1.0)
                 if fused:
-                    m.time_stage("dense_keyframe", (time.perf_counter() - t0) / fused)
+                    m.time_stage("dense_keyframe", took / fused)
                     m.add("dense_keyframes", fused)
             now = time.monotonic()
             if self.period_s is not None and now >= next_mesh and self.surface.fused:
