@@ -328,12 +328,13 @@ class ObservationKernels:
     is written beside the current one (the trial poses uploaded, the landmarks moved here) and ``accept`` makes it
     current. Every buffer is allocated once per solve; the host reads back one buffer per step it needs (the
     pose system, the eliminated camera system, the trial's sums) into a host array allocated once. ``ops`` counts
-    launches (memsets included), uploads, downloads and allocations: on the CPU device a download is a read of
-    the array's memory, on CUDA a copy and a wait."""
+    launches (memsets included), uploads, downloads (and their bytes) and allocations: on the CPU device a
+    download is a read of the array's memory, on CUDA a copy and a wait."""
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
         self.device = device
-        self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0}
+        self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
+                    "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
         self.K = wp.vec4d(float(p.K[0, 0]), float(p.K[1, 1]), float(p.K[0, 2]), float(p.K[1, 2]))
         N, F = self.n_points, max(n_free, 1)
@@ -391,6 +392,7 @@ class ObservationKernels:
     def _upload_new(self, values: np.ndarray, dtype):
         self.ops["allocations"] += 1
         self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += values.nbytes
         return wp.array(values if len(values) else np.zeros((1,) + values.shape[1:], values.dtype), dtype=dtype,
                         device=self.device)
 
@@ -414,6 +416,7 @@ class ObservationKernels:
         if m.host is not array:
             wp.copy(array, m.host, count=len(values))
         self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += m.view[:len(values)].nbytes
 
     def _download(self, *arrays) -> list[np.ndarray]:
         """The arrays' host mirrors' views, after one wait for the copies (valid until the next download)."""
@@ -423,6 +426,7 @@ class ObservationKernels:
             if m.host is not array:
                 wp.copy(m.host, array)
             self.ops["downloads"] += 1
+            self.ops["downloaded_bytes"] += m.view.nbytes
             views.append(m.view)
         device = wp.get_device(self.device)
         if not device.is_cpu:
