@@ -561,11 +561,14 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
     return _plus_pose_factors(p, lay, poses, total)
 
 
-def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float) -> _Linear:
+def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
+                         lam: float | None = None) -> _Linear:
     """``_linearize`` by the kernels at their current state (``poses`` on the host); the landmark blocks stay on
-    the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None)."""
-    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.linearize(sigma, loss, k,
-                                                                landmarks=not lay.kernels.schur_on_device)
+    the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None), and are eliminated at ``lam``
+    with it where given (``ObservationKernels.linearize``)."""
+    on_device = lay.kernels.schur_on_device
+    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.linearize(sigma, loss, k, landmarks=not on_device,
+                                                                lam=lam if on_device else None)
     n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
     diagonal = np.arange(n_free)
@@ -758,10 +761,10 @@ def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -
         timing["schur_s"] += time.perf_counter() - t0
         return None
     M, r = eliminated
-    n6 = len(r) if len(lay.free) else 0
+    n6 = 6 * len(lay.free)
     S = lin.Hcc + lam * np.eye(n6)
-    S -= M[:n6, :n6]  # (its lower triangle: what the factorisation reads)
-    rhs = r[:n6] - lin.gc
+    S -= M  # (its lower triangle: what the factorisation reads)
+    rhs = r - lin.gc
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
     dc = _solve_camera_system(S, rhs)
@@ -804,7 +807,7 @@ class _HostState:
     def error(self, sigma: float, loss: str, k: float) -> float:
         return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k)
 
-    def linearize(self, sigma: float, loss: str, k: float) -> _Linear:
+    def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
         return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k)
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
@@ -841,8 +844,9 @@ class _DeviceState:
     def error(self, sigma: float, loss: str, k: float) -> float:
         return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k))
 
-    def linearize(self, sigma: float, loss: str, k: float) -> _Linear:
-        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k)
+    def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
+        """(with the landmarks eliminated at ``lam``, the damping LM tries first, where that runs here)"""
+        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam)
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         """The step, its trial state made on the device and its reprojection error evaluated there with it (LM
@@ -895,7 +899,7 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     while True:
         it_times = {k_: timing[k_] for k_ in _new_timing()}
         t0 = time.perf_counter()
-        lin = state.linearize(sigma, loss, k)
+        lin = state.linearize(sigma, loss, k, lam)
         timing["linearize_s"] += time.perf_counter() - t0
         new_error, accepted = error, False
         while True:

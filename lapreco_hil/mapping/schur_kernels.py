@@ -343,11 +343,17 @@ class ObservationKernels:
         self.obs_col = self._upload_new(np.asarray(obs_col, np.int32), wp.int32)
         self.uv = self._upload_new(np.ascontiguousarray(p.obs_uv, np.float64), wp.vec2d)
         self.W = self._alloc(self.n_obs, mat36d)  # (written whole by each linearisation)
-        # what a linearisation sums into, one buffer (one memset): Hpp (N x 9), gp (N x 3), the pose system
-        self.linear = self._alloc(12 * N + 42 * n_free + 1, wp.float64)
-        self.Hpp = self._view(self.linear, 0, N, wp.mat33d)
-        self.gp = self._view(self.linear, 9 * N, N, wp.vec3d)
-        self.pose_system = self._view(self.linear, 12 * N, 42 * n_free + 1, wp.float64)
+        # what a linearisation sums into (``linear``, one memset): Hpp (N x 9), gp (N x 3), the pose system
+        # (42 F + 1); then, where the landmarks are eliminated here, the camera system (``eliminated``): the pose
+        # system and the camera system are read back in one copy (``system``)
+        self.schur_on_device = bool(schur_on_device)
+        n6, n_system = 6 * n_free, 42 * n_free + 1
+        n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        self.work = self._alloc(12 * N + n_system + n_eliminated, wp.float64)
+        self.linear = self._view(self.work, 0, 12 * N + n_system, wp.float64)
+        self.Hpp = self._view(self.work, 0, N, wp.mat33d)
+        self.gp = self._view(self.work, 9 * N, N, wp.vec3d)
+        self.pose_system = self._view(self.work, 12 * N, n_system, wp.float64)
         # the current and the trial state (``cur`` indexes the current one)
         self.T = [self._alloc(len(p.poses), wp.mat44d) for _ in range(2)]
         self.X = [self._alloc(N, wp.vec3d) for _ in range(2)]
@@ -365,7 +371,7 @@ class ObservationKernels:
         self._chunks: dict[int, tuple] = {}
         # the camera system's elimination on the device (``schur_complement``): observations by free poses
         # grouped by landmark, each with the end of its landmark's group
-        self.schur_on_device = bool(schur_on_device)
+        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
         if self.schur_on_device:
             obs_point = np.asarray(p.obs_point)
             pm = np.flatnonzero(np.asarray(obs_col) >= 0)
@@ -377,12 +383,13 @@ class ObservationKernels:
             self.pm_obs = self._upload_new(pm.astype(np.int32), wp.int32)
             self.pm_end = self._upload_new(ends.astype(np.int32), wp.int32)
             self.Lg = self._alloc(N, wp.vec3d)
-            n6 = 6 * n_free
-            # read back in one copy: M (6F x 6F), r (6F), the count of landmark blocks not positive definite
-            self.eliminated = self._alloc(n6 * n6 + n6 + 1, wp.float64)
-            self.M = self._view(self.eliminated, 0, max(n6 * n6, 1), wp.float64)
-            self.r = self._view(self.eliminated, n6 * n6, max(n6, 1), wp.float64)
-            self.failed = self._view(self.eliminated, n6 * n6 + n6, 1, wp.float64)
+            # M (6F x 6F), r (6F), the count of landmark blocks not positive definite
+            start = 12 * N + n_system
+            self.eliminated = self._view(self.work, start, n_eliminated, wp.float64)
+            self.M = self._view(self.work, start, n6 * n6, wp.float64)
+            self.r = self._view(self.work, start + n6 * n6, n6, wp.float64)
+            self.failed = self._view(self.work, start + n6 * n6 + n6, 1, wp.float64)
+            self.system = self._view(self.work, 12 * N, n_system + n_eliminated, wp.float64)
 
     # --- buffers and transfers -------------------------------------------------------------------------------
     def _alloc(self, n: int, dtype):
@@ -470,23 +477,32 @@ class ObservationKernels:
         self.cur = 1 - self.cur
 
     # --- the launches --------------------------------------------------------------------------------------------
-    def linearize(self, sigma: float, loss: str, k: float, landmarks: bool):
+    def linearize(self, sigma: float, loss: str, k: float, landmarks: bool, lam: float | None = None):
         """Linearise at the current state: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2, and
-        with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies."""
+        with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies. With ``lam``
+        (the elimination on the device) the landmarks are eliminated at that damping too, read back with the pose
+        system in one copy, for ``schur_complement(lam)``: the device works while the host adds the pose
+        factors."""
         with device_lock(self.device):
             self._zero(self.linear)
             self._launch(_linearize, self.n_obs,
                          [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
                           self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free],
                          [self.W, self.Hpp, self.gp, self.pose_system])
-            flat = self._download(self.linear if landmarks else self.pose_system)[0]
+            if lam is not None:
+                self._eliminate(lam)
+                flat = self._download(self.system)[0]
+            else:
+                flat = self._download(self.linear if landmarks else self.pose_system)[0]
         F, N = self.n_free, self.n_points
         system = flat[12 * N:] if landmarks else flat
         blocks = system[:36 * F].reshape(F, 6, 6).copy()
         grads = system[36 * F:42 * F].reshape(F, 6).copy()
+        weighted_sq = float(system[42 * F])
         Hpp = flat[:9 * N].reshape(N, 3, 3).copy() if landmarks else None
         gp = flat[9 * N:12 * N].reshape(N, 3).copy() if landmarks else None
-        return blocks, grads, float(system[42 * F]), Hpp, gp
+        self._eliminated_at = None if lam is None else (lam, self._camera_system(system[42 * F + 1:]))
+        return blocks, grads, weighted_sq, Hpp, gp
 
     def W_host(self) -> np.ndarray:
         """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
@@ -544,23 +560,31 @@ class ObservationKernels:
             self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
             return self._download(self.Wdc)[0][:self.n_points].copy()
 
-    def schur_complement(self, lam: float):
-        """The landmarks eliminated at damping ``lam``, on the device: (M (6F, 6F): the sum of W^T V^-1 W in its
-        lower block triangle, r (6F,): the sum of W^T V^-1 gp), or None where a landmark's damped block is not
-        positive definite. One read-back (M, r and the flag); M and r are valid until the next download."""
-        d = self.device
-        with device_lock(d):
-            self._zero(self.eliminated)
-            self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)],
-                         [self.L, self.Lg, self.failed])
-            self._launch(_schur_blocks, self.n_pm,
-                         [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
-                          6 * self.n_free], [self.M, self.r])
-            flat = self._download(self.eliminated)[0]
+    def _eliminate(self, lam: float) -> None:
+        self._zero(self.eliminated)
+        self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)], [self.L, self.Lg, self.failed])
+        self._launch(_schur_blocks, self.n_pm,
+                     [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                      6 * self.n_free], [self.M, self.r])
+
+    def _camera_system(self, flat: np.ndarray):
+        """(M, r) copied from a read-back ``eliminated``; None where a landmark block failed."""
         n6 = 6 * self.n_free
         if flat[n6 * n6 + n6]:
             return None
-        return flat[:n6 * n6].reshape(n6, n6), flat[n6 * n6:n6 * n6 + n6]
+        return flat[:n6 * n6].reshape(n6, n6).copy(), flat[n6 * n6:n6 * n6 + n6].copy()
+
+    def schur_complement(self, lam: float):
+        """The landmarks eliminated at damping ``lam``, on the device: (M (6F, 6F): the sum of W^T V^-1 W in its
+        lower block triangle, r (6F,): the sum of W^T V^-1 gp), or None where a landmark's damped block is not
+        positive definite. One read-back (M, r and the flag), none where the last linearisation eliminated them
+        at this damping (``linearize``). Copies."""
+        if self._eliminated_at is not None and self._eliminated_at[0] == lam:
+            eliminated, self._eliminated_at = self._eliminated_at[1], None
+            return eliminated
+        with device_lock(self.device):
+            self._eliminate(lam)
+            return self._camera_system(self._download(self.eliminated)[0])
 
     def _try(self, sigma: float, loss: str, k: float):
         """(d.gp, d.d, the trial state's reprojection error) once its landmarks are written: one read-back."""
