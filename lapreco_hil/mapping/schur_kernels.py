@@ -309,6 +309,10 @@ def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc
     _move_point(j, d, X, gp, X_trial, sums)
 
 
+# the parts of an arena start on multiples of 32 words (256 bytes of float64: CUDA's allocation alignment)
+_ALIGN_WORDS = 32
+
+
 class _Mirror:
     """A device array's host side, allocated once: on a CUDA device a host array (one ``wp.copy`` each way,
     nothing allocated per transfer), on the CPU device the array's own memory (nothing copied)."""
@@ -337,59 +341,57 @@ class ObservationKernels:
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
         self.K = wp.vec4d(float(p.K[0, 0]), float(p.K[1, 1]), float(p.K[0, 2]), float(p.K[1, 2]))
-        N, F = self.n_points, max(n_free, 1)
-        self.obs_pose = self._upload_new(np.asarray(p.obs_pose, np.int32), wp.int32)
-        self.obs_point = self._upload_new(np.asarray(p.obs_point, np.int32), wp.int32)
-        self.obs_col = self._upload_new(np.asarray(obs_col, np.int32), wp.int32)
-        self.uv = self._upload_new(np.ascontiguousarray(p.obs_uv, np.float64), wp.vec2d)
-        self.W = self._alloc(self.n_obs, mat36d)  # (written whole by each linearisation)
-        # what a linearisation sums into (``linear``, one memset): Hpp (N x 9), gp (N x 3), the pose system
-        # (42 F + 1); then, where the landmarks are eliminated here, the camera system (``eliminated``): the pose
-        # system and the camera system are read back in one copy (``system``)
+        N, O = self.n_points, self.n_obs
         self.schur_on_device = bool(schur_on_device)
-        n6, n_system = 6 * n_free, 42 * n_free + 1
-        n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
-        self.work = self._alloc(12 * N + n_system + n_eliminated, wp.float64)
-        self.linear = self._view(self.work, 0, 12 * N + n_system, wp.float64)
-        self.Hpp = self._view(self.work, 0, N, wp.mat33d)
-        self.gp = self._view(self.work, 9 * N, N, wp.vec3d)
-        self.pose_system = self._view(self.work, 12 * N, n_system, wp.float64)
-        # the current and the trial state (``cur`` indexes the current one)
-        self.T = [self._alloc(len(p.poses), wp.mat44d) for _ in range(2)]
-        self.X = [self._alloc(N, wp.vec3d) for _ in range(2)]
-        self.cur = 0
-        # a step's landmark moves, sum of W dc, and its sums (d.gp, d.d, the trial's reprojection error)
-        self.dp = self._alloc(N, wp.vec3d)
-        self.step_sums = self._alloc(3 * N + 3, wp.float64)
-        self.Wdc = self._view(self.step_sums, 0, N, wp.vec3d)
-        self.sums = self._view(self.step_sums, 3 * N, 3, wp.float64)
-        self.dc = self._alloc(F, vec6d)
-        self.L = self._alloc(N, vec6d)
-        self.residual = self._alloc(self.n_obs, wp.vec2d)
-        self._host = {}  # host mirrors, made at first use
-        self._commands = {}  # recorded launches (``_launch``)
-        self._chunks: dict[int, tuple] = {}
-        # the camera system's elimination on the device (``schur_complement``): observations by free poses
+        self._arenas = []  # the allocations that the arrays below are parts of
+        # the problem's index arrays, one upload; with the elimination here, the observations by free poses
         # grouped by landmark, each with the end of its landmark's group
-        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
+        indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
         if self.schur_on_device:
             obs_point = np.asarray(p.obs_point)
             pm = np.flatnonzero(np.asarray(obs_col) >= 0)
             # (a stable sort of small integers is numpy's radix sort)
-            key = obs_point[pm].astype(np.int16 if N < 2**15 else np.int64)
-            pm = pm[np.argsort(key, kind="stable")]
-            ends = np.cumsum(np.bincount(obs_point[pm], minlength=N))[obs_point[pm]]
+            pm = pm[np.argsort(obs_point[pm].astype(np.int16 if N < 2**15 else np.int64), kind="stable")]
+            indices["pm_obs"] = pm
+            indices["pm_end"] = np.cumsum(np.bincount(obs_point[pm], minlength=N))[obs_point[pm]]
             self.n_pm = len(pm)
-            self.pm_obs = self._upload_new(pm.astype(np.int32), wp.int32)
-            self.pm_end = self._upload_new(ends.astype(np.int32), wp.int32)
-            self.Lg = self._alloc(N, wp.vec3d)
+        for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
+            setattr(self, name, view)
+        self.uv = self._upload_new(np.ascontiguousarray(p.obs_uv, np.float64), wp.vec2d)
+        # every other buffer: parts of one allocation. ``work``: what a linearisation sums into (``linear``, one
+        # memset): Hpp (N x 9), gp (N x 3), the pose system (42 F + 1); then, where the landmarks are eliminated
+        # here, the camera system (``eliminated``), read back with the pose system in one copy (``system``).
+        # T0, X0 and T1, X1: the current and the trial state (``cur`` indexes the current one). ``step_sums``: a
+        # step's sum of W dc per landmark and its sums (d.gp, d.d, the trial's reprojection error).
+        n6, n_system = 6 * n_free, 42 * n_free + 1
+        n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
+                 "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
+                 "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
+                 "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+        arena = self._alloc_arena(parts)
+        self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
+            arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
+        self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
+        work, self.step_sums = arena["work"], arena["step_sums"]
+        self.linear = self._view(work, 0, 12 * N + n_system, wp.float64)
+        self.Hpp = self._view(work, 0, N, wp.mat33d)
+        self.gp = self._view(work, 9 * N, N, wp.vec3d)
+        self.pose_system = self._view(work, 12 * N, n_system, wp.float64)
+        self.Wdc = self._view(self.step_sums, 0, N, wp.vec3d)
+        self.sums = self._view(self.step_sums, 3 * N, 3, wp.float64)
+        if self.schur_on_device:
             # M (6F x 6F), r (6F), the count of landmark blocks not positive definite
             start = 12 * N + n_system
-            self.eliminated = self._view(self.work, start, n_eliminated, wp.float64)
-            self.M = self._view(self.work, start, n6 * n6, wp.float64)
-            self.r = self._view(self.work, start + n6 * n6, n6, wp.float64)
-            self.failed = self._view(self.work, start + n6 * n6 + n6, 1, wp.float64)
-            self.system = self._view(self.work, 12 * N, n_system + n_eliminated, wp.float64)
+            self.eliminated = self._view(work, start, n_eliminated, wp.float64)
+            self.M = self._view(work, start, n6 * n6, wp.float64)
+            self.r = self._view(work, start + n6 * n6, n6, wp.float64)
+            self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
+            self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
+        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
+        self._host = {}  # host mirrors, made at first use
+        self._commands = {}  # recorded launches (``_launch``)
+        self._chunks: dict[int, tuple] = {}
 
     # --- buffers and transfers -------------------------------------------------------------------------------
     def _alloc(self, n: int, dtype):
@@ -402,6 +404,35 @@ class ObservationKernels:
         self.ops["uploaded_bytes"] += values.nbytes
         return wp.array(values if len(values) else np.zeros((1,) + values.shape[1:], values.dtype), dtype=dtype,
                         device=self.device)
+
+    @staticmethod
+    def _offsets(sizes: dict) -> tuple[dict, int]:
+        """Each part's offset in an arena of ``sizes`` (in words), every part starting on a multiple of
+        _ALIGN_WORDS; and the arena's size."""
+        offsets, end = {}, 0
+        for name, size in sizes.items():
+            offsets[name] = end
+            end += -(-max(size, 1) // _ALIGN_WORDS) * _ALIGN_WORDS
+        return offsets, end
+
+    def _alloc_arena(self, parts: dict) -> dict:
+        """One float64 allocation cut into arrays: {name: (length, dtype)} -> {name: array}."""
+        sizes = {k: max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8 for k, (n, dtype) in parts.items()}
+        offsets, total = self._offsets(sizes)
+        arena = self._alloc(total, wp.float64)
+        self._arenas.append(arena)  # (its parts are views: they do not keep it)
+        return {k: self._view(arena, offsets[k], n, dtype) for k, (n, dtype) in parts.items()}
+
+    def _upload_arena(self, values: dict) -> dict:
+        """int32 arrays uploaded in one copy: {name: values} -> {name: array}."""
+        offsets, total = self._offsets({k: len(v) for k, v in values.items()})
+        host = np.zeros(total, np.int32)
+        for k, v in values.items():
+            host[offsets[k]:offsets[k] + len(v)] = v
+        arena = self._upload_new(host, wp.int32)
+        self._arenas.append(arena)
+        return {k: wp.array(ptr=arena.ptr + 4 * offsets[k], shape=(max(len(v), 1),), dtype=wp.int32,
+                            device=arena.device) for k, v in values.items()}
 
     @staticmethod
     def _view(base, offset: int, n: int, dtype):
