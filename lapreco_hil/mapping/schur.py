@@ -240,6 +240,8 @@ def right_jacobian_inverse(xi: np.ndarray) -> np.ndarray:
     for k in range(1, _JR_TERMS):  # Jr = sum (-ad)^k / (k + 1)!
         term = -(term @ ad) / (k + 1)
         Jr += term
+        if np.abs(term).max() < 1e-18:  # (small tangents, a prior's error: a few terms reach double precision)
+            break
     return np.linalg.inv(Jr)
 
 
