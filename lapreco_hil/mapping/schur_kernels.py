@@ -337,6 +337,7 @@ class ObservationKernels:
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
         self.device = device
+        self._stream = None if wp.get_device(device).is_cpu else wp.get_device(device).stream
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
@@ -466,9 +467,8 @@ class ObservationKernels:
             self.ops["downloads"] += 1
             self.ops["downloaded_bytes"] += m.view.nbytes
             views.append(m.view)
-        device = wp.get_device(self.device)
-        if not device.is_cpu:
-            wp.synchronize_stream(device.stream)
+        if self._stream is not None:
+            wp.synchronize_stream(self._stream)
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
