@@ -374,7 +374,8 @@ class ObservationKernels:
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
-        work, self.step_sums = arena["work"], arena["step_sums"]
+        self.work = work = arena["work"]
+        self.step_sums = arena["step_sums"]
         self.linear = self._view(work, 0, 12 * N + n_system, wp.float64)
         self.Hpp = self._view(work, 0, N, wp.mat33d)
         self.gp = self._view(work, 9 * N, N, wp.vec3d)
@@ -453,22 +454,24 @@ class ObservationKernels:
         m = self._mirror(array)
         m.view[:len(values)] = values
         if m.host is not array:
-            wp.copy(array, m.host, count=len(values))
+            with device_lock(self.device):
+                wp.copy(array, m.host, count=len(values))
         self.ops["uploads"] += 1
         self.ops["uploaded_bytes"] += m.view[:len(values)].nbytes
 
     def _download(self, *arrays) -> list[np.ndarray]:
         """The arrays' host mirrors' views, after one wait for the copies (valid until the next download)."""
         views = []
-        for array in arrays:
-            m = self._mirror(array)
-            if m.host is not array:
-                wp.copy(m.host, array)
-            self.ops["downloads"] += 1
-            self.ops["downloaded_bytes"] += m.view.nbytes
-            views.append(m.view)
-        if self._stream is not None:
-            wp.synchronize_stream(self._stream)
+        with device_lock(self.device):
+            for array in arrays:
+                m = self._mirror(array)
+                if m.host is not array:
+                    wp.copy(m.host, array)
+                self.ops["downloads"] += 1
+                self.ops["downloaded_bytes"] += m.view.nbytes
+                views.append(m.view)
+            if self._stream is not None:
+                wp.synchronize_stream(self._stream)
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
@@ -515,13 +518,13 @@ class ObservationKernels:
         system in one copy, for ``schur_complement(lam)``: the device works while the host adds the pose
         factors."""
         with device_lock(self.device):
-            self._zero(self.linear)
+            self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
             self._launch(_linearize, self.n_obs,
                          [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
                           self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free],
                          [self.W, self.Hpp, self.gp, self.pose_system])
             if lam is not None:
-                self._eliminate(lam)
+                self._eliminate(lam, zeroed=True)
                 flat = self._download(self.system)[0]
             else:
                 flat = self._download(self.linear if landmarks else self.pose_system)[0]
@@ -591,8 +594,9 @@ class ObservationKernels:
             self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
             return self._download(self.Wdc)[0][:self.n_points].copy()
 
-    def _eliminate(self, lam: float) -> None:
-        self._zero(self.eliminated)
+    def _eliminate(self, lam: float, zeroed: bool = False) -> None:
+        if not zeroed:
+            self._zero(self.eliminated)
         self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)], [self.L, self.Lg, self.failed])
         self._launch(_schur_blocks, self.n_pm,
                      [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
@@ -647,7 +651,3 @@ class ObservationKernels:
             self._launch(_trial_points, self.n_points, [self.dp, self.X[self.cur], self.gp],
                          [self.X[1 - self.cur], self.sums])
             return self._try(sigma, loss, k)
-
-    def landmark_moves(self) -> np.ndarray:
-        """(N, 3): the last ``back_substitute``'s landmark moves (a copy)."""
-        return self._download(self.dp)[0][:self.n_points].copy()
