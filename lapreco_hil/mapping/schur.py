@@ -23,6 +23,10 @@ landmark blocks eliminated into the rows of the poses that see it by one BLAS ra
 stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
 that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
 instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
+
+On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
+keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
+the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
 """
 
 from __future__ import annotations

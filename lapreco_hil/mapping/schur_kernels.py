@@ -5,8 +5,9 @@ elimination into the camera system (atomics: a GPU's way), and the back-substitu
 CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
 they run on the GPU. Float64 throughout, as GTSAM computes.
 
-``ObservationKernels`` holds a problem's fixed arrays on the device and launches the kernels; the host
-(``schur.py``) keeps the LM logic, the dense camera system and its Cholesky factorisation.
+``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
+and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
+factorisation.
 """
 
 from __future__ import annotations
