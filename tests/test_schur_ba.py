@@ -396,6 +396,21 @@ def test_the_state_stays_on_the_device_across_lm(device_schur):
         assert many["downloaded_bytes"] > per_solve + linearisations * 8 * 12 * n_points
 
 
+@pytest.mark.parametrize("device_schur", [True, False])
+def test_a_window_of_fixed_poses_moves_its_landmarks_only_as_numpy_does(device_schur):
+    """No free pose (an empty camera system): the device's state and step still move the landmarks as the numpy
+    path does."""
+    syn = make_problem(np.random.default_rng(5), n_views=5, n_points=150, jump=0.03)
+    p = dataclasses.replace(syn.problem, fixed=np.ones(5, bool))
+    ref = schur.solve_robust_schur(p, RobustSchedule(), device="numpy")
+    got = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    assert got.iterations == ref.iterations > 0
+    np.testing.assert_array_equal(got.poses, p.poses)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-10)
+    assert np.abs(got.points - p.points).max() > 1e-6
+    np.testing.assert_array_equal(got.stats["inlier_obs"], ref.stats["inlier_obs"])
+
+
 def test_the_final_pass_takes_every_core_of_a_large_machine_only(monkeypatch):
     """BLAS threads for the final pass: every core of a machine of 8 or more, one on a small (shared) one, as
     many as ``[mapper] final_ba_threads`` says where it is set."""
