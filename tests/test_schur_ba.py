@@ -397,6 +397,29 @@ def test_the_state_stays_on_the_device_across_lm(device_schur):
 
 
 @pytest.mark.parametrize("device_schur", [True, False])
+def test_transfers_through_host_copies_as_on_a_gpu(monkeypatch, device_schur):
+    """On CUDA every upload and download goes through a host array of its own (``_Mirror``); on Warp's CPU device
+    the device array's memory is used directly. Host copies forced on the CPU device: the same steps and answer,
+    so that what is read back is what was written, at the right offsets, whichever state is current."""
+    from lapreco_hil.mapping import schur_kernels
+
+    def separate(self, array):
+        self.array = array
+        self.host = schur_kernels.wp.empty(array.shape, dtype=array.dtype, device="cpu")
+        self.view = self.host.numpy()
+
+    syn = make_problem(np.random.default_rng(4), n_views=6, n_points=300, jump=0.03, highlight=0.02)
+    p = dataclasses.replace(syn.problem, fixed=np.arange(6) == 0)
+    direct = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    monkeypatch.setattr(schur_kernels._Mirror, "__init__", separate)
+    copied = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    assert [s["solves"] for s in copied.stats["stages"]] == [s["solves"] for s in direct.stats["stages"]]
+    np.testing.assert_array_equal(copied.poses, direct.poses)
+    np.testing.assert_array_equal(copied.points, direct.points)
+    np.testing.assert_array_equal(copied.residuals_px, direct.residuals_px)
+
+
+@pytest.mark.parametrize("device_schur", [True, False])
 def test_a_window_of_fixed_poses_moves_its_landmarks_only_as_numpy_does(device_schur):
     """No free pose (an empty camera system): the device's state and step still move the landmarks as the numpy
     path does."""
