@@ -338,7 +338,7 @@ class ObservationKernels:
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
         self.device = device
-        self._stream = None if wp.get_device(device).is_cpu else wp.get_device(device).stream
+        self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
@@ -471,8 +471,8 @@ class ObservationKernels:
                 self.ops["downloads"] += 1
                 self.ops["downloaded_bytes"] += m.view.nbytes
                 views.append(m.view)
-            if self._stream is not None:
-                wp.synchronize_stream(self._stream)
+            if self._cuda is not None:  # (the stream the copies went on: the device's current one)
+                wp.synchronize_stream(self._cuda.stream)
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
