@@ -10,6 +10,7 @@ import os
 import gtsam
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from lapreco_hil.config import MapperConfig
 from lapreco_hil.errors import ConfigError
@@ -17,7 +18,7 @@ from lapreco_hil.geometry import inv_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping import schur
 from lapreco_hil.mapping.mapper import Mapper
-from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
 from lapreco_hil.mapping.synthetic import make_problem, make_sweep_problem
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
@@ -44,6 +45,39 @@ def test_se3_maps_and_jacobian_agree_with_gtsam(rng):
     np.testing.assert_allclose(schur.se3_log(T), xi, atol=1e-12)
     tiny = np.array([[1e-9, -2e-9, 1e-9, 1e-3, 2e-3, -1e-3]])
     np.testing.assert_allclose(schur.se3_log(schur.se3_exp(tiny)), tiny, atol=1e-15)
+
+
+def test_rotation_log_agrees_with_scipys_at_every_angle(rng):
+    """The rotation log without scipy (atan2 of sine and cosine, the axis from R - R^T) against scipy's
+    quaternion way, from 1e-9 rad to within 1e-5 rad of pi (beyond 3 rad it hands over to scipy's)."""
+    axes = rng.normal(size=(7, 40, 3))
+    axes /= np.linalg.norm(axes, axis=2, keepdims=True)
+    for axis, angle in zip(axes, (1e-9, 1e-5, 1e-3, 0.3, 2.0, 2.999, np.pi - 1e-5)):
+        w = axis * angle
+        R = Rotation.from_rotvec(w).as_matrix()
+        np.testing.assert_allclose(schur.so3_log(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(schur.se3_exp(np.column_stack([w, np.zeros_like(w)]))[:, :3, :3], R, atol=1e-15)
+
+
+def test_the_robust_scale_is_numpys_median_by_one_selection(rng):
+    """``mad_sigma``'s median (one partition each) is exactly ``np.median``'s: odd and even counts, ties, NaN and
+    inf left out, and the caller's residuals left as they were."""
+    def reference(r):
+        e = np.asarray(r, float).ravel()
+        e = e[np.isfinite(e)]
+        return float(1.4826 * np.median(np.abs(e - np.median(e))))
+
+    for n in (1, 2, 3, 4, 101, 4000, 40001):
+        for values in (rng.normal(size=n), rng.standard_cauchy(size=n), rng.integers(0, 4, n).astype(float)):
+            values = values.copy()
+            values[rng.random(n) < 0.05] = np.nan
+            values[rng.random(n) < 0.02] = -np.inf
+            if not np.isfinite(values).any():
+                continue
+            before = values.copy()
+            assert mad_sigma(values) == reference(values)
+            np.testing.assert_array_equal(values, before)
+    assert mad_sigma(np.full(6, np.nan), floor=0.3) == 1.0
 
 
 def _numeric_jacobian(f, n, eps=1e-6):
@@ -324,6 +358,80 @@ def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
         ref = ba.solve_robust(p, RobustSchedule())
         assert rms_mm(dev.poses, syn.true_poses) == pytest.approx(rms_mm(ref.poses, syn.true_poses), rel=0.02)
         assert (dev.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 3
+
+
+@pytest.mark.parametrize("device_schur", [True, False])
+def test_the_state_stays_on_the_device_across_lm(device_schur):
+    """On a Warp device the buffers are allocated once per solve, and the host reads back, per damped system,
+    no more than the camera system and a few scalars: per-observation arrays only for the robust scales and
+    labels (once per stage and at the end), the landmarks once. Uploads: the problem, the state once, then per
+    step only its poses and pose tangents (and, where the host eliminates the landmarks, their factors and
+    moves). The same answer as the numpy path."""
+    syn = make_problem(np.random.default_rng(3), n_views=6, n_points=300, jump=0.03, highlight=0.02)
+    p = syn.problem
+    n_obs, n_points, n6 = len(p.obs_pose), len(p.points), 6 * len(p.poses)
+    runs = {}
+    for its in (1, 3):
+        schedule = RobustSchedule((RobustStage("cauchy", CAUCHY_K, its), RobustStage("tukey", TUKEY_C, its)))
+        runs[its] = schur.solve_robust_schur(p, schedule, device=DEVICE, device_schur=device_schur)
+    ref = schur.solve_robust_schur(p, schedule, device="numpy")
+    np.testing.assert_allclose(runs[3].poses, ref.poses, atol=1e-9)
+    np.testing.assert_array_equal(runs[3].stats["inlier_obs"], ref.stats["inlier_obs"])
+    few, many = runs[1].stats["device_ops"], runs[3].stats["device_ops"]
+    solves = sum(s["solves"] for s in runs[3].stats["stages"])
+    assert sum(s["iterations"] for s in runs[3].stats["stages"]) > sum(s["iterations"] for s in runs[1].stats["stages"])
+    if device_schur:
+        assert many["allocations"] == few["allocations"]
+    else:  # (the host's elimination allocates its batches' blocks at their first use, once)
+        assert many["allocations"] <= few["allocations"] + 2
+    # the residuals before each stage and at the end, the landmarks at the end, the error before each stage
+    per_solve = 16 * n_obs * 3 + 24 * n_points + 2 * 24
+    linearisations = sum(len(s["iteration_timing"]) for s in runs[3].stats["stages"])
+    if device_schur:  # the camera system (with the pose blocks and gradients) per step, scalars
+        per_step = 8 * (n6 * n6 + n6 + 1) + 8 * 3
+        assert many["downloaded_bytes"] <= per_solve + solves * per_step + linearisations * 8 * (7 * n6 + 1)
+        assert many["downloads"] <= 2 * 2 + 2 + linearisations + 2 * solves
+        assert many["uploads"] <= few["uploads"] + 2 * (solves - sum(s["solves"] for s in runs[1].stats["stages"]))
+    else:  # the landmark blocks too: the host eliminates them
+        assert many["downloaded_bytes"] > per_solve + linearisations * 8 * 12 * n_points
+
+
+@pytest.mark.parametrize("device_schur", [True, False])
+def test_transfers_through_host_copies_as_on_a_gpu(monkeypatch, device_schur):
+    """On CUDA every upload and download goes through a host array of its own (``_Mirror``); on Warp's CPU device
+    the device array's memory is used directly. Host copies forced on the CPU device: the same steps and answer,
+    so that what is read back is what was written, at the right offsets, whichever state is current."""
+    from lapreco_hil.mapping import schur_kernels
+
+    def separate(self, array):
+        self.array = array
+        self.host = schur_kernels.wp.empty(array.shape, dtype=array.dtype, device="cpu")
+        self.view = self.host.numpy()
+
+    syn = make_problem(np.random.default_rng(4), n_views=6, n_points=300, jump=0.03, highlight=0.02)
+    p = dataclasses.replace(syn.problem, fixed=np.arange(6) == 0)
+    direct = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    monkeypatch.setattr(schur_kernels._Mirror, "__init__", separate)
+    copied = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    assert [s["solves"] for s in copied.stats["stages"]] == [s["solves"] for s in direct.stats["stages"]]
+    np.testing.assert_array_equal(copied.poses, direct.poses)
+    np.testing.assert_array_equal(copied.points, direct.points)
+    np.testing.assert_array_equal(copied.residuals_px, direct.residuals_px)
+
+
+@pytest.mark.parametrize("device_schur", [True, False])
+def test_a_window_of_fixed_poses_moves_its_landmarks_only_as_numpy_does(device_schur):
+    """No free pose (an empty camera system): the device's state and step still move the landmarks as the numpy
+    path does."""
+    syn = make_problem(np.random.default_rng(5), n_views=5, n_points=150, jump=0.03)
+    p = dataclasses.replace(syn.problem, fixed=np.ones(5, bool))
+    ref = schur.solve_robust_schur(p, RobustSchedule(), device="numpy")
+    got = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=device_schur)
+    assert got.iterations == ref.iterations > 0
+    np.testing.assert_array_equal(got.poses, p.poses)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-10)
+    assert np.abs(got.points - p.points).max() > 1e-6
+    np.testing.assert_array_equal(got.stats["inlier_obs"], ref.stats["inlier_obs"])
 
 
 def test_the_final_pass_takes_every_core_of_a_large_machine_only(monkeypatch):

@@ -105,12 +105,13 @@ def long_session_problem(rng: np.random.Generator, n_views: int = 300, new_point
 
 
 def _schur_row(seconds: float, cpu_s: float, result: ba.BAResult, reference: ba.BAResult, syn) -> dict:
-    """A Schur solver row: its time, accuracy, how many inlier labels differ from GTSAM's (``reference``), and
-    where the time goes, per stage and per LM iteration (linearise, Schur complement, solve, error)."""
+    """A Schur solver row: its time, accuracy, how many inlier labels differ from GTSAM's (``reference``), where
+    the time goes, per stage and per LM iteration (linearise, Schur complement, solve, error), and what the Warp
+    device was asked for in the solve (launches, uploads, downloads, allocations; none on numpy)."""
     return {"s": seconds, "cpu_s": cpu_s, "iterations": result.iterations,
             "pose_rms_mm": _pose_rms_mm(result.poses, syn.true_poses),
             "labels_differing_from_gtsam": int((result.stats["inlier_obs"] != reference.stats["inlier_obs"]).sum()),
-            "timing": result.stats["timing"],
+            "timing": result.stats["timing"], "device_ops": result.stats.get("device_ops", {}),
             "stages": [{"loss": st["loss"], "iterations": st["iterations"], "timing": st["timing"],
                         "iteration_timing": st["iteration_timing"]} for st in result.stats["stages"]]}
 
@@ -233,4 +234,12 @@ def format_table(result: dict) -> str:
             per = " ".join("{:.1f}/{:.1f}/{:.1f}/{:.1f}".format(*(1e3 * it[k] for k in (
                 "linearize_s", "schur_s", "solve_s", "error_s"))) for it in stage["iteration_timing"])
             lines.append(f"  {name} {stage['loss']}: {per}")
+    ops = [(name, row) for name, row in result["results"].items() if row.get("device_ops")]
+    if ops:
+        lines.append("Schur solver, per solve: Warp launches / uploads / downloads / allocations; setup and robust "
+                     "scale ms:")
+    for name, row in ops:
+        o, t = row["device_ops"], row["timing"]
+        lines.append(f"  {name}: {o['launches']} / {o['uploads']} / {o['downloads']} / {o['allocations']}; "
+                     f"{1e3 * t.get('setup_s', 0.0):.2f} / {1e3 * t.get('scale_s', 0.0):.2f}")
     return "\n".join(lines)

@@ -17,13 +17,27 @@ CAUCHY_K = 2.3849
 TUKEY_C = 4.6851
 
 
+def _median_in_place(e: np.ndarray) -> float:
+    """The median of finite values ``e`` (1-D, reordered), exactly as ``np.median`` gives it (the middle value or
+    the mean of the two) by one selection: a partition at the upper middle rank leaves the lower middle value as
+    the largest of the values before it (``np.median`` selects both ranks at once, several times slower)."""
+    n = e.size
+    e.partition(n // 2)
+    if n % 2:
+        return float(e[n // 2])
+    return float((e[:n // 2].max() + e[n // 2]) / 2.0)
+
+
 def mad_sigma(residuals_xy: np.ndarray, floor: float = 0.0) -> float:
     """Robust sigma of residual components (any shape; NaN/inf ignored): 1.4826 x MAD about the median."""
     e = np.asarray(residuals_xy, dtype=float).ravel()
-    e = e[np.isfinite(e)]
+    finite = np.isfinite(e)
+    e = e[finite] if not finite.all() else e.copy()
     if e.size == 0:
         return max(floor, 1.0)
-    return max(float(MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))), floor)
+    median = _median_in_place(e)
+    np.subtract(e, median, out=e)
+    return max(float(MAD_TO_SIGMA * _median_in_place(np.abs(e, out=e))), floor)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,10 @@ landmark blocks eliminated into the rows of the poses that see it by one BLAS ra
 stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
 that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
 instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
+
+On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
+keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
+the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
 """
 
 from __future__ import annotations
@@ -160,9 +164,10 @@ def _subtract_gram(S: np.ndarray, block: slice, Z: np.ndarray) -> None:
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
 def hat(w: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, 3, 3) cross-product matrices."""
-    z = np.zeros(len(w))
-    return np.stack([np.stack([z, -w[:, 2], w[:, 1]], -1), np.stack([w[:, 2], z, -w[:, 0]], -1),
-                     np.stack([-w[:, 1], w[:, 0], z], -1)], 1)
+    W = np.zeros((len(w), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    return W
 
 
 def _v_coefficients(theta: np.ndarray):
@@ -178,18 +183,36 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """(n, 6) -> (n, 4, 4): GTSAM's Pose3::Expmap."""
     w, v = xi[:, :3], xi[:, 3:]
     W = hat(w)
-    a, b = _v_coefficients(np.linalg.norm(w, axis=1))
-    V = np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+    theta = np.linalg.norm(w, axis=1)
+    a, b = _v_coefficients(theta)
+    W2 = W @ W
+    V = np.eye(3) + a[:, None, None] * W + b[:, None, None] * W2
+    # Rodrigues: R = I + sin t / t W + (1 - cos t) / t^2 W^2
+    sinc = np.where(theta < 1e-4, 1.0 - theta**2 / 6.0, np.sin(theta) / np.where(theta < 1e-4, 1.0, theta))
     T = np.zeros((len(xi), 4, 4))
-    T[:, :3, :3] = Rotation.from_rotvec(w).as_matrix()
+    T[:, :3, :3] = np.eye(3) + sinc[:, None, None] * W + a[:, None, None] * W2
     T[:, :3, 3] = np.einsum("nij,nj->ni", V, v)
     T[:, 3, 3] = 1.0
     return T
 
 
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) -> (n, 3) rotation vectors: the angle from atan2(sin, cos) (accurate at every angle), the axis
+    from R - R^T; beyond 3 rad, where that axis fades (its error grows as 1 / sin), scipy's (quaternion) way."""
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)  # 2 sin t u
+    sin2 = np.linalg.norm(v, axis=1)
+    theta = np.arctan2(0.5 * sin2, 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0))
+    small = theta < 1e-4
+    w = np.where(small, 0.5 + theta**2 / 12.0, theta / np.where(small, 1.0, sin2))[:, None] * v
+    near_pi = theta > 3.0
+    if near_pi.any():
+        w[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+    return w
+
+
 def se3_log(T: np.ndarray) -> np.ndarray:
     """(n, 4, 4) -> (n, 6): GTSAM's Pose3::Logmap."""
-    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    w = so3_log(T[:, :3, :3])
     theta = np.linalg.norm(w, axis=1)
     W = hat(w)
     small = theta < 1e-4
@@ -221,6 +244,8 @@ def right_jacobian_inverse(xi: np.ndarray) -> np.ndarray:
     for k in range(1, _JR_TERMS):  # Jr = sum (-ad)^k / (k + 1)!
         term = -(term @ ad) / (k + 1)
         Jr += term
+        if np.abs(term).max() < 1e-18:  # (small tangents, a prior's error: a few terms reach double precision)
+            break
     return np.linalg.inv(Jr)
 
 
@@ -257,9 +282,11 @@ def robust_loss(loss: str, e: np.ndarray, k: float) -> np.ndarray:
 def pose_major(problem: BAProblem) -> tuple[BAProblem, np.ndarray]:
     """The problem with its observations sorted by pose (each pose's are then one contiguous run, transformed
     by one matrix product), and the permutation (``sorted[i] = original[perm[i]]``)."""
-    perm = np.argsort(problem.obs_pose, kind="stable")
-    if np.all(perm[1:] > perm[:-1]):
-        return problem, perm
+    obs_pose = np.asarray(problem.obs_pose)
+    if np.all(obs_pose[1:] >= obs_pose[:-1]):
+        return problem, np.arange(len(obs_pose))
+    # (a stable sort of 16-bit integers is numpy's radix sort: a few times faster than of 64-bit ones)
+    perm = np.argsort(obs_pose.astype(np.int16) if len(problem.poses) < 2**15 else obs_pose, kind="stable")
     return dataclasses.replace(problem, obs_pose=problem.obs_pose[perm], obs_point=problem.obs_point[perm],
                                obs_uv=problem.obs_uv[perm]), perm
 
@@ -290,6 +317,8 @@ class _Layout:
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
     tie_R: np.ndarray
+    prior_inv: np.ndarray  # their priors' inverses
+    tie_inv: np.ndarray  # the ties' T_i_j^-1
     kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
 
 
@@ -382,8 +411,12 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
     pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
-    pairs = np.sort(obs_point * (n_poses + 1) + p.obs_pose)  # (a sort: numpy's hashed unique is slower here)
-    unique_pairs = not np.any(pairs[1:] == pairs[:-1])
+    pair = obs_point * n_poses + p.obs_pose
+    if n_points * n_poses <= 16 * len(pair) + 4096:  # a window's landmark x pose table is small: count into it
+        unique_pairs = len(pair) == 0 or int(np.bincount(pair, minlength=n_points * n_poses).max()) <= 1
+    else:  # (a sort: numpy's hashed unique is slower here)
+        pair = np.sort(pair)
+        unique_pairs = not np.any(pair[1:] == pair[:-1])
     # (the device's elimination needs no chunks)
     chunks = [] if device_schur and device != "numpy" else _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
@@ -403,7 +436,9 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     if chunks:
         batches.append((first, len(chunks)))
     return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
-                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)), kernels)
+                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)),
+                   np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
+                   np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels)
 
 
 def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
@@ -420,8 +455,8 @@ class _Linear:
 
     Hcc: np.ndarray  # (6F, 6F) pose block, priors and ties included
     gc: np.ndarray  # (6F,)
-    Hpp: np.ndarray  # (N, 3, 3)
-    gp: np.ndarray  # (N, 3)
+    Hpp: np.ndarray | None  # (N, 3, 3); None: on the device
+    gp: np.ndarray | None  # (N, 3); None: on the device
     W: np.ndarray | None  # (3, 6, O) s Jp^T Jc per observation (zero where the pose is fixed); None: on the device
     error0: float  # the linear system's error at zero (0.5 |b|^2, the weighted one LM compares with)
 
@@ -481,7 +516,8 @@ def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndar
     """Residuals (O, 2) and, with ``jacobians``, their Jacobians wrt the pose (O, 2, 6) and the point
     (O, 2, 3). Behind the camera: GTSAM's constant error 2 fx with zero Jacobians (or ``behind``)."""
     if lay.kernels is not None and not jacobians and behind is not None:
-        return lay.kernels.residuals(poses, points, behind)
+        lay.kernels.set_state(poses, points)
+        return lay.kernels.residuals(behind)
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     r = np.column_stack([ru, rv])
     if behind is not None:
@@ -498,13 +534,13 @@ def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool
     out = []
     if len(lay.prior_idx):
         i = lay.prior_idx
-        e = se3_log(np.linalg.inv(p.prior_poses[i]) @ poses[i])
+        e = se3_log(lay.prior_inv @ poses[i])
         J = lay.prior_R @ right_jacobian_inverse(e) if jacobians else None
         out.append((np.einsum("nij,nj->ni", lay.prior_R, e), [(i, J)]))
     if len(p.tie_pairs):
         i, j = p.tie_pairs[:, 0], p.tie_pairs[:, 1]
         B = np.linalg.inv(poses[i]) @ poses[j]
-        e = se3_log(np.linalg.inv(p.tie_T) @ B)
+        e = se3_log(lay.tie_inv @ B)
         blocks = []
         if jacobians:
             Jj = lay.tie_R @ right_jacobian_inverse(e)
@@ -513,27 +549,43 @@ def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool
     return out
 
 
-def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
-    """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
-    if lay.kernels is not None:
-        total = lay.kernels.error(poses, points, sigma, loss, k)
-    else:
-        ru, rv = _project(p, lay, poses, points)[:2]
-        total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
+def _plus_pose_factors(p: BAProblem, lay: _Layout, poses, total: float) -> float:
+    """``total`` (the reprojection losses) plus 0.5 |whitened error|^2 of the priors and ties."""
     for err, _ in _pose_factors(p, lay, poses, jacobians=False):
         total += 0.5 * float(np.sum(err * err))
     return total
 
 
+def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
+    """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
+    if lay.kernels is not None:
+        lay.kernels.set_state(poses, points)
+        total = lay.kernels.error(sigma, loss, k)
+    else:
+        ru, rv = _project(p, lay, poses, points)[:2]
+        total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
+    return _plus_pose_factors(p, lay, poses, total)
+
+
+def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
+                         lam: float | None = None) -> _Linear:
+    """``_linearize`` by the kernels at their current state (``poses`` on the host); the landmark blocks stay on
+    the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None), and are eliminated at ``lam``
+    with it where given (``ObservationKernels.linearize``)."""
+    on_device = lay.kernels.schur_on_device
+    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.linearize(sigma, loss, k, landmarks=not on_device,
+                                                                lam=lam if on_device else None)
+    n_free = len(lay.free)
+    Hcc = np.zeros((6 * n_free, 6 * n_free))
+    diagonal = np.arange(n_free)
+    Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
+    return _with_pose_factors(p, lay, poses, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq)
+
+
 def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
     if lay.kernels is not None:
-        Hpp, gp, blocks, grads, weighted_sq = lay.kernels.linearize(poses, points, sigma, loss, k)
-        W = None  # on the device
-        n_free = len(lay.free)
-        Hcc = np.zeros((6 * n_free, 6 * n_free))
-        for c in range(n_free):
-            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = blocks[c]
-        return _with_pose_factors(p, lay, poses, Hcc, grads.ravel().copy(), Hpp, gp, W, 0.5 * weighted_sq)
+        lay.kernels.set_state(poses, points)
+        return _linearize_on_device(p, lay, poses, sigma, loss, k)
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
     r2 = ru * ru + rv * rv
@@ -627,9 +679,8 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     """The step (pose tangents (F, 6), point moves (N, 3)) of the damped system, landmarks eliminated;
     None where it is not positive definite (a landmark left with one weighted view is singular along its ray
     to the damping's precision: GTSAM's elimination throws IndeterminateSystemException there, and lambda
-    grows)."""
-    if lay.kernels is not None and lay.kernels.schur_on_device:
-        return _solve_damped_on_device(lay, lin, lam, timing)
+    grows). The host's elimination (chunk by chunk through BLAS); the device's is ``_DeviceState.solve``'s."""
+    assert lay.kernels is None or not lay.kernels.schur_on_device
     t0 = time.perf_counter()
     L = _cholesky3(lin.Hpp + lam * np.eye(3))
     if L is None:
@@ -706,70 +757,175 @@ def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     return dc if np.all(np.isfinite(dc)) else None
 
 
-def _solve_damped_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict):
-    """``_solve_damped`` with the landmarks eliminated on the kernels' device: a handful of launches, the camera
-    system (6F x 6F) and one flag read back, the host solving it, the landmarks' moves read back."""
+def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -> np.ndarray | None:
+    """The damped camera system's solution (F, 6) with the landmarks eliminated on the kernels' device (a
+    handful of launches, the camera system (6F x 6F) and a flag read back in one copy, the host solving it);
+    None where it is not positive definite."""
     t0 = time.perf_counter()
     eliminated = lay.kernels.schur_complement(lam)
     if eliminated is None:
         timing["schur_s"] += time.perf_counter() - t0
         return None
     M, r = eliminated
-    n6 = len(r)
+    n6 = 6 * len(lay.free)
     S = lin.Hcc + lam * np.eye(n6)
     S -= M  # (its lower triangle: what the factorisation reads)
     rhs = r - lin.gc
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
     dc = _solve_camera_system(S, rhs)
-    if dc is None:
-        timing["solve_s"] += time.perf_counter() - t1
-        return None
-    dp = lay.kernels.back_substitute(dc.reshape(-1, 6))
     timing["solve_s"] += time.perf_counter() - t1
-    return dc.reshape(-1, 6), dp
+    return None if dc is None else dc.reshape(-1, 6)
+
+
+# --- the solver's state: in host arrays (numpy) or on the kernels' device -------------------------------------------
+@dataclass
+class _Step:
+    """A damped step and what LM asks of it."""
+
+    dc: np.ndarray  # (F, 6) the free poses' tangents
+    dp: np.ndarray | None  # (N, 3) the landmarks' moves; None: on the device
+    g_dot: float  # g . d
+    step2: float  # |d|^2
+    poses: np.ndarray  # (P, 4, 4) the trial poses
+    reprojection_error: float | None = None  # the trial's, where the device evaluated it with the step
+
+
+def _trial_poses(lay: _Layout, poses: np.ndarray, dc: np.ndarray) -> np.ndarray:
+    trial = poses.copy()
+    if len(lay.free):
+        trial[lay.free] = poses[lay.free] @ se3_exp(dc)
+    return trial
+
+
+class _HostState:
+    """The numpy path's state: poses and landmarks in host arrays."""
+
+    def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
+        self.p, self.lay, self.poses, self._points, self._trial = p, lay, poses, points, None
+
+    def points(self) -> np.ndarray:
+        return self._points
+
+    def residuals(self, behind: float) -> np.ndarray:
+        return _reprojection(self.p, self.lay, self.poses, self._points, jacobians=False, behind=behind)
+
+    def error(self, sigma: float, loss: str, k: float) -> float:
+        return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+
+    def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
+        return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+
+    def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
+        step = _solve_damped(self.lay, lin, lam, timing)
+        if step is None:
+            return None
+        dc, dp = step
+        return _Step(dc, dp, float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel()),
+                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), _trial_poses(self.lay, self.poses, dc))
+
+    def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
+        self._trial = self._points + step.dp
+        return _error(self.p, self.lay, step.poses, self._trial, sigma, loss, k)
+
+    def accept(self, step: _Step) -> None:
+        self.poses, self._points = step.poses, self._trial
+
+
+class _DeviceState:
+    """The Warp path's state: the landmarks stay on the kernels' device from the solve's start to its end (read
+    back once); the poses, a few, on both sides (the host's pose factors and camera system need them; each trial's
+    are uploaded once). A step is applied and its error evaluated there, one read-back each (``ObservationKernels``)."""
+
+    def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
+        self.p, self.lay, self.kernels, self.poses = p, lay, lay.kernels, poses
+        self.kernels.set_state(poses, points)
+
+    def points(self) -> np.ndarray:
+        return self.kernels.points()
+
+    def residuals(self, behind: float) -> np.ndarray:
+        return self.kernels.residuals(behind)
+
+    def error(self, sigma: float, loss: str, k: float) -> float:
+        return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k))
+
+    def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
+        """(with the landmarks eliminated at ``lam``, the damping LM tries first, where that runs here)"""
+        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam)
+
+    def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
+        """The step, its trial state made on the device and its reprojection error evaluated there with it (LM
+        reads it only where the model predicts a decrease: the same decisions, one read-back fewer)."""
+        if self.kernels.schur_on_device:
+            dc = _eliminate_on_device(self.lay, lin, lam, timing)
+            if dc is None:
+                return None
+            t0 = time.perf_counter()
+            trial = _trial_poses(self.lay, self.poses, dc)
+            dp_gp, dp_dp, error = self.kernels.back_substitute(dc, trial, sigma, loss, k)
+            timing["solve_s"] += time.perf_counter() - t0
+            return _Step(dc, None, float(dc.ravel() @ lin.gc) + dp_gp, float(dc.ravel() @ dc.ravel()) + dp_dp,
+                         trial, error)
+        step = _solve_damped(self.lay, lin, lam, timing)  # the landmarks eliminated through host BLAS
+        if step is None:
+            return None
+        dc, dp = step
+        t0 = time.perf_counter()
+        trial = _trial_poses(self.lay, self.poses, dc)
+        error = self.kernels.try_step(dp, trial, sigma, loss, k)[2]
+        timing["error_s"] += time.perf_counter() - t0
+        return _Step(dc, None, float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel()),
+                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), trial, error)
+
+    def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
+        return _plus_pose_factors(self.p, self.lay, step.poses, step.reprojection_error)
+
+    def accept(self, step: _Step) -> None:
+        self.kernels.accept()
+        self.poses = step.poses
+
+
+def _new_state(p: BAProblem, lay: _Layout):
+    poses, points = np.array(p.poses, float), np.array(p.points, float)
+    return (_HostState if lay.kernels is None else _DeviceState)(p, lay, poses, points)
 
 
 # --- Levenberg-Marquardt as GTSAM runs it -------------------------------------------------------------------------
-def _lm(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float, max_iterations: int,
-        timing: dict):
-    """One LM run: (poses, points, error before, error after, iterations, per-iteration times)."""
+def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: dict):
+    """One LM run from ``state`` (left at its result): (error before, error after, iterations, per-iteration
+    times, damped systems solved: one per lambda tried)."""
     t0 = time.perf_counter()
-    error = _error(p, lay, poses, points, sigma, loss, k)
+    error = state.error(sigma, loss, k)
     timing["error_s"] += time.perf_counter() - t0
     error_before = error
-    lam, iterations, per_iteration = LAMBDA_INITIAL, 0, []
+    lam, iterations, per_iteration, solves = LAMBDA_INITIAL, 0, [], 0
     if max_iterations == 0 or error <= 0.0:
-        return poses, points, error_before, error, iterations, per_iteration
+        return error_before, error, iterations, per_iteration, solves
     while True:
-        it_times = {k_: timing[k_] for k_ in ("linearize_s", "schur_s", "solve_s", "error_s")}
+        it_times = {k_: timing[k_] for k_ in _new_timing()}
         t0 = time.perf_counter()
-        lin = _linearize(p, lay, poses, points, sigma, loss, k)
+        lin = state.linearize(sigma, loss, k, lam)
         timing["linearize_s"] += time.perf_counter() - t0
         new_error, accepted = error, False
         while True:
-            step = _solve_damped(lay, lin, lam, timing)
+            solves += 1
+            step = state.solve(lin, lam, sigma, loss, k, timing)
             stop_searching = success = False
             if step is not None:
-                dc, dp = step
-                g_dot = float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel())
-                step2 = float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel())
                 # the undamped linear model's decrease: -g.d - d^T H d / 2, with (H + lam I) d = -g
-                linear_change = -0.5 * g_dot + 0.5 * lam * step2
+                linear_change = -0.5 * step.g_dot + 0.5 * lam * step.step2
                 if linear_change >= 0:
                     t0 = time.perf_counter()
-                    trial_poses = poses.copy()
-                    if len(lay.free):
-                        trial_poses[lay.free] = poses[lay.free] @ se3_exp(dc)
-                    trial_points = points + dp
-                    trial_error = _error(p, lay, trial_poses, trial_points, sigma, loss, k)
+                    trial_error = state.trial_error(step, sigma, loss, k)
                     timing["error_s"] += time.perf_counter() - t0
                     cost_change = error - trial_error
                     if linear_change > np.finfo(float).eps * lin.error0:
                         success = cost_change / linear_change > MIN_MODEL_FIDELITY
                     stop_searching = abs(cost_change) < RELATIVE_ERROR_TOL * error
             if success:
-                poses, points, new_error, accepted = trial_poses, trial_points, trial_error, True
+                state.accept(step)
+                new_error, accepted = trial_error, True
                 lam = max(0.0, lam / LAMBDA_FACTOR)
                 iterations += 1
                 break
@@ -786,7 +942,7 @@ def _lm(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: f
         error = new_error
         if iterations >= max_iterations or converged or not np.isfinite(error):
             break
-    return poses, points, error_before, error, iterations, per_iteration
+    return error_before, error, iterations, per_iteration, solves
 
 
 def _check_device(device: str) -> str:
@@ -808,16 +964,24 @@ def _new_timing() -> dict:
     return {"linearize_s": 0.0, "schur_s": 0.0, "solve_s": 0.0, "error_s": 0.0}
 
 
-def _residual_norms(p: BAProblem, lay: _Layout, poses, points) -> np.ndarray:
-    """(O,) reprojection error norms, inf behind the camera (``bundle_adjustment.reprojection_residuals``)."""
-    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.inf)
-    return np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
-
-
 def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     out = np.empty_like(values)
     out[perm] = values
     return out
+
+
+def _setup(problem: BAProblem, device: str, device_schur: bool | None):
+    """(the pose-major problem, its permutation, its layout, the seconds it took)."""
+    device = _check_device(device)
+    t0 = time.perf_counter()
+    p, perm = pose_major(problem)
+    lay = _layout(p, device, _device_schur(device, device_schur))
+    return p, perm, lay, time.perf_counter() - t0
+
+
+def _device_ops(lay: _Layout) -> dict:
+    """What the kernels' device was asked for during the solve (``ObservationKernels.ops``); {} on numpy."""
+    return dict(lay.kernels.ops) if lay.kernels is not None else {}
 
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
@@ -829,40 +993,41 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
     ``device_schur``: eliminate the landmarks on the kernels' device (one launch summing every landmark's block
     into the camera system by atomics, which only a GPU does fast) instead of chunk by chunk through host BLAS;
     None: on CUDA devices only."""
-    device = _check_device(device)
     t0 = time.perf_counter()
-    p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur))
+    p, perm, lay, setup_s = _setup(problem, device, device_schur)
     timing = _new_timing()
+    state = _new_state(p, lay)
     with _blas_threads(blas_threads):
-        poses, points, e0, e1, its, per_it = _lm(p, lay, np.array(p.poses, float), np.array(p.points, float),
-                                                 pixel_sigma, loss or "none", k, max_iterations, timing)
-    residuals = _unsorted(_residual_norms(p, lay, poses, points), perm)
-    return BAResult(poses, points, residuals, e0, e1, its, time.perf_counter() - t0,
-                    {"timing": timing, "iteration_timing": per_it})
+        e0, e1, its, per_it, solves = _lm(state, pixel_sigma, loss or "none", k, max_iterations, timing)
+    r = state.residuals(np.inf)
+    residuals = _unsorted(np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2), perm)
+    return BAResult(state.poses, state.points(), residuals, e0, e1, its, time.perf_counter() - t0,
+                    {"timing": {**timing, "setup_s": setup_s}, "iteration_timing": per_it, "solves": solves,
+                     "device_ops": _device_ops(lay)})
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
-    MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys
-    (plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error;
-    and per stage ``iteration_timing``). ``device``, ``blas_threads`` and ``device_schur`` as ``solve_schur``'s."""
-    device = _check_device(device)
+    MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
+    plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
+    outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
+    ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
+    uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
+    ``solve_schur``'s."""
     t0 = time.perf_counter()
-    p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur))
-    poses, points = np.array(p.poses, float), np.array(p.points, float)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur)
+    state = _new_state(p, lay)
     stages, iterations = [], 0
-    initial_error = final_error = 0.0
+    initial_error = final_error = scale_s = 0.0
     timing = _new_timing()
     for n, stage in enumerate(schedule.stages):
-        r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
-        sigma = pixel_sigma(p, r, schedule)
+        t1 = time.perf_counter()
+        sigma = pixel_sigma(p, state.residuals(np.nan), schedule)
+        scale_s += time.perf_counter() - t1
         stage_timing = _new_timing()
         with _blas_threads(blas_threads):
-            poses, points, e0, e1, its, per_it = _lm(p, lay, poses, points, sigma, stage.loss, stage.k,
-                                                     stage.iterations, stage_timing)
+            e0, e1, its, per_it, solves = _lm(state, sigma, stage.loss, stage.k, stage.iterations, stage_timing)
         for key in timing:
             timing[key] += stage_timing[key]
         final_error = e1
@@ -871,13 +1036,17 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
         iterations += its
         stages.append({"loss": stage.loss, "sigma_px": sigma, "k": stage.k, "iterations": its,
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
-                       "iteration_timing": per_it})
-    r = _reprojection(p, lay, poses, points, jacobians=False, behind=np.nan)
+                       "iteration_timing": per_it, "solves": solves})
+    t1 = time.perf_counter()
+    r = state.residuals(np.nan)
     residuals = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
     residuals[~np.isfinite(residuals)] = np.inf
     sigma_final = pixel_sigma(p, r, schedule)
+    scale_s += time.perf_counter() - t1
     threshold = schedule.inlier_threshold_px(sigma_final)
     residuals = _unsorted(residuals, perm)
-    return BAResult(poses, points, residuals, initial_error, final_error, iterations, time.perf_counter() - t0,
+    return BAResult(state.poses, state.points(), residuals, initial_error, final_error, iterations,
+                    time.perf_counter() - t0,
                     {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,
-                     "inlier_obs": residuals <= threshold, "timing": timing})
+                     "inlier_obs": residuals <= threshold, "timing": {**timing, "setup_s": setup_s, "scale_s": scale_s},
+                     "device_ops": _device_ops(lay)})

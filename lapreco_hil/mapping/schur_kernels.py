@@ -5,8 +5,9 @@ elimination into the camera system (atomics: a GPU's way), and the back-substitu
 CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
 they run on the GPU. Float64 throughout, as GTSAM computes.
 
-``ObservationKernels`` holds a problem's fixed arrays on the device and launches the kernels; the host
-(``schur.py``) keeps the LM logic, the dense camera system and its Cholesky factorisation.
+``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
+and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
+factorisation.
 """
 
 from __future__ import annotations
@@ -59,22 +60,28 @@ def _loss(loss: int, e: wp.float64, k: wp.float64) -> wp.float64:
 
 
 @wp.func
-def _camera_point(R: wp.mat33d, t: wp.vec3d, X: wp.vec3d) -> wp.vec3d:
-    return wp.transpose(R) @ (X - t)
+def _camera_point(T: wp.mat44d, X: wp.vec3d) -> wp.vec3d:
+    """R^T (X - t) for the pose T = [R t; 0 1]."""
+    d0 = X[0] - T[0, 3]
+    d1 = X[1] - T[1, 3]
+    d2 = X[2] - T[2, 3]
+    return wp.vec3d(T[0, 0] * d0 + T[1, 0] * d1 + T[2, 0] * d2, T[0, 1] * d0 + T[1, 1] * d1 + T[2, 1] * d2,
+                    T[0, 2] * d0 + T[1, 2] * d1 + T[2, 2] * d2)
 
 
 @wp.kernel
 def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
-               obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), R: wp.array(dtype=wp.mat33d),
-               t: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
-               k: wp.float64, loss: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
-               gp: wp.array(dtype=wp.vec3d), Hcc: wp.array(dtype=wp.spatial_matrixd),
-               gc: wp.array(dtype=wp.spatial_vectord), weighted_sq: wp.array(dtype=wp.float64)):
+               obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
+               X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int,
+               n_free: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
+               gp: wp.array(dtype=wp.vec3d), pose_system: wp.array(dtype=wp.float64)):
+    """Each observation's terms summed into its landmark's block (Hpp, gp) and its free pose's, in
+    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2."""
     o = wp.tid()
     i = obs_pose[o]
     j = obs_point[o]
-    Rm = R[i]
-    Xc = _camera_point(Rm, t[i], X[j])
+    Tm = T[i]
+    Xc = _camera_point(Tm, X[j])
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     fx = K[0]
@@ -98,14 +105,14 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
         ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
         jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
         # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
-        c0 = wp.vec3d(Rm[0, 0], Rm[1, 0], Rm[2, 0])
-        c1 = wp.vec3d(Rm[0, 1], Rm[1, 1], Rm[2, 1])
-        c2 = wp.vec3d(Rm[0, 2], Rm[1, 2], Rm[2, 2])
+        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
+        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
+        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
         pu = a * (c0 - xn * c2)
         pv = b * (c1 - yn * c2)
     r2 = ru * ru + rv * rv
     s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
-    wp.atomic_add(weighted_sq, 0, s * r2)
+    wp.atomic_add(pose_system, 42 * n_free, s * r2)
     wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
     wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
     c = obs_col[o]
@@ -114,32 +121,37 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
         for a_ in range(3):
             for b_ in range(6):
                 Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
-        wp.atomic_add(Hcc, c, s * (wp.outer(ju, ju) + wp.outer(jv, jv)))
-        wp.atomic_add(gc, c, s * (ju * ru + jv * rv))
+        Hc = s * (wp.outer(ju, ju) + wp.outer(jv, jv))
+        g = s * (ju * ru + jv * rv)
+        for a_ in range(6):
+            for b_ in range(6):
+                wp.atomic_add(pose_system, 36 * c + 6 * a_ + b_, Hc[a_, b_])
+            wp.atomic_add(pose_system, 36 * n_free + 6 * c + a_, g[a_])
     W[o] = Wo
 
 
 @wp.kernel
 def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
-           R: wp.array(dtype=wp.mat33d), t: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d,
-           inv_sigma: wp.float64, k: wp.float64, loss: int, total: wp.array(dtype=wp.float64)):
+           T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
+           k: wp.float64, loss: int, slot: int, total: wp.array(dtype=wp.float64)):
+    """The sum of the reprojection losses, into ``total[slot]``."""
     o = wp.tid()
-    Xc = _camera_point(R[obs_pose[o]], t[obs_pose[o]], X[obs_point[o]])
+    Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
     ru = wp.float64(2.0) * K[0]
     rv = wp.float64(2.0) * K[0]
     if Xc[2] > wp.float64(0.0):
         ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
         rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
-    wp.atomic_add(total, 0, _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k))
+    wp.atomic_add(total, slot, _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k))
 
 
 @wp.kernel
 def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
-               uv: wp.array(dtype=wp.vec2d), R: wp.array(dtype=wp.mat33d), t: wp.array(dtype=wp.vec3d),
-               X: wp.array(dtype=wp.vec3d), K: wp.vec4d, behind: wp.float64, r: wp.array(dtype=wp.vec2d)):
+               uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+               K: wp.vec4d, behind: wp.float64, r: wp.array(dtype=wp.vec2d)):
     """Each observation's reprojection residual, ``behind`` in both where the point is behind the camera."""
     o = wp.tid()
-    Xc = _camera_point(R[obs_pose[o]], t[obs_pose[o]], X[obs_point[o]])
+    Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
     if Xc[2] > wp.float64(0.0):
         r[o] = wp.vec2d(K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0], K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1])
     else:
@@ -200,7 +212,7 @@ def _add_block(M: wp.array(dtype=wp.float64), n6: int, row: int, col: int, za: m
 
 @wp.kernel
 def _landmark_factors(Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d), lam: wp.float64,
-                      L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), failed: wp.array(dtype=wp.int32)):
+                      L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), failed: wp.array(dtype=wp.float64)):
     """Each landmark's damped block's Cholesky factor (as ``schur._cholesky3``) and L^-1 gp; ``failed`` counts
     the blocks that are not positive definite (a pivot <= 0 or NaN, LAPACK's test)."""
     j = wp.tid()
@@ -208,20 +220,20 @@ def _landmark_factors(Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3
     zero = wp.float64(0.0)
     d1 = V[0, 0] + lam
     if not (d1 > zero):
-        wp.atomic_add(failed, 0, 1)
+        wp.atomic_add(failed, 0, wp.float64(1.0))
         return
     l11 = wp.sqrt(d1)
     l21 = V[1, 0] / l11
     l31 = V[2, 0] / l11
     d2 = V[1, 1] + lam - l21 * l21
     if not (d2 > zero):
-        wp.atomic_add(failed, 0, 1)
+        wp.atomic_add(failed, 0, wp.float64(1.0))
         return
     l22 = wp.sqrt(d2)
     l32 = (V[2, 1] - l31 * l21) / l22
     d3 = V[2, 2] + lam - l31 * l31 - l32 * l32
     if not (d3 > zero):
-        wp.atomic_add(failed, 0, 1)
+        wp.atomic_add(failed, 0, wp.float64(1.0))
         return
     l33 = wp.sqrt(d3)
     L[j] = vec6d(l11, l21, l22, l31, l32, l33)
@@ -262,10 +274,28 @@ def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.in
             _add_block(M, n6, ca, ca, za, zb, True)
 
 
+@wp.func
+def _move_point(j: int, d: wp.vec3d, X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
+                X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
+    """The trial landmark X + d, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both)."""
+    X_trial[j] = X[j] + d
+    wp.atomic_add(sums, 0, wp.dot(d, gp[j]))
+    wp.atomic_add(sums, 1, wp.dot(d, d))
+
+
+@wp.kernel
+def _trial_points(dp: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
+                  X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
+    """The trial landmarks of moves ``dp`` solved on the host (``_move_point``)."""
+    j = wp.tid()
+    _move_point(j, dp[j], X, gp, X_trial, sums)
+
+
 @wp.kernel
 def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
-                     dp: wp.array(dtype=wp.vec3d)):
-    """Each landmark's move: dp = -V^-1 (gp + sum of W dc), V = L L^T."""
+                     X: wp.array(dtype=wp.vec3d), dp: wp.array(dtype=wp.vec3d), X_trial: wp.array(dtype=wp.vec3d),
+                     sums: wp.array(dtype=wp.float64)):
+    """Each landmark's move: dp = -V^-1 (gp + sum of W dc), V = L L^T, and the trial landmark (``_move_point``)."""
     j = wp.tid()
     l = L[j]
     x = gp[j] + Wdc[j]
@@ -275,161 +305,350 @@ def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc
     u2 = y2 / l[5]
     u1 = (y1 - l[4] * u2) / l[2]
     u0 = (y0 - l[1] * u1 - l[3] * u2) / l[0]
-    dp[j] = -wp.vec3d(u0, u1, u2)
+    d = -wp.vec3d(u0, u1, u2)
+    dp[j] = d
+    _move_point(j, d, X, gp, X_trial, sums)
+
+
+# the parts of an arena start on multiples of 32 words (256 bytes of float64: CUDA's allocation alignment)
+_ALIGN_WORDS = 32
+
+
+class _Mirror:
+    """A device array's host side, allocated once: on a CUDA device a host array (one ``wp.copy`` each way,
+    nothing allocated per transfer), on the CPU device the array's own memory (nothing copied)."""
+
+    def __init__(self, array) -> None:
+        self.array = array
+        self.host = array if array.device.is_cpu else wp.empty(array.shape, dtype=array.dtype, device="cpu")
+        self.view = self.host.numpy()  # zero-copy
 
 
 class ObservationKernels:
-    """A pose-major problem's observations on a Warp device, and the launches over them (each under the
-    device's lock, which threads driving one device take turns through: ``warp_device.device_lock``)."""
+    """A pose-major problem's observations and the solver's state on a Warp device, and the launches over them
+    (each under the device's lock, which threads driving one device take turns through:
+    ``warp_device.device_lock``).
+
+    The state (the poses, as (P,) 4x4 matrices, and the landmarks) stays here across LM iterations: a trial state
+    is written beside the current one (the trial poses uploaded, the landmarks moved here) and ``accept`` makes it
+    current. Every buffer is allocated once per solve; the host reads back one buffer per step it needs (the
+    pose system, the eliminated camera system, the trial's sums) into a host array allocated once. ``ops`` counts
+    launches (memsets included), uploads, downloads (and their bytes) and allocations: on the CPU device a
+    download is a read of the array's memory, on CUDA a copy and a wait."""
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
         self.device = device
+        self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
+        self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
+                    "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
         self.K = wp.vec4d(float(p.K[0, 0]), float(p.K[1, 1]), float(p.K[0, 2]), float(p.K[1, 2]))
-        self.obs_pose = wp.array(np.asarray(p.obs_pose, np.int32), dtype=wp.int32, device=device)
-        self.obs_point = wp.array(np.asarray(p.obs_point, np.int32), dtype=wp.int32, device=device)
-        self.obs_col = wp.array(np.asarray(obs_col, np.int32), dtype=wp.int32, device=device)
-        self.uv = wp.array(np.ascontiguousarray(p.obs_uv, np.float64), dtype=wp.vec2d, device=device)
-        self.W = wp.empty(self.n_obs, dtype=mat36d, device=device)  # (written whole by each linearisation)
-        self.Hpp = wp.zeros(self.n_points, dtype=wp.mat33d, device=device)
-        self.gp = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
-        self.Hcc = wp.zeros(max(n_free, 1), dtype=wp.spatial_matrixd, device=device)
-        self.gc = wp.zeros(max(n_free, 1), dtype=wp.spatial_vectord, device=device)
-        self.scalar = wp.zeros(1, dtype=wp.float64, device=device)
-        self.Wdc = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
-        self._chunks: dict[int, tuple] = {}
-        self.R = wp.empty(len(p.poses), dtype=wp.mat33d, device=device)
-        self.t = wp.empty(len(p.poses), dtype=wp.vec3d, device=device)
-        self.X = wp.empty(self.n_points, dtype=wp.vec3d, device=device)
-        # the camera system's elimination on the device (``schur_complement``): observations by free poses
-        # grouped by landmark, each with the end of its landmark's group
+        N, O = self.n_points, self.n_obs
         self.schur_on_device = bool(schur_on_device)
+        self._arenas = []  # the allocations that the arrays below are parts of
+        # the problem's index arrays, one upload; with the elimination here, the observations by free poses
+        # grouped by landmark, each with the end of its landmark's group
+        indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
         if self.schur_on_device:
-            obs_point = np.asarray(p.obs_point, np.int64)
+            obs_point = np.asarray(p.obs_point)
             pm = np.flatnonzero(np.asarray(obs_col) >= 0)
-            pm = pm[np.argsort(obs_point[pm], kind="stable")]
-            ends = np.searchsorted(obs_point[pm], obs_point[pm], side="right")
+            # (a stable sort of small integers is numpy's radix sort)
+            pm = pm[np.argsort(obs_point[pm].astype(np.int16 if N < 2**15 else np.int64), kind="stable")]
+            indices["pm_obs"] = pm
+            indices["pm_end"] = np.cumsum(np.bincount(obs_point[pm], minlength=N))[obs_point[pm]]
             self.n_pm = len(pm)
-            self.pm_obs = wp.array(pm.astype(np.int32), dtype=wp.int32, device=device)
-            self.pm_end = wp.array(ends.astype(np.int32), dtype=wp.int32, device=device)
-            self.L = wp.zeros(self.n_points, dtype=vec6d, device=device)
-            self.Lg = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
-            self.failed = wp.zeros(1, dtype=wp.int32, device=device)
-            self.M = wp.zeros(max(36 * n_free * n_free, 1), dtype=wp.float64, device=device)
-            self.r = wp.zeros(max(6 * n_free, 1), dtype=wp.float64, device=device)
-            self.dc = wp.zeros(max(n_free, 1), dtype=vec6d, device=device)
-            self.dp = wp.zeros(self.n_points, dtype=wp.vec3d, device=device)
+        for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
+            setattr(self, name, view)
+        self.uv = self._upload_new(np.ascontiguousarray(p.obs_uv, np.float64), wp.vec2d)
+        # every other buffer: parts of one allocation. ``work``: what a linearisation sums into (``linear``, one
+        # memset): Hpp (N x 9), gp (N x 3), the pose system (42 F + 1); then, where the landmarks are eliminated
+        # here, the camera system (``eliminated``), read back with the pose system in one copy (``system``).
+        # T0, X0 and T1, X1: the current and the trial state (``cur`` indexes the current one). ``step_sums``: a
+        # step's sum of W dc per landmark and its sums (d.gp, d.d, the trial's reprojection error).
+        n6, n_system = 6 * n_free, 42 * n_free + 1
+        n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
+                 "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
+                 "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
+                 "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+        arena = self._alloc_arena(parts)
+        self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
+            arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
+        self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
+        self.work = work = arena["work"]
+        self.step_sums = arena["step_sums"]
+        self.linear = self._view(work, 0, 12 * N + n_system, wp.float64)
+        self.Hpp = self._view(work, 0, N, wp.mat33d)
+        self.gp = self._view(work, 9 * N, N, wp.vec3d)
+        self.pose_system = self._view(work, 12 * N, n_system, wp.float64)
+        self.Wdc = self._view(self.step_sums, 0, N, wp.vec3d)
+        self.sums = self._view(self.step_sums, 3 * N, 3, wp.float64)
+        if self.schur_on_device:
+            # M (6F x 6F), r (6F), the count of landmark blocks not positive definite
+            start = 12 * N + n_system
+            self.eliminated = self._view(work, start, n_eliminated, wp.float64)
+            self.M = self._view(work, start, n6 * n6, wp.float64)
+            self.r = self._view(work, start + n6 * n6, n6, wp.float64)
+            self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
+            self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
+        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
+        self._host = {}  # host mirrors, made at first use
+        self._commands = {}  # recorded launches (``_launch``)
+        self._chunks: dict[int, tuple] = {}
 
-    def _state(self, poses: np.ndarray, points: np.ndarray):
-        """The state copied into the device's arrays (no allocation per call)."""
-        self.R.assign(np.ascontiguousarray(poses[:, :3, :3], np.float64))
-        self.t.assign(np.ascontiguousarray(poses[:, :3, 3], np.float64))
-        self.X.assign(np.ascontiguousarray(points, np.float64))
-        return self.R, self.t, self.X
+    # --- buffers and transfers -------------------------------------------------------------------------------
+    def _alloc(self, n: int, dtype):
+        self.ops["allocations"] += 1
+        return wp.empty(max(int(n), 1), dtype=dtype, device=self.device)
 
-    def linearize(self, poses, points, sigma: float, loss: str, k: float):
-        """(Hpp (N, 3, 3), None where the elimination is on the device; gp (N, 3), pose blocks (F, 6, 6), pose
-        gradients (F, 6), sum of s |r|^2) at the given state."""
-        R, t, X = self._state(poses, points)
+    def _upload_new(self, values: np.ndarray, dtype):
+        self.ops["allocations"] += 1
+        self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += values.nbytes
+        return wp.array(values if len(values) else np.zeros((1,) + values.shape[1:], values.dtype), dtype=dtype,
+                        device=self.device)
+
+    @staticmethod
+    def _offsets(sizes: dict) -> tuple[dict, int]:
+        """Each part's offset in an arena of ``sizes`` (in words), every part starting on a multiple of
+        _ALIGN_WORDS; and the arena's size."""
+        offsets, end = {}, 0
+        for name, size in sizes.items():
+            offsets[name] = end
+            end += -(-max(size, 1) // _ALIGN_WORDS) * _ALIGN_WORDS
+        return offsets, end
+
+    def _alloc_arena(self, parts: dict) -> dict:
+        """One float64 allocation cut into arrays: {name: (length, dtype)} -> {name: array}."""
+        sizes = {k: max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8 for k, (n, dtype) in parts.items()}
+        offsets, total = self._offsets(sizes)
+        arena = self._alloc(total, wp.float64)
+        self._arenas.append(arena)  # (its parts are views: they do not keep it)
+        return {k: self._view(arena, offsets[k], n, dtype) for k, (n, dtype) in parts.items()}
+
+    def _upload_arena(self, values: dict) -> dict:
+        """int32 arrays uploaded in one copy: {name: values} -> {name: array}."""
+        offsets, total = self._offsets({k: len(v) for k, v in values.items()})
+        host = np.zeros(total, np.int32)
+        for k, v in values.items():
+            host[offsets[k]:offsets[k] + len(v)] = v
+        arena = self._upload_new(host, wp.int32)
+        self._arenas.append(arena)
+        return {k: wp.array(ptr=arena.ptr + 4 * offsets[k], shape=(max(len(v), 1),), dtype=wp.int32,
+                            device=arena.device) for k, v in values.items()}
+
+    @staticmethod
+    def _view(base, offset: int, n: int, dtype):
+        """Elements [offset, offset + n x dtype's length) of a float64 ``base`` as an array of ``dtype``."""
+        return wp.array(ptr=base.ptr + 8 * offset, shape=(max(int(n), 1),), dtype=dtype, device=base.device)
+
+    def _mirror(self, array) -> _Mirror:
+        key = (array.ptr, array.dtype, array.shape)
+        if key not in self._host:
+            if not array.device.is_cpu:
+                self.ops["allocations"] += 1
+            self._host[key] = _Mirror(array)
+        return self._host[key]
+
+    def _upload(self, array, values: np.ndarray) -> None:
+        """``values`` into the device array (their shape: its numpy view's, or a leading part of it)."""
+        m = self._mirror(array)
+        m.view[:len(values)] = values
+        if m.host is not array:
+            with device_lock(self.device):
+                wp.copy(array, m.host, count=len(values))
+        self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += m.view[:len(values)].nbytes
+
+    def _download(self, *arrays) -> list[np.ndarray]:
+        """The arrays' host mirrors' views, after one wait for the copies (valid until the next download)."""
+        views = []
         with device_lock(self.device):
-            for a in (self.Hpp, self.gp, self.Hcc, self.gc, self.scalar):
-                a.zero_()
-            wp.launch(_linearize, dim=self.n_obs, device=self.device,
-                      inputs=[self.obs_pose, self.obs_point, self.obs_col, self.uv, R, t, X, self.K, 1.0 / sigma,
-                              float(k), LOSS_CODES[loss]],
-                      outputs=[self.W, self.Hpp, self.gp, self.Hcc, self.gc, self.scalar])
-        # W stays on the device (read by ``whitened_batch``, ``w_times_step``; ``W_host`` where needed), and
-        # so do the landmark blocks where the elimination runs here
-        return (None if self.schur_on_device else self.Hpp.numpy(), self.gp.numpy(), self.Hcc.numpy()[:self.n_free],
-                self.gc.numpy()[:self.n_free], float(self.scalar.numpy()[0]))
+            for array in arrays:
+                m = self._mirror(array)
+                if m.host is not array:
+                    wp.copy(m.host, array)
+                self.ops["downloads"] += 1
+                self.ops["downloaded_bytes"] += m.view.nbytes
+                views.append(m.view)
+            if self._cuda is not None:  # (the stream the copies went on: the device's current one)
+                wp.synchronize_stream(self._cuda.stream)
+        return views
+
+    def _launch(self, kernel, dim: int, inputs, outputs) -> None:
+        """Launch by a command recorded at the first launch with these arrays (``wp.launch(record_cmd=True)``),
+        its other parameters set again: a replay costs a fifth of a launch's argument packing."""
+        if dim <= 0:
+            return
+        args = [*inputs, *outputs]
+        key = (kernel.key, dim, *(id(a) if isinstance(a, wp.array) else None for a in args))
+        command = self._commands.get(key)
+        if command is None:
+            command = self._commands[key] = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs,
+                                                      outputs=outputs, record_cmd=True)
+        else:
+            for i, a in enumerate(args):
+                if not isinstance(a, wp.array):
+                    command.set_param_at_index(i, a)
+        command.launch()
+        self.ops["launches"] += 1
+
+    def _zero(self, array) -> None:
+        array.zero_()
+        self.ops["launches"] += 1
+
+    # --- the state -----------------------------------------------------------------------------------------------
+    def set_state(self, poses: np.ndarray, points: np.ndarray) -> None:
+        """Upload a state as the current one."""
+        self._upload(self.T[self.cur], np.ascontiguousarray(poses, np.float64))
+        self._upload(self.X[self.cur], np.ascontiguousarray(points, np.float64))
+
+    def points(self) -> np.ndarray:
+        """(N, 3) the current landmarks (a copy)."""
+        return self._download(self.X[self.cur])[0][:self.n_points].copy()
+
+    def accept(self) -> None:
+        """The last trial state (``try_step``, ``back_substitute``) becomes the current one."""
+        self.cur = 1 - self.cur
+
+    # --- the launches --------------------------------------------------------------------------------------------
+    def linearize(self, sigma: float, loss: str, k: float, landmarks: bool, lam: float | None = None):
+        """Linearise at the current state: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2, and
+        with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies. With ``lam``
+        (the elimination on the device) the landmarks are eliminated at that damping too, read back with the pose
+        system in one copy, for ``schur_complement(lam)``: the device works while the host adds the pose
+        factors."""
+        with device_lock(self.device):
+            self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
+            self._launch(_linearize, self.n_obs,
+                         [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
+                          self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free],
+                         [self.W, self.Hpp, self.gp, self.pose_system])
+            if lam is not None:
+                self._eliminate(lam, zeroed=True)
+                flat = self._download(self.system)[0]
+            else:
+                flat = self._download(self.linear if landmarks else self.pose_system)[0]
+        F, N = self.n_free, self.n_points
+        system = flat[12 * N:] if landmarks else flat
+        blocks = system[:36 * F].reshape(F, 6, 6).copy()
+        grads = system[36 * F:42 * F].reshape(F, 6).copy()
+        weighted_sq = float(system[42 * F])
+        Hpp = flat[:9 * N].reshape(N, 3, 3).copy() if landmarks else None
+        gp = flat[9 * N:12 * N].reshape(N, 3).copy() if landmarks else None
+        self._eliminated_at = None if lam is None else (lam, self._camera_system(system[42 * F + 1:]))
+        return blocks, grads, weighted_sq, Hpp, gp
 
     def W_host(self) -> np.ndarray:
         """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
-        return self.W.numpy()
+        return self._download(self.W)[0].copy()
 
-    def residuals(self, poses, points, behind: float) -> np.ndarray:
-        """(O, 2) reprojection residuals at the given state, ``behind`` where the point is behind the camera."""
-        R, t, X = self._state(poses, points)
-        if not hasattr(self, "residual"):
-            self.residual = wp.zeros(self.n_obs, dtype=wp.vec2d, device=self.device)
+    def residuals(self, behind: float) -> np.ndarray:
+        """(O, 2) reprojection residuals at the current state, ``behind`` where the point is behind the camera."""
         with device_lock(self.device):
-            wp.launch(_residuals, dim=self.n_obs, device=self.device,
-                      inputs=[self.obs_pose, self.obs_point, self.uv, R, t, X, self.K, float(behind)],
-                      outputs=[self.residual])
-        return self.residual.numpy().copy()
+            self._launch(_residuals, self.n_obs,
+                         [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
+                          float(behind)], [self.residual])
+            return self._download(self.residual)[0][:self.n_obs].copy()
 
-    def error(self, poses, points, sigma: float, loss: str, k: float) -> float:
-        """The sum of the reprojection losses at the given state."""
-        R, t, X = self._state(poses, points)
+    def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
+        self._launch(_error, self.n_obs,
+                     [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
+                      float(k), LOSS_CODES[loss], slot], [self.sums])
+
+    def error(self, sigma: float, loss: str, k: float) -> float:
+        """The sum of the reprojection losses at the current state."""
         with device_lock(self.device):
-            self.scalar.zero_()
-            wp.launch(_error, dim=self.n_obs, device=self.device,
-                      inputs=[self.obs_pose, self.obs_point, self.uv, R, t, X, self.K, 1.0 / sigma, float(k),
-                              LOSS_CODES[loss]], outputs=[self.scalar])
-        return float(self.scalar.numpy()[0])
+            self._zero(self.sums)
+            self._error_launch(self.cur, sigma, loss, k, 2)
+            return float(self._download(self.sums)[0][2])
 
     def set_landmark_factors(self, L: np.ndarray) -> None:
         """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_batch``."""
-        self.L = wp.array(np.ascontiguousarray(L, np.float64), dtype=vec6d, device=self.device)
+        self._upload(self.L, np.ascontiguousarray(L, np.float64))
 
     def whitened_batch(self, key, chunks, offsets, dense: bool) -> np.ndarray:
         """Consecutive chunks' dense L^-1 W blocks in one launch, laid one after the other from ``offsets``
         (flat; chunk i's is ``Z[offsets[i]:offsets[i + 1]].reshape(3 x landmarks, 6 x poses)``); ``key`` names
-        the batch (its index arrays stay on the device)."""
+        the batch (its index arrays stay on the device). Valid until the next download."""
         d = self.device
         if key not in self._chunks:
             self._chunks[key] = (
-                wp.array(np.concatenate([np.asarray(c.obs, np.int32) for c in chunks]), dtype=wp.int32, device=d),
-                wp.array(np.concatenate([c.dest[0, 0] + o for c, o in zip(chunks, offsets)]).astype(np.int64),
-                         dtype=wp.int64, device=d),
-                wp.array(np.concatenate([np.full(len(c.obs), 6 * c.n_cols, np.int64) for c in chunks]),
-                         dtype=wp.int64, device=d),
-                wp.zeros(int(offsets[-1]), dtype=wp.float64, device=d))
+                self._upload_new(np.concatenate([np.asarray(c.obs, np.int32) for c in chunks]), wp.int32),
+                self._upload_new(np.concatenate([c.dest[0, 0] + o for c, o in zip(chunks, offsets)]).astype(np.int64),
+                                 wp.int64),
+                self._upload_new(np.concatenate([np.full(len(c.obs), 6 * c.n_cols, np.int64) for c in chunks]),
+                                 wp.int64),
+                self._alloc(int(offsets[-1]), wp.float64))
         obs, base, width, Z = self._chunks[key]
         with device_lock(d):
             if not dense:
-                Z.zero_()
-            wp.launch(_whitened_batch, dim=obs.shape[0], device=d,
-                      inputs=[obs, base, width, self.obs_point, self.W, self.L], outputs=[Z])
-        return Z.numpy()
+                self._zero(Z)
+            self._launch(_whitened_batch, obs.shape[0], [obs, base, width, self.obs_point, self.W, self.L], [Z])
+            return self._download(Z)[0]
 
     def w_times_step(self, dc: np.ndarray) -> np.ndarray:
-        """(N, 3): the sum of W_o dc over each landmark's observations."""
-        step = wp.array(np.ascontiguousarray(dc, np.float64), dtype=vec6d, device=self.device)
+        """(N, 3): the sum of W_o dc over each landmark's observations (a copy)."""
+        self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6))
         with device_lock(self.device):
-            self.Wdc.zero_()
-            wp.launch(_w_times_step, dim=self.n_obs, device=self.device,
-                      inputs=[self.obs_point, self.obs_col, self.W, step], outputs=[self.Wdc])
-        return self.Wdc.numpy()
+            self._zero(self.Wdc)
+            self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
+            return self._download(self.Wdc)[0][:self.n_points].copy()
+
+    def _eliminate(self, lam: float, zeroed: bool = False) -> None:
+        if not zeroed:
+            self._zero(self.eliminated)
+        self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)], [self.L, self.Lg, self.failed])
+        self._launch(_schur_blocks, self.n_pm,
+                     [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                      6 * self.n_free], [self.M, self.r])
+
+    def _camera_system(self, flat: np.ndarray):
+        """(M, r) copied from a read-back ``eliminated``; None where a landmark block failed."""
+        n6 = 6 * self.n_free
+        if flat[n6 * n6 + n6]:
+            return None
+        return flat[:n6 * n6].reshape(n6, n6).copy(), flat[n6 * n6:n6 * n6 + n6].copy()
 
     def schur_complement(self, lam: float):
         """The landmarks eliminated at damping ``lam``, on the device: (M (6F, 6F): the sum of W^T V^-1 W in its
         lower block triangle, r (6F,): the sum of W^T V^-1 gp), or None where a landmark's damped block is not
-        positive definite. Read back: M, r and a flag."""
-        d = self.device
-        with device_lock(d):
-            self.failed.zero_()
-            self.M.zero_()
-            self.r.zero_()
-            wp.launch(_landmark_factors, dim=self.n_points, device=d, inputs=[self.Hpp, self.gp, float(lam)],
-                      outputs=[self.L, self.Lg, self.failed])
-            wp.launch(_schur_blocks, dim=self.n_pm, device=d,
-                      inputs=[self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
-                              6 * self.n_free], outputs=[self.M, self.r])
-        if int(self.failed.numpy()[0]):
-            return None
-        n6 = 6 * self.n_free
-        return self.M.numpy()[:n6 * n6].reshape(n6, n6), self.r.numpy()[:n6]
+        positive definite. One read-back (M, r and the flag), none where the last linearisation eliminated them
+        at this damping (``linearize``). Copies."""
+        if self._eliminated_at is not None and self._eliminated_at[0] == lam:
+            eliminated, self._eliminated_at = self._eliminated_at[1], None
+            return eliminated
+        with device_lock(self.device):
+            self._eliminate(lam)
+            return self._camera_system(self._download(self.eliminated)[0])
 
-    def back_substitute(self, dc: np.ndarray) -> np.ndarray:
-        """(N, 3): each landmark's move -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors."""
-        d = self.device
-        self.dc.assign(np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
-        with device_lock(d):
-            self.Wdc.zero_()
+    def _try(self, sigma: float, loss: str, k: float):
+        """(d.gp, d.d, the trial state's reprojection error) once its landmarks are written: one read-back."""
+        self._error_launch(1 - self.cur, sigma, loss, k, 2)
+        sums = self._download(self.sums)[0]
+        return float(sums[0]), float(sums[1]), float(sums[2])
+
+    def back_substitute(self, dc: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
+        """The landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to make
+        the trial state with ``trial_poses``: (d.gp, d.d, the trial's reprojection error), one read-back."""
+        # (the uploads first: one from pageable memory waits for the stream)
+        self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
+        self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
+        with device_lock(self.device):
+            self._zero(self.step_sums)
             if self.n_free:
-                wp.launch(_w_times_step, dim=self.n_obs, device=d,
-                          inputs=[self.obs_point, self.obs_col, self.W, self.dc], outputs=[self.Wdc])
-            wp.launch(_back_substitute, dim=self.n_points, device=d, inputs=[self.L, self.gp, self.Wdc],
-                      outputs=[self.dp])
-        return self.dp.numpy()
+                self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
+            self._launch(_back_substitute, self.n_points, [self.L, self.gp, self.Wdc, self.X[self.cur]],
+                         [self.dp, self.X[1 - self.cur], self.sums])
+            return self._try(sigma, loss, k)
+
+    def try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
+        """The trial state of landmark moves ``dp`` (N, 3) solved on the host and ``trial_poses``:
+        (d.gp, d.d, its reprojection error), one read-back."""
+        self._upload(self.dp, np.ascontiguousarray(dp, np.float64))
+        self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
+        with device_lock(self.device):
+            self._zero(self.sums)
+            self._launch(_trial_points, self.n_points, [self.dp, self.X[self.cur], self.gp],
+                         [self.X[1 - self.cur], self.sums])
+            return self._try(sigma, loss, k)
