@@ -8,10 +8,9 @@ import os
 import platform
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
-from lapreco_hil.config import PipelineConfig, load_config
+from lapreco_hil.config import load_config
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.warp_device import resolve_device
@@ -68,16 +67,17 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
 
 def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), fps: float = 10.0,
                minutes: float = 30.0, features: int = 400, scene: str = "skull", tracker: str = "auto",
-               sample_s: float = 10.0, stream: str | None = None) -> dict:
+               sample_s: float = 10.0, stream: str | None = None, surface: str = "auto") -> dict:
     """The live runtime on the endless simulated world for ``minutes``, sampled every ``sample_s``; each sample
-    is also appended to ``stream`` (JSON lines) as it is taken."""
+    is also appended to ``stream`` (JSON lines) as it is taken. ``surface``: ``[surface] mode`` (dense: the
+    live dense stage's volume and kept keyframes are in the main process's memory)."""
+    from lapreco_hil.bench.pipeline import bench_config
     from lapreco_hil.bench.soak import Sampler, summarize
 
     device = resolve_device(device)
     w, h = resolution
     tracker = resolve_tracker(tracker, device)
-    config = PipelineConfig()
-    config = replace(config, tracker=replace(config.tracker, max_features=features))
+    config = bench_config(features, surface)
     ctx = DeviceContext(device=device)
     # an endless simulated world (its scan is periodic), rendered as the camera would deliver it
     url = f"sim://{scene}?width={w}&height={h}&fps={fps}&speed=1.0"
@@ -99,6 +99,8 @@ def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), f
             "features": features, "wall_s": wall, "frames": f, "latency_ms": report["latency_ms"],
             "keyframes": report["keyframes"], "landmarks": report["landmarks"], "inliers": report["inliers"],
             "final_ba_s": report["live"].get("final_ba_s"), "health_counts": report["health"]["counts"],
+            "surface": report.get("surface"), "dense": report.get("dense"),
+            "live": {k: v for k, v in report["live"].items() if k.startswith("dense")},
             "summary": summarize(samples, warmup_s=min(120.0, minutes * 60 / 4), stretch_s=min(300.0, minutes * 60 / 4)),
             "samples": samples}
 

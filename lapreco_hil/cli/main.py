@@ -217,6 +217,8 @@ def build_parser() -> ArgumentParser:
     bench_k.add_argument("--features", type=positive_int, default=400)
     bench_k.add_argument("--scene", default="skull")
     bench_k.add_argument("--tracker", default="auto", help="warp | opencv | auto")
+    bench_k.add_argument("--surface", choices=("auto", "dense", "alpha"), default="auto",
+                         help="the surface (default auto: alpha live); dense soaks the live dense stage too")
     bench_k.add_argument("--sample-s", type=positive, default=10.0, help="seconds between samples")
     bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file; "
                          "samples also go to JSON.samples.jsonl as they are taken")
@@ -258,7 +260,8 @@ def _cmd_bench_soak(args) -> int:
     from lapreco_hil.bench.soak import format_table
 
     result = bench_soak(args.device, args.resolution, args.fps, args.minutes, args.features, args.scene,
-                        args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None)
+                        args.tracker, args.sample_s, stream=f"{args.json}.samples.jsonl" if args.json else None,
+                        surface=args.surface)
     print(format_table(result))
     _write_json(args.json, result)
     return 0

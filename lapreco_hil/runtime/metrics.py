@@ -96,6 +96,9 @@ class LiveMetrics:
                      "local_ba_deferred_share": c.get("local_ba_skipped", 0) / max(c.get("keyframes", 0), 1),
                      "resection_skipped": c.get("resection_skipped", 0), "surface_rebuilds": c.get("surface_rebuilds", 0),
                      "views": c.get("views", 0), "capture_timeouts": c.get("capture_timeouts", 0),
+                     # the live dense stage: keyframes it fused, re-fused after BA moved them, left to the final build
+                     "dense_keyframes": c.get("dense_keyframes", 0), "dense_refused": c.get("dense_refused", 0),
+                     "dense_left_to_final": c.get("dense_left_to_final", 0),
                      "stage_errors": dict(errors), "disabled_stages": sorted(disabled),
                      "interrupted": interrupted,
                      # the map's end after capture stops: all of it, and its global BA alone
