@@ -131,6 +131,42 @@ def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_p
     return depth
 
 
+# How far off a pose-predicted start may be, which sets LK's pyramid for a predicted frame (``start_uncertainty_px``):
+# a landmark's depth within OWN_DEPTH_SPREAD (relative), a depth borrowed from neighbouring tracks within
+# BORROWED_DEPTH_SPREAD (tissue is not flat), the sweep's best within its SECOND_RADIUS on SWEEP_LEVEL; at least
+# POSE_UNCERTAINTY_PX everywhere (the robot's relative pose between two frames), and the frame's figure is the
+# START_QUANTILE of its tracks'
+OWN_DEPTH_SPREAD = 0.05
+BORROWED_DEPTH_SPREAD = 0.15
+POSE_UNCERTAINTY_PX = 4.0
+START_QUANTILE = 90.0
+
+
+def start_uncertainty_px(uv: np.ndarray, ids: np.ndarray, depth: np.ndarray, motion, K: np.ndarray) -> float:
+    """How far (px) the predicted starts of a frame's tracks may lie from where the tracks truly are, given their
+    start ``depth`` (``start_depths``): each start moved by its depth's spread (its landmark's, a borrowed one's,
+    or for a short line settled at the range's far end the whole range), the sweep's resolution for the
+    tracks searched along their line (NaN depth), the pose's floor; the START_QUANTILE over the tracks."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, np.float64)
+    if len(uv) == 0:
+        return POSE_UNCERTAINTY_PX
+    T = np.asarray(motion.T_cur_prev, np.float64)
+    own = np.isin(ids, np.asarray(motion.track_ids)[np.asarray(motion.depth_m) > 0])
+    near_far = np.asarray(motion.depth_range_m, np.float64)
+    settled = ~own & (depth == near_far[1])
+    lo = np.where(settled, near_far[0], depth * (1.0 - np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
+    hi = np.where(settled, near_far[1], depth * (1.0 + np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
+    known = np.isfinite(depth)
+    spread = np.full(len(uv), SECOND_RADIUS * 2.0 ** SWEEP_LEVEL)
+    if known.any():
+        at = project(uv[known], depth[known], K, K, T)
+        spread[known] = np.maximum(np.linalg.norm(project(uv[known], lo[known], K, K, T) - at, axis=1),
+                                   np.linalg.norm(project(uv[known], hi[known], K, K, T) - at, axis=1))
+    spread = np.nan_to_num(spread, nan=1e6, posinf=1e6)  # behind the camera at one end: unbounded
+    return float(max(POSE_UNCERTAINTY_PX, np.percentile(spread, START_QUANTILE)))
+
+
 def _patch_offsets(patch_px: int) -> np.ndarray:
     r = (patch_px - 1) / 2
     g = np.arange(patch_px, dtype=np.float32) - r

@@ -52,9 +52,23 @@ def pyramid_levels(config: TrackerConfig, width: int, height: int) -> int:
             raise ConfigError(f'[tracker] pyramid_levels = {config.pyramid_levels!r}: must be a whole number >= 0 '
                               f'or "auto"')
         return config.pyramid_levels
-    for_motion = math.ceil(math.log2(max(config.expected_motion_px / LK_COARSE_REACH_PX, 1.0)))
+    return levels_for_reach(config.expected_motion_px, config, width, height)
+
+
+def levels_for_reach(reach_px: float, config: TrackerConfig, width: int, height: int) -> int:
+    """The fewest pyramid levels that bring a motion of ``reach_px`` within LK_COARSE_REACH_PX on the coarsest
+    level, as long as that level keeps ``pyramid_min_coarsest_px`` pixels on its shorter side."""
+    for_motion = math.ceil(math.log2(max(reach_px / LK_COARSE_REACH_PX, 1.0)))
     for_size = int(math.floor(math.log2(max(min(width, height) / config.pyramid_min_coarsest_px, 1.0))))
     return max(0, min(for_motion, for_size))
+
+
+def predicted_levels(config: TrackerConfig, levels: int, width: int, height: int, uncertainty_px: float) -> int:
+    """LK's pyramid levels for tracks started where a pose prediction puts them: enough for the prediction's
+    ``uncertainty_px``, not for the whole motion (``levels``, the front-end's pyramid, is the most). Coarse
+    levels a prediction does not need only cost: there a wide window averages the motion of texture hundreds of
+    pixels around a weak corner, and the finer levels cannot bring it back (docs/frontend-real-frames.md)."""
+    return min(levels, levels_for_reach(uncertainty_px, config, width, height))
 
 
 def shading_sigma_px(config: TrackerConfig, levels: int) -> float:

@@ -24,8 +24,8 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
 from lapreco_hil.frontend import epipolar
-from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
-                                        to_u8, tracker_image)
+from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, predicted_levels, pyramid_levels,
+                                        shading_factor, shading_sigma_px, to_u8, tracker_image)
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
@@ -64,6 +64,7 @@ class WarpFrontEnd:
         # pyramid layout: one flat array, per-level offsets
         self.pyramid_levels = pyramid_levels(config, W, H)  # above full resolution
         self.levels = self.pyramid_levels + 1  # with full resolution
+        self._lk_levels = self.levels  # LK's this frame: fewer where a pose prediction starts the tracks
         self._sigma = shading_sigma_px(config, self.pyramid_levels)
         offs, ws, hs, total, w, h = [], [], [], 0, W, H
         for _ in range(self.levels):
@@ -241,7 +242,7 @@ class WarpFrontEnd:
         cfg = self.config
         prev, cur = 1 - self._cur, self._cur
         lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-                    self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
                     coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level)
@@ -249,7 +250,7 @@ class WarpFrontEnd:
         if self._motion is not None:
             # LK back into the previous image from where the swept tracks landed
             lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
-                        self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                        self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                         cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
                         self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device)
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
@@ -412,12 +413,17 @@ class WarpFrontEnd:
             return self._process(frame, motion)
 
     def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
-        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none) and the flag
-        that makes LK start from the predicted positions. Frames with a motion launch their kernels one by one
-        (the motion's pose is a kernel argument, so no captured graph replays them)."""
+        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none), the flag
+        that makes LK start from the predicted positions, and LK's pyramid levels for the prediction's
+        uncertainty (``image.predicted_levels``). Frames with a motion launch their kernels one by one (the
+        motion's pose is a kernel argument, so no captured graph replays them)."""
         self._motion = motion
+        self._lk_levels = self.levels
         if motion is None:
             return
+        _, _, ids, uv = self._last
+        reach = epipolar.start_uncertainty_px(uv, ids, depth, motion, self.camera.K)
+        self._lk_levels = predicted_levels(self.config, self.pyramid_levels, self.width, self.height, reach) + 1
         self._depth_range = motion.depth_range_m
         slots = np.zeros(self.config.max_features, np.float32)
         slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
@@ -441,6 +447,7 @@ class WarpFrontEnd:
             if self._motion is not None:
                 self._use_guess.fill_(0)
                 self._motion = None
+                self._lk_levels = self.levels
 
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
