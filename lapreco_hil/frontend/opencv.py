@@ -13,7 +13,7 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.frontend import epipolar
+from lapreco_hil.frontend import epipolar, track_budget
 from lapreco_hil.frontend.drift import AffineDriftCheck
 from lapreco_hil.frontend.image import predicted_levels, pyramid_levels, tracker_image
 
@@ -61,6 +61,8 @@ class OpenCVFrontEnd:
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
         if depth is None:
             motion = None  # a small motion: tracked as without one
+        budget = track_budget(cfg, None if motion is None else epipolar.start_motion_px(
+            self._pts, depth, self.camera.K, motion.T_cur_prev))
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
@@ -111,12 +113,12 @@ class OpenCVFrontEnd:
             self._filter(keep, positions)
         t_drift = time.perf_counter()
         n_new = 0
-        if len(self._pts) < cfg.redetect_below * cfg.max_features:
+        if len(self._pts) < cfg.redetect_below * budget:
             mask = self.mask.copy()
             mask[~lit] = 0
             for x, y in self._pts:
                 cv2.circle(mask, (int(round(x)), int(round(y))), int(cfg.min_distance_px), 0, -1)
-            want = cfg.max_features - len(self._pts)
+            want = budget - len(self._pts)
             corners = cv2.goodFeaturesToTrack(gray, maxCorners=want, qualityLevel=cfg.quality_level,
                                               minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
             if corners is not None:
