@@ -141,8 +141,8 @@ class MapperConfig:
     min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
     # ...or with two inlier observations (instants) whose rays meet at least this wide (degrees; 0: never):
     # with the robot's poses known such a pair fixes the depth, and a fast scan sees many points at two instants
-    # only; off by default, as it costs accuracy (docs/results.md, "Fast motion")
-    two_view_parallax_deg: float = ranged(0.0, ge=0.0)
+    # only; 4 degrees keeps the fast runs' accuracy (2.5 cost it: docs/results.md, "Fast motion")
+    two_view_parallax_deg: float = ranged(4.0, ge=0.0)
     final_global_ba: bool = True
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)
