@@ -109,8 +109,8 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
     them on the 4 that "auto" picks for this size and 80 px of expected motion. On those 4 levels a predicted
     track runs LK on the levels its prediction's uncertainty needs, not on all of them: on the coarsest (45 x
     36, a 31 px window) LK pulled weak corners off their predicted start (Warp 0.69 / 0.57 within 1 px, OpenCV
-    0.91 / 0.79, depth / sweep; on 2 levels 0.81 / 0.68 and 0.96 / 0.84). The frame at 720 x 576 (the phantom video's
-    full frame): at 360 x 288 the coarsest level is 45 x 36, smaller than two LK windows."""
+    0.91 / 0.79, depth / sweep; on 3 levels 0.80 / 0.67 and 0.96 / 0.84). The frame at 720 x 576 (the phantom
+    video's full frame): at 360 x 288 the coarsest level is 45 x 36, smaller than two LK windows."""
     left, _, K, _, _ = hamlyn()
     left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
     K = np.diag([2.0, 2.0, 1.0]) @ K
@@ -151,8 +151,8 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
 def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
     """The pyramid for tracks started from a pose prediction follows how far off the starts may be: a landmark's
     depth (a few px at 70 px of motion) or the sweep's step needs what the robot's pose noise needs (two levels),
-    a depth borrowed from neighbours more, a short line settled at the range's far end its whole length; never
-    more than the front-end's own."""
+    a depth borrowed from neighbours more, a short line settled at the range's far end its whole length. The
+    coarse-window levels join only where that needs them; never more than the front-end's own pyramid."""
     from lapreco_hil.frontend.image import predicted_levels
 
     K = np.array([[800.0, 0, 360], [0, 800.0, 288], [0, 0, 1]])
@@ -168,9 +168,11 @@ def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
     # 5 % of the depth (3.5 px of 70) and the sweep's step (2.5 px of level 1) are under the pose's floor
     assert u_own == u_swept == epipolar.POSE_UNCERTAINTY_PX == 8.0
     assert 8.0 < u_borrowed < 14.0 < u_settled
-    cfg = TrackerConfig()
-    assert [predicted_levels(cfg, 4, 720, 576, u) for u in (u_own, u_borrowed, u_settled)] == [2, 3, 4]
-    assert predicted_levels(cfg, 2, 720, 576, u_settled) == 2  # never more than the front-end's pyramid
+    # the coarse-window levels (from coarse_from_level = 4 up) only where the uncertainty needs them
+    assert [predicted_levels(TrackerConfig(), 4, 720, 576, u) for u in (u_own, u_borrowed, u_settled)] == [3, 3, 4]
+    assert [predicted_levels(TrackerConfig(coarse_from_level=1), 4, 720, 576, u)
+            for u in (u_own, u_borrowed, u_settled)] == [2, 3, 4]
+    assert predicted_levels(TrackerConfig(), 2, 720, 576, u_settled) == 2  # never more than the front-end's pyramid
 
 
 @pytest.mark.parametrize("tracker", ["opencv", "warp"])

@@ -64,11 +64,13 @@ def levels_for_reach(reach_px: float, config: TrackerConfig, width: int, height:
 
 
 def predicted_levels(config: TrackerConfig, levels: int, width: int, height: int, uncertainty_px: float) -> int:
-    """LK's pyramid levels for tracks started where a pose prediction puts them: enough for the prediction's
-    ``uncertainty_px``, not for the whole motion (``levels``, the front-end's pyramid, is the most). Coarse
-    levels a prediction does not need only cost: there a wide window averages the motion of texture hundreds of
-    pixels around a weak corner, and the finer levels cannot bring it back (docs/frontend-real-frames.md)."""
-    return min(levels, levels_for_reach(uncertainty_px, config, width, height))
+    """LK's pyramid levels for tracks started where a pose prediction puts them: the coarse-window levels
+    (``coarse_from_level`` and up) only where the prediction's ``uncertainty_px`` needs them, never more than
+    ``levels`` (the front-end's pyramid). Those levels are there to reach the whole motion without a prediction;
+    with one they only cost: their wide window averages the motion of texture hundreds of pixels around a weak
+    corner, and the finer levels cannot bring it back (docs/frontend-real-frames.md). The levels below them
+    stay, as every predicted figure was measured with them."""
+    return min(levels, max(levels_for_reach(uncertainty_px, config, width, height), config.coarse_from_level - 1))
 
 
 def shading_sigma_px(config: TrackerConfig, levels: int) -> float:
