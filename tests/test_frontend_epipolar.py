@@ -162,9 +162,10 @@ def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
     own = FrameMotion(T, ids, np.full(len(uv), 0.08), (0.03, 0.3))
     depth = np.full(len(uv), 0.08)
     u_own = epipolar.start_uncertainty_px(uv, ids, depth, own, K)
-    u_borrowed = epipolar.start_uncertainty_px(uv, ids, depth, FrameMotion(T, depth_range_m=(0.03, 0.3)), K)
+    no_depths = FrameMotion(T, depth_range_m=(0.03, 0.3))
+    u_borrowed = epipolar.start_uncertainty_px(uv, ids, depth, no_depths, K)
     u_swept = epipolar.start_uncertainty_px(uv, ids, np.full(len(uv), np.nan), own, K)
-    u_settled = epipolar.start_uncertainty_px(uv, ids, np.full(len(uv), 0.3), FrameMotion(T, depth_range_m=(0.03, 0.3)), K)
+    u_settled = epipolar.start_uncertainty_px(uv, ids, np.full(len(uv), 0.3), no_depths, K)  # the range's far end
     # 5 % of the depth (3.5 px of 70) and the sweep's step (2.5 px of level 1) are under the pose's floor
     assert u_own == u_swept == epipolar.POSE_UNCERTAINTY_PX == 8.0
     assert 8.0 < u_borrowed < 14.0 < u_settled
