@@ -81,6 +81,11 @@ class TrackerConfig:
     fov_margin_px: float = ranged(12.0, ge=0.0)
     # re-detect when fewer than this share of max_features is alive
     redetect_below: float = ranged(0.9, ge=0.0, le=1.0)
+    # at fast scope motion a track lives few keyframes (each frame is one), so a point seen at three instants
+    # needs more tracks per frame: a frame whose pose prediction moves the tracks at least fast_motion_px
+    # (median) keeps up to fast_features_scale x max_features (1: never; docs/results.md, "Fast motion")
+    fast_motion_px: float = ranged(25.0, gt=0.0)
+    fast_features_scale: float = ranged(1.5, ge=1.0)
     # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did): the
     # Gaussian's sigma in pixels of the coarsest pyramid level (x 2^levels at full resolution)
     shading_sigma_px: float = ranged(3.0, ge=0.0)
@@ -136,8 +141,8 @@ class MapperConfig:
     min_inlier_fraction: float = ranged(0.5, ge=0.0, le=1.0)
     # ...or with two inlier observations (instants) whose rays meet at least this wide (degrees; 0: never):
     # with the robot's poses known such a pair fixes the depth, and a fast scan sees many points at two instants
-    # only; off by default, as it costs accuracy (docs/results.md, "Fast motion")
-    two_view_parallax_deg: float = ranged(0.0, ge=0.0)
+    # only; 4 degrees keeps the fast runs' accuracy (2.5 cost it: docs/results.md, "Fast motion")
+    two_view_parallax_deg: float = ranged(4.0, ge=0.0)
     final_global_ba: bool = True
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)

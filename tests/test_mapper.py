@@ -261,18 +261,25 @@ def test_one_problem_builder_gives_the_local_window_and_the_final_pass(rng):
 
 
 def test_two_inlier_views_wide_apart_make_an_inlier_only_when_asked():
-    """A point with two inlier observations is an inlier with ``two_view_parallax_deg`` set and its rays that far
-    apart; three inlier observations are needed otherwise (or when the pair is narrow)."""
+    """A point with two inlier observations is an inlier with ``two_view_parallax_deg`` set (4 degrees by
+    default) and its rays that far apart; three inlier observations are needed otherwise (0: never, or when the
+    pair is narrow)."""
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     points = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 1.0], [0.0, 0.0, 0.1]])  # wide pair, narrow pair, three views
     obs_point = np.array([0, 0, 1, 1, 2, 2, 2])
     centres = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0, 0], [0.01, 0, 0], [0, 0, 0], [0.002, 0, 0], [0.004, 0, 0]],
                        float)
     good = np.ones(len(obs_point), bool)
-    off = Mapper(K, MapperConfig())
+    off = Mapper(K, MapperConfig(two_view_parallax_deg=0.0))
     on = Mapper(K, MapperConfig(two_view_parallax_deg=2.5))
     assert off._inlier_points(obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [False, False, True]
     assert on._inlier_points(obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [True, False, True]
+    # the default: the wide pair's rays meet 5.7 degrees apart
+    by_default = Mapper(K, MapperConfig())
+    assert by_default._inlier_points(obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [
+        True, False, True]
+    assert Mapper(K, MapperConfig(two_view_parallax_deg=6.0))._inlier_points(
+        obs_point, good, 3, 3, points=points, obs_centres=centres).tolist() == [False, False, True]
     one_bad = good.copy()
     one_bad[1] = False  # the wide pair's second view is an outlier: one inlier view is not enough
     assert on._inlier_points(obs_point, one_bad, 3, 3, points=points, obs_centres=centres).tolist() == [False, False,

@@ -34,6 +34,22 @@ class FrontEnd(Protocol):
 TRACKERS = ("auto", "warp", "opencv")
 
 
+def track_capacity(config: TrackerConfig) -> int:
+    """The most tracks a front-end holds: ``max_features``, at fast motion more (``track_budget``)."""
+    return int(config.max_features * config.fast_features_scale)
+
+
+def track_budget(config: TrackerConfig, motion_px: float | None) -> int:
+    """How many tracks a frame keeps (new corners fill up to it): ``max_features``, or ``track_capacity`` where
+    its pose prediction moves the tracks at least ``fast_motion_px`` (``motion_px``: the median predicted
+    motion, None without a prediction). A point is an inlier once seen at three instants; at fast motion every
+    frame is a keyframe and a track lives about two of them, so the slots, not the image, limit the map
+    (docs/results.md, "Fast motion")."""
+    if motion_px is not None and motion_px >= config.fast_motion_px:
+        return track_capacity(config)
+    return config.max_features
+
+
 def resolve_tracker(name: str, device: str) -> str:
     """``auto``: the Warp front-end on a GPU; on a CPU-only machine the OpenCV baseline, which is faster there
     than Warp's CPU device (that device is for testing the kernels, not for speed)."""

@@ -109,6 +109,19 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     return settle_short_lines(uv, depth, K, T, motion.depth_range_m)
 
 
+def start_motion_px(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> float | None:
+    """The median distance (px) from each track to its predicted start, over the tracks with a start depth
+    (``start_depths``); None when none has one."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    known = np.isfinite(depth)
+    if not known.any():
+        return None
+    moved = np.linalg.norm(project(uv[known], depth[known], K, K, np.asarray(T_cur_prev, np.float64)) - uv[known],
+                           axis=1)
+    moved = moved[np.isfinite(moved)]
+    return float(np.median(moved)) if len(moved) else None
+
+
 def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,
                        depth_range_m: tuple[float, float]) -> np.ndarray:
     """``depth`` with the tracks that have none but whose epipolar segment is short (SHORT_LINE_PX) given the
@@ -129,6 +142,43 @@ def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_p
     idx = np.flatnonzero(unknown)[short]
     depth[idx] = far
     return depth
+
+
+# How far off a pose-predicted start may be, which sets LK's pyramid for a predicted frame (``start_uncertainty_px``):
+# a landmark's depth within OWN_DEPTH_SPREAD (relative), a depth borrowed from neighbouring tracks within
+# BORROWED_DEPTH_SPREAD (tissue is not flat), the sweep's best within its SECOND_RADIUS on SWEEP_LEVEL; at least
+# POSE_UNCERTAINTY_PX everywhere (the robot's relative pose between two frames: in the simulated fast run, 50 px a
+# frame on a compliant ECM, LK lands a median 5 px and 90 % within 8 px from the start its own landmark predicts),
+# and the frame's figure is the START_QUANTILE of its tracks'
+OWN_DEPTH_SPREAD = 0.05
+BORROWED_DEPTH_SPREAD = 0.15
+POSE_UNCERTAINTY_PX = 8.0
+START_QUANTILE = 90.0
+
+
+def start_uncertainty_px(uv: np.ndarray, ids: np.ndarray, depth: np.ndarray, motion, K: np.ndarray) -> float:
+    """How far (px) the predicted starts of a frame's tracks may lie from where the tracks truly are, given their
+    start ``depth`` (``start_depths``): each start moved by its depth's spread (its landmark's, a borrowed one's,
+    or for a short line settled at the range's far end the whole range), the sweep's resolution for the
+    tracks searched along their line (NaN depth), the pose's floor; the START_QUANTILE over the tracks."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, np.float64)
+    if len(uv) == 0:
+        return POSE_UNCERTAINTY_PX
+    T = np.asarray(motion.T_cur_prev, np.float64)
+    own = np.isin(ids, np.asarray(motion.track_ids)[np.asarray(motion.depth_m) > 0])
+    near_far = np.asarray(motion.depth_range_m, np.float64)
+    settled = ~own & (depth == near_far[1])
+    lo = np.where(settled, near_far[0], depth * (1.0 - np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
+    hi = np.where(settled, near_far[1], depth * (1.0 + np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
+    known = np.isfinite(depth)
+    spread = np.full(len(uv), SECOND_RADIUS * 2.0 ** SWEEP_LEVEL)
+    if known.any():
+        at = project(uv[known], depth[known], K, K, T)
+        spread[known] = np.maximum(np.linalg.norm(project(uv[known], lo[known], K, K, T) - at, axis=1),
+                                   np.linalg.norm(project(uv[known], hi[known], K, K, T) - at, axis=1))
+    spread = np.nan_to_num(spread, nan=1e6, posinf=1e6)  # behind the camera at one end: unbounded
+    return float(max(POSE_UNCERTAINTY_PX, np.percentile(spread, START_QUANTILE)))
 
 
 def _patch_offsets(patch_px: int) -> np.ndarray:

@@ -52,9 +52,25 @@ def pyramid_levels(config: TrackerConfig, width: int, height: int) -> int:
             raise ConfigError(f'[tracker] pyramid_levels = {config.pyramid_levels!r}: must be a whole number >= 0 '
                               f'or "auto"')
         return config.pyramid_levels
-    for_motion = math.ceil(math.log2(max(config.expected_motion_px / LK_COARSE_REACH_PX, 1.0)))
+    return levels_for_reach(config.expected_motion_px, config, width, height)
+
+
+def levels_for_reach(reach_px: float, config: TrackerConfig, width: int, height: int) -> int:
+    """The fewest pyramid levels that bring a motion of ``reach_px`` within LK_COARSE_REACH_PX on the coarsest
+    level, as long as that level keeps ``pyramid_min_coarsest_px`` pixels on its shorter side."""
+    for_motion = math.ceil(math.log2(max(reach_px / LK_COARSE_REACH_PX, 1.0)))
     for_size = int(math.floor(math.log2(max(min(width, height) / config.pyramid_min_coarsest_px, 1.0))))
     return max(0, min(for_motion, for_size))
+
+
+def predicted_levels(config: TrackerConfig, levels: int, width: int, height: int, uncertainty_px: float) -> int:
+    """LK's pyramid levels for tracks started where a pose prediction puts them: the coarse-window levels
+    (``coarse_from_level`` and up) only where the prediction's ``uncertainty_px`` needs them, never more than
+    ``levels`` (the front-end's pyramid). Those levels are there to reach the whole motion without a prediction;
+    with one they only cost: their wide window averages the motion of texture hundreds of pixels around a weak
+    corner, and the finer levels cannot bring it back (docs/frontend-real-frames.md). The levels below them
+    stay, as every predicted figure was measured with them."""
+    return min(levels, max(levels_for_reach(uncertainty_px, config, width, height), config.coarse_from_level - 1))
 
 
 def shading_sigma_px(config: TrackerConfig, levels: int) -> float:

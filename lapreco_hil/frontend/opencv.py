@@ -13,9 +13,9 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.frontend import epipolar
+from lapreco_hil.frontend import epipolar, track_budget
 from lapreco_hil.frontend.drift import AffineDriftCheck
-from lapreco_hil.frontend.image import pyramid_levels, tracker_image
+from lapreco_hil.frontend.image import predicted_levels, pyramid_levels, tracker_image
 
 
 class OpenCVFrontEnd:
@@ -61,6 +61,8 @@ class OpenCVFrontEnd:
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
         if depth is None:
             motion = None  # a small motion: tracked as without one
+        budget = track_budget(cfg, None if motion is None else epipolar.start_motion_px(
+            self._pts, depth, self.camera.K, motion.T_cur_prev))
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
@@ -70,6 +72,7 @@ class OpenCVFrontEnd:
         t1 = time.perf_counter()
         n_lk = 0
         searched = np.zeros(len(self._pts), bool)
+        levels = self.levels
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
@@ -79,12 +82,14 @@ class OpenCVFrontEnd:
                 guess, searched = self._predict(motion, depth, intensity)
                 predicted = np.isfinite(guess).all(axis=1)
                 guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
-                nxt, status, err = self._track(gray, pts, guess)
+                levels = self.predicted_levels(motion, depth)
+                nxt, status, err = self._track(gray, pts, guess, levels)
             nxt = nxt.reshape(-1, 2)
             keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
             if searched.any():
                 # a match found along its epipolar line (a wide baseline) must track back to where it was
-                keep &= ~searched | epipolar.tracks_back(gray, self._prev, nxt, self._pts, self._lk)
+                back = epipolar.lk_params(cfg.window_px, levels)
+                keep &= ~searched | epipolar.tracks_back(gray, self._prev, nxt, self._pts, back)
             n_lk = int(keep.sum())
             self._filter(keep, nxt)
             searched = searched[keep]
@@ -108,12 +113,12 @@ class OpenCVFrontEnd:
             self._filter(keep, positions)
         t_drift = time.perf_counter()
         n_new = 0
-        if len(self._pts) < cfg.redetect_below * cfg.max_features:
+        if len(self._pts) < cfg.redetect_below * budget:
             mask = self.mask.copy()
             mask[~lit] = 0
             for x, y in self._pts:
                 cv2.circle(mask, (int(round(x)), int(round(y))), int(cfg.min_distance_px), 0, -1)
-            want = cfg.max_features - len(self._pts)
+            want = budget - len(self._pts)
             corners = cv2.goodFeaturesToTrack(gray, maxCorners=want, qualityLevel=cfg.quality_level,
                                               minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
             if corners is not None:
@@ -151,15 +156,23 @@ class OpenCVFrontEnd:
         return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
 
-    def _track(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None = None):
-        """Pyramidal LK of ``pts`` from the previous image into ``gray`` (from ``guess`` when given):
-        ``coarse_window_px`` on the levels from ``coarse_from_level`` up (LK on those levels' images), then
-        ``window_px`` on the finer ones from where the coarse levels put each track (the Warp kernel's per-level
-        window, in two calls)."""
-        k, levels, cfg = self.config.coarse_from_level, self.levels, self.config
+    def predicted_levels(self, motion: FrameMotion, depth: np.ndarray) -> int:
+        """LK's pyramid levels for this frame's tracks started from ``motion``'s prediction (``depth``: their
+        start depths): as many as the prediction's uncertainty needs (``image.predicted_levels``)."""
+        reach = epipolar.start_uncertainty_px(self._pts, self._ids, depth, motion, self.camera.K)
+        return predicted_levels(self.config, self.levels, self.camera.width, self.camera.height, reach)
+
+    def _track(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None = None, levels: int | None = None):
+        """Pyramidal LK of ``pts`` from the previous image into ``gray`` (from ``guess`` when given) on ``levels``
+        pyramid levels (None: the front-end's): ``coarse_window_px`` on the levels from ``coarse_from_level`` up
+        (LK on those levels' images), then ``window_px`` on the finer ones from where the coarse levels put each
+        track (the Warp kernel's per-level window, in two calls)."""
+        cfg = self.config
+        k, levels = cfg.coarse_from_level, self.levels if levels is None else levels
         flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
         if k > levels or cfg.coarse_window_px == cfg.window_px:
-            return cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess, flags=flags, **self._lk)
+            return cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, guess, flags=flags,
+                                            **dict(self._lk, maxLevel=levels))
         prev_k, cur_k = self._prev, gray
         for _ in range(k):
             prev_k, cur_k = cv2.pyrDown(prev_k), cv2.pyrDown(cur_k)

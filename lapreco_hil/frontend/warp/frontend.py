@@ -23,9 +23,9 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
-from lapreco_hil.frontend import epipolar
-from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
-                                        to_u8, tracker_image)
+from lapreco_hil.frontend import epipolar, track_budget, track_capacity
+from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, predicted_levels, pyramid_levels,
+                                        shading_factor, shading_sigma_px, to_u8, tracker_image)
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
@@ -64,6 +64,8 @@ class WarpFrontEnd:
         # pyramid layout: one flat array, per-level offsets
         self.pyramid_levels = pyramid_levels(config, W, H)  # above full resolution
         self.levels = self.pyramid_levels + 1  # with full resolution
+        self._lk_levels = self.levels  # LK's this frame: fewer where a pose prediction starts the tracks
+        self._budget = config.max_features  # the tracks this frame keeps (track_budget)
         self._sigma = shading_sigma_px(config, self.pyramid_levels)
         offs, ws, hs, total, w, h = [], [], [], 0, W, H
         for _ in range(self.levels):
@@ -85,7 +87,7 @@ class WarpFrontEnd:
         g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / low_sigma) ** 2)
         self._low = (-(-W // factor), -(-H // factor), factor)
         hw, hh, _ = self._low
-        n = config.max_features
+        n = track_capacity(config)  # slots: max_features, more on frames of fast motion (track_budget)
         with wp.ScopedDevice(self.device):
             self._remap = wp.array(np.stack([map_x, map_y], -1).astype(np.float32), dtype=wp.vec2)
             self._mask = wp.array(fov, dtype=wp.uint8)
@@ -241,7 +243,7 @@ class WarpFrontEnd:
         cfg = self.config
         prev, cur = 1 - self._cur, self._cur
         lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
-                    self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
                     coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level)
@@ -249,7 +251,7 @@ class WarpFrontEnd:
         if self._motion is not None:
             # LK back into the previous image from where the swept tracks landed
             lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
-                        self.levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                        self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                         cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
                         self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device)
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
@@ -272,7 +274,6 @@ class WarpFrontEnd:
         """The drift check (or LK's own verdict) and the field-of-view test, then compaction of the surviving
         tracks into the current buffers, all on the device: the host learns nothing until the end."""
         cfg = self.config
-        n = cfg.max_features
         prev, cur = 1 - self._cur, self._cur
         dev = self.device
         if cfg.drift_check:
@@ -289,7 +290,7 @@ class WarpFrontEnd:
         tracks.compact_tracks(
             self._keep, self._slot, self._lk_pts, self._pts[prev], self._A[prev], self._patches[prev], self._ids[prev],
             self._pts[cur], self._steps[cur], self._A[cur], self._patches[cur], self._ids[cur], dev)
-        redetect_below = int(np.ceil(cfg.redetect_below * n))
+        redetect_below = int(np.ceil(cfg.redetect_below * self._budget))
         tracks.count_kept(self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag, self._n_new,
                           dev)
         self._sync_for_profile("track")
@@ -347,7 +348,7 @@ class WarpFrontEnd:
             self._selection_kernels()
         self._occupancy(cur, 0.0, 1)
         corners.score_histogram(self._cells, self._cell_state, self._max_eig, self._occ, self._stamp, self._hist, dev)
-        corners.score_threshold(self._hist, count, cfg.max_features, self._cut, self._taken, dev)
+        corners.score_threshold(self._hist, count, self._budget, self._cut, self._taken, dev)
         corners.take_corners(self._cells, self._cell_state, self._max_eig, self._cut, self._occ, self._stamp, count,
                              self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
         drift_check.sample_patches(self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken,
@@ -412,14 +413,21 @@ class WarpFrontEnd:
             return self._process(frame, motion)
 
     def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
-        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none) and the flag
-        that makes LK start from the predicted positions. Frames with a motion launch their kernels one by one
-        (the motion's pose is a kernel argument, so no captured graph replays them)."""
+        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none), the flag
+        that makes LK start from the predicted positions, LK's pyramid levels for the prediction's uncertainty
+        (``image.predicted_levels``) and the frame's track budget (``track_budget``). Frames with a motion launch
+        their kernels one by one (the motion's pose is a kernel argument, so no captured graph replays them)."""
         self._motion = motion
+        self._lk_levels = self.levels
+        self._budget = self.config.max_features
         if motion is None:
             return
+        _, _, ids, uv = self._last
+        self._budget = track_budget(self.config, epipolar.start_motion_px(uv, depth, self.camera.K, motion.T_cur_prev))
+        reach = epipolar.start_uncertainty_px(uv, ids, depth, motion, self.camera.K)
+        self._lk_levels = predicted_levels(self.config, self.pyramid_levels, self.width, self.height, reach) + 1
         self._depth_range = motion.depth_range_m
-        slots = np.zeros(self.config.max_features, np.float32)
+        slots = np.zeros(track_capacity(self.config), np.float32)
         slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
         self._depth.assign(slots)
         self._use_guess.fill_(1)
@@ -441,6 +449,8 @@ class WarpFrontEnd:
             if self._motion is not None:
                 self._use_guess.fill_(0)
                 self._motion = None
+                self._lk_levels = self.levels
+                self._budget = self.config.max_features
 
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
