@@ -277,3 +277,28 @@ def test_two_inlier_views_wide_apart_make_an_inlier_only_when_asked():
     one_bad[1] = False  # the wide pair's second view is an outlier: one inlier view is not enough
     assert on._inlier_points(obs_point, one_bad, 3, 3, points=points, obs_centres=centres).tolist() == [False, False,
                                                                                                          True]
+
+
+def test_the_dense_surfaces_depth_spans_are_each_keyframes_own_landmarks(rng):
+    """After a local BA the live dense surface gets the newest keyframes' poses and the depths their landmarks
+    span: looked up once for the window, each keyframe's span is still that of its own tracks' landmarks."""
+    from lapreco_hil.mapping.prediction import depth_span
+
+    _, frames = _scan(rng, n_frames=30)
+    m = Mapper(K, MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
+                               keyframe_track_ratio=0.0, window_keyframes=6))
+    for o, prior, _ in frames:
+        m.add(o, prior)
+    ids, poses, spans = m.newest_reference_poses(6)
+    assert ids.tolist() == [k.id for k in m.keyframes[-6:]]
+    pointless = 0  # tracks with no point yet (left out)
+    for kf_id, T, span in zip(ids.tolist(), poses, spans):
+        kf = m.keyframes[kf_id]
+        with_point = [t for t in kf.track_ids.tolist() if t in m.landmarks]
+        pointless += len(kf.track_ids) - len(with_point)
+        assert len(with_point) > 8
+        T_cw = np.linalg.inv(kf.T_world_camera)
+        z = np.array([(T_cw[:3, :3] @ m.landmarks[t] + T_cw[:3, 3])[2] for t in with_point])
+        assert np.array_equal(T, kf.T_world_camera)
+        np.testing.assert_allclose(span, depth_span(z), rtol=1e-12)
+    assert pointless > 0
