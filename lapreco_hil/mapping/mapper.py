@@ -80,6 +80,9 @@ class MapperSchedule:
     # a keyframe's new points are triangulated (and its local BA asked for) in the next idle moment, so its
     # pose is published first and the frames behind it do not wait for its structure
     defer_triangulation: bool = False
+    # with ``defer_local_ba``: a keyframe's local BA is wanted as soon as it is added, on the landmarks that exist
+    # (its own new points, made in idle moments while the worker solves, join the next window), not after them
+    local_ba_before_points: bool = False
 
     @classmethod
     def offline(cls) -> MapperSchedule:
@@ -87,11 +90,11 @@ class MapperSchedule:
         return cls()
 
     @classmethod
-    def live(cls, ba_worker: bool) -> MapperSchedule:
+    def live(cls, ba_worker: bool, local_ba_before_points: bool = False) -> MapperSchedule:
         """A live run: structure and retirement in idle moments, local BA in a worker process if there is one
         (else inline, in idle moments after the keyframe's points)."""
         return cls(defer_local_ba=ba_worker, resect_on_retire=False, defer_retirement=True,
-                   defer_triangulation=True)
+                   defer_triangulation=True, local_ba_before_points=ba_worker and local_ba_before_points)
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,10 @@ class Mapper:
         return self.retirement.first_active
 
     @property
+    def _local_ba_before_points(self) -> bool:
+        return self.schedule.defer_local_ba and self.schedule.local_ba_before_points
+
+    @property
     def local_ba_wanted(self) -> bool:
         """A keyframe's local BA waits to be taken (``local_ba_job``) by the worker (deferred local BA)."""
         return self._local_ba_wanted
@@ -233,7 +240,9 @@ class Mapper:
         if self.rig is not None and partners is not None:
             for view in (partners() if callable(partners) else partners):
                 self._add_partner(kf, view)
-        self._untriangulated.append(PendingStructure(kf.id, local_ba))
+        self._untriangulated.append(PendingStructure(kf.id, local_ba and not self._local_ba_before_points))
+        if local_ba and self._local_ba_before_points and len(self.keyframes) >= 2:
+            self._local_ba_wanted = True  # its points follow in idle moments, while the worker solves
         if not self.schedule.defer_triangulation:
             self._triangulate_pending()
         cutoff = retirement.batch_due(len(self.keyframes), deferred=self.schedule.defer_retirement)

@@ -24,6 +24,8 @@ import threading
 import time
 import traceback
 
+from multiprocessing.connection import wait as wait_for_any
+
 import numpy as np
 
 from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
@@ -206,7 +208,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     try:
         clock = StageClock()
         worker = _BAClient(ba_jobs_q, ba_results_q, clock) if ba_jobs_q is not None else None
-        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None), rig=rig)
+        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None,
+                                                                  local_ba_before_points=mapper_config.local_ba_before_points),
+                        rig=rig)
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
@@ -240,6 +244,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             clock.add("gather_snapshot", time.perf_counter() - t)
 
         last_housekeeping = time.monotonic()
+        # multiprocessing queues' read ends, to sleep on both the frames and the worker's answers
+        answer_waitable = worker is not None and all(hasattr(q, "_reader") for q in (ready_q, ba_results_q))
         keyframe_captured: dict[int, int] = {}  # keyframe id -> its frame's capture time, until its points exist
 
         def points_done() -> None:
@@ -285,6 +291,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 t = time.perf_counter()
                 if ba_wanted_since is not None:
                     clock.add("local_ba_wanted_to_submit", t - ba_wanted_since)
+                if last_keyframe_at is not None:  # the newest keyframe the job covers: added -> its job sent
+                    clock.add("keyframe_added_to_local_ba_submit", t - last_keyframe_at)
                 ba_wanted_since = None
                 job = mapper.local_ba_job()
                 if job is not None:
@@ -325,6 +333,11 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     continue
                 t = time.perf_counter()
                 try:
+                    if worker is not None and worker.in_flight and gathering is None and answer_waitable:
+                        # asleep until a frame or the worker's answer comes, whichever is first (a 5 ms poll
+                        # left the answer waiting, the worker idle)
+                        wait_for_any([ready_q._reader, worker.results_q._reader], timeout=HOUSEKEEPING_MAX_DELAY_S)
+                        continue
                     busy = (worker is not None and worker.in_flight) or gathering is not None
                     slot = ready_q.get(timeout=0.005) if busy else ready_q.get()
                 except queue.Empty:
