@@ -334,8 +334,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 t = time.perf_counter()
                 try:
                     if worker is not None and worker.in_flight and gathering is None and answer_waitable:
-                        # asleep until a frame or the worker's answer comes, whichever is first (a 5 ms poll
-                        # left the answer waiting, the worker idle)
+                        # asleep until a frame or the worker's answer comes, whichever is first (a poll of the
+                        # frames alone would leave the answer waiting, the worker idle)
                         wait_for_any([ready_q._reader, worker.results_q._reader], timeout=HOUSEKEEPING_MAX_DELAY_S)
                         continue
                     busy = (worker is not None and worker.in_flight) or gathering is not None
@@ -434,7 +434,7 @@ class StageClock:
 def round_trip_summary(keyframes_per_flight: list[int], keyframe_gap_ms: list[float],
                        in_flight_ms: list[float]) -> dict:
     """How the local BA's round trip meets the keyframes: per collected job, how many keyframes arrived while it
-    was out (each one past the first of them is deferred), against the gaps between keyframes."""
+    was out (they all go into the next job: all but one of them deferred), against the gaps between keyframes."""
     k = np.asarray(keyframes_per_flight, int)
     gap, flight = np.asarray(keyframe_gap_ms, float), np.asarray(in_flight_ms, float)
     return {"jobs": int(len(k)),
