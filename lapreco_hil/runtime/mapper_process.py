@@ -217,6 +217,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         # keyframes added since the last local BA was handed to the worker: a job covers them all, so all but
         # its newest were merged into it rather than given a window of their own (deferred)
         keyframes_since_job = 0
+        # of those, the ones merged into the first job (keyframes before the map had a landmark to adjust)
+        skipped_before_first_job = None
         bas_announced = 0  # local BAs whose keyframe poses went to the main process (KeyframePoses)
         last_publish, map_changed = 0.0, False
         ba_wanted_since = None  # (perf_counter) when the mapper first wanted the local BA not yet submitted
@@ -280,7 +282,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
 
         def ba_round() -> None:
             # the finished job applied, and the next one sent at once: the worker idles as little as it can
-            nonlocal map_changed, skipped_ba, keyframes_since_job, ba_wanted_since
+            nonlocal map_changed, skipped_ba, keyframes_since_job, ba_wanted_since, skipped_before_first_job
             t = time.perf_counter()
             applied = worker.collect(mapper)
             if applied:
@@ -299,6 +301,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     worker.submit(job)
                     skipped_ba += max(keyframes_since_job - 1, 0)
                     keyframes_since_job = 0
+                    if skipped_before_first_job is None:
+                        skipped_before_first_job = skipped_ba
                     clock.add("submit_local_ba", time.perf_counter() - t)
 
         def housekeeping() -> None:
@@ -400,6 +404,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             result.stats["local_ba_round_trip"] = round_trip_summary(worker.keyframes_per_flight,
                                                                      clock.samples.get("keyframe_gap", []),
                                                                      clock.samples.get("local_ba_in_flight", []))
+            result.stats["local_ba_round_trip"]["deferred_into_the_first_job"] = skipped_before_first_job or 0
         final_conn.send(FinalMap(result))
     except BaseException:  # reported to the main loop, never lost with the process
         final_conn.send(MapperFailed(traceback.format_exc()))
