@@ -144,6 +144,9 @@ class MapperConfig:
     # only; 4 degrees keeps the fast runs' accuracy (2.5 cost it: docs/results.md, "Fast motion")
     two_view_parallax_deg: float = ranged(4.0, ge=0.0)
     final_global_ba: bool = True
+    # live, with a BA worker: a keyframe's local BA is asked for as soon as it is added (with the points that
+    # exist), not after its new points are made; those then join the next window (docs/benchmarks.md, session 12)
+    local_ba_before_points: bool = False
     # the robust BA's solver, local and final: "schur" (numpy, the reduced camera system: lapreco_hil.mapping.schur)
     # or "gtsam" (GTSAM's LM, the reference); the same schedule and answers (docs/benchmarks.md)
     ba_solver: str = "schur"

@@ -284,3 +284,66 @@ def test_two_inlier_views_wide_apart_make_an_inlier_only_when_asked():
     one_bad[1] = False  # the wide pair's second view is an outlier: one inlier view is not enough
     assert on._inlier_points(obs_point, one_bad, 3, 3, points=points, obs_centres=centres).tolist() == [False, False,
                                                                                                          True]
+
+
+def test_the_dense_surfaces_depth_spans_are_each_keyframes_own_landmarks(rng):
+    """After a local BA the live dense surface gets the newest keyframes' poses and the depths their landmarks
+    span: looked up once for the window, each keyframe's span is still that of its own tracks' landmarks."""
+    from lapreco_hil.mapping.prediction import depth_span
+
+    _, frames = _scan(rng, n_frames=30)
+    m = Mapper(K, MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
+                               keyframe_track_ratio=0.0, window_keyframes=6))
+    for o, prior, _ in frames:
+        m.add(o, prior)
+    ids, poses, spans = m.newest_reference_poses(6)
+    assert ids.tolist() == [k.id for k in m.keyframes[-6:]]
+    pointless = 0  # tracks with no point yet (left out)
+    for kf_id, T, span in zip(ids.tolist(), poses, spans):
+        kf = m.keyframes[kf_id]
+        with_point = [t for t in kf.track_ids.tolist() if t in m.landmarks]
+        pointless += len(kf.track_ids) - len(with_point)
+        assert len(with_point) > 8
+        T_cw = np.linalg.inv(kf.T_world_camera)
+        z = np.array([(T_cw[:3, :3] @ m.landmarks[t] + T_cw[:3, 3])[2] for t in with_point])
+        assert np.array_equal(T, kf.T_world_camera)
+        np.testing.assert_allclose(span, depth_span(z), rtol=1e-12)
+    assert pointless > 0
+
+
+@pytest.mark.slow
+def test_local_ba_asked_for_before_a_keyframes_points_keeps_the_keyframes_right(rng):
+    """``local_ba_before_points``: live, a keyframe's local BA is wanted as soon as it is added (its new points
+    are made in idle moments while the worker solves, and join the next window). Solved late by a worker, the
+    keyframes stay as right as when the job waits for the points, and every pose stays rigid."""
+    from lapreco_hil.mapping import bundle_adjustment as ba
+
+    _, frames = _scan(rng, n_frames=140)
+    cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
+                       keyframe_track_ratio=0.0, window_keyframes=6)
+    errors = {}
+    for early in (False, True):
+        m = Mapper(K, cfg, schedule=MapperSchedule.live(ba_worker=True, local_ba_before_points=early))
+        flight, applied, wanted_before_points = None, 0, 0
+        for i, (o, prior, truth) in enumerate(frames):
+            if flight is not None and i >= flight[0]:
+                _, problem, ticket = flight
+                m.apply_local_ba(problem, ba.solve_robust(problem, m.local_schedule), ticket)
+                flight, applied = None, applied + 1
+            wanted = m.local_ba_wanted
+            if m.add(o, prior) and not wanted and m.local_ba_wanted:
+                wanted_before_points += 1  # (its points are still to be made: every frame's idle moment made them)
+            if flight is None and m.local_ba_wanted:
+                job = m.local_ba_job()
+                if job is not None:
+                    flight = (i + 3, *job)
+            while m.maintain() is not None:  # the idle moment after the frame
+                pass
+        truth = {f[0].frame_seq: f[2] for f in frames}
+        err = np.array([np.linalg.norm(k.T_world_camera[:3, 3] - truth[k.frame_seq][:3, 3]) for k in m.keyframes])
+        assert all(abs(np.linalg.det(k.T_world_camera[:3, :3]) - 1) < 1e-9 for k in m.keyframes)
+        assert applied > 10
+        assert (wanted_before_points > 10) if early else wanted_before_points == 0
+        errors[early] = (float(np.mean(err)), float(err.max()))
+    print(errors)
+    assert errors[True][0] < 1.3 * errors[False][0] and errors[True][1] < 2e-3

@@ -80,6 +80,9 @@ class MapperSchedule:
     # a keyframe's new points are triangulated (and its local BA asked for) in the next idle moment, so its
     # pose is published first and the frames behind it do not wait for its structure
     defer_triangulation: bool = False
+    # with ``defer_local_ba``: a keyframe's local BA is wanted as soon as it is added, on the landmarks that exist
+    # (its own new points, made in idle moments while the worker solves, join the next window), not after them
+    local_ba_before_points: bool = False
 
     @classmethod
     def offline(cls) -> MapperSchedule:
@@ -87,11 +90,11 @@ class MapperSchedule:
         return cls()
 
     @classmethod
-    def live(cls, ba_worker: bool) -> MapperSchedule:
+    def live(cls, ba_worker: bool, local_ba_before_points: bool = False) -> MapperSchedule:
         """A live run: structure and retirement in idle moments, local BA in a worker process if there is one
         (else inline, in idle moments after the keyframe's points)."""
         return cls(defer_local_ba=ba_worker, resect_on_retire=False, defer_retirement=True,
-                   defer_triangulation=True)
+                   defer_triangulation=True, local_ba_before_points=ba_worker and local_ba_before_points)
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,10 @@ class Mapper:
         return self.retirement.first_active
 
     @property
+    def _local_ba_before_points(self) -> bool:
+        return self.schedule.defer_local_ba and self.schedule.local_ba_before_points
+
+    @property
     def local_ba_wanted(self) -> bool:
         """A keyframe's local BA waits to be taken (``local_ba_job``) by the worker (deferred local BA)."""
         return self._local_ba_wanted
@@ -233,7 +240,9 @@ class Mapper:
         if self.rig is not None and partners is not None:
             for view in (partners() if callable(partners) else partners):
                 self._add_partner(kf, view)
-        self._untriangulated.append(PendingStructure(kf.id, local_ba))
+        self._untriangulated.append(PendingStructure(kf.id, local_ba and not self._local_ba_before_points))
+        if local_ba and self._local_ba_before_points and len(self.keyframes) >= 2:
+            self._local_ba_wanted = True  # its points follow in idle moments, while the worker solves
         if not self.schedule.defer_triangulation:
             self._triangulate_pending()
         cutoff = retirement.batch_due(len(self.keyframes), deferred=self.schedule.defer_retirement)
@@ -286,16 +295,36 @@ class Mapper:
         ids = [t for t in np.asarray(track_ids).tolist() if t in self.landmarks]
         return depths_in_front(ids, np.array([self.landmarks[t] for t in ids]), T_world_camera)
 
+    def _landmarks_of(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted distinct ids of ``track_ids`` that have a landmark, their points (M, 3)): one dict look-up per
+        distinct id, then any subset is found by ``_lookup`` (keyframes of a window share most of their tracks)."""
+        landmarks = self.landmarks
+        known = np.array([t for t in _distinct(track_ids).tolist() if t in landmarks], np.int64)
+        return known, np.array(list(map(landmarks.__getitem__, known.tolist())), float).reshape(-1, 3)
+
+    @staticmethod
+    def _lookup(track_ids: np.ndarray, known: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The ids of ``track_ids`` (in their order) that are in ``known`` (sorted), and their points."""
+        if not len(known):
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        rows = np.minimum(np.searchsorted(known, track_ids), len(known) - 1)
+        found = known[rows] == track_ids
+        return track_ids[found], points[rows[found]]
+
     def newest_reference_poses(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, T_world_camera (K, 4, 4), depth spans (K, 2), NaN where unknown) of the newest ``n`` reference
         keyframes: what the live dense surface needs after a local BA."""
         kfs = [kf for kf in self.keyframes[max(self.first_active, len(self.keyframes) - 2 * n):]
                if kf.reference is None][-n:]
         spans = np.full((len(kfs), 2), np.nan)
-        for i, kf in enumerate(kfs):
-            span = depth_span(self.track_depths(kf.track_ids, kf.T_world_camera)[1])
-            if span is not None:
-                spans[i] = span
+        if kfs:
+            # the window's landmarks looked up once, not once per keyframe that sees them
+            known, points = self._landmarks_of(np.concatenate([kf.track_ids for kf in kfs]).astype(np.int64))
+            for i, kf in enumerate(kfs):
+                ids, X = self._lookup(np.asarray(kf.track_ids, np.int64), known, points)
+                span = depth_span(depths_in_front(ids, X, kf.T_world_camera)[1])
+                if span is not None:
+                    spans[i] = span
         return (np.array([kf.id for kf in kfs], np.int64),
                 np.array([kf.T_world_camera for kf in kfs]).reshape(-1, 4, 4), spans)
 
@@ -530,11 +559,10 @@ class Mapper:
         tids = np.concatenate([kf.track_ids for kf in reach]) if reach else np.zeros(0, np.int64)
         uvs = np.concatenate([kf.uv for kf in reach]) if reach else np.zeros((0, 2))
         kfi = np.repeat(np.array([kf.id for kf in reach], np.int64), [len(kf.track_ids) for kf in reach])
-        landmarks = self.landmarks
-        point_ids = np.array([t for t in _distinct(tids[kfi >= scope.points_from]).tolist() if t in landmarks],
-                             np.int64)
+        point_ids, points = self._landmarks_of(tids[kfi >= scope.points_from])
         if not len(point_ids):
             return None
+        obs_point = None
         free = np.zeros(0, np.int64)
         if scope.every_view:
             # every view of each landmark (retired keyframes' too: their arrays may be gone, the tracks keep them)
@@ -545,9 +573,10 @@ class Mapper:
             tids = np.repeat(point_ids, [len(s) for s in seen_by])
             uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
-        else:
-            sel = np.isin(tids, point_ids)
-            tids, uvs, kfi = tids[sel], uvs[sel], kfi[sel]
+        else:  # the window's observations of its points (one sorted search finds both which and where)
+            rows = np.minimum(np.searchsorted(point_ids, tids), len(point_ids) - 1)
+            sel = point_ids[rows] == tids
+            tids, uvs, kfi, obs_point = tids[sel], uvs[sel], kfi[sel], rows[sel]
         seen = _distinct(kfi)
         first_active = self.first_active
         kf_ids = np.concatenate([np.union1d(free, seen[seen >= first_active]), seen[seen < first_active]])
@@ -559,9 +588,9 @@ class Mapper:
             K=self.K, pose_ids=kf_ids, poses=np.array([k.T_world_camera for k in chosen]),
             fixed=(kf_ids < first_active) | self._poses_held(),
             prior_poses=np.array([k.prior.T_world_camera for k in chosen]),
-            prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids,
-            points=np.stack(list(map(landmarks.__getitem__, point_ids.tolist()))),
-            obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids), obs_uv=uvs, has_prior=has_prior,
+            prior_covs=np.array([k.prior.cov for k in chosen]), point_ids=point_ids, points=points,
+            obs_pose=index[kfi], obs_point=np.searchsorted(point_ids, tids) if obs_point is None else obs_point,
+            obs_uv=uvs, has_prior=has_prior,
             tie_pairs=tie_pairs, tie_T=tie_T, tie_covs=tie_covs)
 
     def _poses_held(self) -> bool:

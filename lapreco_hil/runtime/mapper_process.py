@@ -24,6 +24,8 @@ import threading
 import time
 import traceback
 
+from multiprocessing.connection import wait as wait_for_any
+
 import numpy as np
 
 from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
@@ -123,29 +125,41 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) 
         job = jobs_q.get()
         if isinstance(job, EndOfJobs):
             return
-        t0 = time.perf_counter()
+        started_ns, t0 = time.monotonic_ns(), time.perf_counter()
         try:
-            solved = solve(job.problem, schedule)
-            results_q.put(BAResult(job.job_id, solved, "", time.perf_counter() - t0))
+            solved, error = solve(job.problem, schedule), ""
         except Exception:
-            results_q.put(BAResult(job.job_id, None, traceback.format_exc(), time.perf_counter() - t0))
+            solved, error = None, traceback.format_exc()
+        results_q.put(BAResult(job.job_id, solved, error, time.perf_counter() - t0, started_ns, time.monotonic_ns()))
 
 
 class _BAClient:
-    """The mapper's side of the worker: one job in flight at a time."""
+    """The mapper's side of the worker: one job in flight at a time, and its round trip timed (what decides how
+    many keyframes' BA is deferred: a keyframe that arrives while a job is in flight waits for the next one)."""
 
-    def __init__(self, jobs_q, results_q) -> None:
+    def __init__(self, jobs_q, results_q, clock=None) -> None:
         self.jobs_q, self.results_q = jobs_q, results_q
-        self.in_flight = None  # (job id, problem, ticket)
+        self.clock = clock  # a StageClock for the round trip's legs, or None
+        self.in_flight = None  # (job id, problem, ticket, submitted at (monotonic ns))
         self._next_id = 0
         self.runs = self.failed = 0
         self.solve_s: list[float] = []  # the worker's time per solve
+        self.keyframes_in_flight = 0  # keyframes added while the job now in flight is out
+        self.keyframes_per_flight: list[int] = []  # per collected job
 
     def submit(self, job) -> None:
         problem, ticket = job
-        self.in_flight = (self._next_id, problem, ticket)
+        self.in_flight = (self._next_id, problem, ticket, time.monotonic_ns())
         self.jobs_q.put(BAJob(self._next_id, problem))
         self._next_id += 1
+
+    def keyframe_added(self) -> None:
+        if self.in_flight is not None:
+            self.keyframes_in_flight += 1
+
+    def result_ready(self) -> bool:
+        """Whether the job in flight has its answer waiting (a poll of the result pipe, microseconds)."""
+        return self.in_flight is not None and not self.results_q.empty()
 
     def collect(self, mapper, timeout_s: float = 0.0) -> bool:
         """Apply the finished job, if there is one (waiting up to ``timeout_s``); True when one was."""
@@ -155,9 +169,18 @@ class _BAClient:
             reply: BAResult = self.results_q.get(timeout=timeout_s) if timeout_s else self.results_q.get_nowait()
         except queue.Empty:
             return False
+        now = time.monotonic_ns()
         self.solve_s.append(reply.solve_s)
-        _, problem, ticket = self.in_flight
+        _, problem, ticket, submitted_ns = self.in_flight
         self.in_flight = None
+        self.keyframes_per_flight.append(self.keyframes_in_flight)
+        self.keyframes_in_flight = 0
+        if self.clock is not None and reply.done_ns:
+            # submitted -> collected, and its legs: to the worker (queue, pickling, the worker's previous
+            # answer), and how long the answer waited for the mapper to collect it
+            self.clock.add("local_ba_in_flight", (now - submitted_ns) * 1e-9)
+            self.clock.add("local_ba_to_worker", (reply.started_ns - submitted_ns) * 1e-9)
+            self.clock.add("local_ba_result_waited", (now - reply.done_ns) * 1e-9)
         if not reply.error:
             mapper.apply_local_ba(problem, reply.solved, ticket)
             self.runs += 1
@@ -183,17 +206,23 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     ring = ObservationRing(ring_slots, max_tracks, name=ring_name, cameras=ring_cameras)
     snapshot = MapSnapshot(max_points, snap_lock, name=snap_name)
     try:
-        worker = _BAClient(ba_jobs_q, ba_results_q) if ba_jobs_q is not None else None
-        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None), rig=rig)
+        clock = StageClock()
+        worker = _BAClient(ba_jobs_q, ba_results_q, clock) if ba_jobs_q is not None else None
+        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None,
+                                                                  local_ba_before_points=mapper_config.local_ba_before_points),
+                        rig=rig)
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0
         # keyframes added since the last local BA was handed to the worker: a job covers them all, so all but
         # its newest were merged into it rather than given a window of their own (deferred)
         keyframes_since_job = 0
+        # of those, the ones merged into the first job (keyframes before the map had a landmark to adjust)
+        skipped_before_first_job = None
         bas_announced = 0  # local BAs whose keyframe poses went to the main process (KeyframePoses)
         last_publish, map_changed = 0.0, False
-        clock = StageClock()
+        ba_wanted_since = None  # (perf_counter) when the mapper first wanted the local BA not yet submitted
+        last_keyframe_at = None
 
         gathering = None  # the snapshot being gathered, a piece at a time (Mapper.map_points_in_pieces)
 
@@ -217,6 +246,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             clock.add("gather_snapshot", time.perf_counter() - t)
 
         last_housekeeping = time.monotonic()
+        # multiprocessing queues' read ends, to sleep on both the frames and the worker's answers
+        answer_waitable = worker is not None and all(hasattr(q, "_reader") for q in (ready_q, ba_results_q))
         keyframe_captured: dict[int, int] = {}  # keyframe id -> its frame's capture time, until its points exist
 
         def points_done() -> None:
@@ -244,23 +275,40 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 if len(ids):
                     done_q.put(KeyframePoses(ids, poses, spans))
 
-        def housekeeping() -> None:
-            nonlocal map_changed, last_housekeeping, skipped_ba, keyframes_since_job
-            if worker is not None:
+        def note_ba_wanted() -> None:
+            nonlocal ba_wanted_since
+            if ba_wanted_since is None and mapper.local_ba_wanted:
+                ba_wanted_since = time.perf_counter()
+
+        def ba_round() -> None:
+            # the finished job applied, and the next one sent at once: the worker idles as little as it can
+            nonlocal map_changed, skipped_ba, keyframes_since_job, ba_wanted_since, skipped_before_first_job
+            t = time.perf_counter()
+            applied = worker.collect(mapper)
+            if applied:
+                announce_poses()
+                clock.add("apply_local_ba", time.perf_counter() - t)
+            map_changed |= applied
+            if worker.in_flight is None and mapper.local_ba_wanted:
                 t = time.perf_counter()
-                applied = worker.collect(mapper)
-                if applied:
-                    announce_poses()
-                    clock.add("apply_local_ba", time.perf_counter() - t)
-                map_changed |= applied
-                if worker.in_flight is None and mapper.local_ba_wanted:
-                    t = time.perf_counter()
-                    job = mapper.local_ba_job()
-                    if job is not None:
-                        worker.submit(job)
-                        skipped_ba += max(keyframes_since_job - 1, 0)
-                        keyframes_since_job = 0
-                        clock.add("submit_local_ba", time.perf_counter() - t)
+                if ba_wanted_since is not None:
+                    clock.add("local_ba_wanted_to_submit", t - ba_wanted_since)
+                if last_keyframe_at is not None:  # the newest keyframe the job covers: added -> its job sent
+                    clock.add("keyframe_added_to_local_ba_submit", t - last_keyframe_at)
+                ba_wanted_since = None
+                job = mapper.local_ba_job()
+                if job is not None:
+                    worker.submit(job)
+                    skipped_ba += max(keyframes_since_job - 1, 0)
+                    keyframes_since_job = 0
+                    if skipped_before_first_job is None:
+                        skipped_before_first_job = skipped_ba
+                    clock.add("submit_local_ba", time.perf_counter() - t)
+
+        def housekeeping() -> None:
+            nonlocal last_housekeeping
+            if worker is not None:
+                ba_round()
             publish_if_due()
             last_housekeeping = time.monotonic()
 
@@ -280,6 +328,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     continue
                 t = time.perf_counter()
                 work = mapper.maintain()
+                note_ba_wanted()
                 if work is not None:
                     announce_poses()  # (an inline local BA follows a keyframe's last piece of points)
                     clock.add(f"{work}_keyframe", time.perf_counter() - t)
@@ -288,6 +337,11 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     continue
                 t = time.perf_counter()
                 try:
+                    if worker is not None and worker.in_flight and gathering is None and answer_waitable:
+                        # asleep until a frame or the worker's answer comes, whichever is first (a poll of the
+                        # frames alone would leave the answer waiting, the worker idle)
+                        wait_for_any([ready_q._reader, worker.results_q._reader], timeout=HOUSEKEEPING_MAX_DELAY_S)
+                        continue
                     busy = (worker is not None and worker.in_flight) or gathering is not None
                     slot = ready_q.get(timeout=0.005) if busy else ready_q.get()
                 except queue.Empty:
@@ -308,12 +362,18 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             views = ring.read_views(slot.slot) if ring_cameras > 1 else ()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect, partners=views or None)
             clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
+            note_ba_wanted()
             kf_id = mapper.frames[-1].keyframe if is_kf else -1  # (the reference's: stereo partners follow it)
             if is_kf:
                 keyframe_captured[kf_id] = arrival_ns
+                now = time.perf_counter()
+                if last_keyframe_at is not None:
+                    clock.add("keyframe_gap", now - last_keyframe_at)
+                last_keyframe_at = now
             points_done()
             if is_kf and worker is not None:
                 keyframes_since_job += 1
+                worker.keyframe_added()
             elif is_kf and not run_ba:
                 skipped_ba += 1  # this keyframe's own BA is covered by the next window's
             if not is_kf and not resect:
@@ -321,6 +381,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             map_changed |= bool(is_kf)
             done_q.put(FramePose(obs.frame_seq, time.monotonic_ns(), arrival_ns, mapper.frames[-1].T_refined,
                                  bool(is_kf), skipped_ba, skipped_resection, kf_id))
+            if worker is not None and (worker.result_ready() or (worker.in_flight is None and mapper.local_ba_wanted)):
+                # between frames, not only in idle moments: an answer waiting (or a window wanted with none out)
+                # keeps the worker idle, and every keyframe added meanwhile is deferred
+                ba_round()
         publish_if_due(whole=True)  # (the map as it ended, if it changed since the last snapshot)
         if worker is not None:
             worker.collect(mapper, timeout_s=600.0)  # the last window's BA, then the final pass
@@ -337,6 +401,10 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         if worker is not None:
             result.stats["local_ba_worker_runs"] = worker.runs
             result.stats["local_ba_worker_failed"] = worker.failed
+            result.stats["local_ba_round_trip"] = round_trip_summary(worker.keyframes_per_flight,
+                                                                     clock.samples.get("keyframe_gap", []),
+                                                                     clock.samples.get("local_ba_in_flight", []))
+            result.stats["local_ba_round_trip"]["deferred_into_the_first_job"] = skipped_before_first_job or 0
         final_conn.send(FinalMap(result))
     except BaseException:  # reported to the main loop, never lost with the process
         final_conn.send(MapperFailed(traceback.format_exc()))
@@ -366,6 +434,22 @@ class StageClock:
                          "p99": float(np.percentile(a, 99)), "max": float(a.max()),
                          "share_of_wall": float(a.sum() / max(wall, 1e-9))}
         return out
+
+
+def round_trip_summary(keyframes_per_flight: list[int], keyframe_gap_ms: list[float],
+                       in_flight_ms: list[float]) -> dict:
+    """How the local BA's round trip meets the keyframes: per collected job, how many keyframes arrived while it
+    was out (they all go into the next job: all but one of them deferred), against the gaps between keyframes."""
+    k = np.asarray(keyframes_per_flight, int)
+    gap, flight = np.asarray(keyframe_gap_ms, float), np.asarray(in_flight_ms, float)
+    return {"jobs": int(len(k)),
+            "keyframes_while_in_flight": {"mean": float(k.mean()) if len(k) else 0.0,
+                                          "max": int(k.max()) if len(k) else 0,
+                                          "jobs_with_two_or_more": int((k >= 2).sum())},
+            "keyframe_gap_ms_mean": float(gap.mean()) if len(gap) else None,
+            "in_flight_ms_mean": float(flight.mean()) if len(flight) else None,
+            # > 1: jobs take longer than keyframes come, and keyframes queue up behind them
+            "in_flight_over_keyframe_gap": float(flight.mean() / gap.mean()) if len(gap) and len(flight) else None}
 
 
 def drain(q) -> list:

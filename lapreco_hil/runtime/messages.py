@@ -100,6 +100,10 @@ class BAResult:
     solved: object  # the solution, or None when the solve raised
     error: str  # the traceback when it raised, else ""
     solve_s: float
+    # when the worker took the job and when its answer was ready (time.monotonic_ns, one clock for every process
+    # of the machine): the round trip's legs, measured by the mapper (0: not stamped)
+    started_ns: int = 0
+    done_ns: int = 0
 
 
 @dataclass(frozen=True)

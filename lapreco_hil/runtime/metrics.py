@@ -106,6 +106,8 @@ class LiveMetrics:
                      "final_global_ba_s": result.stats.get("final_ba_s"),
                      # the mapper process's own time, by kind of work (the usual bottleneck)
                      "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
+                     # the worker's local BA against the keyframes: jobs, keyframes that came while one was out
+                     "local_ba_round_trip": result.stats.get("local_ba_round_trip"),
                      # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
                      "mapper_garbage_collected": result.stats.get("garbage_collected")},
             "health": {"events": health_events[:200], "event_count": health_event_count, "counts": dict(health_counts)},
