@@ -211,14 +211,19 @@ class DepthConfig:
     cached_views: int = ranged(12, ge=1)
     # method "patchmatch": checkerboard iterations, each trying the neighbours' planes and perturbations
     patchmatch_iterations: int = ranged(3, ge=1)
-    patchmatch_window_radius_px: int = ranged(4, ge=1)  # its window: (2r+1)^2 pixels at both resolutions ...
-    patchmatch_window_step_px: int = ranged(2, ge=1)  # ... sampled every this many pixels (r=4, step 2: 25 taps)
+    # its window at half resolution: (2r+1)^2 pixels sampled every ``step`` (r=3, step 2: 16 taps over 7x7); at
+    # full resolution the sweep's window_radius_px, every pixel
+    patchmatch_window_radius_px: int = ranged(3, ge=1)
+    patchmatch_window_step_px: int = ranged(2, ge=1)
     patchmatch_far_px: int = ranged(5, ge=3)  # the far neighbours' distance (odd: the other colour of the board)
     # the steepest slant tried, as the slope tan(angle between surface and image plane): 5 is 79 degrees
     patchmatch_max_slope: float = ranged(5.0, gt=0.0)
     # the first iteration's perturbation: image motion (half-resolution pixels) and slope; halved each iteration
     patchmatch_perturb_px: float = ranged(4.0, gt=0.0)
     patchmatch_perturb_slope: float = ranged(1.0, gt=0.0)
+    # a depth within the window's reach departing from a pixel's plane by more than this (relative) marks a depth
+    # edge, where windows fatten the foreground
+    patchmatch_edge_rel: float = ranged(0.03, gt=0.0)
     patchmatch_refine_px: float = ranged(0.5, gt=0.0)  # full resolution: a parabola through +-this image motion
     patchmatch_seed: int = ranged(0, ge=0)  # its random numbers (a map is repeatable on one device)
 

@@ -10,6 +10,7 @@ The sweep's depth range is the true depth's 1st-99th percentile widened by 10%, 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import platform
@@ -157,8 +158,9 @@ def plane_keyframes(resolution: tuple[int, int], n_views: int, tilt_deg: float, 
         b = ((hit - point[:, None]).T @ e2) / texel_m + texels / 2
         depth = np.where(np.isfinite(s) & (s > 0.03) & (s < 0.25), s, 0.0).reshape(height, width)
         inside = (a >= 0) & (a < texels - 1) & (b >= 0) & (b < texels - 1)
-        grey = cv2.remap(texture.astype(np.float32), np.clip(a, 0, texels - 1).reshape(height, width).astype(np.float32),
-                         np.clip(b, 0, texels - 1).reshape(height, width).astype(np.float32), cv2.INTER_LINEAR)
+        map_a = np.clip(a, 0, texels - 1).reshape(height, width).astype(np.float32)
+        map_b = np.clip(b, 0, texels - 1).reshape(height, width).astype(np.float32)
+        grey = cv2.remap(texture.astype(np.float32), map_a, map_b, cv2.INTER_LINEAR)
         depth[~inside.reshape(height, width)] = 0.0
         image = np.repeat((40 + 180 * grey)[:, :, None], 3, axis=2).astype(np.uint8)
         mask = depth > 0
@@ -197,7 +199,7 @@ def _device_activities(wp, device: str, run) -> dict:
 
 
 def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
-                config: DepthConfig | None = None, sweep: str | None = None) -> dict:
+                config: DepthConfig | None = None, sweep: str | None = None, method: str | None = None) -> dict:
     """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
     the kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
     and its accuracy, before and after the geometric check against the sources' own depth maps.
@@ -205,12 +207,14 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     ``total_ms`` is the steady state of a mapper that keeps one estimator: the reference is new (prepared) and
     its sources are in the estimator's prepared-view cache (each was a reference before); ``cold_ms`` prepares
     every view (a fresh estimator's first map, less compiling and allocating). ``sweep``: the estimator's window
-    sums (None: the device's default)."""
+    sums (None: the device's default); ``method``: ``[depth] method`` (None: the config's)."""
     from lapreco_hil.dense.depth import DepthEstimator
     from lapreco_hil.warp_device import init_warp
 
     wp = init_warp()
     cfg = config or DepthConfig()
+    if method is not None:
+        cfg = dataclasses.replace(cfg, method=method)
     if scene == "sheet":
         keyframes, truths = sheet_keyframes(resolution, views + 1, device)
     else:
@@ -248,7 +252,7 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     in_view = (ref.mask if ref.mask is not None else np.ones(truths[0].shape, bool)) & (truths[0] > 0)
     return {
         "device": device, "resolution": f"{resolution[0]}x{resolution[1]}", "scene": scene, "views": views,
-        "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep,
+        "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep, "method": cfg.method,
         "total_ms": float(np.median(totals)), "cold_ms": float(np.median(cold)),
         # this process's CPU time: on a shared machine the wall time also counts other processes' turns (Warp's
         # CPU kernels run on one thread, so on the CPU device this is the time on an idle core)
@@ -277,7 +281,7 @@ def format_table(result: dict) -> str:
     cold_steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result.get("cold_steps_ms", {}).items())
     return "\n".join([
         f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
-        f"coarse planes, {result.get('sweep', 'sliding')} sweep, on {result['device']} ({result['machine']}; median "
+        f"coarse planes, {result.get('sweep', 'sliding')} sweep, method {result.get('method', 'sweep')}, on {result['device']} ({result['machine']}; median "
         f"of {result['repeats']})",
         f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
         f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); "

@@ -430,7 +430,7 @@ class DepthEstimator:
 
         if cfg.method == "patchmatch":
             t0 = self._patchmatch(times, t0, slots[0], ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo, rho_hi,
-                                  drho_c, step_px, _half_K(K_ref)[0, 0], ref.kf_id)
+                                  drho_c, step_px, K_ref, ref.kf_id)
         else:
             wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
                       inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
@@ -445,15 +445,19 @@ class DepthEstimator:
                               cfg.min_zncc, cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
                               self.depth, self.confidence, self.code])
         if cfg.method == "patchmatch":
+            # the depth-edge check reaches as far as the half-resolution window does at full resolution
             wp.launch(pm.plane_support, dim=(h, w), device=self.device,
                       inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
-                              cfg.min_support, self.supported])
+                              cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
+                              self.supported])
+            wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
+                      inputs=[self.supported, self.depth, self.confidence, self.code])
         else:
             wp.launch(k.support, dim=(h, w), device=self.device,
                       inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
                               self.supported])
-        wp.launch(k.apply_support, dim=(h, w), device=self.device,
-                  inputs=[self.supported, self.depth, self.confidence, self.code])
+            wp.launch(k.apply_support, dim=(h, w), device=self.device,
+                      inputs=[self.supported, self.depth, self.confidence, self.code])
         given = [s for s in sources if source_depths and s.kf_id in source_depths]
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
@@ -468,7 +472,8 @@ class DepthEstimator:
             funnel.pop("geometry_agrees")
         self._sync_time(times, "download_ms", t0)
         times["total_ms"] = round(sum(times.values()), 3)
-        stats = {"funnel": funnel, "times_ms": times, "method": cfg.method, "planes": n_planes, "depth_range_m": (near, far),
+        stats = {"funnel": funnel, "times_ms": times, "method": cfg.method, "planes": n_planes,
+                 "depth_range_m": (near, far),
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
                  "prepared": prepared}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
@@ -476,7 +481,7 @@ class DepthEstimator:
                         stats)
 
     def _patchmatch(self, times: dict, t0: float, ref_slot: int, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
-                    rho_lo: float, rho_hi: float, drho_c: float, step_px: float, focal_half: float,
+                    rho_lo: float, rho_hi: float, drho_c: float, step_px: float, K_ref: np.ndarray,
                     kf_id: int) -> float:
         """The coarse sweep's depth refined per pixel with slanted windows (``[depth] method = "patchmatch"``:
         warp/patchmatch.py): initialised from the sweep, red-black propagation and perturbation at half
@@ -486,6 +491,7 @@ class DepthEstimator:
         cfg = self.config
         h, w = ref_full.shape
         hc, wc = ref_half.shape
+        focal_half = float(_half_K(K_ref)[0, 0])
         n = min(n_src, pm.MAX_SOURCES)  # the first (best) sources
         k_best = min(cfg.best_k, n)
         rho_per_px = drho_c / max(step_px, 1e-9)  # inverse depth per half-resolution pixel of image motion (at most)
@@ -515,7 +521,7 @@ class DepthEstimator:
                   inputs=[self.state[ref_slot], ref_full, self.fine.std, self.pm_plane, self.full_grey, *full,
                           rho_lo, rho_hi, 0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc,
                           cfg.view_min_zncc, cfg.min_views, self.depth, self.confidence, self.code,
-                          self.pm_full_plane])
+                          self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel())])
         return t0
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:

@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import warp as wp
 
-from lapreco_hil.dense.warp.plane_sweep import (CODE_HIGHLIGHT, CODE_KEPT, CODE_LOW_TEXTURE, CODE_NO_MATCH,
-                                                CODE_OUT_OF_RANGE, CODE_OUT_OF_VIEW, CODE_VIEWS_DISAGREE, NO_SCORE,
-                                                STATE_HIGHLIGHT, STATE_OUT_OF_VIEW, _bilinear, _zncc, vec6)
+from lapreco_hil.dense.warp.plane_sweep import (CODE_DEPTH_EDGE, CODE_HIGHLIGHT, CODE_KEPT, CODE_LOW_TEXTURE,
+                                                CODE_NO_MATCH, CODE_OUT_OF_RANGE, CODE_OUT_OF_VIEW, CODE_UNSUPPORTED,
+                                                CODE_VIEWS_DISAGREE, NO_SCORE, STATE_HIGHLIGHT, STATE_OUT_OF_VIEW,
+                                                _bilinear, _zncc, vec6)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -224,12 +225,13 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
                     min_valid: float, rho_lo: float, rho_hi: float, edge_rho: float, refine_rho: float,
                     min_zncc: float, view_min_zncc: float, min_views: int, depth: wp.array2d(dtype=float),
                     confidence: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8),
-                    plane: wp.array2d(dtype=wp.vec3)):
+                    plane: wp.array2d(dtype=wp.vec3), K: wp.mat33, K_inv: wp.mat33):
     """Full resolution: the half-resolution plane of the pixel carried to it, scored at full resolution at its
     inverse depth and ``refine_rho`` either side (a parabola through the three where the middle is best, else the
     better side): the depth, the funnel code (in view, not a highlight, textured, matched, in range: not within
-    ``edge_rho`` of the range's ends, views agree), a confidence from the score, and the pixel's plane (inverse depth and its gradient per pixel)
-    for the support check."""
+    ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the square root of the cosine between the ray and the
+    plane's normal: a depth seen at a grazing angle is the least certain, and fusion weighs it less), and the
+    pixel's plane (inverse depth and its gradient per pixel) for the support check."""
     y, x = wp.tid()
     depth[y, x] = 0.0
     confidence[y, x] = 0.0
@@ -286,16 +288,22 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
         return
     depth[y, x] = 1.0 / rho
     plane[y, x] = wp.vec3(rho, gx, gy)
-    confidence[y, x] = wp.clamp((best - min_zncc) / (1.0 - min_zncc), 0.0, 1.0)
+    # rho(q) = c . (x, y, 1): the plane's normal is K^T c, and its dot product with the ray K^-1 (x, y, 1) is rho
+    c = wp.vec3(gx, gy, rho - gx * float(x) - gy * float(y))
+    cos_view = rho / (wp.length(wp.transpose(K) * c) * wp.length(K_inv * wp.vec3(float(x), float(y), 1.0)))
+    c_match = wp.clamp((best - min_zncc) / (1.0 - min_zncc), 0.0, 1.0)
+    confidence[y, x] = c_match * wp.sqrt(wp.clamp(cos_view, 0.0, 1.0))
     code[y, x] = wp.uint8(CODE_KEPT)
 
 
 @wp.kernel
 def plane_support(depth: wp.array2d(dtype=float), plane: wp.array2d(dtype=wp.vec3), r: int, max_rel: float,
-                  min_fraction: float, supported: wp.array2d(dtype=wp.uint8)):
+                  min_fraction: float, edge_r: int, edge_rel: float, supported: wp.array2d(dtype=wp.uint8)):
     """plane_sweep's ``support`` for slanted planes: a neighbour supports a depth where its own depth lies within
     ``max_rel`` of the pixel's plane there (on a surface seen obliquely the depth changes by percents per pixel:
-    compared with the pixel's own depth, its neighbours would not support it)."""
+    compared with the pixel's own depth, its neighbours would not support it). 2 (a depth edge) where a depth
+    within ``edge_r`` departs from the plane by more than ``edge_rel``: a window across a depth edge matches the
+    nearer surface on both sides (fattens the foreground), as far as the window reaches."""
     y, x = wp.tid()
     supported[y, x] = wp.uint8(0)
     if depth[y, x] <= 0.0:
@@ -304,15 +312,30 @@ def plane_support(depth: wp.array2d(dtype=float), plane: wp.array2d(dtype=wp.vec
     h = depth.shape[0]
     w = depth.shape[1]
     n = int(0)
-    for dy in range(-r, r + 1):
+    for dy in range(-edge_r, edge_r + 1):
         yy = y + dy
         if yy >= 0 and yy < h:
-            for dx in range(-r, r + 1):
+            for dx in range(-edge_r, edge_r + 1):
                 xx = x + dx
                 if xx >= 0 and xx < w:
                     dn = depth[yy, xx]
-                    rp = q[0] + q[1] * float(dx) + q[2] * float(dy)
-                    if dn > 0.0 and rp > 0.0 and wp.abs(dn * rp - 1.0) <= max_rel:
-                        n += 1
+                    if dn > 0.0:
+                        rp = q[0] + q[1] * float(dx) + q[2] * float(dy)
+                        off = wp.abs(dn * rp - 1.0)
+                        if rp <= 0.0 or off > edge_rel:
+                            supported[y, x] = wp.uint8(2)
+                            return
+                        if off <= max_rel and wp.abs(dx) <= r and wp.abs(dy) <= r:
+                            n += 1
     if float(n) >= min_fraction * float((2 * r + 1) * (2 * r + 1)):
         supported[y, x] = wp.uint8(1)
+
+
+@wp.kernel
+def apply_plane_support(supported: wp.array2d(dtype=wp.uint8), depth: wp.array2d(dtype=float),
+                        confidence: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8)):
+    y, x = wp.tid()
+    if depth[y, x] > 0.0 and supported[y, x] != wp.uint8(1):
+        depth[y, x] = 0.0
+        confidence[y, x] = 0.0
+        code[y, x] = wp.where(supported[y, x] == wp.uint8(2), wp.uint8(CODE_DEPTH_EDGE), wp.uint8(CODE_UNSUPPORTED))
