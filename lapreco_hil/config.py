@@ -224,6 +224,11 @@ class DepthConfig:
     # a depth within the window's reach departing from a pixel's plane by more than this (relative) marks a depth
     # edge, where windows fatten the foreground
     patchmatch_edge_rel: float = ranged(0.03, gt=0.0)
+    patchmatch_edge_slope: float = ranged(0.5, ge=0.0)  # ... plus a slope error of this over their distance
+    patchmatch_edge_min: int = ranged(7, ge=1)  # ... at least this many of them (a stray wrong depth is no edge)
+    # a depth's confidence x cos(angle between its ray and its plane's normal) to this power: fusion weighs grazing
+    # depths less (0: not at all)
+    patchmatch_angle_weight: float = ranged(0.5, ge=0.0)
     patchmatch_refine_px: float = ranged(0.5, gt=0.0)  # full resolution: a parabola through +-this image motion
     patchmatch_seed: int = ranged(0, ge=0)  # its random numbers (a map is repeatable on one device)
 

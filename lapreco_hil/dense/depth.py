@@ -449,6 +449,7 @@ class DepthEstimator:
             wp.launch(pm.plane_support, dim=(h, w), device=self.device,
                       inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
                               cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
+                              cfg.patchmatch_edge_slope, float(K_ref[0, 0]), cfg.patchmatch_edge_min,
                               self.supported])
             wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
                       inputs=[self.supported, self.depth, self.confidence, self.code])
@@ -521,7 +522,8 @@ class DepthEstimator:
                   inputs=[self.state[ref_slot], ref_full, self.fine.std, self.pm_plane, self.full_grey, *full,
                           rho_lo, rho_hi, 0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc,
                           cfg.view_min_zncc, cfg.min_views, self.depth, self.confidence, self.code,
-                          self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel())])
+                          self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()),
+                          cfg.patchmatch_angle_weight])
         return t0
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:

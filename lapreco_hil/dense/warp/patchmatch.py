@@ -225,12 +225,12 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
                     min_valid: float, rho_lo: float, rho_hi: float, edge_rho: float, refine_rho: float,
                     min_zncc: float, view_min_zncc: float, min_views: int, depth: wp.array2d(dtype=float),
                     confidence: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8),
-                    plane: wp.array2d(dtype=wp.vec3), K: wp.mat33, K_inv: wp.mat33):
+                    plane: wp.array2d(dtype=wp.vec3), K: wp.mat33, K_inv: wp.mat33, angle_weight: float):
     """Full resolution: the half-resolution plane of the pixel carried to it, scored at full resolution at its
     inverse depth and ``refine_rho`` either side (a parabola through the three where the middle is best, else the
     better side): the depth, the funnel code (in view, not a highlight, textured, matched, in range: not within
-    ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the square root of the cosine between the ray and the
-    plane's normal: a depth seen at a grazing angle is the least certain, and fusion weighs it less), and the
+    ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the cosine between the ray and the plane's normal to the
+    power ``angle_weight``: a depth seen at a grazing angle is the least certain, and fusion weighs it less), the
     pixel's plane (inverse depth and its gradient per pixel) for the support check."""
     y, x = wp.tid()
     depth[y, x] = 0.0
@@ -292,18 +292,22 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
     c = wp.vec3(gx, gy, rho - gx * float(x) - gy * float(y))
     cos_view = rho / (wp.length(wp.transpose(K) * c) * wp.length(K_inv * wp.vec3(float(x), float(y), 1.0)))
     c_match = wp.clamp((best - min_zncc) / (1.0 - min_zncc), 0.0, 1.0)
-    confidence[y, x] = c_match * wp.sqrt(wp.clamp(cos_view, 0.0, 1.0))
+    confidence[y, x] = c_match * wp.pow(wp.clamp(cos_view, 1.0e-6, 1.0), angle_weight)
     code[y, x] = wp.uint8(CODE_KEPT)
 
 
 @wp.kernel
 def plane_support(depth: wp.array2d(dtype=float), plane: wp.array2d(dtype=wp.vec3), r: int, max_rel: float,
-                  min_fraction: float, edge_r: int, edge_rel: float, supported: wp.array2d(dtype=wp.uint8)):
+                  min_fraction: float, edge_r: int, edge_rel: float, edge_slope: float, focal: float,
+                  edge_min: int, supported: wp.array2d(dtype=wp.uint8)):
     """plane_sweep's ``support`` for slanted planes: a neighbour supports a depth where its own depth lies within
     ``max_rel`` of the pixel's plane there (on a surface seen obliquely the depth changes by percents per pixel:
-    compared with the pixel's own depth, its neighbours would not support it). 2 (a depth edge) where a depth
-    within ``edge_r`` departs from the plane by more than ``edge_rel``: a window across a depth edge matches the
-    nearer surface on both sides (fattens the foreground), as far as the window reaches."""
+    compared with the pixel's own depth, its neighbours would not support it). 2 (a depth edge) where at least
+    ``edge_min`` depths within ``edge_r`` depart from the plane by more than ``edge_rel`` plus what a slope error
+    of ``edge_slope`` makes of their distance (d / ``focal``; a plane's slant is the less certain the smaller the
+    image): a window across a depth
+    edge matches the nearer surface on both sides (fattens the foreground), as far as the window reaches; the
+    other surface is a region, a stray wrong depth is not."""
     y, x = wp.tid()
     supported[y, x] = wp.uint8(0)
     if depth[y, x] <= 0.0:
@@ -312,6 +316,7 @@ def plane_support(depth: wp.array2d(dtype=float), plane: wp.array2d(dtype=wp.vec
     h = depth.shape[0]
     w = depth.shape[1]
     n = int(0)
+    off_plane = int(0)
     for dy in range(-edge_r, edge_r + 1):
         yy = y + dy
         if yy >= 0 and yy < h:
@@ -322,12 +327,14 @@ def plane_support(depth: wp.array2d(dtype=float), plane: wp.array2d(dtype=wp.vec
                     if dn > 0.0:
                         rp = q[0] + q[1] * float(dx) + q[2] * float(dy)
                         off = wp.abs(dn * rp - 1.0)
-                        if rp <= 0.0 or off > edge_rel:
-                            supported[y, x] = wp.uint8(2)
-                            return
-                        if off <= max_rel and wp.abs(dx) <= r and wp.abs(dy) <= r:
+                        reach = edge_rel + edge_slope * wp.sqrt(float(dx * dx + dy * dy)) / focal
+                        if rp <= 0.0 or off > reach:
+                            off_plane += 1
+                        elif off <= max_rel and wp.abs(dx) <= r and wp.abs(dy) <= r:
                             n += 1
-    if float(n) >= min_fraction * float((2 * r + 1) * (2 * r + 1)):
+    if off_plane >= edge_min:
+        supported[y, x] = wp.uint8(2)
+    elif float(n) >= min_fraction * float((2 * r + 1) * (2 * r + 1)):
         supported[y, x] = wp.uint8(1)
 
 
