@@ -20,6 +20,10 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
    ``min_views`` sources each score the final depth well on their own: something that moved between the views,
    an instrument, fails it), supported (wrong matches come as specks and slivers, surfaces as regions), and,
    where the sources' own depth maps are given, geometry agrees (forward-backward through the source's map).
+
+``[depth] method = "patchmatch"`` replaces steps 3-4's fine sweep by slanted windows: the coarse depth refined
+with a plane per pixel (red-black PatchMatch at half resolution, warp/patchmatch.py), scored at full resolution,
+its support and depth edges measured against each pixel's plane (docs/dense.md, "Slanted windows").
 """
 
 from __future__ import annotations
@@ -245,7 +249,9 @@ class DepthEstimator:
         wp = self.wp
         with wp.ScopedDevice(self.device):
             self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
-            self.fine = self._sweep_buffers(h, w, n_src, self.config.fine_planes)
+            # the refinement uses the fine level's window statistics only: no cost volume
+            fine_planes = self.config.fine_planes if self.config.method == "sweep" else 0
+            self.fine = self._sweep_buffers(h, w, n_src, fine_planes)
             self.A = wp.zeros(2 * n_src, dtype=wp.mat33)  # the coarse level's plane homographies, then the fine's
             self.b = wp.zeros(2 * n_src, dtype=wp.vec3)
             self.src_slots = wp.zeros(n_src, dtype=int)
@@ -444,16 +450,6 @@ class DepthEstimator:
                               fine.base, fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f,
                               cfg.min_zncc, cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
                               self.depth, self.confidence, self.code])
-        if cfg.method == "patchmatch":
-            # the depth-edge check reaches as far as the half-resolution window does at full resolution
-            wp.launch(pm.plane_support, dim=(h, w), device=self.device,
-                      inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
-                              cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
-                              cfg.patchmatch_edge_slope, float(K_ref[0, 0]), cfg.patchmatch_edge_min,
-                              self.supported])
-            wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
-                      inputs=[self.supported, self.depth, self.confidence, self.code])
-        else:
             wp.launch(k.support, dim=(h, w), device=self.device,
                       inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
                               self.supported])
@@ -524,6 +520,13 @@ class DepthEstimator:
                           cfg.view_min_zncc, cfg.min_views, self.depth, self.confidence, self.code,
                           self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()),
                           cfg.patchmatch_angle_weight])
+        # support against the pixel's plane; the depth-edge check reaches as far as the half-resolution window does
+        wp.launch(pm.plane_support, dim=(h, w), device=self.device,
+                  inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
+                          cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
+                          cfg.patchmatch_edge_slope, float(K_ref[0, 0]), cfg.patchmatch_edge_min, self.supported])
+        wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
+                  inputs=[self.supported, self.depth, self.confidence, self.code])
         return t0
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:
