@@ -175,6 +175,9 @@ class MapperConfig:
 class DepthConfig:
     """Multi-view stereo per keyframe (lapreco_hil.dense.depth)."""
 
+    # "sweep": the plane sweep's fronto-parallel windows, coarse to fine; "patchmatch": its coarse depth refined
+    # per pixel with slanted windows (a plane per pixel, red-black PatchMatch at half resolution)
+    method: str = "sweep"
     source_views: int = ranged(4, ge=1)  # neighbouring keyframes (and the stereo partner) each depth map uses
     # the sweep's range where the keyframe's sparse landmarks give none (metres along the optical axis)
     default_near_m: float = ranged(0.02, gt=0.0)
@@ -214,6 +217,28 @@ class DepthConfig:
     # keyframes whose prepared images (grey at full and half resolution) stay on the device to be sources again:
     # a keyframe is the source of several others (about 10 MB each at 1080p; at least the views of one depth map)
     cached_views: int = ranged(12, ge=1)
+    # method "patchmatch": checkerboard iterations, each trying the neighbours' planes and perturbations
+    patchmatch_iterations: int = ranged(3, ge=1)
+    # its window at half resolution: (2r+1)^2 pixels sampled every ``step`` (r=3, step 2: 16 taps over 7x7); at
+    # full resolution the sweep's window_radius_px, every pixel
+    patchmatch_window_radius_px: int = ranged(3, ge=1)
+    patchmatch_window_step_px: int = ranged(2, ge=1)
+    patchmatch_far_px: int = ranged(5, ge=3)  # the far neighbours' distance (odd: the other colour of the board)
+    # the steepest slant tried, as the slope tan(angle between surface and image plane): 5 is 79 degrees
+    patchmatch_max_slope: float = ranged(5.0, gt=0.0)
+    # the first iteration's perturbation: image motion (half-resolution pixels) and slope; halved each iteration
+    patchmatch_perturb_px: float = ranged(4.0, gt=0.0)
+    patchmatch_perturb_slope: float = ranged(1.0, gt=0.0)
+    # a depth within the window's reach departing from a pixel's plane by more than this (relative) marks a depth
+    # edge, where windows fatten the foreground
+    patchmatch_edge_rel: float = ranged(0.03, gt=0.0)
+    patchmatch_edge_slope: float = ranged(0.5, ge=0.0)  # ... plus a slope error of this over their distance
+    patchmatch_edge_min: int = ranged(7, ge=1)  # ... at least this many of them (a stray wrong depth is no edge)
+    # a depth's confidence x cos(angle between its ray and its plane's normal) to this power: fusion weighs grazing
+    # depths less (0: not at all)
+    patchmatch_angle_weight: float = ranged(0.5, ge=0.0)
+    patchmatch_refine_px: float = ranged(0.5, gt=0.0)  # full resolution: a parabola through +-this image motion
+    patchmatch_seed: int = ranged(0, ge=0)  # its random numbers (a map is repeatable on one device)
 
 
 @dataclass(frozen=True)

@@ -120,10 +120,12 @@ def bench_ba(repeats: int = 3, device: str = "cpu") -> dict:
     return run(repeats=repeats, device=resolve_device(device))
 
 
-def bench_dense(device: str = "auto", resolutions=None, views: int = 4, repeats: int = 5) -> dict:
+def bench_dense(device: str = "auto", resolutions=None, views: int = 4, repeats: int = 5,
+                methods=("sweep", "patchmatch")) -> dict:
     """The dense surface's steps per keyframe: a depth map (multi-view stereo, simulated liver keyframes, accuracy
     against the renderer's depth) and its integration, take-out and put-back in the TSDF volume and the meshing
-    (the simulated skull's true depth maps), at each resolution (default: 1920x1080 and 384x288)."""
+    (the simulated skull's true depth maps), at each resolution (default: 1920x1080 and 384x288); the depth map
+    by each ``[depth] method`` (``depth``: the first's, ``depth_by_method``: each's)."""
     from lapreco_hil.bench.dense import bench_depth
     from lapreco_hil.bench.fusion import bench_fusion
     from lapreco_hil.warp_device import resolve_device
@@ -131,8 +133,8 @@ def bench_dense(device: str = "auto", resolutions=None, views: int = 4, repeats:
     device = resolve_device(device)
     rows = []
     for resolution in resolutions or [(1920, 1080), (384, 288)]:
-        rows.append({"resolution": list(resolution),
-                     "depth": bench_depth(device, tuple(resolution), views, repeats),
+        depth = {m: bench_depth(device, tuple(resolution), views, repeats, method=m) for m in methods}
+        rows.append({"resolution": list(resolution), "depth": depth[methods[0]], "depth_by_method": depth,
                      "fusion": bench_fusion(device, tuple(resolution), repeats=max(1, min(repeats, 3)))})
     return {"benchmark": "dense", "device": device, "views": views, "repeats": repeats, "rows": rows,
             "machine": platform.node(), "processor": platform.processor(), "cpu_threads": os.cpu_count()}

@@ -10,6 +10,7 @@ The sweep's depth range is the true depth's 1st-99th percentile widened by 10%, 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import platform
@@ -113,6 +114,61 @@ def sheet_keyframes(resolution: tuple[int, int], n_views: int, device: str, dist
     return views, truths
 
 
+def plane_keyframes(resolution: tuple[int, int], n_views: int, tilt_deg: float, distance_m: float = 0.08,
+                    baseline_m: float = 0.006, seed: int = 0) -> tuple[list[KeyframeView], list[np.ndarray]]:
+    """``n_views`` keyframes of a flat textured plane whose normal is ``tilt_deg`` from the reference's optical
+    axis (about its y axis), crossing the axis at ``distance_m``: the reference at the origin looking along z,
+    the others ``baseline_m`` aside (right, left, up, down, then diagonals) looking at the same point. Rendered
+    exactly (each pixel's ray meets the plane; a band-limited random texture, bilinear, on 0.1 mm texels), with
+    the true depths; a keyframe's mask is where the plane lies at 30-250 mm."""
+    import cv2
+
+    from lapreco_hil.geometry import make_T
+
+    width, height = resolution
+    f = (width / 2) / np.tan(np.deg2rad(60.0) / 2)
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(seed)
+    texels = 1024
+    noise = rng.random((texels // 8, texels // 8))
+    texture = cv2.GaussianBlur(cv2.resize(noise, (texels, texels), interpolation=cv2.INTER_CUBIC), (0, 0), 2.0)
+    texture = (texture - texture.min()) / (np.ptp(texture) + 1e-12)
+    tilt = np.deg2rad(tilt_deg)
+    normal = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])  # towards the reference camera
+    point = np.array([0.0, 0.0, distance_m])
+    e1 = np.array([np.cos(tilt), 0.0, np.sin(tilt)])  # the plane's texture axes
+    e2 = np.array([0.0, 1.0, 0.0])
+    texel_m = 1e-4
+    offsets = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)]
+    ys, xs = np.mgrid[0:height, 0:width]
+    rays = np.linalg.inv(K) @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    views, truths = [], []
+    for i in range(n_views):
+        eye = np.zeros(3) if i == 0 else np.array([*offsets[(i - 1) % 8], 0.0]) * baseline_m
+        z = point - eye
+        z /= np.linalg.norm(z)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        T = make_T(np.column_stack([x, np.cross(z, x), z]), eye)
+        d_world = T[:3, :3] @ rays
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (normal @ (point - eye)) / (normal @ d_world)  # along each ray (camera z = s: rays have z = 1)
+        hit = eye[:, None] + d_world * s
+        a = ((hit - point[:, None]).T @ e1) / texel_m + texels / 2
+        b = ((hit - point[:, None]).T @ e2) / texel_m + texels / 2
+        depth = np.where(np.isfinite(s) & (s > 0.03) & (s < 0.25), s, 0.0).reshape(height, width)
+        inside = (a >= 0) & (a < texels - 1) & (b >= 0) & (b < texels - 1)
+        map_a = np.clip(a, 0, texels - 1).reshape(height, width).astype(np.float32)
+        map_b = np.clip(b, 0, texels - 1).reshape(height, width).astype(np.float32)
+        grey = cv2.remap(texture.astype(np.float32), map_a, map_b, cv2.INTER_LINEAR)
+        depth[~inside.reshape(height, width)] = 0.0
+        image = np.repeat((40 + 180 * grey)[:, :, None], 3, axis=2).astype(np.uint8)
+        mask = depth > 0
+        views.append(KeyframeView(i, image, K, T, mask, _landmark_range(depth)))
+        truths.append(depth.astype(np.float32))
+    return views, truths
+
+
 def depth_errors(depth_m: np.ndarray, truth_m: np.ndarray) -> dict:
     """Accuracy of the kept depths against the truth (mm), over the pixels where both exist."""
     kept = (depth_m > 0) & (truth_m > 0)
@@ -143,7 +199,7 @@ def _device_activities(wp, device: str, run) -> dict:
 
 
 def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
-                config: DepthConfig | None = None, sweep: str | None = None) -> dict:
+                config: DepthConfig | None = None, sweep: str | None = None, method: str | None = None) -> dict:
     """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
     the kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
     and its accuracy, before and after the geometric check against the sources' own depth maps.
@@ -151,12 +207,14 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     ``total_ms`` is the steady state of a mapper that keeps one estimator: the reference is new (prepared) and
     its sources are in the estimator's prepared-view cache (each was a reference before); ``cold_ms`` prepares
     every view (a fresh estimator's first map, less compiling and allocating). ``sweep``: the estimator's window
-    sums (None: the device's default)."""
+    sums (None: the device's default); ``method``: ``[depth] method`` (None: the config's)."""
     from lapreco_hil.dense.depth import DepthEstimator
     from lapreco_hil.warp_device import init_warp
 
     wp = init_warp()
     cfg = config or DepthConfig()
+    if method is not None:
+        cfg = dataclasses.replace(cfg, method=method)
     if scene == "sheet":
         keyframes, truths = sheet_keyframes(resolution, views + 1, device)
     else:
@@ -194,7 +252,7 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     in_view = (ref.mask if ref.mask is not None else np.ones(truths[0].shape, bool)) & (truths[0] > 0)
     return {
         "device": device, "resolution": f"{resolution[0]}x{resolution[1]}", "scene": scene, "views": views,
-        "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep,
+        "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep, "method": cfg.method,
         "total_ms": float(np.median(totals)), "cold_ms": float(np.median(cold)),
         # this process's CPU time: on a shared machine the wall time also counts other processes' turns (Warp's
         # CPU kernels run on one thread, so on the CPU device this is the time on an idle core)
@@ -223,7 +281,7 @@ def format_table(result: dict) -> str:
     cold_steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result.get("cold_steps_ms", {}).items())
     return "\n".join([
         f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
-        f"coarse planes, {result.get('sweep', 'sliding')} sweep, on {result['device']} ({result['machine']}; median "
+        f"coarse planes, {result.get('sweep', 'sliding')} sweep, method {result.get('method', 'sweep')}, on {result['device']} ({result['machine']}; median "
         f"of {result['repeats']})",
         f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
         f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); "

@@ -168,6 +168,8 @@ def build_parser() -> ArgumentParser:
                           help="WxH, repeatable (default: 1920x1080 and 384x288)")
     bench_dn.add_argument("--views", type=positive_int, default=4, help="source views per depth map (default 4)")
     bench_dn.add_argument("--repeats", type=positive_int, default=5)
+    bench_dn.add_argument("--method", choices=("sweep", "patchmatch"), action="append", default=None,
+                          help="[depth] method of the depth maps, repeatable (default: both)")
     bench_dn.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_dn.set_defaults(func=_cmd_bench_dense)
     bench_fe = bench_sub.add_parser("frontend", help="Warp front-end vs the OpenCV baseline, per stage")
@@ -322,9 +324,11 @@ def _cmd_bench_dense(args) -> int:
     from lapreco_hil.app.bench import bench_dense
     from lapreco_hil.bench import dense, fusion
 
-    result = bench_dense(device=args.device, resolutions=args.resolution, views=args.views, repeats=args.repeats)
+    result = bench_dense(device=args.device, resolutions=args.resolution, views=args.views, repeats=args.repeats,
+                         methods=tuple(args.method or ("sweep", "patchmatch")))
     for row in result["rows"]:
-        print(dense.format_table(row["depth"]))
+        for depth in row["depth_by_method"].values():
+            print(dense.format_table(depth))
         print(fusion.format_table(row["fusion"]))
     _write_json(args.json, result)
     return 0

@@ -20,6 +20,10 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
    ``min_views`` sources each score the final depth well on their own: something that moved between the views,
    an instrument, fails it), supported (wrong matches come as specks and slivers, surfaces as regions), and,
    where the sources' own depth maps are given, geometry agrees (forward-backward through the source's map).
+
+``[depth] method = "patchmatch"`` replaces steps 3-4's fine sweep by slanted windows: the coarse depth refined
+with a plane per pixel (red-black PatchMatch at half resolution, warp/patchmatch.py), scored at full resolution,
+its support and depth edges measured against each pixel's plane (docs/dense.md, "Slanted windows").
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lapreco_hil.config import DepthConfig
+from lapreco_hil.dense.warp import patchmatch as pm
 from lapreco_hil.dense.warp import plane_sweep as k
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.errors import ConfigError, ReconstructionError
@@ -48,6 +53,7 @@ FUNNEL = ("pixels", "in_view", "not_highlight", "textured", "matched", "in_range
 DEFAULT_SCENE_DEPTH_M = 0.1  # choose_sources' scene depth for a keyframe with no landmark range
 PREFERRED_ANGLE_DEG = 5.0  # choose_sources ranks views by how close their triangulation angle is to this
 SWEEPS = ("sliding", "windowed")  # how the window sums are made: DepthEstimator's ``sweep``
+METHODS = ("sweep", "patchmatch")  # [depth] method
 # rows per thread of the windowed sweep: long enough that the 2r rows summed before the first score are a small
 # overhead, short enough for millions of threads at half 1080p; a multiple of 7 (sweep_window_ring's unrolled ring)
 WINDOW_BAND_ROWS = 56
@@ -154,6 +160,11 @@ class DepthEstimator:
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
+        if config.method not in METHODS:
+            raise ConfigError(f"[depth] method {config.method!r} is none of {', '.join(METHODS)}")
+        if config.patchmatch_far_px % 2 == 0:
+            raise ConfigError(f"[depth] patchmatch_far_px {config.patchmatch_far_px} must be odd (a neighbour "
+                              "of the other colour of the checkerboard)")
         if config.min_planes > config.max_planes:
             raise ConfigError(f"[depth] min_planes {config.min_planes} must not exceed max_planes "
                               f"{config.max_planes}")
@@ -238,10 +249,16 @@ class DepthEstimator:
         wp = self.wp
         with wp.ScopedDevice(self.device):
             self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
-            self.fine = self._sweep_buffers(h, w, n_src, self.config.fine_planes)
+            # the refinement uses the fine level's window statistics only: no cost volume
+            fine_planes = self.config.fine_planes if self.config.method == "sweep" else 0
+            self.fine = self._sweep_buffers(h, w, n_src, fine_planes)
             self.A = wp.zeros(2 * n_src, dtype=wp.mat33)  # the coarse level's plane homographies, then the fine's
             self.b = wp.zeros(2 * n_src, dtype=wp.vec3)
             self.src_slots = wp.zeros(n_src, dtype=int)
+            if self.config.method == "patchmatch":
+                self.pm_plane = wp.zeros((h // 2, w // 2), dtype=wp.vec3)  # inverse depth and its gradient
+                self.pm_score = wp.zeros((h // 2, w // 2), dtype=float)
+                self.pm_full_plane = wp.zeros((h, w), dtype=wp.vec3)
         self._shape = shape
 
     # --- steps ------------------------------------------------------------------------------------------------
@@ -417,23 +434,27 @@ class DepthEstimator:
                     max(3, math.ceil(cfg.min_scored_fraction * n_planes)))
         t0 = self._sync_time(times, "coarse_sweep_ms", t0)
 
-        wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
-                  inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
-        self._sweep(fine, ref_full, self.full_grey, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src,
-                    cfg.fine_planes)
-        t0 = self._sync_time(times, "fine_sweep_ms", t0)
+        if cfg.method == "patchmatch":
+            t0 = self._patchmatch(times, t0, slots[0], ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo, rho_hi,
+                                  drho_c, step_px, K_ref, ref.kf_id)
+        else:
+            wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
+                      inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
+            self._sweep(fine, ref_full, self.full_grey, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src,
+                        cfg.fine_planes)
+            t0 = self._sync_time(times, "fine_sweep_ms", t0)
 
-        wp.launch(k.finalise, dim=(h, w), device=self.device,
-                  inputs=[self.state[slots[0]], ref_full, fine.std, coarse.plane, coarse.best, coarse.second,
-                          n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
-                          fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
-                          cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
-                          self.depth, self.confidence, self.code])
-        wp.launch(k.support, dim=(h, w), device=self.device,
-                  inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
-                          self.supported])
-        wp.launch(k.apply_support, dim=(h, w), device=self.device,
-                  inputs=[self.supported, self.depth, self.confidence, self.code])
+            wp.launch(k.finalise, dim=(h, w), device=self.device,
+                      inputs=[self.state[slots[0]], ref_full, fine.std, coarse.plane, coarse.best, coarse.second,
+                              n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc,
+                              fine.base, fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f,
+                              cfg.min_zncc, cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
+                              self.depth, self.confidence, self.code])
+            wp.launch(k.support, dim=(h, w), device=self.device,
+                      inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
+                              self.supported])
+            wp.launch(k.apply_support, dim=(h, w), device=self.device,
+                      inputs=[self.supported, self.depth, self.confidence, self.code])
         given = [s for s in sources if source_depths and s.kf_id in source_depths]
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
@@ -448,12 +469,65 @@ class DepthEstimator:
             funnel.pop("geometry_agrees")
         self._sync_time(times, "download_ms", t0)
         times["total_ms"] = round(sum(times.values()), 3)
-        stats = {"funnel": funnel, "times_ms": times, "planes": n_planes, "depth_range_m": (near, far),
+        stats = {"funnel": funnel, "times_ms": times, "method": cfg.method, "planes": n_planes,
+                 "depth_range_m": (near, far),
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
                  "prepared": prepared}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
+
+    def _patchmatch(self, times: dict, t0: float, ref_slot: int, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
+                    rho_lo: float, rho_hi: float, drho_c: float, step_px: float, K_ref: np.ndarray,
+                    kf_id: int) -> float:
+        """The coarse sweep's depth refined per pixel with slanted windows (``[depth] method = "patchmatch"``:
+        warp/patchmatch.py): initialised from the sweep, red-black propagation and perturbation at half
+        resolution, then each plane scored and refined at full resolution into the depth, confidence and funnel
+        code (the checks that follow are the sweep's)."""
+        wp = self.wp
+        cfg = self.config
+        h, w = ref_full.shape
+        hc, wc = ref_half.shape
+        focal_half = float(_half_K(K_ref)[0, 0])
+        n = min(n_src, pm.MAX_SOURCES)  # the first (best) sources
+        k_best = min(cfg.best_k, n)
+        rho_per_px = drho_c / max(step_px, 1e-9)  # inverse depth per half-resolution pixel of image motion (at most)
+        r, step = cfg.patchmatch_window_radius_px, cfg.patchmatch_window_step_px
+        common = [self.src_slots, None, None, n, k_best, r, step, cfg.min_texture, cfg.min_valid_fraction]
+        half = list(common)
+        half[1:3] = [A_c, b_c]
+        seed = (cfg.patchmatch_seed * 7919 + kf_id) % (2 ** 31 - 1)
+        wp.launch(pm.init_planes, dim=(hc, wc), device=self.device,
+                  inputs=[self.coarse.plane, rho_lo, drho_c, rho_lo, rho_hi, focal_half, cfg.patchmatch_max_slope,
+                          cfg.patchmatch_perturb_slope, seed, ref_half, self.coarse.std, self.half_grey, *half,
+                          self.pm_plane, self.pm_score])
+        for it in range(cfg.patchmatch_iterations):
+            shrink = 0.5 ** it
+            for parity in (0, 1):
+                wp.launch(pm.propagate, dim=(hc, (wc + 1) // 2), device=self.device,
+                          inputs=[parity, it, seed, cfg.patchmatch_far_px, rho_lo, rho_hi, focal_half,
+                                  cfg.patchmatch_max_slope, cfg.patchmatch_perturb_px * rho_per_px * shrink,
+                                  cfg.patchmatch_perturb_slope * shrink, ref_half, self.coarse.std, self.half_grey,
+                                  *half, self.pm_plane, self.pm_score])
+        t0 = self._sync_time(times, "patchmatch_ms", t0)
+        full = list(common)
+        full[5:7] = [cfg.window_radius_px, 1]
+        full[1:3] = [A_f, b_f]
+        # a full-resolution pixel's image motion is twice a half-resolution one's for the same inverse depth
+        wp.launch(pm.finalise_planes, dim=(h, w), device=self.device,
+                  inputs=[self.state[ref_slot], ref_full, self.fine.std, self.pm_plane, self.full_grey, *full,
+                          rho_lo, rho_hi, 0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc,
+                          cfg.view_min_zncc, cfg.min_views, self.depth, self.confidence, self.code,
+                          self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()),
+                          cfg.patchmatch_angle_weight])
+        # support against the pixel's plane; the depth-edge check reaches as far as the half-resolution window does
+        wp.launch(pm.plane_support, dim=(h, w), device=self.device,
+                  inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
+                          cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
+                          cfg.patchmatch_edge_slope, float(K_ref[0, 0]), cfg.patchmatch_edge_min, self.supported])
+        wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
+                  inputs=[self.supported, self.depth, self.confidence, self.code])
+        return t0
 
     def _download(self) -> tuple[np.ndarray, np.ndarray]:
         """(2, H, W) depth and confidence, and the funnel codes' histogram, as host arrays of their own."""
