@@ -54,6 +54,32 @@ def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4,
     return top + o[3] * (c + o[2] * (d - c) - top)
 
 
+@wp.func
+def _window_grad(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, k: int, win: int,
+                 inv_win: float) -> float:
+    """Pixel k of a window of a gradient level as ``_window_px``, but zero past the level's border: OpenCV's LK
+    pads its derivative levels with zeros (a mirrored image's x or y gradient would change sign there, so
+    reflecting the gradients, as the images are, puts wrong-signed terms into G and b)."""
+    row = int((float(k) + 0.5) * inv_win)
+    col = k - row * win
+    x0 = int(o[0]) + col
+    y0 = int(o[1]) + row
+    ra = off + wp.clamp(y0, 0, h - 1) * w
+    rb = off + wp.clamp(y0 + 1, 0, h - 1) * w
+    xa = wp.clamp(x0, 0, w - 1)
+    xb = wp.clamp(x0 + 1, 0, w - 1)
+    mxa = wp.where(x0 >= 0 and x0 < w, 1.0, 0.0)
+    mxb = wp.where(x0 + 1 >= 0 and x0 + 1 < w, 1.0, 0.0)
+    mya = wp.where(y0 >= 0 and y0 < h, 1.0, 0.0)
+    myb = wp.where(y0 + 1 >= 0 and y0 + 1 < h, 1.0, 0.0)
+    a = img[ra + xa] * mxa * mya
+    b = img[ra + xb] * mxb * mya
+    c = img[rb + xa] * mxa * myb
+    d = img[rb + xb] * mxb * myb
+    top = a + o[2] * (b - a)
+    return top + o[3] * (c + o[2] * (d - c) - top)
+
+
 def _make_lk_track(cache: int):
     """The LK kernel for lanes that each keep ``cache`` window pixels (and their gradients) in registers."""
     cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
@@ -118,8 +144,8 @@ def _make_lk_track(cache: int):
                     valid = wp.where(k < n, 1.0, 0.0)
                     row = int((float(k) + 0.5) * inv_win)
                     c_o[j] = wp.where(k < n, row * w + k - row * win, 0)
-                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win) * valid
-                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win) * valid
+                    vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win) * valid
+                    vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win) * valid
                     c_i[j] = _window_px(prev, off, w, h, o, k, win, inv_win)
                     c_x[j] = vx
                     c_y[j] = vy
@@ -127,8 +153,8 @@ def _make_lk_track(cache: int):
             else:
                 k = lane
                 while k < n:
-                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
-                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                    vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win)
+                    vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win)
                     acc += wp.vec3(vx * vx, vx * vy, vy * vy)
                     k += nl
             G = block_sum3(acc, sums)
@@ -184,8 +210,8 @@ def _make_lk_track(cache: int):
                     while k < n:
                         diff = (_window_px(prev, off, w, h, o, k, win, inv_win)
                                 - _window_px(cur, off, w, h, oq, k, win, inv_win))
-                        vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
-                        vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                        vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win)
+                        vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win)
                         bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
                         k += nl
                 b = block_sum3(bacc, sums)
