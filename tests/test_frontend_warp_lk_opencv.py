@@ -48,7 +48,7 @@ def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
     """The coarse levels' 31 px windows reach past the border of a 60 x 34 level from most of the frame. Warp
     once reflected its gradient levels there as it reflects the images, but a mirrored image's gradient changes
     sign, so G and b took wrong-signed terms: 15 % of the tracks OpenCV kept went hundreds of px astray (OpenCV
-    pads its derivative levels with zeros), and Sobel in place of OpenCV's Scharr moved 4 % more."""
+    pads its derivative levels with zeros), and Sobel in place of OpenCV's Scharr put 2 % more over 0.1 px off."""
     from lapreco_hil.frontend.opencv import OpenCVFrontEnd
     from lapreco_hil.frontend.warp import lk
     from lapreco_hil.frontend.warp.frontend import LK_EPS, LK_ITERATIONS, LK_MIN_EIG
