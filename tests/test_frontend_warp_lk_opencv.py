@@ -92,3 +92,43 @@ def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
     assert np.mean(apart <= 0.1) >= 0.99, np.percentile(apart, [50, 90, 99])
     # and keeps next to nothing that OpenCV drops
     assert (warp_kept & ~cv_kept).sum() <= 0.01 * n
+
+
+def test_gradient_windows_read_zero_past_the_border_and_never_out_of_bounds(wp):
+    """LK's gradient samples: bilinear inside the level (by direct offsets when the whole window is inside, the
+    same values as the bordered path), zero past the border as OpenCV's padded derivative levels, and clamped
+    reads wherever a diverging step puts the window (NaN included)."""
+    from lapreco_hil.frontend.warp import lk
+
+    @wp.kernel
+    def probe(img: wp.array(dtype=float), xs: wp.array(dtype=float), out: wp.array(dtype=float)):
+        i = wp.tid()
+        o = lk._window_origin(xs[i], xs[i] + 0.5)
+        inside = lk._window_inside(o, 21, 100, 80)
+        out[4 * i] = lk._window_grad(img, 0, 100, 80, o, 0, 21, 1.0 / 21.0, inside)  # top-left pixel
+        out[4 * i + 1] = lk._window_grad(img, 0, 100, 80, o, 440, 21, 1.0 / 21.0, inside)  # bottom-right
+        out[4 * i + 2] = lk._window_grad(img, 0, 100, 80, o, 0, 21, 1.0 / 21.0, False)
+        out[4 * i + 3] = wp.where(inside, 1.0, 0.0)
+
+    yy, xx = np.mgrid[0:80, 0:100]
+    img = (1.0 + xx + 1000.0 * yy).astype(np.float32)  # a pixel's value says where it is, none is zero
+    xs = np.array([10.25, -0.5, -30.0, 90.0, 1.0e30, -np.inf, np.nan], np.float32)
+    out = wp.zeros(4 * len(xs), dtype=float, device=DEVICE)
+    wp.launch(probe, len(xs), [wp.array(img.ravel(), dtype=float, device=DEVICE),
+                               wp.array(xs, dtype=float, device=DEVICE), out], device=DEVICE)
+    got = out.numpy().reshape(-1, 4)
+    value = lambda x, y: 1.0 + x + 1000.0 * y  # bilinear is exact on this ramp
+    # inside: direct offsets, the same as the bordered path
+    assert got[0, 3] == 1.0
+    assert np.allclose(got[0, :3], [value(10.25, 10.75), value(30.25, 30.75), value(10.25, 10.75)], rtol=1e-6)
+    # half a pixel past the left border: the left neighbour is zero, so half of the in-image column
+    assert got[1, 3] == 0.0
+    assert got[1, 0] == pytest.approx(0.5 * value(0.0, 0.0), rel=1e-5)
+    assert got[1, 1] == pytest.approx(value(19.5, 20.0), rel=1e-5)
+    # a window wholly past the border: zero, not the mirrored image's gradient
+    assert got[2, 0] == 0.0
+    # its bottom-right pixel (-10, -9.5) is past the border too; at x = 90 the window's right side is outside
+    assert got[2, 1] == 0.0 and got[3, 1] == 0.0
+    # far off, infinite or NaN: no read beyond the level (finite values within the image's range, or NaN)
+    rest = got[4:, :3].ravel()
+    assert np.all(np.isnan(rest) | ((rest >= 0) & (rest <= img.max()))), rest
