@@ -54,6 +54,50 @@ def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4,
     return top + o[3] * (c + o[2] * (d - c) - top)
 
 
+@wp.func
+def _window_grad(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, k: int, win: int,
+                 inv_win: float, inside: bool) -> float:
+    """Pixel k of a window of a gradient level as ``_window_px``, but zero past the level's border: OpenCV's LK
+    pads its derivative levels with zeros (a mirrored image's x or y gradient changes sign, so reflecting the
+    gradients as the images are put wrong-signed terms into G and b). ``inside``: the window and its bilinear
+    neighbours lie inside the level (the same for every pixel of it), so no pixel needs the border."""
+    row = int((float(k) + 0.5) * inv_win)
+    col = k - row * win
+    x0 = int(o[0]) + col
+    y0 = int(o[1]) + row
+    a = float(0.0)
+    b = float(0.0)
+    c = float(0.0)
+    d = float(0.0)
+    if inside:
+        i = off + y0 * w + x0
+        a = img[i]
+        b = img[i + 1]
+        c = img[i + w]
+        d = img[i + w + 1]
+    else:
+        ra = off + wp.clamp(y0, 0, h - 1) * w
+        rb = off + wp.clamp(y0 + 1, 0, h - 1) * w
+        xa = wp.clamp(x0, 0, w - 1)
+        xb = wp.clamp(x0 + 1, 0, w - 1)
+        mxa = wp.where(x0 >= 0 and x0 < w, 1.0, 0.0)
+        mxb = wp.where(x0 + 1 >= 0 and x0 + 1 < w, 1.0, 0.0)
+        mya = wp.where(y0 >= 0 and y0 < h, 1.0, 0.0)
+        myb = wp.where(y0 + 1 >= 0 and y0 + 1 < h, 1.0, 0.0)
+        a = img[ra + xa] * mxa * mya
+        b = img[ra + xb] * mxb * mya
+        c = img[rb + xa] * mxa * myb
+        d = img[rb + xb] * mxb * myb
+    top = a + o[2] * (b - a)
+    return top + o[3] * (c + o[2] * (d - c) - top)
+
+
+@wp.func
+def _window_inside(o: wp.vec4, win: int, w: int, h: int) -> bool:
+    """Whether a window at origin o (``_window_origin``) and its bilinear neighbours lie inside a w x h level."""
+    return o[0] >= 0.0 and o[1] >= 0.0 and o[0] + float(win) <= float(w - 1) and o[1] + float(win) <= float(h - 1)
+
+
 def _make_lk_track(cache: int):
     """The LK kernel for lanes that each keep ``cache`` window pixels (and their gradients) in registers."""
     cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
@@ -105,6 +149,7 @@ def _make_lk_track(cache: int):
             h = hs[lvl]
             p = p0 * (1.0 / float(1 << lvl))
             o = _window_origin(p[0] - r, p[1] - r)
+            inside = _window_inside(o, win, w, h)
             # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
             acc = wp.vec3(0.0, 0.0, 0.0)
             c_i = cache_vec()
@@ -118,8 +163,8 @@ def _make_lk_track(cache: int):
                     valid = wp.where(k < n, 1.0, 0.0)
                     row = int((float(k) + 0.5) * inv_win)
                     c_o[j] = wp.where(k < n, row * w + k - row * win, 0)
-                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win) * valid
-                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win) * valid
+                    vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win, inside and k < n) * valid
+                    vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win, inside and k < n) * valid
                     c_i[j] = _window_px(prev, off, w, h, o, k, win, inv_win)
                     c_x[j] = vx
                     c_y[j] = vy
@@ -127,8 +172,8 @@ def _make_lk_track(cache: int):
             else:
                 k = lane
                 while k < n:
-                    vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
-                    vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                    vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win, inside)
+                    vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win, inside)
                     acc += wp.vec3(vx * vx, vx * vy, vy * vy)
                     k += nl
             G = block_sum3(acc, sums)
@@ -159,8 +204,7 @@ def _make_lk_track(cache: int):
                         ok = 0
                     break
                 bacc = wp.vec3(0.0, 0.0, 0.0)
-                if cached and oq[0] >= 0.0 and oq[1] >= 0.0 and oq[0] + float(win) <= float(w - 1) and (
-                        oq[1] + float(win) <= float(h - 1)):
+                if cached and _window_inside(oq, win, w, h):
                     # the window and its bilinear neighbours lie inside the level (the same answer in every lane):
                     # each pixel is its precomputed offset from the window's corner, four loads and three lerps
                     corner = off + int(oq[1]) * w + int(oq[0])
@@ -184,8 +228,8 @@ def _make_lk_track(cache: int):
                     while k < n:
                         diff = (_window_px(prev, off, w, h, o, k, win, inv_win)
                                 - _window_px(cur, off, w, h, oq, k, win, inv_win))
-                        vx = _window_px(prev_gx, off, w, h, o, k, win, inv_win)
-                        vy = _window_px(prev_gy, off, w, h, o, k, win, inv_win)
+                        vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win, inside)
+                        vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win, inside)
                         bacc += wp.vec3(diff * vx, diff * vy, wp.abs(diff))
                         k += nl
                 b = block_sum3(bacc, sums)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import warp as wp
 
 from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
-from lapreco_hil.frontend.warp.sampling import bilinear, clamped_px
+from lapreco_hil.frontend.warp.sampling import bilinear
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
@@ -104,9 +104,17 @@ def _level0(log_img: wp.array2d(dtype=float), low_lit: wp.array(dtype=float), lw
     pyr[y * log_img.shape[1] + x] = v
 
 
+@wp.func
+def _border_index(x: int, n: int, reflect: bool) -> int:
+    """x inside [0, n): mirrored about the border pixel (BORDER_REFLECT_101) or replicated."""
+    r = wp.clamp((n - 1) - wp.abs((n - 1) - wp.abs(x)), 0, n - 1)
+    return wp.where(reflect, r, wp.clamp(x, 0, n - 1))
+
+
 @wp.kernel
 def _pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int):
-    """Gaussian 5-tap [1 4 6 4 1]/16 in both directions, then every other pixel (cv2.pyrDown)."""
+    """Gaussian 5-tap [1 4 6 4 1]/16 in both directions, then every other pixel, the border reflected
+    (cv2.pyrDown's BORDER_REFLECT_101)."""
     y, x = wp.tid()
     if x >= dw or y >= dh:
         return
@@ -123,15 +131,19 @@ def _pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_of
                 wx = 4.0
             if i == 2:
                 wx = 6.0
-            s += wx * wy * clamped_px(pyr, src_off, sw, sh, 2 * x + i - 2, 2 * y + j - 2)
+            s += wx * wy * pyr[src_off + _border_index(2 * y + j - 2, sh, True) * sw
+                               + _border_index(2 * x + i - 2, sw, True)]
     pyr[dst_off + y * dw + x] = s / 256.0
 
 
 @wp.kernel
 def _sobel_levels(pyr: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                   hs: wp.array(dtype=int), levels: int, gx: wp.array(dtype=float), gy: wp.array(dtype=float)):
-    """3x3 Sobel / 8 (cv2.Sobel ksize=3, scale 1/8) of every pyramid level in one launch over the flat
-    pyramid: a thread finds its level from the offsets."""
+    """The gradients of every pyramid level in one launch over the flat pyramid (a thread finds its level from
+    the offsets). Level 0: 3x3 Sobel / 8, border replicated (cv2.Sobel ksize=3, scale 1/8: what the corner
+    response and the drift check use, as the OpenCV baseline's). The coarser levels, which only LK reads: 3x3
+    Scharr / 32, border reflected, as OpenCV's LK takes them (calcSharrDeriv); Sobel's weaker smoothing across
+    the derivative put the coarse levels' steps off OpenCV's on the periodic dot grid (docs/frontend-real-frames.md)."""
     i = wp.tid()
     lvl = int(0)
     for l in range(1, levels):
@@ -145,16 +157,25 @@ def _sobel_levels(pyr: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.
     x = j - y * w
     if y >= h:
         return
-    a = clamped_px(pyr, off, w, h, x - 1, y - 1)
-    b = clamped_px(pyr, off, w, h, x, y - 1)
-    c = clamped_px(pyr, off, w, h, x + 1, y - 1)
-    d = clamped_px(pyr, off, w, h, x - 1, y)
-    f = clamped_px(pyr, off, w, h, x + 1, y)
-    g = clamped_px(pyr, off, w, h, x - 1, y + 1)
-    hh = clamped_px(pyr, off, w, h, x, y + 1)
-    k = clamped_px(pyr, off, w, h, x + 1, y + 1)
-    gx[i] = ((c + 2.0 * f + k) - (a + 2.0 * d + g)) / 8.0
-    gy[i] = ((g + 2.0 * hh + k) - (a + 2.0 * b + c)) / 8.0
+    coarse = lvl > 0
+    side = wp.where(coarse, 3.0, 1.0)
+    mid = wp.where(coarse, 10.0, 2.0)
+    scale = wp.where(coarse, 1.0 / 32.0, 1.0 / 8.0)
+    xm = _border_index(x - 1, w, coarse)
+    xp = _border_index(x + 1, w, coarse)
+    rm = off + _border_index(y - 1, h, coarse) * w
+    r0 = off + y * w
+    rp = off + _border_index(y + 1, h, coarse) * w
+    a = pyr[rm + xm]
+    b = pyr[rm + x]
+    c = pyr[rm + xp]
+    d = pyr[r0 + xm]
+    f = pyr[r0 + xp]
+    g = pyr[rp + xm]
+    hh = pyr[rp + x]
+    k = pyr[rp + xp]
+    gx[i] = (side * (c + k - a - g) + mid * (f - d)) * scale
+    gy[i] = (side * (g + k - a - c) + mid * (hh - b)) * scale
 
 
 # --- host wrappers: a device and preallocated outputs --------------------------------------------------------
@@ -188,5 +209,6 @@ def pyr_down(pyr: wp.array, src_off: int, sw: int, sh: int, dst_off: int, dw: in
 
 def sobel_levels(pyr: wp.array, offs: wp.array, ws: wp.array, hs: wp.array, levels: int, gx: wp.array,
                  gy: wp.array, device) -> None:
-    """``gx``, ``gy`` <- the Sobel gradients of every level of the flat pyramid, in one launch."""
+    """``gx``, ``gy`` <- the gradients of every level of the flat pyramid (level 0 Sobel, the others Scharr), in one
+    launch."""
     wp.launch(_sobel_levels, dim=pyr.shape[0], inputs=[pyr, offs, ws, hs, levels, gx, gy], device=device)
