@@ -16,7 +16,7 @@ from lapreco_hil.cli.main import main
 from lapreco_hil.app.run import run_live
 from lapreco_hil.config import PipelineConfig
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
-from lapreco_hil.runtime.live import LIVE_SWITCH_INTERVAL_S, StageError
+from lapreco_hil.runtime.live import StageError
 from lapreco_hil.sessions import Session
 
 SIM = ["--scene", "skull", "--resolution", "256x192", "--device", "cpu", "--no-progress"]
@@ -89,20 +89,14 @@ def test_degrade_skips_failing_frames_and_counts_them(fast_session, tmp_path):
 
     class Flaky:
         n = 0
-        switch_intervals: set = set()
 
         def process(self, frame, motion=None):
             self.n += 1
-            self.switch_intervals.add(sys.getswitchinterval())
             if self.n % 3 == 0:
                 raise RuntimeError("glitch")
             return real.process(frame)
 
-    before = sys.getswitchinterval()
-    flaky = Flaky()
-    live, (result, metrics) = _live_run(fast_session, flaky, "degrade", tmp_path, seconds=None)
-    # tracking ran with a short switch interval (the other stages keep Python's lock for less), restored after
-    assert flaky.switch_intervals == {min(before, LIVE_SWITCH_INTERVAL_S)} and sys.getswitchinterval() == before
+    live, (result, metrics) = _live_run(fast_session, Flaky(), "degrade", tmp_path, seconds=None)
     f = metrics["frames"]
     # every third frame the front-end saw failed and was skipped; the others were mapped
     assert f["tracking_errors"] >= 3 and f["processed"] >= 1.5 * f["tracking_errors"] - 2

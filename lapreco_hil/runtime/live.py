@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from pathlib import Path
 
 from lapreco_hil.camera import CameraModel
@@ -48,8 +47,6 @@ FEW_FRAMES = 3  # a run that maps fewer frames than this says why
 # frames the tracking stage keeps for the dense surface until the mapper names its keyframes (it answers within a
 # few frames; at 1080p this is about 200 MB)
 RECENT_FRAMES = 32
-# Python's switch interval during a live run (s): how long a stage holding Python's lock keeps tracking waiting
-LIVE_SWITCH_INTERVAL_S = 0.0005
 
 
 class StageError(LaprecoError):
@@ -172,14 +169,7 @@ class LiveRun:
             stages["record"] = Record(self.recorder, self.links).run
         if self.dense is not None:
             stages["dense"] = self.dense.run
-        # tracking shares this process with the other stages: a thread that wants Python's lock waits up to the
-        # holder's switch interval (5 ms by default, a third of a 60 fps frame), so the run shortens it
-        switch_interval = sys.getswitchinterval()
-        sys.setswitchinterval(min(switch_interval, LIVE_SWITCH_INTERVAL_S))
-        try:
-            sup.run(stages, seconds)
-        finally:
-            sys.setswitchinterval(switch_interval)
+        sup.run(stages, seconds)
         fatal = sup.fatal_errors()
         mapper_raised = set(fatal) == {"mapper"} and isinstance(sup.final, MapperFailed)
         if (not fatal or mapper_raised) and self.metrics.get("frames_processed") == 0 \
