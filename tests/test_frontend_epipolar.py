@@ -121,7 +121,8 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
     first = cv2.cvtColor(cv2.cvtColor(left, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
 
     def run(motion, levels="auto"):
-        fe = make_frontend(tracker, cam, TrackerConfig(redetect_below=0.001, pyramid_levels=levels), DEVICE)
+        fe = make_frontend(tracker, cam, TrackerConfig(redetect_below=0.001, pyramid_levels=levels,
+                                                        reduced_predicted_levels=True), DEVICE)
         obs0 = fe.process(Frame(first, 0, 0))
         if callable(motion):
             motion = motion(obs0)
@@ -170,10 +171,13 @@ def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
     assert u_own == u_swept == epipolar.POSE_UNCERTAINTY_PX == 8.0
     assert 8.0 < u_borrowed < 14.0 < u_settled
     # the coarse-window levels (from coarse_from_level = 4 up) only where the uncertainty needs them
-    assert [predicted_levels(TrackerConfig(), 4, 720, 576, u) for u in (u_own, u_borrowed, u_settled)] == [3, 3, 4]
-    assert [predicted_levels(TrackerConfig(coarse_from_level=1), 4, 720, 576, u)
+    reduced = TrackerConfig(reduced_predicted_levels=True)
+    assert [predicted_levels(reduced, 4, 720, 576, u) for u in (u_own, u_borrowed, u_settled)] == [3, 3, 4]
+    assert [predicted_levels(TrackerConfig(coarse_from_level=1, reduced_predicted_levels=True), 4, 720, 576, u)
             for u in (u_own, u_borrowed, u_settled)] == [2, 3, 4]
-    assert predicted_levels(TrackerConfig(), 2, 720, 576, u_settled) == 2  # never more than the front-end's pyramid
+    assert predicted_levels(reduced, 2, 720, 576, u_settled) == 2  # never more than the front-end's pyramid
+    # (off by default: the whole pyramid)
+    assert [predicted_levels(TrackerConfig(), 4, 720, 576, u) for u in (u_own, u_borrowed, u_settled)] == [4, 4, 4]
 
 
 @pytest.mark.parametrize("tracker", ["opencv", "warp"])
@@ -202,8 +206,9 @@ def test_a_fast_frame_keeps_more_tracks(warp_cpu, tracker):
     assert n0 == 120 and 140 < n1 <= 180, n1  # (as many new corners as the texture gives, away from the tracks)
     assert tracks_after(1.0, True)[1] <= 120
     assert tracks_after(1.5, False)[1] <= 120
-    cfg = TrackerConfig()
+    cfg = TrackerConfig(fast_features_scale=1.5)
     assert [track_budget(cfg, m) for m in (None, 10.0, 30.0)] == [800, 800, 1200]
+    assert [track_budget(TrackerConfig(), m) for m in (None, 30.0)] == [800, 800]  # (off by default)
 
 
 def test_sweep_finds_the_stereo_partner_along_the_epipolar_line():

@@ -69,7 +69,10 @@ def predicted_levels(config: TrackerConfig, levels: int, width: int, height: int
     ``levels`` (the front-end's pyramid). Those levels are there to reach the whole motion without a prediction;
     with one they only cost: their wide window averages the motion of texture hundreds of pixels around a weak
     corner, and the finer levels cannot bring it back (docs/frontend-real-frames.md). The levels below them
-    stay, as every predicted figure was measured with them."""
+    stay, as every predicted figure was measured with them. ``[tracker] reduced_predicted_levels`` off: all of
+    ``levels``."""
+    if not config.reduced_predicted_levels:
+        return levels
     return min(levels, max(levels_for_reach(uncertainty_px, config, width, height), config.coarse_from_level - 1))
 
 
