@@ -403,6 +403,11 @@ def test_transfers_through_host_copies_as_on_a_gpu(monkeypatch, device_schur):
     so that what is read back is what was written, at the right offsets, whichever state is current."""
     from lapreco_hil.mapping import schur_kernels
 
+    if not str(DEVICE).startswith("cpu"):
+        # (there the copies are the real path, and the device's atomic sums differ from run to run in their last
+        # bits, so two solves need not take the same LM steps)
+        pytest.skip("a CPU-device test: on CUDA every transfer already goes through its own host copy")
+
     def separate(self, array):
         self.array = array
         self.host = schur_kernels.wp.empty(array.shape, dtype=array.dtype, device="cpu")
