@@ -181,6 +181,24 @@ def start_uncertainty_px(uv: np.ndarray, ids: np.ndarray, depth: np.ndarray, mot
     return float(max(POSE_UNCERTAINTY_PX, np.percentile(spread, START_QUANTILE)))
 
 
+def prediction_plan(config, levels: int, size: tuple[int, int], uv: np.ndarray, ids: np.ndarray, depth: np.ndarray,
+                    motion, K: np.ndarray) -> tuple[int, int]:
+    """For a frame tracked from ``motion``'s prediction (``depth``: its tracks' start depths, ``start_depths``):
+    (the tracks it keeps, ``track_budget``; LK's pyramid levels above full resolution of the front-end's
+    ``levels``, ``image.predicted_levels``). Each is measured only where its option is on
+    (``fast_features_scale`` above 1, ``reduced_predicted_levels``): both front-ends run this every frame."""
+    from lapreco_hil.frontend import track_budget
+    from lapreco_hil.frontend.image import predicted_levels
+
+    budget, lk_levels = config.max_features, levels
+    if config.fast_features_scale > 1.0:
+        budget = track_budget(config, start_motion_px(uv, depth, K, motion.T_cur_prev))
+    if config.reduced_predicted_levels:
+        lk_levels = predicted_levels(config, levels, size[0], size[1],
+                                     start_uncertainty_px(uv, ids, depth, motion, K))
+    return budget, lk_levels
+
+
 def _patch_offsets(patch_px: int) -> np.ndarray:
     r = (patch_px - 1) / 2
     g = np.arange(patch_px, dtype=np.float32) - r

@@ -13,9 +13,9 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.frontend import epipolar, track_budget
+from lapreco_hil.frontend import epipolar
 from lapreco_hil.frontend.drift import AffineDriftCheck
-from lapreco_hil.frontend.image import predicted_levels, pyramid_levels, tracker_image
+from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
 
 class OpenCVFrontEnd:
@@ -61,8 +61,11 @@ class OpenCVFrontEnd:
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
         if depth is None:
             motion = None  # a small motion: tracked as without one
-        budget = track_budget(cfg, None if motion is None else epipolar.start_motion_px(
-            self._pts, depth, self.camera.K, motion.T_cur_prev))
+        budget, lk_levels = cfg.max_features, self.levels
+        if motion is not None:
+            size = (self.camera.width, self.camera.height)
+            budget, lk_levels = epipolar.prediction_plan(cfg, self.levels, size, self._pts, self._ids, depth, motion,
+                                                         self.camera.K)
         t0 = time.perf_counter()
         color = cv2.remap(frame.image, self._map_x, self._map_y, cv2.INTER_LINEAR)
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
@@ -82,7 +85,7 @@ class OpenCVFrontEnd:
                 guess, searched = self._predict(motion, depth, intensity)
                 predicted = np.isfinite(guess).all(axis=1)
                 guess = np.where(predicted[:, None], guess, self._pts).astype(np.float32).reshape(-1, 1, 2)
-                levels = self.predicted_levels(motion, depth)
+                levels = lk_levels
                 nxt, status, err = self._track(gray, pts, guess, levels)
             nxt = nxt.reshape(-1, 2)
             keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
@@ -155,12 +158,6 @@ class OpenCVFrontEnd:
                                           np.asarray(T_other_this, np.float64), self._depth_range, self._lk)
         return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
-
-    def predicted_levels(self, motion: FrameMotion, depth: np.ndarray) -> int:
-        """LK's pyramid levels for this frame's tracks started from ``motion``'s prediction (``depth``: their
-        start depths): as many as the prediction's uncertainty needs (``image.predicted_levels``)."""
-        reach = epipolar.start_uncertainty_px(self._pts, self._ids, depth, motion, self.camera.K)
-        return predicted_levels(self.config, self.levels, self.camera.width, self.camera.height, reach)
 
     def _track(self, gray: np.ndarray, pts: np.ndarray, guess: np.ndarray | None = None, levels: int | None = None):
         """Pyramidal LK of ``pts`` from the previous image into ``gray`` (from ``guess`` when given) on ``levels``

@@ -76,9 +76,9 @@ def widest_ray_angle_deg(points: np.ndarray, obs_point: np.ndarray, centres: np.
         return np.zeros(n_points)
     rays = np.asarray(points)[obs_point] - centres
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-    order = np.argsort(obs_point, kind="stable")
+    seen, first_obs = np.unique(obs_point, return_index=True)  # each point's first observation
     first = np.full(n_points, -1)
-    first[obs_point[order[::-1]]] = order[::-1]  # each point's first observation
+    first[seen] = first_obs
     cos = np.sum(rays * rays[first[obs_point]], axis=1)
     angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     widest = np.zeros(n_points)

@@ -23,9 +23,9 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
-from lapreco_hil.frontend import epipolar, track_budget, track_capacity
-from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, predicted_levels, pyramid_levels,
-                                        shading_factor, shading_sigma_px, to_u8, tracker_image)
+from lapreco_hil.frontend import epipolar, track_capacity
+from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
+                                        to_u8, tracker_image)
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
@@ -340,7 +340,6 @@ class WarpFrontEnd:
         """New tracks in the free slots: the strongest selected corners (a score histogram picks them, no sort)
         that no surviving track has come near, and their first patches for the drift check. The selection ran
         beside tracking on CUDA; elsewhere it runs here, only on frames that need new corners."""
-        cfg = self.config
         cur, dev = self._cur, self.device
         count = self._count[cur]
         if not beside_tracking:
@@ -415,7 +414,7 @@ class WarpFrontEnd:
     def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
         """The frame's motion to the device: each slot's depth (its own, its neighbours', or none), the flag
         that makes LK start from the predicted positions, LK's pyramid levels for the prediction's uncertainty
-        (``image.predicted_levels``) and the frame's track budget (``track_budget``). Frames with a motion launch
+        and the frame's track budget (``epipolar.prediction_plan``). Frames with a motion launch
         their kernels one by one (the motion's pose is a kernel argument, so no captured graph replays them)."""
         self._motion = motion
         self._lk_levels = self.levels
@@ -423,9 +422,9 @@ class WarpFrontEnd:
         if motion is None:
             return
         _, _, ids, uv = self._last
-        self._budget = track_budget(self.config, epipolar.start_motion_px(uv, depth, self.camera.K, motion.T_cur_prev))
-        reach = epipolar.start_uncertainty_px(uv, ids, depth, motion, self.camera.K)
-        self._lk_levels = predicted_levels(self.config, self.pyramid_levels, self.width, self.height, reach) + 1
+        self._budget, lk_levels = epipolar.prediction_plan(self.config, self.pyramid_levels, (self.width, self.height),
+                                                           uv, ids, depth, motion, self.camera.K)
+        self._lk_levels = lk_levels + 1  # (with full resolution)
         self._depth_range = motion.depth_range_m
         slots = np.zeros(track_capacity(self.config), np.float32)
         slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)

@@ -35,9 +35,10 @@ def _reflect(x: int, n: int) -> int:
 def _window_px(img: wp.array(dtype=float), off: int, w: int, h: int, o: wp.vec4, k: int, win: int,
                inv_win: float) -> float:
     """Pixel k (row-major) of a win x win window with origin o (``_window_origin``), bilinear, the border
-    reflected as OpenCV's LK samples it (a coarse level's window often reaches past it). Every pixel of a translated window shares the same sub-pixel fractions. There is no branch:
-    the four addresses are clamped into the image, so the loads of all of a lane's pixels can be in flight at
-    once (an iteration waits for memory once, not once per pixel)."""
+    reflected as OpenCV's LK samples it (a coarse level's window often reaches past it). Every pixel of a
+    translated window shares the same sub-pixel fractions. There is no branch: the four addresses are clamped
+    into the image, so the loads of all of a lane's pixels can be in flight at once (an iteration waits for
+    memory once, not once per pixel)."""
     row = int((float(k) + 0.5) * inv_win)  # k // win without an integer division
     col = k - row * win
     x0 = int(o[0]) + col
