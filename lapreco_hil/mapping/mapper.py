@@ -46,6 +46,9 @@ PARALLAX_PRECHECK = 0.8
 # live, a keyframe's new points are made in idle-time pieces of this many tracks (a frame that arrives waits
 # for one piece at most, not for a whole keyframe's points)
 TRIANGULATION_PIECE = 250
+# before the first bundle adjustment, a new point's reprojection error may exceed the pixel gate by this many
+# of its views' prior standard deviations (in pixels)
+PRIOR_GATE_SIGMAS = 3.0
 
 
 def _spread(seen: list, n: int) -> list:
@@ -170,6 +173,7 @@ class Mapper:
         self.retirement = Retirement(config)
         self.tracks_seen = 0
         self._local_ba_wanted = False
+        self._corrected = False  # a bundle adjustment has refined a keyframe's pose (the triangulation gate)
         self._untriangulated: list[PendingStructure] = []  # oldest first
         self.structured: list[int] = []  # keyframes whose deferred points are now made (the live mapper drains it)
         self.ba_times: list[float] = []
@@ -517,14 +521,39 @@ class Mapper:
         seen[rows, cols] = True
         kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
-        res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
+        if self._corrected:
+            res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
+            valid = res.valid
+        else:
+            # No bundle adjustment has corrected a pose yet: the views are the pose source's own, whose error
+            # (compliance, backlash; at 1080p tens of pixels) the pixel gate alone would call a bad point, and
+            # the map would never start. The gate widens by what the views' prior covariances make of a pixel;
+            # the first local BA then corrects the poses, and every later point meets the plain gate.
+            res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, np.inf)
+            count = seen.sum(axis=1)
+            last = poses[np.arange(len(cands)), count - 1]
+            z = np.einsum("ni,ni->n", res.points - last[:, :3, 3], last[:, :3, 2])  # depth in the newest view
+            rot2, trans2 = self._prior_sigma2(kf_ids)
+            rot2_n, trans2_n = rot2[which].reshape(-1), trans2[which].reshape(-1)
+            owner = np.array(rows)
+            worst_rot2, worst_trans2 = np.zeros(len(cands)), np.zeros(len(cands))
+            np.maximum.at(worst_rot2, owner, rot2_n)
+            np.maximum.at(worst_trans2, owner, trans2_n)
+            sigma_px = self.K[0, 0] * np.sqrt(worst_rot2 + worst_trans2 / np.maximum(z, 1e-6) ** 2)
+            valid = res.valid & (res.max_error_px <= cfg.max_reprojection_px + PRIOR_GATE_SIGMAS * sigma_px)
         first_try = [t not in self._tried for t in cands]  # the funnel counts tracks, not attempts
         self._tried.update(cands)
-        self.funnel.add({"candidates": sum(first_try), "triangulated": int(res.valid.sum())})
-        for n in np.flatnonzero(res.valid):
+        self.funnel.add({"candidates": sum(first_try), "triangulated": int(valid.sum())})
+        for n in np.flatnonzero(valid):
             t = cands[n]
             self.landmarks[t] = res.points[n]
             self.landmark_colors[t] = color_of[t]
+
+    def _prior_sigma2(self, kf_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per keyframe, the variance of its prior's rotation (rad^2) and translation (m^2) across the optical
+        axis: what moves its image points."""
+        covs = np.array([self.keyframes[k].prior.cov for k in kf_ids.tolist()]).reshape(-1, 6, 6)
+        return covs[:, 0, 0] + covs[:, 1, 1], covs[:, 3, 3] + covs[:, 4, 4]
 
     def _wide_enough(self, cands: list[int]) -> list[int]:
         """The candidates whose first and last viewing rays already span (nearly) the parallax a new point
@@ -629,6 +658,8 @@ class Mapper:
         for j, t in enumerate(problem.point_ids.tolist()):
             if t in self.landmarks:
                 self.landmarks[t] = result.points[j]
+        self._corrected |= any(self.keyframes[k].refined for k in problem.pose_ids.tolist()
+                               if k < len(self.keyframes))
         self.ba_times.append(result.seconds)
         self.ba_iterations.append(result.iterations)
         self.last_sigma_px = result.stats.get("sigma_px", self.last_sigma_px)
