@@ -272,14 +272,24 @@ def sweep(src_image: np.ndarray, dst_image: np.ndarray, uv: np.ndarray, K_src: n
 def predict(uv: np.ndarray, depth: np.ndarray, prev_image: np.ndarray, cur_image: np.ndarray, K: np.ndarray,
             T_cur_prev: np.ndarray, depth_range_m: tuple[float, float]) -> np.ndarray:
     """Where each previous-frame track starts in the current frame: projected at its depth, or found by the
-    sweep where it has none; NaN where the sweep finds no clear match (the track is lost, never started from
-    the pixel it left)."""
+    sweep where it has none; where the sweep finds no clear match, the far end of its line (``unclear_start``)."""
     guess = project(uv, np.nan_to_num(depth, nan=1.0), K, K, T_cur_prev)
     unknown = ~np.isfinite(depth)
     guess[unknown] = np.nan
     if unknown.any():
-        guess[unknown] = sweep(prev_image, cur_image, uv[unknown], K, K, T_cur_prev, depth_range_m).uv
+        found = sweep(prev_image, cur_image, uv[unknown], K, K, T_cur_prev, depth_range_m)
+        guess[unknown] = np.where(found.found[:, None], found.uv,
+                                  unclear_start(uv[unknown], K, T_cur_prev, depth_range_m))
     return guess
+
+
+def unclear_start(uv: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,
+                  depth_range_m: tuple[float, float]) -> np.ndarray:
+    """Where a track without depth whose sweep found no clear match starts LK: its line's far end (the rotation's
+    part of the motion, which tissue at any depth shares). Dropping it instead lost most tracks of every frame
+    before the map had depths (smooth tissue, 1080p: docs/frontend-real-frames.md); a wrong start fails the
+    forward-backward check that every swept track must pass."""
+    return project(uv, np.full(len(uv), float(depth_range_m[1])), K, K, T_cur_prev)
 
 
 # a match in another view must track back into this view within this many pixels

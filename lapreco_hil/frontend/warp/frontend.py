@@ -126,6 +126,7 @@ class WarpFrontEnd:
             self._use_guess = wp.zeros(1, dtype=wp.int32)
             self._sweep_scores = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=float)
             self._sweep_cand = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=wp.vec2)
+            self._sweep_found = wp.zeros(n, dtype=wp.int32)  # 1: the sweep's match was clear
             self._n_tracked = wp.zeros(1, dtype=wp.int32)
             # the forward-backward check of tracks found along their epipolar line: LK back, its verdict, and
             # the positions LK gave (the drift check moves them; a verified wide-baseline match keeps LK's)
@@ -268,7 +269,7 @@ class WarpFrontEnd:
         predict.predict_starts(self._pyr[prev], self._pyr[cur], offs[level], ws[level], hs[level], level,
                                self._pts[prev], self._count[prev], self._depth, self.camera.K,
                                np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m, self._sweep_scores,
-                               self._sweep_cand, self._guess, self.device)
+                               self._sweep_cand, self._guess, self._sweep_found, self.device)
 
     def _keep_kernels(self) -> None:
         """The drift check (or LK's own verdict) and the field-of-view test, then compaction of the surviving

@@ -85,9 +85,10 @@ def _sweep_scores(prev: wp.array(dtype=float), cur: wp.array(dtype=float), off: 
 @wp.kernel
 def _sweep_pick(scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
                 depth: wp.array(dtype=float), scale: float, min_score: float, margin: float, radius: float,
-                guess: wp.array(dtype=wp.vec2)):
+                guess: wp.array(dtype=wp.vec2), found: wp.array(dtype=wp.int32)):
     """Per track without depth: the best sample where it is clear (above min_score, and the best score more
-    than ``radius`` level pixels from it at least ``margin`` lower); else NaN (lost)."""
+    than ``radius`` level pixels from it at least ``margin`` lower; ``found`` 1); else the line's far end
+    (``epipolar.unclear_start``; ``found`` 0)."""
     f = wp.tid()
     if f >= count[0] or depth[f] > 0.0:
         return
@@ -104,8 +105,10 @@ def _sweep_pick(scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2)
     b = scores[f, best]
     if b > min_score and (b - second > margin or short):
         guess[f] = cb
+        found[f] = 1
     else:
-        guess[f] = wp.vec2(wp.nan, wp.nan)
+        guess[f] = cand[f, SWEEP_SAMPLES - 1]
+        found[f] = 0
 
 
 @wp.kernel
@@ -134,10 +137,11 @@ def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_s
 
 def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_w: int, level_h: int, level: int,
                    pts: wp.array, count: wp.array, depth: wp.array, K, T_cur_prev, depth_range_m,
-                   scores: wp.array, cand: wp.array, guess: wp.array, device) -> None:
+                   scores: wp.array, cand: wp.array, guess: wp.array, found: wp.array, device) -> None:
     """``guess`` <- where each of the first ``count[0]`` tracks starts LK: projected at ``depth`` (> 0), else
     swept along its epipolar line on pyramid ``level`` (``scores``, ``cand``: (n, SWEEP_SAMPLES) scratch);
-    NaN where the sweep finds no clear match. K is the 3x3 intrinsics of both frames (one camera)."""
+    where the sweep finds no clear match, the line's far end (``found`` 0). K is the 3x3 intrinsics of both
+    frames (one camera)."""
     Kv = wp.vec4(float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2]))
     R = wp.mat33(*[float(v) for v in T_cur_prev[:3, :3].ravel()])
     t = wp.vec3(*[float(v) for v in T_cur_prev[:3, 3]])
@@ -149,4 +153,4 @@ def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_
         prev_pyr, cur_pyr, level_off, level_w, level_h, scale, pts, count, depth, Kv, R, t, 1.0 / near, 1.0 / far,
         scores, cand], device=device)
     wp.launch(_sweep_pick, dim=n, inputs=[scores, cand, count, depth, scale, epipolar.MIN_SCORE, epipolar.MARGIN,
-                                           epipolar.SECOND_RADIUS, guess], device=device)
+                                           epipolar.SECOND_RADIUS, guess, found], device=device)
