@@ -222,6 +222,8 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
     trip = stats["on"][1]["live"]["local_ba_round_trip"]
     assert trip["jobs"] == collected and trip["keyframe_gap_ms_mean"] > 0, trip
     assert 0 <= trip["deferred_into_the_first_job"] <= on["local_ba_skipped"], trip
+    # the map's first landmark comes before (or with) the first job, and both within the run
+    assert 0 <= trip["first_landmark_s"] <= trip["first_job_s"] < stats["on"][1]["wall_s"], trip
     assert stats["off"][1]["live"]["local_ba_round_trip"] is None
     with pytest.raises(Exception, match="ba_worker"):
         LiveRun(None, None, None, replace(PipelineConfig(), runtime=replace(PipelineConfig().runtime,

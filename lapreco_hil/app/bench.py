@@ -62,7 +62,8 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
             "sustained_fps": report["throughput_fps"], "latency_ms": report["latency_ms"],
             "stage_ms": report["stage_ms"], "wall_s": report.get("wall_s"), "queue_depth": report.get("queue_depth", {}),
             "live": report.get("live", {}), "inliers": report["inliers"], "surface": report.get("surface"),
-            "dense": report.get("dense")}
+            "dense": report.get("dense"), "keyframes": report.get("keyframes"), "landmarks": report.get("landmarks"),
+            "funnel": report.get("funnel"), "time_offset": report.get("time_offset")}
 
 
 def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), fps: float = 10.0,

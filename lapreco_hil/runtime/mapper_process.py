@@ -223,6 +223,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
         last_publish, map_changed = 0.0, False
         ba_wanted_since = None  # (perf_counter) when the mapper first wanted the local BA not yet submitted
         last_keyframe_at = None
+        # when (seconds after the first frame) the map first had a landmark, and the first local BA left: a late
+        # start merges every keyframe before it into one job
+        first_frame_at = first_landmark_s = first_job_s = None
 
         gathering = None  # the snapshot being gathered, a piece at a time (Mapper.map_points_in_pieces)
 
@@ -275,6 +278,11 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                 if len(ids):
                     done_q.put(KeyframePoses(ids, poses, spans))
 
+        def note_first_landmark() -> None:
+            nonlocal first_landmark_s
+            if first_landmark_s is None and first_frame_at is not None and mapper.landmarks:
+                first_landmark_s = time.perf_counter() - first_frame_at
+
         def note_ba_wanted() -> None:
             nonlocal ba_wanted_since
             if ba_wanted_since is None and mapper.local_ba_wanted:
@@ -282,7 +290,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
 
         def ba_round() -> None:
             # the finished job applied, and the next one sent at once: the worker idles as little as it can
-            nonlocal map_changed, skipped_ba, keyframes_since_job, ba_wanted_since, skipped_before_first_job
+            nonlocal map_changed, skipped_ba, keyframes_since_job, ba_wanted_since
+            nonlocal skipped_before_first_job, first_job_s
             t = time.perf_counter()
             applied = worker.collect(mapper)
             if applied:
@@ -303,6 +312,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     keyframes_since_job = 0
                     if skipped_before_first_job is None:
                         skipped_before_first_job = skipped_ba
+                        first_job_s = time.perf_counter() - first_frame_at
                     clock.add("submit_local_ba", time.perf_counter() - t)
 
         def housekeeping() -> None:
@@ -328,6 +338,7 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
                     continue
                 t = time.perf_counter()
                 work = mapper.maintain()
+                note_first_landmark()
                 note_ba_wanted()
                 if work is not None:
                     announce_poses()  # (an inline local BA follows a keyframe's last piece of points)
@@ -362,6 +373,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             views = ring.read_views(slot.slot) if ring_cameras > 1 else ()
             is_kf = mapper.add(obs, prior, local_ba=run_ba, resect=resect, partners=views or None)
             clock.add("add_keyframe" if is_kf else "add_frame", time.perf_counter() - t)
+            if first_frame_at is None:
+                first_frame_at = t
+            note_first_landmark()
             note_ba_wanted()
             kf_id = mapper.frames[-1].keyframe if is_kf else -1  # (the reference's: stereo partners follow it)
             if is_kf:
@@ -404,7 +418,8 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
             result.stats["local_ba_round_trip"] = round_trip_summary(worker.keyframes_per_flight,
                                                                      clock.samples.get("keyframe_gap", []),
                                                                      clock.samples.get("local_ba_in_flight", []))
-            result.stats["local_ba_round_trip"]["deferred_into_the_first_job"] = skipped_before_first_job or 0
+            result.stats["local_ba_round_trip"].update(deferred_into_the_first_job=skipped_before_first_job or 0,
+                                                       first_landmark_s=first_landmark_s, first_job_s=first_job_s)
         final_conn.send(FinalMap(result))
     except BaseException:  # reported to the main loop, never lost with the process
         final_conn.send(MapperFailed(traceback.format_exc()))
