@@ -263,6 +263,17 @@ class DenseSurface:
         chosen = self.sources_fn(ref, candidates, n) if candidates else []
         return [self.keyframe_view(c.kf_id) for c in chosen]
 
+    def _depth_map(self, ref: KeyframeView, sources: list[KeyframeView]):
+        """(depth map, colour) of a reference keyframe: from a depth function that can leave its map on the device
+        (``compute_on_device``, as KeptEstimator does), the map and the reference's colour as device arrays, so
+        the volume fuses them without a trip through the host (the kept copy comes back quantised, a third of the
+        bytes); else the function's map with the host colour."""
+        on_device = getattr(self.depth_fn, "compute_on_device", None)
+        if on_device is not None:
+            depth, colour = on_device(ref, sources, self.config.depth, self.device)
+            return depth, (ref.colour if colour is None else colour)
+        return self.depth_fn(ref, sources, self.config.depth, self.device), ref.colour
+
     def fuse_pending(self, kf_ids=None) -> int:
         """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
         poses. Returns how many were fused."""
@@ -277,13 +288,13 @@ class DenseSurface:
                 continue
             self.without_sources.discard(kf_id)
             t0 = time.perf_counter()
-            depth = self.depth_fn(ref, sources, self.config.depth, self.device)
+            depth, colour = self._depth_map(ref, sources)
             t1 = time.perf_counter()
             self.timings["depth_s"] += t1 - t0
-            if depth is None or not np.any(depth.valid):
+            if depth is None or not _has_depth(depth):
                 self.depth_failures += 1
                 continue
-            self._fuse_and_keep(self.views[kf_id], depth, ref.colour)
+            self._fuse_and_keep(self.views[kf_id], depth, colour)
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         self.fused += done
@@ -336,6 +347,12 @@ class DenseSurface:
                           "integration_per_keyframe_s": self.timings["integration_s"] /
                           max(self.fused + self.refused, 1)},
         }
+
+
+def _has_depth(depth: DepthMap) -> bool:
+    if isinstance(depth.depth_m, np.ndarray):
+        return bool(np.any(depth.depth_m > 0))
+    return (depth.stats or {}).get("kept_pixels", 1) > 0  # a map on the device: its funnel's count
 
 
 def shift_bound(T_from: np.ndarray, T_to: np.ndarray, reach_m: float) -> float:
