@@ -245,10 +245,11 @@ def test_a_keyframe_nudged_below_the_threshold_is_never_refused(warp_cpu):
     dense = synthetic_surface(poses)
     assert dense.fused == 3
     before = dense.volume.raw_blocks()
-    # 0.05 mm and 0.2 mrad (x 62 mm: 0.012 mm) each way, under a quarter of a 0.5 mm voxel (0.125 mm)
+    # 0.02 mm and 1.2 mrad (x the maps' 63 mm reach: 0.075 mm) each way: under a quarter of a 0.5 mm voxel
+    # (0.125 mm) in all, though past the old rule's 0.5 mrad
     for k in range(6):
         sign = 1 if k % 2 else -1
-        nudge = make_T(np.eye(3), [0.00005 * sign, 0.0, 0.0]) @ rotation_x(0.0002 * sign)
+        nudge = make_T(np.eye(3), [0.00002 * sign, 0.0, 0.0]) @ rotation_x(0.0012 * sign)
         assert dense.update_poses({i: T @ nudge for i, T in enumerate(poses)}) == 0
     assert dense.update_poses({}) == 0  # out of the window: settled where it is, still within the threshold
     assert dense.update_poses({i: T for i, T in enumerate(poses)}, settled=True) == 0
