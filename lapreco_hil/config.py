@@ -258,13 +258,22 @@ class FusionConfig:
     # a voxel with less weight (1 = one view at full confidence) is unobserved for meshing: single weak views
     # leave no surface
     mesh_min_weight: float = ranged(0.5, ge=0.0)
-    # a keyframe that bundle adjustment moved farther than this is taken out and fused again at its new pose
-    refuse_translation_m: float = ranged(0.0001, ge=0.0)
-    refuse_rotation_rad: float = ranged(0.0005, ge=0.0)
+    # a fused keyframe whose pose update moves its fused points (at most: translation + rotation x its farthest
+    # point's distance) more than this many voxels is taken out and fused again at its new pose, once its pose
+    # has settled (a pose update no longer includes it: it left bundle adjustment's window; docs/dense.md)
+    refuse_shift_voxels: float = ranged(0.25, ge=0.0)
     # keyframes whose images and depth maps are kept (compressed, in memory) to be sources and re-fused;
     # the oldest are let go past it (their part of the volume stays where it was fused)
     keep_keyframes: int = ranged(400, ge=2)
     jpeg_quality: int = ranged(95, ge=50, le=100)  # the kept keyframe images (JPEG in memory)
+
+    # keys of older configurations and what replaced them (loading one is a ConfigError that says so)
+    retired: typing.ClassVar[dict[str, str]] = {
+        "refuse_translation_m": "refuse_shift_voxels (the largest move of a keyframe's fused points, in voxels; "
+                                "default 0.25)",
+        "refuse_rotation_rad": "refuse_shift_voxels (the largest move of a keyframe's fused points, in voxels; "
+                               "default 0.25)",
+    }
 
 
 @dataclass(frozen=True)
@@ -322,6 +331,8 @@ def _build(cls, data: dict, where: str, source: str):
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
     for key, value in data.items():
+        if key in getattr(cls, "retired", {}):
+            raise ConfigError(f"{source}: {_key(where, key)}: replaced by {cls.retired[key]}; remove it")
         if key not in fields:
             raise ConfigError(f"{source}: {_key(where, key)}: unknown key (known: {', '.join(sorted(fields))})")
         hint = hints[key]

@@ -473,6 +473,10 @@ def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp
     assert result["accuracy"]["kept"] > 0.5 * result["funnel"]["textured"]
     assert bool(result["device_ms"]) == DEVICE.startswith("cuda")  # the GPU's own time per kernel and copy
     assert "every view prepared" in format_table(result)
+    routes = result["fusion_routes"]  # the map fused from host inputs and from device inputs
+    assert set(routes) == {"host_inputs", "device_inputs"}
+    assert all(r["integrate_ms"] > 0 and r["total_ms"] >= r["integrate_ms"] for r in routes.values())
+    assert "from host inputs" in format_table(result) and "from device inputs" in format_table(result)
 
 
 def test_a_dense_surface_keeps_one_estimator_so_each_keyframe_is_prepared_once(sheet, warp_cpu):
@@ -488,3 +492,70 @@ def test_a_dense_surface_keeps_one_estimator_so_each_keyframe_is_prepared_once(s
     assert depth_fn(views[1], [views[0], views[2]], config, DEVICE).stats["prepared"] == []
     assert depth_fn(views[1], [views[0]], dataclasses.replace(config, window_radius_px=2),
                     DEVICE).stats["prepared"] == [1, 0]
+
+
+def test_a_map_left_on_the_device_fuses_into_the_same_volume_as_the_downloaded_one(sheet, warp_cpu):
+    """``compute(on_device=True)`` leaves the map in the estimator's device buffers (only its funnel comes back),
+    the reference's colour is the one its cached view holds there, and the volume fuses both with no host trip:
+    the same integers as the map downloaded and fused from the host."""
+    import warp as wp
+
+    from lapreco_hil.config import FusionConfig
+    from lapreco_hil.dense.depth import DepthEstimator
+    from lapreco_hil.dense.fusion import TsdfVolume
+    from lapreco_hil.dense.surface import KEPT_STEPS
+
+    views, _ = sheet
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    host_map = estimator.compute(views[0], views[1:])
+    device_map = estimator.compute(views[0], views[1:], on_device=True)
+    assert isinstance(device_map.depth_m, wp.array) and isinstance(device_map.confidence, wp.array)
+    assert device_map.stats["kept_pixels"] == np.count_nonzero(host_map.valid) > 0
+    assert device_map.stats["funnel"] == host_map.stats["funnel"]
+    np.testing.assert_array_equal(device_map.depth_m.numpy(), host_map.depth_m)
+    colour = estimator.view_colour(views[0].kf_id)
+    np.testing.assert_array_equal(colour.numpy(), views[0].colour)
+    assert estimator.view_colour(99) is None
+    volumes = []
+    for depth_map, c in ((host_map, views[0].colour), (device_map, colour)):
+        volume = TsdfVolume(FusionConfig(), DEVICE)
+        volume.integrate(depth_map, c, quantise=KEPT_STEPS)
+        volumes.append((volume.raw_blocks(), volume.quantised_map()))
+    (a, qa), (b, qb) = volumes
+    assert len(a) > 100 and a.keys() == b.keys()
+    assert all(np.array_equal(x, y) for k in a for x, y in zip(a[k], b[k]))
+    assert all(np.array_equal(x, y) for x, y in zip(qa, qb))
+
+
+def test_a_dense_surface_fuses_stereo_maps_from_the_device_as_it_would_from_the_host(sheet, warp_cpu):
+    """The live surface's stereo (KeptEstimator) hands its maps over on the device: nothing is downloaded into
+    the estimator's host buffers, and the volume and the kept (PNG) maps are those of the host route."""
+    from lapreco_hil.camera import CameraModel
+    from lapreco_hil.config import PipelineConfig
+    from lapreco_hil.dense.depth import KeptEstimator
+    from lapreco_hil.dense.surface import DenseSurface, nearest_views
+
+    views, _ = sheet
+    K = views[0].K
+    camera = CameraModel(views[0].size[0], views[0].size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    on_device = KeptEstimator()
+    kept_host = KeptEstimator()
+
+    def host_route(ref, sources, config, device):  # the same estimator without compute_on_device
+        return kept_host(ref, sources, config, device)
+
+    surfaces = []
+    for depth_fn in (on_device, host_route):
+        dense = DenseSurface(camera, PipelineConfig(), DEVICE, depth_fn=depth_fn, sources_fn=nearest_views)
+        for v in views:
+            dense.add_view(v.kf_id, v.colour[:, :, ::-1].copy(), v.T_world_camera)
+        assert dense.fuse_pending({0, 1, 2}) == 3
+        dense.report()  # (waits for the PNG encodings)
+        surfaces.append(dense)
+    assert on_device._estimator._host_buffers == [] and kept_host._estimator._host_buffers != []
+    (a, b) = (s.volume.raw_blocks() for s in surfaces)
+    assert len(a) > 100 and a.keys() == b.keys()
+    assert all(np.array_equal(x, y) for k in a for x, y in zip(a[k], b[k]))
+    for kf_id in (0, 1, 2):
+        x, y = (s.views[kf_id] for s in surfaces)
+        assert x.depth_png == y.depth_png and x.confidence_png == y.confidence_png and x.reach_m == y.reach_m > 0

@@ -174,17 +174,145 @@ def test_a_pose_update_moves_the_surface_and_moving_back_restores_it(skull_world
     dense = fused_surface(skull_world, poses)
     original = dense.volume.raw_blocks()
     mesh0 = dense.extract().mesh
-    assert dense.update_poses({i: T for i, T in enumerate(poses)}) == 0  # unmoved: nothing re-fused
+    assert dense.update_poses({i: T for i, T in enumerate(poses)}, settled=True) == 0  # unmoved: nothing re-fused
     shift = make_T(np.eye(3), [0.002, 0.0, 0.0])
-    assert dense.update_poses({i: shift @ T for i, T in enumerate(poses)}) == 3
+    assert dense.update_poses({i: shift @ T for i, T in enumerate(poses)}, settled=True) == 3
     mesh1 = dense.extract().mesh
     moved = np.asarray(mesh1.points)
     assert np.median(surface_distances(moved, mesh0)) > 0.0005  # it left the old surface
     assert np.sqrt(np.mean(surface_distances(moved - [0.002, 0, 0], mesh0) ** 2)) < 0.0002  # and moved by 2 mm
-    assert dense.update_poses({i: T for i, T in enumerate(poses)}) == 3
+    assert dense.update_poses({i: T for i, T in enumerate(poses)}, settled=True) == 3
     back = dense.volume.raw_blocks()
     assert back.keys() == original.keys()
     assert all(np.array_equal(x, y) for k in original for x, y in zip(original[k], back[k]))
+
+
+SMALL = CameraModel(160, 120, 150.0, 150.0, 79.5, 59.5)  # a pinhole keyframe: 0.5 mm voxels, 50 mm away
+
+
+def synthetic_surface(poses: list[np.ndarray], config: PipelineConfig | None = None) -> DenseSurface:
+    """A DenseSurface of keyframes at ``poses`` whose depth maps are a wavy surface 48-52 mm in front of each
+    (the same map whatever the pose, so a fresh fusion at other poses places the very same maps), fused."""
+    ys, xs = np.mgrid[0:SMALL.height, 0:SMALL.width]
+
+    def depth_fn(ref, sources, depth_config, device):
+        depth = (0.05 + 0.002 * np.sin(xs / 9.0 + ref.kf_id) * np.cos(ys / 7.0)).astype(np.float32)
+        return DepthMap(ref.kf_id, depth, np.full_like(depth, 0.8), ref.K, ref.T_world_camera)
+
+    dense = DenseSurface(SMALL, config or PipelineConfig(), DEVICE, depth_fn=depth_fn, sources_fn=nearest_views)
+    rng = np.random.default_rng(1)
+    for i, T in enumerate(poses):
+        dense.add_view(i, rng.integers(0, 255, (SMALL.height, SMALL.width, 3), np.uint8), T)
+        dense.fuse_pending()
+    return dense
+
+
+def same_volume(a: DenseSurface, b: DenseSurface) -> bool:
+    x, y = a.volume.raw_blocks(), b.volume.raw_blocks()
+    return x.keys() == y.keys() and all(np.array_equal(p, q) for k in x for p, q in zip(x[k], y[k]))
+
+
+def rotation_x(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return make_T(np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]]), np.zeros(3))
+
+
+def test_the_shift_bound_holds_every_fused_point_and_is_tight_for_a_translation_or_a_rotation(warp_cpu):
+    from lapreco_hil.dense.surface import DEPTH_UNIT_M, reach, shift_bound
+
+    d16 = np.full((SMALL.height, SMALL.width), round(0.05 / DEPTH_UNIT_M), np.uint16)
+    d16[0, 80] = round(0.08 / DEPTH_UNIT_M)  # the map's far point sets the reach
+    ys, xs = np.mgrid[0:SMALL.height, 0:SMALL.width]
+    X = (np.linalg.inv(SMALL.K) @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])) * d16.ravel() * DEPTH_UNIT_M
+    r = reach(SMALL.K, d16)
+    assert np.linalg.norm(X, axis=0).max() <= r < 1.15 * np.linalg.norm(X, axis=0).max()  # (the corner's ray)
+    rng = np.random.default_rng(0)
+    T0_ = make_T(np.eye(3), [0.01, 0.02, 0.0])
+    for move in [make_T(np.eye(3), [0.0003, -0.0001, 0.0002]), rotation_x(0.002)] + [
+            make_T(np.eye(3), rng.normal(0, 2e-4, 3)) @ rotation_x(rng.normal(0, 2e-3)) for _ in range(5)]:
+        T1 = T0_ @ move
+        moved = T1[:3, :3] @ X + T1[:3, 3:] - (T0_[:3, :3] @ X + T0_[:3, 3:])
+        actual = np.linalg.norm(moved, axis=0).max()
+        assert actual <= shift_bound(T0_, T1, r) + 1e-12
+    assert shift_bound(T0_, T0_ @ make_T(np.eye(3), [3e-4, 0, 0]), r) == pytest.approx(3e-4)
+    R = rotation_x(0.002)  # about the camera's x axis: the far point moves by nearly angle x reach
+    moved = np.linalg.norm((T0_ @ R)[:3, :3] @ X - T0_[:3, :3] @ X, axis=0).max()
+    assert shift_bound(T0_, T0_ @ R, r) < 1.15 * moved
+
+
+def test_a_keyframe_nudged_below_the_threshold_is_never_refused(warp_cpu):
+    poses = [make_T(np.eye(3), [0.004 * i, 0.0, 0.0]) for i in range(3)]
+    dense = synthetic_surface(poses)
+    assert dense.fused == 3
+    before = dense.volume.raw_blocks()
+    # 0.02 mm and 1.2 mrad (x the maps' 63 mm reach: 0.075 mm) each way: under a quarter of a 0.5 mm voxel
+    # (0.125 mm) in all, though past the old rule's 0.5 mrad
+    for k in range(6):
+        sign = 1 if k % 2 else -1
+        nudge = make_T(np.eye(3), [0.00002 * sign, 0.0, 0.0]) @ rotation_x(0.0012 * sign)
+        assert dense.update_poses({i: T @ nudge for i, T in enumerate(poses)}) == 0
+    assert dense.update_poses({}) == 0  # out of the window: settled where it is, still within the threshold
+    assert dense.update_poses({i: T for i, T in enumerate(poses)}, settled=True) == 0
+    after = dense.volume.raw_blocks()
+    assert after.keys() == before.keys() and all(np.array_equal(p, q) for k in before for p, q in
+                                                  zip(before[k], after[k]))
+    assert dense.refused == 0 and dense.report()["refusions_per_keyframe"] == {"mean": 0.0, "max": 0}
+
+
+def test_a_keyframe_moved_past_the_threshold_is_refused_once_after_it_settles_at_its_new_pose(warp_cpu):
+    poses = [make_T(np.eye(3), [0.004 * i, 0.0, 0.0]) for i in range(3)]
+    dense = synthetic_surface(poses)
+    # the window moves keyframes 1 and 2 further at every bundle adjustment (0.3 mm a time, and a rotation of
+    # 3 mrad: 0.19 mm at the map's reach, past the threshold alone): nothing is re-fused while they are in it
+    current = list(poses)
+    for k in range(1, 5):
+        current[1] = poses[1] @ make_T(np.eye(3), [0.0003 * k, 0.0, 0.0])
+        current[2] = poses[2] @ rotation_x(0.003 * k)
+        assert dense.update_poses({1: current[1], 2: current[2]}) == 0
+    assert dense.update_poses({2: current[2]}) == 1  # keyframe 1 left the window: re-fused once, at its last pose
+    assert dense.update_poses({2: current[2]}) == 0
+    assert dense.update_poses({}) == 1  # and keyframe 2
+    assert dense.update_poses({}) == 0
+    assert dict(dense.refusions) == {1: 1, 2: 1}
+    assert same_volume(dense, synthetic_surface(current))  # as if fused at the new poses in the first place
+
+
+def test_a_sliding_window_refuses_each_keyframe_once_and_the_final_build_uses_the_final_poses(warp_cpu):
+    """Keyframes pass through a 5-keyframe window that moves each of them past the threshold at every bundle
+    adjustment: the old rule (re-fuse at every move) re-fused each keyframe about five times; now each is
+    re-fused once when it leaves the window, and once more by the final build if the final poses moved it."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(2)
+    n, window = 12, 5
+    current = [make_T(np.eye(3), [0.003 * i, 0.0, 0.0]) for i in range(n)]
+    dense = synthetic_surface([])
+    images = np.random.default_rng(1)  # (synthetic_surface's images, in the same order)
+    for i in range(n):
+        dense.add_view(i, images.integers(0, 255, (SMALL.height, SMALL.width, 3), np.uint8), current[i])
+        dense.fuse_pending()
+        newest = range(max(0, i - window + 1), i + 1)
+        for k in newest:
+            current[k] = current[k] @ make_T(np.eye(3), rng.normal(0.0, 0.0003, 3))
+        dense.update_poses({k: current[k] for k in newest})
+    assert dense.fused == n and max(dense.refusions.values()) == 1 and dense.refused == n - window
+    final = [make_T(np.eye(3), [0.0, 0.0005, 0.0]) @ T for T in current]  # a last global adjustment
+    keyframes = [SimpleNamespace(id=i, T_world_camera=T, track_ids=None) for i, T in enumerate(final)]
+    result = dense.build(SimpleNamespace(keyframes=keyframes, landmark_ids=np.zeros(0, np.int64),
+                                         points=np.zeros((0, 3)), inlier=np.zeros(0, bool)))
+    stats = result.stats
+    assert stats["keyframes_refused_final"] == n and stats["keyframes_refused"] == 2 * n - window
+    assert stats["refusions_per_keyframe"]["max"] == 2 and stats["refusions_per_keyframe"]["mean"] < 2
+    assert same_volume(dense, synthetic_surface(final))
+
+
+def test_an_old_refuse_threshold_in_a_config_says_what_replaced_it():
+    with pytest.raises(ConfigError, match=r"c.toml: \[fusion\] refuse_translation_m: replaced by "
+                                          r"refuse_shift_voxels .*; remove it"):
+        config_from_dict({"fusion": {"refuse_translation_m": 0.0001}}, "c.toml")
+    with pytest.raises(ConfigError, match=r"\[fusion\] refuse_rotation_rad: replaced by refuse_shift_voxels"):
+        config_from_dict({"fusion": {"refuse_rotation_rad": 0.0005}})
+    assert config_from_dict({"fusion": {"refuse_shift_voxels": 0.5}}).fusion.refuse_shift_voxels == 0.5
 
 
 def test_the_surface_mode_is_checked_and_a_missing_stereo_is_one_warning(monkeypatch, caplog):

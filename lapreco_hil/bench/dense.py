@@ -198,8 +198,48 @@ def _device_activities(wp, device: str, run) -> dict:
     return dict(sorted(((k, round(v, 4)) for k, v in totals.items()), key=lambda item: -item[1]))
 
 
+def bench_fusion_routes(estimator, ref: KeyframeView, sources: list[KeyframeView], device: str,
+                        repeats: int) -> dict:
+    """A new depth map fused as the live dense surface fuses it (``TsdfVolume.integrate`` quantised as kept, then
+    the kept copy read back, ``quantised_map``), by two routes, median ms over ``repeats`` after two warm-ups:
+    from host inputs (the map downloaded by the estimator, then uploaded again with the host's colour) and from
+    device inputs (the map left on the device, ``compute(on_device=True)``, with the reference's colour from the
+    estimator's view cache). ``download_ms``: the estimator's last step (the map and its funnel, or the funnel
+    only); ``integrate_ms``: the integration until the device has finished it; ``keep_ms``: reading the
+    quantised map back; ``total_ms``: the three, what the route adds to a keyframe after its sweep."""
+    from lapreco_hil.config import FusionConfig
+    from lapreco_hil.dense.fusion import TsdfVolume
+    from lapreco_hil.dense.surface import KEPT_STEPS
+    from lapreco_hil.warp_device import init_warp
+
+    wp = init_warp()
+    out = {}
+    for route, on_device in (("host_inputs", False), ("device_inputs", True)):
+        volume = TsdfVolume(FusionConfig(), device)
+        times: dict[str, list[float]] = {"download_ms": [], "integrate_ms": [], "keep_ms": []}
+        for i in range(max(1, repeats) + 2):
+            depth_map = estimator.compute(ref, sources, on_device=on_device)
+            colour = estimator.view_colour(ref.kf_id) if on_device else ref.colour
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            volume.integrate(depth_map, colour, quantise=KEPT_STEPS)
+            wp.synchronize_device(device)
+            t1 = time.perf_counter()
+            volume.quantised_map()
+            t2 = time.perf_counter()
+            if i >= 2:  # the first two compile the kernels and size the volume's pool
+                times["download_ms"].append(depth_map.stats["times_ms"]["download_ms"])
+                times["integrate_ms"].append((t1 - t0) * 1e3)
+                times["keep_ms"].append((t2 - t1) * 1e3)
+            del depth_map  # (the estimator's host buffer is free again)
+        medians = {k: float(np.median(v)) for k, v in times.items()}
+        out[route] = {**medians, "total_ms": sum(medians.values())}
+    return out
+
+
 def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: int, scene: str = "liver",
-                config: DepthConfig | None = None, sweep: str | None = None, method: str | None = None) -> dict:
+                config: DepthConfig | None = None, sweep: str | None = None, method: str | None = None,
+                fusion: bool = True) -> dict:
     """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
     the kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
     and its accuracy, before and after the geometric check against the sources' own depth maps.
@@ -207,7 +247,8 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
     ``total_ms`` is the steady state of a mapper that keeps one estimator: the reference is new (prepared) and
     its sources are in the estimator's prepared-view cache (each was a reference before); ``cold_ms`` prepares
     every view (a fresh estimator's first map, less compiling and allocating). ``sweep``: the estimator's window
-    sums (None: the device's default); ``method``: ``[depth] method`` (None: the config's)."""
+    sums (None: the device's default); ``method``: ``[depth] method`` (None: the config's). ``fusion``: also fuse
+    the map from host inputs and from device inputs (``bench_fusion_routes``)."""
     from lapreco_hil.dense.depth import DepthEstimator
     from lapreco_hil.warp_device import init_warp
 
@@ -246,6 +287,7 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         for name, ms in depth_map.stats["times_ms"].items():
             steps.setdefault(name, []).append(ms)
     activities = _device_activities(wp, device, lambda: timed(ref.kf_id)) if wp.get_device(device).is_cuda else {}
+    routes = bench_fusion_routes(estimator, ref, sources, device, repeats) if fusion else None
     # the sources' own maps (each against the others) for the forward-backward check
     source_maps = [estimator.compute(s, [v for v in keyframes if v is not s]) for s in sources]
     checked = estimator.check_geometry(depth_map, source_maps)
@@ -261,6 +303,8 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         "cold_steps_ms": {k: float(np.median(v)) for k, v in cold_steps.items() if k != "total_ms"},
         # GPU time per kernel and copy of one steady-state map (CUDA only): where the device's time goes
         "device_ms": activities,
+        # the map fused as the live surface fuses it, from host inputs and from device inputs
+        "fusion_routes": routes,
         "funnel": checked.stats["funnel"],
         "accuracy": depth_errors(depth_map.depth_m, truths[0]),
         "accuracy_checked": depth_errors(checked.depth_m, truths[0]),
@@ -291,5 +335,14 @@ def format_table(result: dict) -> str:
         f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
         "in-view pixels",
         "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
-    ] + ([f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
+    ] + ([_format_routes(result["fusion_routes"])] if result.get("fusion_routes") else []) + ([f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
         f"{k} {v:.2f}" for k, v in list(result["device_ms"].items())[:10])] if result.get("device_ms") else []))
+
+
+def _format_routes(routes: dict) -> str:
+    def one(r: dict) -> str:
+        return (f"{r['total_ms']:.2f} ms (download {r['download_ms']:.2f}, integrate {r['integrate_ms']:.2f}, kept "
+                f"copy back {r['keep_ms']:.2f})")
+
+    return (f"fusing the map as kept: from host inputs {one(routes['host_inputs'])}; from device inputs "
+            f"{one(routes['device_inputs'])}")

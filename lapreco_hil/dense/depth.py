@@ -135,7 +135,9 @@ class DepthEstimator:
     ``sweep`` picks how the window sums are made (see plane_sweep's docstring): "sliding" (the CPU's default) or
     "windowed" (CUDA's); both give the same depth maps up to float rounding. Depth maps come out in
     ``host_buffers`` kept host buffers (page-locked from CUDA), each reused once no map refers to it (0: a new
-    pageable buffer per map, for an estimator that makes one map)."""
+    pageable buffer per map, for an estimator that makes one map); or, with ``compute(..., on_device=True)``, stay
+    on the device for a caller that uses them there (the TSDF volume fuses them with no trip through the host;
+    ``view_colour`` gives a cached view's colour there too)."""
 
     def __init__(self, config: DepthConfig, device: str, sweep: str | None = None,
                  host_buffers: int = HOST_BUFFERS) -> None:
@@ -214,13 +216,14 @@ class DepthEstimator:
         self._check_shape = (h, w)
 
     def _ensure_views(self, h: int, w: int, n_views: int) -> None:
-        """The prepared-view cache: grey at full and half resolution and each pixel's state, one slot per view."""
+        """The prepared-view cache: colour, grey at full and half resolution and each pixel's state, one slot per
+        view (the colour kept so that a depth map's reference can be fused from the device)."""
         slots = max(self.config.cached_views, n_views)
         if self._view_shape is not None and self._view_shape[:2] == (h, w) and self._view_shape[2] >= n_views:
             return
         wp = self.wp
         with wp.ScopedDevice(self.device):
-            self.colour = wp.zeros((h, w, 3), dtype=wp.uint8)
+            self.colour = wp.zeros((slots, h, w, 3), dtype=wp.uint8)
             self.mask = wp.zeros((h, w), dtype=wp.uint8)
             self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
             self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
@@ -295,13 +298,13 @@ class DepthEstimator:
         cfg = self.config
         h, w = view.colour.shape[:2]
         grey = self.full_grey[slot]
-        self._upload(0, self.colour, view.colour)
+        self._upload(0, self.colour[slot], view.colour)
         if view.mask is None:
             self.mask.fill_(1)
         else:
             self._upload(1, self.mask, view.mask)
         wp.launch(k.prepare_view, dim=(h, w), device=self.device,
-                  inputs=[self.colour, self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
+                  inputs=[self.colour[slot], self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
                           self.highlight_flags])
         self.highlight.zero_()
         wp.launch(k.dilate_scatter, dim=(h, w), device=self.device,
@@ -369,16 +372,25 @@ class DepthEstimator:
 
     # --- the depth map ----------------------------------------------------------------------------------------
     def compute(self, ref: KeyframeView, sources: list[KeyframeView],
-                source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+                source_depths: dict[int, DepthMap] | None = None, on_device: bool = False) -> DepthMap:
         """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
-        that source's own depth map) adds the forward-backward check for the sources it holds."""
+        that source's own depth map) adds the forward-backward check for the sources it holds. ``on_device``: the
+        map's depth and confidence are left on the device, as Warp arrays that this estimator's next ``compute``
+        or ``check_geometry`` overwrites (only the funnel's counts come back; ``stats["kept_pixels"]`` says
+        whether it has any depth)."""
         # Warp's current stream is one per device for the whole process: take turns with the other threads
         # that drive this device (a CUDA graph capture in the front-end must not catch these launches)
         with device_lock(self.device):
-            return self._compute(ref, sources, source_depths)
+            return self._compute(ref, sources, source_depths, on_device)
+
+    def view_colour(self, kf_id: int):
+        """A cached view's colour on the device ((H, W, 3) uint8 Warp array, as uploaded), or None when it is not
+        cached; valid until the view leaves the cache (a later ``compute``)."""
+        entry = self._cached.get(kf_id)
+        return None if entry is None else self.colour[entry[0]]
 
     def _compute(self, ref: KeyframeView, sources: list[KeyframeView],
-                 source_depths: dict[int, DepthMap] | None) -> DepthMap:
+                 source_depths: dict[int, DepthMap] | None, on_device: bool = False) -> DepthMap:
         wp = self.wp
         cfg = self.config
         if not sources:
@@ -463,7 +475,9 @@ class DepthEstimator:
                   inputs=[self.code, COUNT_SPAN, self.counts])
         t0 = self._sync_time(times, "checks_ms", t0)
 
-        out, counts = self._download()
+        out, counts = self._download(with_map=not on_device)
+        if on_device:
+            out = (self.depth, self.confidence)
         funnel = {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL)}
         if not given:
             funnel.pop("geometry_agrees")
@@ -472,7 +486,7 @@ class DepthEstimator:
         stats = {"funnel": funnel, "times_ms": times, "method": cfg.method, "planes": n_planes,
                  "depth_range_m": (near, far),
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
-                 "prepared": prepared}
+                 "prepared": prepared, "kept_pixels": list(funnel.values())[-1]}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
@@ -529,10 +543,13 @@ class DepthEstimator:
                   inputs=[self.supported, self.depth, self.confidence, self.code])
         return t0
 
-    def _download(self) -> tuple[np.ndarray, np.ndarray]:
-        """(2, H, W) depth and confidence, and the funnel codes' histogram, as host arrays of their own."""
-        host, array = self._host_buffer()
-        self.wp.copy(host, self.out)
+    def _download(self, with_map: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
+        """(2, H, W) depth and confidence (``with_map``; else None), and the funnel codes' histogram, as host
+        arrays of their own."""
+        array = None
+        if with_map:
+            host, array = self._host_buffer()
+            self.wp.copy(host, self.out)
         counts = self.counts
         if self._host_counts is not None:
             self.wp.copy(self._host_counts, self.counts)
@@ -628,9 +645,21 @@ class KeptEstimator:
 
     def __call__(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
                  source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
+        return self._kept(config, device).compute(ref, sources, source_depths)
+
+    def compute_on_device(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig,
+                          device: str):
+        """The depth map with its depth and confidence left on the device (``DepthEstimator.compute``'s
+        ``on_device``), and the reference's colour there: (DepthMap, (H, W, 3) uint8 Warp array). Both are the
+        estimator's buffers, valid until its next map."""
+        estimator = self._kept(config, device)
+        depth_map = estimator.compute(ref, sources, on_device=True)
+        return depth_map, estimator.view_colour(ref.kf_id)
+
+    def _kept(self, config: DepthConfig, device: str) -> DepthEstimator:
         if self._key != (config, str(device)):
             self._estimator, self._key = DepthEstimator(config, device), (config, str(device))
-        return self._estimator.compute(ref, sources, source_depths)
+        return self._estimator
 
 
 def compute_depths(views: list[KeyframeView], config: DepthConfig, device: str,

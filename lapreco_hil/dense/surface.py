@@ -9,15 +9,18 @@ go (their part of the volume stays). The volume itself has its block cap.
 
 Offline (``build``) every reference keyframe is fused once at the end with the final poses. The incremental API
 is for the live run: ``add_view`` as keyframes come, ``set_depth_ranges`` / ``fuse_pending`` when their poses
-are refined, ``update_poses`` after each bundle adjustment (a keyframe that moved more than the thresholds is
-taken out with its old pose and put back with its new one: the same depth map, re-placed).
+are refined, ``update_poses`` after each bundle adjustment. A fused keyframe whose new pose moves its fused points
+by more than ``[fusion] refuse_shift_voxels`` is taken out with its old pose and put back with its new one (the
+same depth map, re-placed) once its pose has settled: when a pose update no longer includes it (it left the
+window bundle adjustment moves), or at the final build. Re-fusing at every nudge of the window was most of the
+live stage's time (docs/dense.md, "Re-fusion").
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
@@ -87,6 +90,8 @@ class _View:
     T_fused: np.ndarray | None = None
     integration: int | None = None
     encoding: Future | None = None  # the map's PNG encoding, under way in the surface's encoder thread
+    reach_m: float = 0.0  # the fused map's farthest point from the camera (its far depth along the corner ray)
+    moving: bool = False  # the last pose update included it: bundle adjustment's window may move it again
 
 
 class DenseSurface:
@@ -117,6 +122,8 @@ class DenseSurface:
         self.timings = {"depth_s": 0.0, "integration_s": 0.0, "meshing_s": 0.0}
         self.fused = 0
         self.refused = 0  # re-fusions after a pose update
+        self.refused_final = 0  # ... of them by the final build
+        self.refusions: Counter = Counter()  # kf_id -> its re-fusions
         self.depth_failures = 0
         self.without_sources: set[int] = set()  # keyframes no neighbour could serve as a stereo source for
         self.released = 0
@@ -170,33 +177,50 @@ class DenseSurface:
             if kf_id in self.views:
                 self.views[kf_id].depth_range = r
 
-    def update_poses(self, poses: dict[int, np.ndarray]) -> int:
-        """New refined poses of kept keyframes; a fused keyframe that moved more than the thresholds is taken
-        out at its old pose and put back at its new one. Returns how many were re-fused."""
-        fc = self.config.fusion
-        moved = 0
+    def update_poses(self, poses: dict[int, np.ndarray], settled: bool = False) -> int:
+        """New refined poses of kept keyframes: after a local bundle adjustment, its window's (``settled``: final
+        poses, the final build's). A fused keyframe is re-fused (taken out at the pose it was fused at, put back at
+        its new one) once its pose has settled and only if the move shifts its fused points by more than ``[fusion]
+        refuse_shift_voxels`` (``shift_bound``). Settled: this update leaves out a keyframe the previous one held
+        (it left the window and bundle adjustment no longer moves it), or ``settled``. A keyframe still in the
+        window waits, however far it moves: each window nudges it, and re-fusing at every nudge cost most of the
+        live stage's time. Returns how many were re-fused."""
+        settling = []
         for kf_id, T in poses.items():
             v = self.views.get(kf_id)
             if v is None:
                 continue
             v.T_world_camera = np.array(T, float)
-            if v.T_fused is None:
+            v.moving = not settled
+            if settled:
+                settling.append(v)
+        if not settled:
+            for v in self.views.values():
+                if v.moving and v.kf_id not in poses:
+                    v.moving = False
+                    settling.append(v)
+        fc = self.config.fusion
+        limit = fc.refuse_shift_voxels * fc.voxel_m
+        moved = 0
+        for v in settling:
+            if v.T_fused is None or shift_bound(v.T_fused, v.T_world_camera, v.reach_m) <= limit:
                 continue
-            dt = np.linalg.norm(T[:3, 3] - v.T_fused[:3, 3])
-            dr = rotation_angle(v.T_fused[:3, :3].T @ T[:3, :3])
-            if dt <= fc.refuse_translation_m and dr <= fc.refuse_rotation_rad:
-                continue
-            depth = self._stored_map(v)
-            colour = self._colour(kf_id)
-            t0 = time.perf_counter()
-            self.volume.deintegrate(depth, colour, integration=v.integration, quantise=KEPT_STEPS)
-            depth.T_world_camera = v.T_world_camera.copy()
-            v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
-            v.T_fused = v.T_world_camera.copy()
-            self.timings["integration_s"] += time.perf_counter() - t0
+            self._refuse(v)
             moved += 1
         self.refused += moved
         return moved
+
+    def _refuse(self, v: _View) -> None:
+        """Take a fused keyframe's kept map out at the pose it was fused at and put it back at its current one."""
+        depth = self._stored_map(v)
+        colour = self._colour(v.kf_id)
+        t0 = time.perf_counter()
+        self.volume.deintegrate(depth, colour, integration=v.integration, quantise=KEPT_STEPS)
+        depth.T_world_camera = v.T_world_camera.copy()
+        v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
+        v.T_fused = v.T_world_camera.copy()
+        self.timings["integration_s"] += time.perf_counter() - t0
+        self.refusions[v.kf_id] += 1
 
     # --- fusion -------------------------------------------------------------------------------------------
     def _stored_map(self, v: _View) -> DepthMap:
@@ -220,6 +244,7 @@ class DenseSurface:
         d16, c8 = self.volume.quantised_map()
         v.K = np.array(depth.K, float)
         v.T_fused = np.array(depth.T_world_camera, float)
+        v.reach_m = reach(v.K, d16)
         self._encoded(v)  # (a map made again for the same keyframe: the old encoding first)
         v.depth_png = v.confidence_png = None
         v.encoding = self._encoder.submit(_encode_pngs, d16, c8)
@@ -238,6 +263,17 @@ class DenseSurface:
         chosen = self.sources_fn(ref, candidates, n) if candidates else []
         return [self.keyframe_view(c.kf_id) for c in chosen]
 
+    def _depth_map(self, ref: KeyframeView, sources: list[KeyframeView]):
+        """(depth map, colour) of a reference keyframe: from a depth function that can leave its map on the device
+        (``compute_on_device``, as KeptEstimator does), the map and the reference's colour as device arrays, so
+        the volume fuses them without a trip through the host (the kept copy comes back quantised, a third of the
+        bytes); else the function's map with the host colour."""
+        on_device = getattr(self.depth_fn, "compute_on_device", None)
+        if on_device is not None:
+            depth, colour = on_device(ref, sources, self.config.depth, self.device)
+            return depth, (ref.colour if colour is None else colour)
+        return self.depth_fn(ref, sources, self.config.depth, self.device), ref.colour
+
     def fuse_pending(self, kf_ids=None) -> int:
         """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
         poses. Returns how many were fused."""
@@ -252,13 +288,13 @@ class DenseSurface:
                 continue
             self.without_sources.discard(kf_id)
             t0 = time.perf_counter()
-            depth = self.depth_fn(ref, sources, self.config.depth, self.device)
+            depth, colour = self._depth_map(ref, sources)
             t1 = time.perf_counter()
             self.timings["depth_s"] += t1 - t0
-            if depth is None or not np.any(depth.valid):
+            if depth is None or not _has_depth(depth):
                 self.depth_failures += 1
                 continue
-            self._fuse_and_keep(self.views[kf_id], depth, ref.colour)
+            self._fuse_and_keep(self.views[kf_id], depth, colour)
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         self.fused += done
@@ -267,7 +303,8 @@ class DenseSurface:
     def build(self, m) -> DenseResult:
         """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
         with the depth range its landmarks span; the mesh and points."""
-        self.update_poses({k.id: k.T_world_camera for k in m.keyframes if k.id in self.views})
+        self.refused_final += self.update_poses({k.id: k.T_world_camera for k in m.keyframes if k.id in self.views},
+                                                settled=True)
         self.set_depth_ranges(depth_ranges(m.keyframes, m.landmark_ids, m.points, m.inlier))
         self.fuse_pending()
         return self.extract()
@@ -295,6 +332,9 @@ class DenseSurface:
             "mesh_triangles": int(mesh.n_cells) if mesh is not None else None,
             "keyframes_fused": self.fused,
             "keyframes_refused": self.refused,
+            "keyframes_refused_final": self.refused_final,  # (of them) by the final build, at the final poses
+            "refusions_per_keyframe": {"mean": self.refused / max(self.fused, 1),
+                                       "max": max(self.refusions.values(), default=0)},
             "depth_maps_failed": self.depth_failures,
             "keyframes_without_sources": len(self.without_sources),
             "keyframes_released": self.released,
@@ -307,6 +347,28 @@ class DenseSurface:
                           "integration_per_keyframe_s": self.timings["integration_s"] /
                           max(self.fused + self.refused, 1)},
         }
+
+
+def _has_depth(depth: DepthMap) -> bool:
+    if isinstance(depth.depth_m, np.ndarray):
+        return bool(np.any(depth.depth_m > 0))
+    return (depth.stats or {}).get("kept_pixels", 1) > 0  # a map on the device: its funnel's count
+
+
+def shift_bound(T_from: np.ndarray, T_to: np.ndarray, reach_m: float) -> float:
+    """The most a point within ``reach_m`` of the camera moves when the camera moves from ``T_from`` to ``T_to``
+    (world_camera): the translation plus the rotation's angle x ``reach_m`` (|(R' - R) X| <= angle x |X|)."""
+    return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])
+                 + rotation_angle(T_from[:3, :3].T @ T_to[:3, :3]) * reach_m)
+
+
+def reach(K: np.ndarray, d16: np.ndarray) -> float:
+    """How far from the camera a kept map's points lie at most (metres): its far depth along the image's corner
+    ray that leaves the axis most."""
+    far = float(d16.max(initial=0)) * DEPTH_UNIT_M
+    h, w = d16.shape
+    corners = np.linalg.solve(K, np.array([[0.0, w - 1.0, 0.0, w - 1.0], [0.0, 0.0, h - 1.0, h - 1.0], [1.0] * 4]))
+    return far * float(np.linalg.norm(corners, axis=0).max())
 
 
 def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:
