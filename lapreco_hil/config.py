@@ -83,13 +83,12 @@ class TrackerConfig:
     redetect_below: float = ranged(0.9, ge=0.0, le=1.0)
     # at fast scope motion a track lives few keyframes (each frame is one), so a point seen at three instants
     # needs more tracks per frame: a frame whose pose prediction moves the tracks at least fast_motion_px
-    # (median) keeps up to fast_features_scale x max_features (1: never; docs/results.md, "Fast motion"). Off
-    # by default: with it (and reduced_predicted_levels) on, 1080p60 live runs on the H100 made two to three
-    # times the tracks and half the inliers, a cause not isolated yet (docs/benchmarks.md, session 12)
+    # (median) keeps up to fast_features_scale x max_features (1: never; docs/results.md, "Fast motion")
     fast_motion_px: float = ranged(25.0, gt=0.0)
-    fast_features_scale: float = ranged(1.0, ge=1.0)
+    fast_features_scale: float = ranged(1.5, ge=1.0)
     # LK on frames with a pose prediction skips the coarse-window levels the prediction's uncertainty does not
-    # need (frontend.image.predicted_levels; docs/frontend-real-frames.md); off by default for the same reason
+    # need (frontend.image.predicted_levels; docs/frontend-real-frames.md); opt-in: the tracking bench's
+    # figures with the defaults (docs/benchmarks.md) were measured without it
     reduced_predicted_levels: bool = False
     # log-domain high-pass against moving shading (0 = track raw intensities, as the seed's baseline did): the
     # Gaussian's sigma in pixels of the coarsest pyramid level (x 2^levels at full resolution)
