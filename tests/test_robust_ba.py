@@ -97,6 +97,41 @@ def test_pose_only_refinement_pulls_a_frame_from_its_prior_to_the_truth(rng):
     assert not inlier[:20].any() and inlier[20:].mean() > 0.98
 
 
+def test_many_frames_refined_at_once_get_each_frames_own_answer(rng):
+    """The map's end refines thousands of frames: ``refine_poses`` does them together and must give what
+    ``refine_pose`` gives each alone (frames with different point counts, outliers, a point behind the camera,
+    one frame with too few points to refine, one started away from its prior)."""
+    from lapreco_hil.geometry import Rotation, make_T
+    from lapreco_hil.mapping.resection import refine_pose, refine_poses
+
+    syn = make_problem(rng, n_points=300)
+    K = syn.problem.K
+    priors, inits, covs, points, uvs = [], [], [], [], []
+    for i, n in enumerate([300, 120, 45, 5, 200, 300]):
+        T_true = syn.true_poses[i % len(syn.true_poses)]
+        cov = np.diag([0.004**2] * 3 + [0.0006**2] * 3) * (1 + i)
+        T_prior = T_true @ make_T(Rotation.from_rotvec(rng.normal(0, 0.004, 3)).as_matrix(), rng.normal(0, 5e-4, 3))
+        which = rng.choice(300, n, replace=False)
+        X = syn.true_points[which].copy()
+        Tc = np.linalg.inv(T_true)
+        Xc = X @ Tc[:3, :3].T + Tc[:3, 3]
+        uv = Xc[:, :2] / Xc[:, 2:] * 450.0 + [320, 240] + rng.normal(0, 0.5, (n, 2))
+        uv[: n // 10] += rng.uniform(-40, 40, (n // 10, 2))  # gross outliers
+        if i == 4:
+            X[0] = T_true[:3, 3] - 0.05 * T_true[:3, 2]  # behind the camera
+        priors.append(T_prior)
+        inits.append(T_prior @ make_T(np.eye(3), [0.001, 0, 0]) if i == 5 else T_prior)
+        covs.append(cov)
+        points.append(X)
+        uvs.append(uv)
+    together = refine_poses(np.array(priors), np.array(covs), points, uvs, K, 0.5, T_inits=np.array(inits))
+    for i in range(len(priors)):
+        alone, _ = refine_pose(priors[i], covs[i], points[i], uvs[i], K, 0.5, T_init=inits[i])
+        assert np.allclose(together[i], alone, atol=1e-9), (i, np.abs(together[i] - alone).max())
+    assert np.array_equal(together[3], inits[3])  # 5 points: not refined, as alone
+    assert not np.allclose(together[0], priors[0])
+
+
 @pytest.mark.slow
 def test_large_problems_solved_iteratively_match_the_direct_solution(rng):
     """Past ITERATIVE_ABOVE_POSES poses the robust BA solves with preconditioned conjugate gradients (a

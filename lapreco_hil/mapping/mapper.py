@@ -31,7 +31,7 @@ from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.archive import LandmarkArchive
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
 from lapreco_hil.mapping.prediction import depth_span, depths_in_front
-from lapreco_hil.mapping.resection import refine_pose
+from lapreco_hil.mapping.resection import refine_pose, refine_poses
 from lapreco_hil.mapping.retirement import Retirement, correction_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
 from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
@@ -382,8 +382,8 @@ class Mapper:
         retirement = self.retirement
         # the frames settled here lie before keyframe ``cutoff``
         kt, corr = retirement.corrections(self.keyframes, upto=cutoff)
-        for f in retirement.take_frames(self.frames, self.keyframes[cutoff].t_ns):
-            self._settle_frame(f, kt, corr, resect=self.schedule.resect_on_retire)
+        self._settle_frames(retirement.take_frames(self.frames, self.keyframes[cutoff].t_ns), kt, corr,
+                            resect=self.schedule.resect_on_retire)
         retired = retirement.take_tracks(cutoff)
         with_point = [t for t in retired if t in self.landmarks]
         if with_point:
@@ -468,17 +468,22 @@ class Mapper:
                 yield None
         yield np.concatenate(pts), np.concatenate(cols)
 
-    def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
-        """The frame's pose refined against the current map (its prior where it sees too few landmarks)."""
+    def _resection_points(self, record: FrameRecord) -> tuple[np.ndarray, np.ndarray]:
+        """(landmarks, pixels) of the frame's tracks that have a point, thinned to ``resection_max_points``."""
         known = [i for i, t in enumerate(record.track_ids.tolist()) if t in self.landmarks]
-        if len(known) < 6:
-            return T_init
         cap = self.config.resection_max_points
         if cap and len(known) > cap:  # a 6-DoF pose with a prior is settled long before 2000 points
             known = known[:: -(-len(known) // cap)]
-        pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known])
+        pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known]).reshape(-1, 3)
+        return pts, record.uv[known].reshape(-1, 2)
+
+    def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
+        """The frame's pose refined against the current map (its prior where it sees too few landmarks)."""
+        pts, uv = self._resection_points(record)
+        if len(pts) < 6:
+            return T_init
         sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
-        T, _ = refine_pose(record.T_prior, record.cov, pts, record.uv[known], self.K, sigma, T_init=T_init)
+        T, _ = refine_pose(record.T_prior, record.cov, pts, uv, self.K, sigma, T_init=T_init)
         return T
 
     def _predict_pose(self, prior: PosePrior) -> np.ndarray:
@@ -776,16 +781,28 @@ class Mapper:
         if not self.keyframes:
             return np.array([f.T_prior for f in self.frames])
         kt, corr = self.retirement.corrections(self.keyframes)
-        for f in self.retirement.take_frames(self.frames):
-            self._settle_frame(f, kt, corr)
+        self._settle_frames(self.retirement.take_frames(self.frames), kt, corr)
         return np.array([f.T_refined for f in self.frames])
 
-    def _settle_frame(self, f: FrameRecord, kt: np.ndarray, corr: list[np.ndarray], resect: bool = True) -> None:
-        """A frame's final pose: a keyframe's own, else its prior with the keyframe corrections interpolated
-        in time, refined against the map (unless ``resect`` is off); its observations are then let go."""
-        if f.keyframe is not None:
-            f.T_refined = self.keyframes[f.keyframe].T_world_camera
-        else:
-            C = correction_at(kt, corr, f.t_ns)
-            f.T_refined = self._resect(f, C @ f.T_prior) if resect else C @ f.T_prior
-        f.track_ids = f.uv = f.cov = None
+    def _settle_frames(self, frames: list[FrameRecord], kt: np.ndarray, corr: list[np.ndarray],
+                       resect: bool = True) -> None:
+        """Frames' final poses: a keyframe's own, else its prior with the keyframe corrections interpolated in
+        time, refined against the map (unless ``resect`` is off; all frames at once, ``refine_poses``); their
+        observations are then let go."""
+        others = []
+        for f in frames:
+            if f.keyframe is not None:
+                f.T_refined = self.keyframes[f.keyframe].T_world_camera
+            else:
+                f.T_refined = correction_at(kt, corr, f.t_ns) @ f.T_prior
+                others.append(f)
+        if resect and others:
+            chosen = [self._resection_points(f) for f in others]
+            sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
+            refined = refine_poses(np.array([f.T_prior for f in others]), np.array([f.cov for f in others]),
+                                   [pts for pts, _ in chosen], [uv for _, uv in chosen], self.K, sigma,
+                                   T_inits=np.array([f.T_refined for f in others]))
+            for f, T in zip(others, refined):
+                f.T_refined = T
+        for f in frames:
+            f.track_ids = f.uv = f.cov = None
