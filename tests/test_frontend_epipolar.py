@@ -206,9 +206,8 @@ def test_a_fast_frame_keeps_more_tracks(warp_cpu, tracker):
     assert n0 == 120 and 140 < n1 <= 180, n1  # (as many new corners as the texture gives, away from the tracks)
     assert tracks_after(1.0, True)[1] <= 120
     assert tracks_after(1.5, False)[1] <= 120
-    cfg = TrackerConfig(fast_features_scale=1.5)
-    assert [track_budget(cfg, m) for m in (None, 10.0, 30.0)] == [800, 800, 1200]
-    assert [track_budget(TrackerConfig(), m) for m in (None, 30.0)] == [800, 800]  # (off by default)
+    assert [track_budget(TrackerConfig(), m) for m in (None, 10.0, 30.0)] == [800, 800, 1200]  # (on by default)
+    assert [track_budget(TrackerConfig(fast_features_scale=1.0), m) for m in (None, 30.0)] == [800, 800]
 
 
 def test_sweep_finds_the_stereo_partner_along_the_epipolar_line():
