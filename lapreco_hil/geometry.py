@@ -66,6 +66,17 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     return make_T(R, (1.0 - s) * T0[:3, 3] + s * T1[:3, 3])
 
 
+def interpolate_poses(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``interpolate_pose`` for stacks of pose pairs (N, 4, 4) at fractions ``s`` (N,), in one pass."""
+    s = np.asarray(s, float)
+    r0 = Rotation.from_matrix(T0[:, :3, :3])
+    dr = (r0.inv() * Rotation.from_matrix(T1[:, :3, :3])).as_rotvec()
+    out = np.tile(np.eye(4), (len(s), 1, 1))
+    out[:, :3, :3] = (r0 * Rotation.from_rotvec(s[:, None] * dr)).as_matrix()
+    out[:, :3, 3] = (1.0 - s)[:, None] * T0[:, :3, 3] + s[:, None] * T1[:, :3, 3]
+    return out
+
+
 def to_tum(t_s: float, T: np.ndarray) -> str:
     """One TUM trajectory line: ``t tx ty tz qx qy qz qw``."""
     qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()

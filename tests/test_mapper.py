@@ -389,3 +389,20 @@ def test_a_map_starts_from_poses_whose_error_is_many_pixels_and_its_bundle_adjus
     monkeypatch.setattr(mapper_module, "PRIOR_GATE_SIGMAS", 0.0)
     _, plain = run()
     assert plain.inlier.sum() < 0.1 * result.inlier.sum(), (plain.inlier.sum(), result.inlier.sum())
+
+
+def test_keyframe_corrections_interpolated_at_many_frame_times_are_each_frames_own(rng):
+    """The map's end interpolates the keyframes' corrections at every unsettled frame's time at once: each as
+    ``interpolate_pose`` between the keyframes around it, held before the first and after the last."""
+    from lapreco_hil.geometry import interpolate_pose
+    from lapreco_hil.mapping.retirement import corrections_at
+
+    kt = np.array([100, 200, 350, 400], np.int64)
+    corr = [make_T(Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix(), rng.normal(0, 0.002, 3)) for _ in kt]
+    times = np.array([50, 100, 150, 200, 260, 399, 400, 500], np.int64)
+    got = corrections_at(kt, corr, times)
+    for t, C in zip(times.tolist(), got):
+        i = int(np.searchsorted(kt, t))
+        want = corr[0] if i == 0 else corr[-1] if i >= len(kt) else interpolate_pose(
+            corr[i - 1], corr[i], (t - kt[i - 1]) / (kt[i] - kt[i - 1]))
+        assert np.allclose(C, want, atol=1e-12), t

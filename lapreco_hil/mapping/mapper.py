@@ -32,7 +32,7 @@ from lapreco_hil.mapping.archive import LandmarkArchive
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe, PendingStructure, is_keyframe
 from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose, refine_poses
-from lapreco_hil.mapping.retirement import Retirement, correction_at
+from lapreco_hil.mapping.retirement import Retirement, corrections_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
 from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate, widest_ray_angle_deg
@@ -794,8 +794,11 @@ class Mapper:
             if f.keyframe is not None:
                 f.T_refined = self.keyframes[f.keyframe].T_world_camera
             else:
-                f.T_refined = correction_at(kt, corr, f.t_ns) @ f.T_prior
                 others.append(f)
+        if others:
+            C = corrections_at(kt, corr, np.array([f.t_ns for f in others], np.int64))
+            for f, c in zip(others, C):
+                f.T_refined = c @ f.T_prior
         if resect and others:
             chosen = [self._resection_points(f) for f in others]
             sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0

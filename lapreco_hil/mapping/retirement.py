@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from lapreco_hil.config import MapperConfig
-from lapreco_hil.geometry import interpolate_pose, inv_T
+from lapreco_hil.geometry import interpolate_poses, inv_T
 from lapreco_hil.mapping.keyframes import FrameRecord, Keyframe
 
 
@@ -88,12 +88,18 @@ class Retirement:
         return np.array([k.t_ns for k in kfs]), [k.T_world_camera @ inv_T(k.prior.T_world_camera) for k in kfs]
 
 
-def correction_at(kt: np.ndarray, corr: list[np.ndarray], t_ns: int) -> np.ndarray:
-    """The keyframe corrections (``Retirement.corrections``) interpolated at ``t_ns`` (held at the ends)."""
-    i = int(np.searchsorted(kt, t_ns))
-    if i == 0:
-        return corr[0]
-    if i >= len(kt):
-        return corr[-1]
-    s = (t_ns - kt[i - 1]) / (kt[i] - kt[i - 1])
-    return interpolate_pose(corr[i - 1], corr[i], s)
+def corrections_at(kt: np.ndarray, corr: list[np.ndarray], t_ns: np.ndarray) -> np.ndarray:
+    """The keyframe corrections (``Retirement.corrections``) interpolated at each of the times ``t_ns`` (held at
+    the ends): (N, 4, 4)."""
+    t = np.asarray(t_ns, np.int64)
+    C = np.asarray(corr, float).reshape(-1, 4, 4)
+    i = np.searchsorted(kt, t)
+    out = np.empty((len(t), 4, 4))
+    out[i == 0], out[i >= len(kt)] = C[0], C[-1]
+    mid = np.flatnonzero((i > 0) & (i < len(kt)))
+    if len(mid):
+        j = i[mid]
+        s = (t[mid] - kt[j - 1]) / (kt[j] - kt[j - 1])
+        out[mid] = interpolate_poses(C[j - 1], C[j], s)
+    return out
+
