@@ -127,7 +127,6 @@ def refine_poses(T_priors: np.ndarray, covs: np.ndarray, points: list[np.ndarray
 
 
 def _refine_batch(T_priors, covs, points, uvs, K, sigma_px, schedule, T):
-    F = len(T)
     n = np.array([len(p) for p in points])
     solved = np.flatnonzero(n >= 6)  # fewer: the start stays (refine_pose's rule)
     if not len(solved):
