@@ -215,7 +215,8 @@ def test_local_ba_in_its_worker_process_maps_as_well_as_between_frames(fast_sess
     assert stats["on"][1]["live"]["mapper_stages_ms"]["local_ba_solve_in_worker"]["count"] == on["local_ba_worker_runs"]
     assert "local_ba_solve_in_worker" not in stats["off"][1]["live"]["mapper_stages_ms"]
     # the worker's round trip, leg by leg, for every job collected; a flight is at least its solve
-    on_clock, collected = stats["on"][1]["live"]["mapper_stages_ms"], on["local_ba_worker_runs"] + on["local_ba_worker_failed"]
+    on_clock = stats["on"][1]["live"]["mapper_stages_ms"]
+    collected = on["local_ba_worker_runs"] + on["local_ba_worker_failed"]
     for leg in ("local_ba_in_flight", "local_ba_to_worker", "local_ba_result_waited"):
         assert on_clock[leg]["count"] == collected, (leg, on_clock)
     assert on_clock["local_ba_in_flight"]["mean"] >= on_clock["local_ba_solve_in_worker"]["mean"]

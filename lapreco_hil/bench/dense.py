@@ -323,10 +323,10 @@ def format_table(result: dict) -> str:
 
     steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result["steps_ms"].items())
     cold_steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result.get("cold_steps_ms", {}).items())
-    return "\n".join([
+    lines = [
         f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
-        f"coarse planes, {result.get('sweep', 'sliding')} sweep, method {result.get('method', 'sweep')}, on {result['device']} ({result['machine']}; median "
-        f"of {result['repeats']})",
+        f"coarse planes, {result.get('sweep', 'sliding')} sweep, method {result.get('method', 'sweep')}, on "
+        f"{result['device']} ({result['machine']}; median of {result['repeats']})",
         f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
         f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); "
         "the sources prepared before",
@@ -335,8 +335,13 @@ def format_table(result: dict) -> str:
         f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
         "in-view pixels",
         "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
-    ] + ([_format_routes(result["fusion_routes"])] if result.get("fusion_routes") else []) + ([f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
-        f"{k} {v:.2f}" for k, v in list(result["device_ms"].items())[:10])] if result.get("device_ms") else []))
+    ]
+    if result.get("fusion_routes"):
+        lines.append(_format_routes(result["fusion_routes"]))
+    if result.get("device_ms"):
+        lines.append(f"GPU time of one map: {sum(result['device_ms'].values()):.2f} ms: " + ", ".join(
+            f"{k} {v:.2f}" for k, v in list(result["device_ms"].items())[:10]))
+    return "\n".join(lines)
 
 
 def _format_routes(routes: dict) -> str:

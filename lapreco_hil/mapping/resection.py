@@ -116,7 +116,9 @@ def refine_poses(T_priors: np.ndarray, covs: np.ndarray, points: list[np.ndarray
                  T_inits: np.ndarray | None = None) -> np.ndarray:
     """``refine_pose`` for many frames at once (the map's end refines every frame not yet final: thousands of
     them one by one took most of a 2-minute 1080p60 run's end): the same steps, stopping rules and answers,
-    vectorised over frames. Frame i sees ``points[i]`` at ``uvs[i]``. Returns the refined T_world_camera."""
+    vectorised over frames. Frame i sees ``points[i]`` at ``uvs[i]``. Returns the refined T_world_camera.
+    ``refine_pose`` stays for one frame at a time (the live mapper's every frame): these padded arrays cost it
+    half as much again."""
     T_priors = np.asarray(T_priors, float)
     out = (T_priors if T_inits is None else np.asarray(T_inits, float)).copy()
     for start in range(0, len(out), BATCH_FRAMES):

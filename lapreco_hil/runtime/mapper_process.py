@@ -208,9 +208,9 @@ def mapper_main(ring_name: str, ring_slots: int, max_tracks: int, snap_name: str
     try:
         clock = StageClock()
         worker = _BAClient(ba_jobs_q, ba_results_q, clock) if ba_jobs_q is not None else None
-        mapper = Mapper(K, mapper_config, schedule=MapperSchedule.live(ba_worker=worker is not None,
-                                                                  local_ba_before_points=mapper_config.local_ba_before_points),
-                        rig=rig)
+        schedule = MapperSchedule.live(ba_worker=worker is not None,
+                                       local_ba_before_points=mapper_config.local_ba_before_points)
+        mapper = Mapper(K, mapper_config, schedule=schedule, rig=rig)
         collector = IdleTimeGC().start()  # for the life of the process
         done_q.put(MapperReady())  # imports done, the mapper made: the main process starts capture now
         skipped_ba = skipped_resection = 0

@@ -229,9 +229,9 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
     """Full resolution: the half-resolution plane of the pixel carried to it, scored at full resolution at its
     inverse depth and ``refine_rho`` either side (a parabola through the three where the middle is best, else the
     better side): the depth, the funnel code (in view, not a highlight, textured, matched, in range: not within
-    ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the cosine between the ray and the plane's normal to the
-    power ``angle_weight``: a depth seen at a grazing angle is the least certain, and fusion weighs it less), the
-    pixel's plane (inverse depth and its gradient per pixel) for the support check."""
+    ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the cosine between the ray and
+    the plane's normal to the power ``angle_weight``: a depth seen at a grazing angle is the least certain, and
+    fusion weighs it less), the pixel's plane (inverse depth and its gradient per pixel) for the support check."""
     y, x = wp.tid()
     depth[y, x] = 0.0
     confidence[y, x] = 0.0
