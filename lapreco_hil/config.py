@@ -278,8 +278,8 @@ class FusionConfig:
 @dataclass(frozen=True)
 class SurfaceConfig:
     # "dense": multi-view stereo fused in a TSDF volume, meshed; "alpha": the seed's alpha shape on the sparse map;
-    # "auto": dense where it keeps up: offline (replay, sequential demo) and live on a CUDA device; alpha in the
-    # live runtime on the CPU (there the dense stage competes with tracking: docs/dense.md, "Live")
+    # "auto": dense where it keeps up, i.e. offline (replay, sequential demo), alpha in the live runtime (there
+    # the dense stage competes with tracking for the device: docs/dense.md, "Live")
     mode: str = "auto"
     alpha_factor: float = ranged(4.0, gt=0.0)  # alpha = factor x median nearest-neighbour distance
     render_width: int = ranged(1024, ge=16)

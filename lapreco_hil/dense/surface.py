@@ -406,14 +406,13 @@ def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier
     return out
 
 
-def surface_mode(config: PipelineConfig, live: bool = False, device: str = "cpu") -> str:
-    """The surface a run makes: "dense" or "alpha" (``[surface] mode = "auto"``: dense offline and live on a CUDA
-    device; alpha live on the CPU, where the dense stage cannot keep up with tracking)."""
+def surface_mode(config: PipelineConfig, live: bool = False) -> str:
+    """The surface a run makes: "dense" or "alpha" (``[surface] mode = "auto"``: dense offline, alpha live)."""
     mode = config.surface.mode
     if mode not in SURFACE_MODES:
         raise ConfigError(f"[surface] mode = '{mode}': use auto, dense or alpha")
     if mode == "auto":
-        return "alpha" if live and not str(device).startswith("cuda") else "dense"
+        return "alpha" if live else "dense"
     return mode
 
 
@@ -421,7 +420,7 @@ def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, 
                       live: bool = False) -> tuple[DenseSurface | None, str | None]:
     """The run's DenseSurface when its surface is dense (``surface_mode``; None for alpha), or (None, why) with
     one warning when multi-view stereo is not there: the run then makes the alpha shape."""
-    if surface_mode(config, live, device) == "alpha":
+    if surface_mode(config, live) == "alpha":
         return None, None
     depth_fn, sources_fn, why = stereo_functions()
     if depth_fn is None:
