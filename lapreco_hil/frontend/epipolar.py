@@ -59,6 +59,11 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
                       image_size: tuple[int, int]) -> np.ndarray:
     """Each track's depth: its own where ``known_ids`` has it, else the median of its nearest tracks' that have
     one (the map's depth nearby), else NaN (to be searched along its epipolar line)."""
+    return borrow_depths(uv, own_depths(ids, known_ids, known_depth), image_size)
+
+
+def own_depths(ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray) -> np.ndarray:
+    """Each track's own depth where ``known_ids`` has it (and it is positive), else NaN."""
     n = len(ids)
     depth = np.full(n, np.nan)
     if n == 0 or len(known_ids) == 0:
@@ -70,6 +75,12 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
     hit = sorted_ids[pos] == ids
     depth[hit] = known_depth[order[pos[hit]]]
     depth[~(depth > 0)] = np.nan
+    return depth
+
+
+def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """``depth`` with each NaN replaced by the median of its nearest tracks' depths (within reach), else left NaN."""
+    depth = depth.copy()
     has = np.isfinite(depth)
     if has.any() and not has.all():
         tree = cKDTree(uv[has])
@@ -98,15 +109,27 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(uv) == 0:
         return None
-    depth = depths_for_tracks(uv, ids, motion.track_ids, motion.depth_m, image_size)
     T = np.asarray(motion.T_cur_prev, np.float64)
-    known = np.isfinite(depth)
-    if known.sum() >= 10:
-        moved = np.linalg.norm(project(uv[known], depth[known], K, K, T) - uv[known], axis=1)
-        moved = moved[np.isfinite(moved)]
-        if len(moved) and float(np.median(moved)) < SMALL_MOTION_PX:
+    # the small-motion test on the tracks' own depths first: most frames of a live run end here, and borrowing
+    # depths for the others (a nearest-neighbour search) costs more than the rest of this together
+    depth = own_depths(ids, motion.track_ids, motion.depth_m)
+    if _small_motion(uv, depth, K, T):
+        return None
+    if not np.isfinite(depth).all():
+        depth = borrow_depths(uv, depth, image_size)
+        if _small_motion(uv, depth, K, T):
             return None
     return settle_short_lines(uv, depth, K, T, motion.depth_range_m)
+
+
+def _small_motion(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> bool:
+    """Whether the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10)."""
+    known = np.isfinite(depth)
+    if known.sum() < 10:
+        return False
+    moved = np.linalg.norm(project(uv[known], depth[known], K, K, T_cur_prev) - uv[known], axis=1)
+    moved = moved[np.isfinite(moved)]
+    return bool(len(moved)) and float(np.median(moved)) < SMALL_MOTION_PX
 
 
 def start_motion_px(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> float | None:
