@@ -549,6 +549,13 @@ class DepthEstimator:
         if far <= near:
             raise ReconstructionError(f"keyframe {ref.kf_id}: depth_range_m {ref.depth_range_m} is empty")
         rho_lo, rho_hi = 1.0 / far, 1.0 / near
+        # the new reference (and any source not cached) goes to the device first: the device prepares it while
+        # the host works out the planes
+        self._ensure_checks(h, w)
+        self._ensure_views(h, w, n_src + 1)
+        slots, prepared = self._slots([ref] + list(sources))
+        t0 = self._step(times, "prepare_ms", t0)
+
         K_ref = np.asarray(ref.K, float)
         terms = _homography_terms(ref, sources)
         shift = _max_shift_px(*terms[0], (w // 2, h // 2), rho_lo, rho_hi)
@@ -558,18 +565,15 @@ class DepthEstimator:
         step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
         drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
         rho0_f = -0.5 * (cfg.fine_planes - 1) * drho_f
-        # every source's plane homographies and cache slot go up in one small copy (the slots once prepared)
+        # every source's plane homographies and cache slot go up in one small copy
         self._write_terms(terms)
-        A_c, A_f, b_c, b_f = self.A_c, self.A_f, self.b_c, self.b_f
-        t0 = self._step(times, "setup_ms", t0)
-
-        slots, prepared = self._slots([ref] + list(sources))
         self._upload_parameters(slots[1:])
+        A_c, A_f, b_c, b_f = self.A_c, self.A_f, self.b_c, self.b_f
         fine, coarse = self.fine, self.coarse
         _, ref_full, ref_half, ref_state = self._slot_arrays[slots[0]]
         self._window_stats(coarse, ref_half)
         self._window_stats(fine, ref_full)
-        t0 = self._step(times, "prepare_ms", t0)
+        t0 = self._step(times, "setup_ms", t0)
 
         # (the coarse level's base inverse depth stays 0: its planes lie at rho_lo + i drho_c)
         self._sweep(coarse, ref_half, self.half_grey, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
