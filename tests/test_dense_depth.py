@@ -296,6 +296,28 @@ def test_a_mask_is_uploaded_again_only_for_another_mask(sheet, warp_cpu):
             assert depth_map.stats["funnel"]["in_view"] == depth_map.depth_m.size
 
 
+def test_an_estimators_maps_are_a_fresh_estimators_whatever_came_before(sheet, warp_cpu):
+    """The estimator replays the launches it recorded, with each map's own values (depth range, planes, poses):
+    maps made one after another by one estimator are those of a fresh estimator each."""
+    from lapreco_hil.dense.depth import DepthEstimator
+
+    views, truths = sheet
+    near = float(np.percentile(truths[0][truths[0] > 0], 50))
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    planes = set()
+    for ref_i, depth_range in ((0, None), (0, (0.05, 0.12)), (2, None), (0, (near, 0.2)), (2, (0.03, 0.3))):
+        ref = views[ref_i]
+        if depth_range is not None:
+            ref = dataclasses.replace(ref, depth_range_m=depth_range)
+        sources = [v for v in views if v.kf_id != ref.kf_id][:3]
+        kept = estimator.compute(ref, sources)
+        fresh = DepthEstimator(DepthConfig(), DEVICE).compute(ref, sources)
+        assert np.array_equal(kept.depth_m, fresh.depth_m) and np.array_equal(kept.confidence, fresh.confidence)
+        assert kept.stats["funnel"] == fresh.stats["funnel"] and kept.stats["planes"] == fresh.stats["planes"]
+        planes.add(kept.stats["planes"])
+    assert len(planes) >= 3
+
+
 def test_the_homography_terms_of_every_source_at_once_are_those_of_each_alone(sheet):
     """The plane homographies' terms, made for every source in one go, are bit for bit those of the formula one
     source at a time (source pixel ~ K_src R K_ref^-1 (x, y, 1) + rho K_src t), at both levels; and so is the
