@@ -251,7 +251,7 @@ class DepthEstimator:
         """Launch by a command recorded at the first launch with these arrays (``wp.launch(record_cmd=True)``),
         setting again only the values that changed since its last launch: a replay costs a fraction of a
         launch's argument packing (most of a map's values are the config's)."""
-        key = (kernel.key, dim, *(id(a) if isinstance(a, self.wp.array) else None for a in inputs))
+        key = (id(kernel), dim, *(id(a) if isinstance(a, self.wp.array) else None for a in inputs))
         recorded = self._commands.get(key)
         if recorded is None:
             command = self.wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, record_cmd=True)
