@@ -460,8 +460,7 @@ class DepthEstimator:
             if self._mask_of is not _ALL_IN_VIEW:
                 self._fill(self.mask, 1)
                 self._mask_of = _ALL_IN_VIEW
-        elif not (self._mask_of is not None and self._mask_of is not _ALL_IN_VIEW
-                  and _refers_to(self._mask_of, view.mask)):
+        elif self._mask_of is _ALL_IN_VIEW or not _refers_to(self._mask_of, view.mask):
             self._upload(1, self.mask, view.mask)
             self._mask_of = _ref(view.mask)
         self._launch(k.prepare_view, (h, w), [colour, self.mask, cfg.highlight_value, cfg.highlight_saturation,
