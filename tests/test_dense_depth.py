@@ -180,6 +180,9 @@ def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, war
     assert first.stats["prepared"] == [0, 1, 2, 3, 4]
     again = estimator.compute(views[0], views[1:])
     assert again.stats["prepared"] == []
+    # the same image in other arrays (a keyframe decoded again): its fingerprint tells it is prepared already
+    copies = [dataclasses.replace(v, colour=v.colour.copy(), mask=v.mask.copy()) for v in views[1:]]
+    assert estimator.compute(views[0], copies).stats["prepared"] == []
     assert np.array_equal(again.depth_m, first.depth_m) and np.array_equal(again.confidence, first.confidence)
     assert again.stats["funnel"] == first.stats["funnel"]
     # the funnel is counted on the device: the same as counting the codes here
@@ -227,6 +230,118 @@ def test_a_depth_map_handed_out_is_never_overwritten(sheet, warp_cpu):
     held.clear()
     address = estimator.compute(views[0], views[1:]).depth_m.__array_interface__["data"][0]
     assert estimator.compute(views[1], views[2:]).depth_m.__array_interface__["data"][0] == address
+
+
+def test_a_map_waits_for_the_device_once_and_counts_what_it_asks(sheet, warp_cpu):
+    """A map's steps are queued and waited for once; a profile (a wait at each step's end) makes the same map.
+    ``stats["device_ops"]`` counts what the device was asked: after the first map no allocation, the new
+    reference's colour and the small parameters uploaded (the mask the views share is there already), the map
+    and the funnel's counts read back in one wait; a map left on the device reads back the counts only."""
+    from lapreco_hil.dense.depth import DEVICE_OPS, FUNNEL, DepthEstimator
+
+    views, _ = sheet
+    h, w = views[0].colour.shape[:2]
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    first = estimator.compute(views[0], views[1:])
+    ops = first.stats["device_ops"]
+    assert set(ops) == set(DEVICE_OPS) and ops["allocations"] > 10 and not first.stats["profiled"]
+    assert ops["uploads"] == 5 + 1 + 1  # five colours, the shared mask once, the parameters
+    estimator.forget(0)
+    steady = estimator.compute(views[0], views[1:])
+    launches = 23 if estimator.sweep == "sliding" else 21  # (the windowed sweep sums a window in one launch)
+    uploaded = h * w * 3 + 25 * 4 * 4  # the colour; A, b and the slot of 4 sources, float32 words
+    assert steady.stats["device_ops"] == {
+        "launches": launches, "uploads": 2, "uploaded_bytes": uploaded, "downloads": 2,
+        "downloaded_bytes": 2 * h * w * 4 + len(FUNNEL) * 4, "synchronisations": 1, "allocations": 0}
+    assert np.array_equal(steady.depth_m, first.depth_m) and np.array_equal(steady.confidence, first.confidence)
+
+    estimator.profile = True
+    estimator.forget(0)
+    profiled = estimator.compute(views[0], views[1:])
+    assert profiled.stats["profiled"] and profiled.stats["funnel"] == first.stats["funnel"]
+    assert np.array_equal(profiled.depth_m, first.depth_m) and np.array_equal(profiled.confidence,
+                                                                              first.confidence)
+    steps = ("setup_ms", "prepare_ms", "coarse_sweep_ms", "fine_sweep_ms", "checks_ms", "download_ms")
+    assert set(profiled.stats["times_ms"]) == set(steady.stats["times_ms"]) == {*steps, "total_ms"}
+    assert profiled.stats["device_ops"] == dict(steady.stats["device_ops"], synchronisations=len(steps))
+    estimator.profile = False
+
+    kept = estimator.compute(views[0], views[1:], on_device=True)  # (every view cached: nothing prepared)
+    assert kept.stats["device_ops"] == {
+        "launches": launches - 5, "uploads": 1, "uploaded_bytes": 25 * 4 * 4, "downloads": 1,
+        "downloaded_bytes": len(FUNNEL) * 4, "synchronisations": 1, "allocations": 0}
+    np.testing.assert_array_equal(kept.depth_m.numpy(), first.depth_m)
+
+
+def test_a_mask_is_uploaded_again_only_for_another_mask(sheet, warp_cpu):
+    """The device keeps the last mask it was given: a view bringing the same array is prepared without it, one
+    bringing another array (equal or not) or none gets its own, and every map is a fresh estimator's."""
+    from lapreco_hil.dense.depth import DepthEstimator
+
+    views, _ = sheet
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator.compute(views[0], views[1:])
+    cut = views[0].mask.copy()
+    cut[:, :60] = False
+    for mask, uploads in ((views[0].mask.copy(), 3), (cut, 3), (cut, 2), (None, 2), (views[0].mask, 3)):
+        ref = dataclasses.replace(views[0], mask=mask)
+        estimator.forget(0)
+        depth_map = estimator.compute(ref, views[1:])
+        assert depth_map.stats["device_ops"]["uploads"] == uploads, mask is cut
+        fresh = DepthEstimator(DepthConfig(), DEVICE).compute(ref, views[1:])
+        assert np.array_equal(depth_map.depth_m, fresh.depth_m) and depth_map.stats["funnel"] == fresh.stats["funnel"]
+        if mask is cut:
+            assert not depth_map.valid[:, :60].any() and depth_map.valid[:, 60:].any()
+        if mask is None:
+            assert depth_map.stats["funnel"]["in_view"] == depth_map.depth_m.size
+
+
+def test_an_estimators_maps_are_a_fresh_estimators_whatever_came_before(sheet, warp_cpu):
+    """The estimator replays the launches it recorded, with each map's own values (depth range, planes, poses):
+    maps made one after another by one estimator are those of a fresh estimator each."""
+    from lapreco_hil.dense.depth import DepthEstimator
+
+    views, truths = sheet
+    near = float(np.percentile(truths[0][truths[0] > 0], 50))
+    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    planes = set()
+    for ref_i, depth_range in ((0, None), (0, (0.05, 0.12)), (2, None), (0, (near, 0.2)), (2, (0.03, 0.3))):
+        ref = views[ref_i]
+        if depth_range is not None:
+            ref = dataclasses.replace(ref, depth_range_m=depth_range)
+        sources = [v for v in views if v.kf_id != ref.kf_id][:3]
+        kept = estimator.compute(ref, sources)
+        fresh = DepthEstimator(DepthConfig(), DEVICE).compute(ref, sources)
+        assert np.array_equal(kept.depth_m, fresh.depth_m) and np.array_equal(kept.confidence, fresh.confidence)
+        assert kept.stats["funnel"] == fresh.stats["funnel"] and kept.stats["planes"] == fresh.stats["planes"]
+        planes.add(kept.stats["planes"])
+    assert len(planes) >= 3
+
+
+def test_the_homography_terms_of_every_source_at_once_are_those_of_each_alone(sheet):
+    """The plane homographies' terms, made for every source in one go, are bit for bit those of the formula one
+    source at a time (source pixel ~ K_src R K_ref^-1 (x, y, 1) + rho K_src t), at both levels; and so is the
+    largest image motion between the nearest and the farthest plane."""
+    from lapreco_hil.dense.depth import _half_K, _homography_terms, _max_shift_px
+
+    views, _ = sheet
+    rng = np.random.default_rng(3)
+    moved = [dataclasses.replace(v, K=v.K * rng.uniform(0.9, 1.1, (3, 3)) * [[1, 1, 1], [0, 1, 1], [0, 0, 0]]
+                                 + np.diag([0, 0, 1.0])) for v in views]
+    for ref, sources in ((views[0], views[1:]), (moved[2], [moved[0], moved[4], moved[1]])):
+        (A_c, b_c), (A_f, b_f) = _homography_terms(ref, sources)
+        for i, src in enumerate(sources):
+            T = np.linalg.inv(np.asarray(src.T_world_camera, float)) @ np.asarray(ref.T_world_camera, float)
+            R, t = T[:3, :3], T[:3, 3]
+            for A, b, K_ref, K_src in ((A_c, b_c, _half_K(ref.K), _half_K(src.K)), (A_f, b_f, ref.K, src.K)):
+                assert np.array_equal(A[i], K_src @ R @ np.linalg.inv(K_ref)) and np.array_equal(b[i], K_src @ t)
+        xs, ys = np.meshgrid(np.linspace(0, 127, 5), np.linspace(0, 95, 5))
+        pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+        shifts = []
+        for A, b in zip(A_c, b_c):
+            lo, hi = A @ pts + 5.0 * b[:, None], A @ pts + 20.0 * b[:, None]
+            shifts.append(np.max(np.hypot(*(hi[:2] / hi[2] - lo[:2] / lo[2]))))
+        assert _max_shift_px(A_c, b_c, (128, 96), 5.0, 20.0) == max(shifts) > 1.0
 
 
 def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu):
@@ -468,7 +583,11 @@ def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp
 
     result = bench_depth(DEVICE, (128, 96), 2, 1, scene="sheet")
     steps = {"setup_ms", "prepare_ms", "coarse_sweep_ms", "fine_sweep_ms", "checks_ms", "download_ms"}
+    # the map as a mapper runs it (one wait: each step's host time), and the stepped profile
     assert set(result["steps_ms"]) == steps and set(result["cold_steps_ms"]) == steps
+    assert set(result["host_steps_ms"]) == steps and result["total_ms"] > 0 and result["profiled_total_ms"] > 0
+    assert result["device_ops"]["synchronisations"] == 1 and result["device_ops"]["allocations"] == 0
+    assert "stepped profile" in format_table(result) and "launches" in format_table(result)
     assert result["sweep"] == ("sliding" if DEVICE == "cpu" else "windowed")
     assert result["accuracy"]["kept"] > 0.5 * result["funnel"]["textured"]
     assert bool(result["device_ms"]) == DEVICE.startswith("cuda")  # the GPU's own time per kernel and copy

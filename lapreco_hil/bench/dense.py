@@ -205,7 +205,8 @@ def bench_fusion_routes(estimator, ref: KeyframeView, sources: list[KeyframeView
     from host inputs (the map downloaded by the estimator, then uploaded again with the host's colour) and from
     device inputs (the map left on the device, ``compute(on_device=True)``, with the reference's colour from the
     estimator's view cache). ``download_ms``: the estimator's last step (the map and its funnel, or the funnel
-    only); ``integrate_ms``: the integration until the device has finished it; ``keep_ms``: reading the
+    only; timed with the estimator's ``profile``, so that it is the step and not the wait for the sweep);
+    ``integrate_ms``: the integration until the device has finished it; ``keep_ms``: reading the
     quantised map back; ``total_ms``: the three, what the route adds to a keyframe after its sweep."""
     from lapreco_hil.config import FusionConfig
     from lapreco_hil.dense.fusion import TsdfVolume
@@ -214,6 +215,7 @@ def bench_fusion_routes(estimator, ref: KeyframeView, sources: list[KeyframeView
 
     wp = init_warp()
     out = {}
+    profile, estimator.profile = estimator.profile, True
     for route, on_device in (("host_inputs", False), ("device_inputs", True)):
         volume = TsdfVolume(FusionConfig(), device)
         times: dict[str, list[float]] = {"download_ms": [], "integrate_ms": [], "keep_ms": []}
@@ -234,6 +236,7 @@ def bench_fusion_routes(estimator, ref: KeyframeView, sources: list[KeyframeView
             del depth_map  # (the estimator's host buffer is free again)
         medians = {k: float(np.median(v)) for k, v in times.items()}
         out[route] = {**medians, "total_ms": sum(medians.values())}
+    estimator.profile = profile
     return out
 
 
@@ -241,14 +244,19 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
                 config: DepthConfig | None = None, sweep: str | None = None, method: str | None = None,
                 fusion: bool = True) -> dict:
     """Time ``DepthEstimator.compute`` of one keyframe against ``views`` source views (after a warm-up that compiles
-    the kernels and allocates the buffers; the device synchronised at each step's end), median over ``repeats``;
-    and its accuracy, before and after the geometric check against the sources' own depth maps.
+    the kernels and allocates the buffers), median over ``repeats``; and its accuracy, before and after the
+    geometric check against the sources' own depth maps.
 
     ``total_ms`` is the steady state of a mapper that keeps one estimator: the reference is new (prepared) and
-    its sources are in the estimator's prepared-view cache (each was a reference before); ``cold_ms`` prepares
-    every view (a fresh estimator's first map, less compiling and allocating). ``sweep``: the estimator's window
-    sums (None: the device's default); ``method``: ``[depth] method`` (None: the config's). ``fusion``: also fuse
-    the map from host inputs and from device inputs (``bench_fusion_routes``)."""
+    its sources are in the estimator's prepared-view cache (each was a reference before), the map's steps queued
+    on the device and waited for once, as a mapper runs it; ``host_steps_ms``: its steps' host times then (each
+    the host's time to queue the step; the last, ``download_ms``, includes the wait for the device).
+    ``steps_ms`` is the stepped profile (the estimator's ``profile``: the device synchronised at each step's end,
+    ``profiled_total_ms`` their sum). ``cold_ms`` prepares every view (a fresh estimator's first map, less
+    compiling and allocating), ``cold_steps_ms`` its profile. ``device_ops``: what the device was asked for one
+    steady-state map. ``sweep``: the estimator's window sums (None: the device's default); ``method``:
+    ``[depth] method`` (None: the config's). ``fusion``: also fuse the map from host inputs and from device
+    inputs (``bench_fusion_routes``)."""
     from lapreco_hil.dense.depth import DepthEstimator
     from lapreco_hil.warp_device import init_warp
 
@@ -275,17 +283,27 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         wp.synchronize_device(device)
         return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, depth_map
 
-    totals, cpu, steps, cold, cold_steps = [], [], {}, [], {}
-    for _ in range(max(1, repeats)):
-        wall, cpu_ms, depth_map = timed(None)
+    def median_steps(maps: list) -> dict:
+        names = maps[0].stats["times_ms"]
+        return {k: float(np.median([m.stats["times_ms"][k] for m in maps])) for k in names if k != "total_ms"}
+
+    totals, cpu, cold, steady_maps = [], [], [], []
+    for _ in range(max(1, repeats)):  # as a mapper runs it: one wait per map
+        wall, _, depth_map = timed(None)
         cold.append(wall)
-        for name, ms in depth_map.stats["times_ms"].items():
-            cold_steps.setdefault(name, []).append(ms)
         wall, cpu_ms, depth_map = timed(ref.kf_id)
         totals.append(wall)
         cpu.append(cpu_ms)
-        for name, ms in depth_map.stats["times_ms"].items():
-            steps.setdefault(name, []).append(ms)
+        steady_maps.append(depth_map.stats)
+    device_ops = depth_map.stats["device_ops"]
+    estimator.profile = True  # the stepped profile: a wait at each step's end
+    profiled, cold_profiled, profiled_totals = [], [], []
+    for _ in range(max(1, repeats)):
+        cold_profiled.append(timed(None)[2])
+        wall, _, depth_map = timed(ref.kf_id)
+        profiled.append(depth_map)
+        profiled_totals.append(wall)
+    estimator.profile = False
     activities = _device_activities(wp, device, lambda: timed(ref.kf_id)) if wp.get_device(device).is_cuda else {}
     routes = bench_fusion_routes(estimator, ref, sources, device, repeats) if fusion else None
     # the sources' own maps (each against the others) for the forward-backward check
@@ -297,10 +315,14 @@ def bench_depth(device: str, resolution: tuple[int, int], views: int, repeats: i
         "repeats": repeats, "planes": depth_map.stats["planes"], "sweep": estimator.sweep, "method": cfg.method,
         "total_ms": float(np.median(totals)), "cold_ms": float(np.median(cold)),
         # this process's CPU time: on a shared machine the wall time also counts other processes' turns (Warp's
-        # CPU kernels run on one thread, so on the CPU device this is the time on an idle core)
+        # CPU kernels run on one thread, so on the CPU device this is the time on an idle core; on CUDA a wait
+        # for the device spins, and counts)
         "process_cpu_ms": float(np.median(cpu)), "load_average": os.getloadavg()[0],
-        "steps_ms": {k: float(np.median(v)) for k, v in steps.items() if k != "total_ms"},
-        "cold_steps_ms": {k: float(np.median(v)) for k, v in cold_steps.items() if k != "total_ms"},
+        "host_steps_ms": {k: float(np.median([s["times_ms"][k] for s in steady_maps]))
+                          for k in steady_maps[0]["times_ms"] if k != "total_ms"},
+        "steps_ms": median_steps(profiled), "profiled_total_ms": float(np.median(profiled_totals)),
+        "cold_steps_ms": median_steps(cold_profiled),
+        "device_ops": device_ops,
         # GPU time per kernel and copy of one steady-state map (CUDA only): where the device's time goes
         "device_ms": activities,
         # the map fused as the live surface fuses it, from host inputs and from device inputs
@@ -321,21 +343,32 @@ def format_table(result: dict) -> str:
         return (f"median {a['median_mm']:.3f} mm, p95 {a['p95_mm']:.2f} mm, >1 mm {100 * a['over_1mm']:.2f}%, "
                 f">5 mm {100 * a['over_5mm']:.2f}% of {a['kept']} px")
 
-    steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result["steps_ms"].items())
-    cold_steps = ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in result.get("cold_steps_ms", {}).items())
+    def joined(steps: dict) -> str:
+        return ", ".join(f"{k.removesuffix('_ms')} {v:.1f}" for k, v in steps.items())
+
     lines = [
         f"depth map, {result['scene']} {result['resolution']}, {result['views']} source views, {result['planes']} "
         f"coarse planes, {result.get('sweep', 'sliding')} sweep, method {result.get('method', 'sweep')}, on "
         f"{result['device']} ({result['machine']}; median of {result['repeats']})",
-        f"time per keyframe: {result['total_ms']:.1f} ms wall ({steps} ms), {result['process_cpu_ms']:.1f} ms of "
-        f"this process's CPU time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); "
-        "the sources prepared before",
-        f"every view prepared: {result.get('cold_ms', float('nan')):.1f} ms wall ({cold_steps} ms)",
+        f"time per keyframe: {result['total_ms']:.1f} ms wall, one wait (the host's steps: "
+        f"{joined(result.get('host_steps_ms', {}))} ms), {result['process_cpu_ms']:.1f} ms of this process's CPU "
+        f"time (load average {result['load_average']:.1f} on {result['cpu_threads']} threads); the sources "
+        "prepared before",
+        f"stepped profile (a wait at each step's end): {result.get('profiled_total_ms', float('nan')):.1f} ms "
+        f"({joined(result['steps_ms'])} ms)",
+        f"every view prepared: {result.get('cold_ms', float('nan')):.1f} ms wall (stepped: "
+        f"{joined(result.get('cold_steps_ms', {}))} ms)",
         f"sweep only:        {acc(result['accuracy'])}; {100 * result['coverage']:.1f}% of the in-view pixels",
         f"geometric check:   {acc(result['accuracy_checked'])}; {100 * result['coverage_checked']:.1f}% of the "
         "in-view pixels",
         "funnel: " + ", ".join(f"{k} {v}" for k, v in result["funnel"].items()),
     ]
+    if result.get("device_ops"):
+        ops = result["device_ops"]
+        lines.append(f"asked of the device per map: {ops['launches']} launches, {ops['uploads']} uploads "
+                     f"({ops['uploaded_bytes'] / 1e6:.2f} MB), {ops['downloads']} downloads "
+                     f"({ops['downloaded_bytes'] / 1e6:.2f} MB), {ops['synchronisations']} waits, "
+                     f"{ops['allocations']} allocations")
     if result.get("fusion_routes"):
         lines.append(_format_routes(result["fusion_routes"]))
     if result.get("device_ms"):

@@ -21,6 +21,10 @@ keyframes with known poses, coarse to fine, in Warp (one code for the CPU and CU
    an instrument, fails it), supported (wrong matches come as specks and slivers, surfaces as regions), and,
    where the sources' own depth maps are given, geometry agrees (forward-backward through the source's map).
 
+The steps are queued on the device and waited for once, when the map (or, left on the device, its funnel)
+is read back: the host queues the next step while the device works (``DepthEstimator``'s ``profile`` waits at
+each step's end, to time them).
+
 ``[depth] method = "patchmatch"`` replaces steps 3-4's fine sweep by slanted windows: the coarse depth refined
 with a plane per pixel (red-black PatchMatch at half resolution, warp/patchmatch.py), scored at full resolution,
 its support and depth edges measured against each pixel's plane (docs/dense.md, "Slanted windows").
@@ -33,8 +37,10 @@ import logging
 import math
 import sys
 import time
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -58,46 +64,56 @@ METHODS = ("sweep", "patchmatch")  # [depth] method
 # overhead, short enough for millions of threads at half 1080p; a multiple of 7 (sweep_window_ring's unrolled ring)
 WINDOW_BAND_ROWS = 56
 COUNT_SPAN = 64  # pixels of a row per thread of the funnel's histogram
+# what a map asks of the device (``stats["device_ops"]``): kernel launches (memsets included), copies into and
+# out of device arrays and their bytes (on the CPU device a write or read of the array's memory), waits for the
+# device, and allocations (device buffers, and page-locked host ones on CUDA)
+DEVICE_OPS = ("launches", "uploads", "uploaded_bytes", "downloads", "downloaded_bytes", "synchronisations",
+              "allocations")
+_ALL_IN_VIEW = object()  # the device's mask holds ones (a view without a mask)
 # host buffers for depth maps an estimator keeps (page-locked from CUDA: 16.6 MB each at 1080p, and page-locking
 # takes milliseconds: worth it for an estimator that makes many maps)
 HOST_BUFFERS = 3
 
 
 def _half_K(K: np.ndarray) -> np.ndarray:
-    """Intrinsics of the 2x2-mean half-resolution image (pixel centres: x_half = (x + 0.5) / 2 - 0.5)."""
-    Kh = np.array(K, float).copy()
-    Kh[0, 0] *= 0.5
-    Kh[1, 1] *= 0.5
-    Kh[0, 1] *= 0.5
-    Kh[0, 2] = (Kh[0, 2] + 0.5) * 0.5 - 0.5
-    Kh[1, 2] = (Kh[1, 2] + 0.5) * 0.5 - 0.5
+    """Intrinsics of the 2x2-mean half-resolution image (pixel centres: x_half = (x + 0.5) / 2 - 0.5); of each
+    of a stack of (..., 3, 3) intrinsics."""
+    Kh = np.array(K, float)
+    Kh[..., 0, 0] *= 0.5
+    Kh[..., 1, 1] *= 0.5
+    Kh[..., 0, 1] *= 0.5
+    Kh[..., 0, 2] = (Kh[..., 0, 2] + 0.5) * 0.5 - 0.5
+    Kh[..., 1, 2] = (Kh[..., 1, 2] + 0.5) * 0.5 - 0.5
     return Kh
 
 
-def _relative(ref: KeyframeView, src: KeyframeView) -> tuple[np.ndarray, np.ndarray]:
-    T_src_ref = np.linalg.inv(np.asarray(src.T_world_camera, float)) @ np.asarray(ref.T_world_camera, float)
-    return T_src_ref[:3, :3], T_src_ref[:3, 3]
+def _homography_terms(ref: KeyframeView, sources: list[KeyframeView]) -> tuple[tuple, tuple]:
+    """Per source, source pixel ~ A @ (x, y, 1) + rho * b for a fronto-parallel plane at inverse depth rho in the
+    reference: ((A, b) at half resolution, (A, b) at full resolution), each (S, 3, 3) and (S, 3), every source
+    at once (the same products as one source at a time, in a tenth of the time)."""
+    K_ref = np.asarray(ref.K, float)
+    K_src = np.stack([np.asarray(s.K, float) for s in sources])
+    T_src_world = np.linalg.inv(np.stack([np.asarray(s.T_world_camera, float) for s in sources]))
+    T_src_ref = T_src_world @ np.asarray(ref.T_world_camera, float)
+    R, t = T_src_ref[:, :3, :3], T_src_ref[:, :3, 3:]
+    return tuple((Ks @ R @ np.linalg.inv(Kr), (Ks @ t)[..., 0])
+                 for Kr, Ks in ((_half_K(K_ref), _half_K(K_src)), (K_ref, K_src)))
 
 
-def _homography_terms(K_ref: np.ndarray, K_src: np.ndarray, R: np.ndarray, t: np.ndarray):
-    """Source pixel ~ A @ (x, y, 1) + rho * b for a fronto-parallel plane at inverse depth rho in the reference."""
-    return K_src @ R @ np.linalg.inv(K_ref), K_src @ t
-
-
-def _max_shift_px(A_b: list, size: tuple[int, int], rho_lo: float, rho_hi: float) -> float:
-    """The largest image motion in any source between the nearest and the farthest plane, over a grid of pixels."""
+def _max_shift_px(A: np.ndarray, b: np.ndarray, size: tuple[int, int], rho_lo: float, rho_hi: float) -> float:
+    """The largest image motion in any source between the nearest and the farthest plane, over a grid of pixels
+    (A, b: every source's homography terms)."""
     w, h = size
     xs, ys = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
     pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
-    shift = 0.0
-    for A, b in A_b:
-        p_lo = A @ pts + rho_lo * b[:, None]
-        p_hi = A @ pts + rho_hi * b[:, None]
-        ok = (p_lo[2] > 1e-9) & (p_hi[2] > 1e-9)
-        if ok.any():
-            d = p_hi[:2, ok] / p_hi[2, ok] - p_lo[:2, ok] / p_lo[2, ok]
-            shift = max(shift, float(np.max(np.hypot(d[0], d[1]))))
-    return shift
+    p_lo = A @ pts + rho_lo * b[:, :, None]
+    p_hi = A @ pts + rho_hi * b[:, :, None]
+    ok = (p_lo[:, 2] > 1e-9) & (p_hi[:, 2] > 1e-9)
+    if not ok.any():
+        return 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = p_hi[:, :2] / p_hi[:, 2:] - p_lo[:, :2] / p_lo[:, 2:]
+    return float(np.max(np.hypot(d[:, 0], d[:, 1])[ok]))
 
 
 @dataclass
@@ -118,13 +134,43 @@ class _Sweep:
 def _fingerprint(view: KeyframeView) -> bytes:
     """What tells a cached view's image from another with the same kf_id: a digest of every 16th pixel of every
     16th row of the colour and the mask, 0.07 ms at 1080p (a keyframe's image does not change;
-    ``DepthEstimator.forget`` is for a caller whose does)."""
+    ``DepthEstimator.forget`` is for a caller whose does). Not taken when the view brings the very arrays its
+    cached entry was prepared from (``_CachedView``)."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(repr(view.colour.shape).encode())
     digest.update(np.ascontiguousarray(view.colour[::16, ::16]).tobytes())
     if view.mask is not None:
         digest.update(np.ascontiguousarray(view.mask[::16, ::16], np.uint8).tobytes())
     return digest.digest()
+
+
+def _no_referent() -> None:
+    return None
+
+
+def _ref(array):
+    """A weak reference to ``array`` (None for None; one that refers to nothing for an object that takes none)."""
+    if array is None:
+        return None
+    try:
+        return weakref.ref(array)
+    except TypeError:
+        return _no_referent
+
+
+def _refers_to(ref, array) -> bool:
+    """Whether ``ref`` (``_ref``'s) refers to ``array`` itself (both None: True)."""
+    return ref is None if array is None else (ref is not None and ref() is array)
+
+
+class _CachedView(NamedTuple):
+    """A prepared view in the device cache: its slot, its image's fingerprint, and weak references to the colour
+    and mask arrays it was prepared from (a view that brings these same arrays is not fingerprinted again)."""
+
+    slot: int
+    fingerprint: bytes
+    colour: object
+    mask: object
 
 
 class DepthEstimator:
@@ -137,22 +183,32 @@ class DepthEstimator:
     ``host_buffers`` kept host buffers (page-locked from CUDA), each reused once no map refers to it (0: a new
     pageable buffer per map, for an estimator that makes one map); or, with ``compute(..., on_device=True)``, stay
     on the device for a caller that uses them there (the TSDF volume fuses them with no trip through the host;
-    ``view_colour`` gives a cached view's colour there too)."""
+    ``view_colour`` gives a cached view's colour there too).
+
+    A map's steps are queued on the device's current stream and waited for once, at its read-back; ``profile``
+    (a benchmark's switch) waits at each step's end instead, so that ``stats["times_ms"]`` times the steps
+    themselves (else each step's figure is the host's time to queue it, and the last one's includes the wait).
+    ``stats["device_ops"]`` counts what the device was asked for the map (``DEVICE_OPS``)."""
 
     def __init__(self, config: DepthConfig, device: str, sweep: str | None = None,
-                 host_buffers: int = HOST_BUFFERS) -> None:
+                 host_buffers: int = HOST_BUFFERS, profile: bool = False) -> None:
         self.wp = init_warp()
         self.config = config
         self.device = device
+        self.profile = profile
+        self._cuda = self.wp.get_device(device).is_cuda
         if sweep is None:
-            sweep = "windowed" if self.wp.get_device(device).is_cuda else "sliding"
+            sweep = "windowed" if self._cuda else "sliding"
         if sweep not in SWEEPS:
             raise ConfigError(f"DepthEstimator sweep {sweep!r} is none of {', '.join(SWEEPS)}")
         self.sweep = sweep
+        self.ops = dict.fromkeys(DEVICE_OPS, 0)  # the current (or last) map's
+        self._commands: dict[tuple, tuple] = {}  # recorded launches (``_launch``)
         self._shape: tuple | None = None
         self._check_shape: tuple | None = None
         self._view_shape: tuple | None = None
-        self._cached: OrderedDict[int, tuple[int, bytes]] = OrderedDict()  # kf_id -> (slot, fingerprint), LRU first
+        self._cached: OrderedDict[int, _CachedView] = OrderedDict()  # kf_id -> its cached view, LRU first
+        self._mask_of = None  # what the device's mask holds: _ALL_IN_VIEW, a weak reference to a host mask, None
         self._host_buffers: list[tuple[object, np.ndarray]] = []
         self._host_refs = 0
         self._keep_host_buffers = host_buffers
@@ -179,40 +235,95 @@ class DepthEstimator:
         else:
             self._cached.pop(kf_id, None)
 
+    # --- what the device is asked (counted in ``ops``) -----------------------------------------------------
+    def _alloc(self, shape, dtype):
+        self.ops["allocations"] += 1
+        self._commands.clear()  # (recorded launches hold the arrays they were recorded with: let old ones go)
+        return self.wp.zeros(shape, dtype=dtype, device=self.device)
+
+    def _alloc_host(self, shape, dtype, pinned: bool):
+        """A host array for transfers (page-locked: an allocation the driver makes, counted as the device's)."""
+        if pinned:
+            self.ops["allocations"] += 1
+        return self.wp.empty(shape, dtype=dtype, device="cpu", pinned=pinned)
+
+    def _launch(self, kernel, dim, inputs: list) -> None:
+        """Launch by a command recorded at the first launch with these arrays (``wp.launch(record_cmd=True)``),
+        setting again only the values that changed since its last launch: a replay costs a fraction of a
+        launch's argument packing (most of a map's values are the config's)."""
+        key = (id(kernel), dim, *(id(a) if isinstance(a, self.wp.array) else None for a in inputs))
+        recorded = self._commands.get(key)
+        if recorded is None:
+            command = self.wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, record_cmd=True)
+            # (the inputs kept with the command keep its arrays, and so the ids in its key, alive)
+            self._commands[key] = (command, list(inputs))
+        else:
+            command, last = recorded
+            for i, value in enumerate(inputs):
+                if isinstance(value, self.wp.array) or (type(value) in (int, float, bool)
+                                                        and type(last[i]) is type(value) and last[i] == value):
+                    continue
+                command.set_param_at_index(i, value)
+                last[i] = value
+        command.launch()
+        self.ops["launches"] += 1
+
+    def _fill(self, array, value) -> None:
+        array.fill_(value)
+        self.ops["launches"] += 1  # (a memset)
+
+    def _copy_in(self, target, source, nbytes: int) -> None:
+        self.wp.copy(target, source)
+        self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += int(nbytes)
+
+    def _copy_out(self, target, source) -> None:
+        self.wp.copy(target, source)
+        self.ops["downloads"] += 1
+        self.ops["downloaded_bytes"] += int(source.capacity)
+
+    def _synchronize(self) -> None:
+        """Wait for this estimator's work: the device's current stream (not the device's other streams: the
+        front-end's, say)."""
+        if self._cuda:
+            self.wp.synchronize_stream(self.wp.get_stream(self.device))
+        self.ops["synchronisations"] += 1
+
+    def _event(self):
+        return self.wp.get_stream(self.device).record_event() if self._cuda else None
+
     # --- buffers ----------------------------------------------------------------------------------------------
     def _sweep_buffers(self, h: int, w: int, n_src: int, n_planes: int) -> _Sweep:
-        wp = self.wp
         sliding = self.sweep == "sliding"
         volume = (n_src, n_planes, h, w)
         return _Sweep(
-            rows=wp.zeros((h, w), dtype=wp.vec3), std=wp.zeros((h, w), dtype=float),
-            base=wp.zeros((h, w), dtype=float),
-            sums=wp.zeros(volume, dtype=k.vec6) if sliding else None,
-            samples=None if sliding else wp.zeros(volume, dtype=float),
-            zncc=wp.zeros(volume, dtype=float),
-            plane=wp.zeros((h, w), dtype=float),
-            best=wp.zeros((h, w), dtype=float), second=wp.zeros((h, w), dtype=float))
+            rows=self._alloc((h, w), self.wp.vec3), std=self._alloc((h, w), float),
+            base=self._alloc((h, w), float),
+            sums=self._alloc(volume, k.vec6) if sliding else None,
+            samples=None if sliding else self._alloc(volume, float),
+            zncc=self._alloc(volume, float),
+            plane=self._alloc((h, w), float),
+            best=self._alloc((h, w), float), second=self._alloc((h, w), float))
 
     def _ensure_checks(self, h: int, w: int) -> None:
         """The output and geometric-check buffers (all that ``check_geometry`` needs)."""
         if self._check_shape == (h, w):
             return
         wp = self.wp
-        with wp.ScopedDevice(self.device):
-            self.out = wp.zeros((2, h, w), dtype=float)  # depth, confidence: one download
-            self.depth = self.out[0]
-            self.confidence = self.out[1]
-            self.code = wp.zeros((h, w), dtype=wp.uint8)
-            self.counts = wp.zeros(k.CODE_KEPT + 1, dtype=int)
-            self.agree = wp.zeros((h, w), dtype=int)
-            self.supported = wp.zeros((h, w), dtype=wp.uint8)
-            self.src_depth = wp.zeros((h, w), dtype=float)
+        self.out = self._alloc((2, h, w), float)  # depth, confidence: one download
+        self.depth = self.out[0]
+        self.confidence = self.out[1]
+        self.code = self._alloc((h, w), wp.uint8)
+        self.counts = self._alloc(k.CODE_KEPT + 1, int)
+        self.agree = self._alloc((h, w), int)
+        self.supported = self._alloc((h, w), wp.uint8)
+        self.src_depth = self._alloc((h, w), float)
         # host buffers that depth maps are downloaded into and handed out as they are (page-locked from CUDA: a
         # download at the bus's speed, and no copy on the host), each reused once no depth map uses it any more
         self._host_buffers = []
-        self._pinned = wp.get_device(self.device).is_cuda
-        if self._pinned and self._keep_host_buffers > 0:
-            self._host_counts = wp.empty(k.CODE_KEPT + 1, dtype=int, device="cpu", pinned=True)
+        self._pinned = self._cuda
+        # the funnel's counts come back into a kept page-locked buffer (the map's one small read-back)
+        self._host_counts = self._alloc_host(k.CODE_KEPT + 1, int, pinned=True) if self._cuda else None
         self._check_shape = (h, w)
 
     def _ensure_views(self, h: int, w: int, n_views: int) -> None:
@@ -222,20 +333,23 @@ class DepthEstimator:
         if self._view_shape is not None and self._view_shape[:2] == (h, w) and self._view_shape[2] >= n_views:
             return
         wp = self.wp
-        with wp.ScopedDevice(self.device):
-            self.colour = wp.zeros((slots, h, w, 3), dtype=wp.uint8)
-            self.mask = wp.zeros((h, w), dtype=wp.uint8)
-            self.highlight_flags = wp.zeros((h, w), dtype=wp.uint8)  # the highlight pixels themselves
-            self.highlight = wp.zeros((h, w), dtype=wp.uint8)  # dilated: what is excluded
-            self.full_grey = wp.zeros((slots, h, w), dtype=float)
-            self.half_grey = wp.zeros((slots, h // 2, w // 2), dtype=float)
-            self.state = wp.zeros((slots, h, w), dtype=wp.uint8)
+        self.colour = self._alloc((slots, h, w, 3), wp.uint8)
+        self.mask = self._alloc((h, w), wp.uint8)
+        self.highlight_flags = self._alloc((h, w), wp.uint8)  # the highlight pixels themselves
+        self.highlight = self._alloc((h, w), wp.uint8)  # dilated: what is excluded
+        self.full_grey = self._alloc((slots, h, w), float)
+        self.half_grey = self._alloc((slots, h // 2, w // 2), float)
+        self.state = self._alloc((slots, h, w), wp.uint8)
+        # each slot's arrays, made once (indexing makes a new array each time)
+        self._slot_arrays = [(self.colour[i], self.full_grey[i], self.half_grey[i], self.state[i])
+                             for i in range(slots)]
         self._staging = []
-        if wp.get_device(self.device).is_cuda and self._keep_host_buffers > 0:
+        if self._cuda and self._keep_host_buffers > 0:
             for shape in ((h, w, 3), (h, w)):  # colour, mask
-                host = wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=True)
+                host = self._alloc_host(shape, wp.uint8, pinned=True)
                 self._staging.append((host, host.numpy(), None))
         self._cached.clear()
+        self._mask_of = None
         self._view_shape = (h, w, slots)
 
     def _ensure(self, h: int, w: int, n_src: int, n_planes: int) -> None:
@@ -246,23 +360,62 @@ class DepthEstimator:
         shape = (h, w, n_src)
         if self._shape == shape:
             if self.coarse.zncc.shape[1] < n_planes:
-                with self.wp.ScopedDevice(self.device):
-                    self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
+                self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
             return
         wp = self.wp
-        with wp.ScopedDevice(self.device):
-            self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
-            # the refinement uses the fine level's window statistics only: no cost volume
-            fine_planes = self.config.fine_planes if self.config.method == "sweep" else 0
-            self.fine = self._sweep_buffers(h, w, n_src, fine_planes)
-            self.A = wp.zeros(2 * n_src, dtype=wp.mat33)  # the coarse level's plane homographies, then the fine's
-            self.b = wp.zeros(2 * n_src, dtype=wp.vec3)
-            self.src_slots = wp.zeros(n_src, dtype=int)
-            if self.config.method == "patchmatch":
-                self.pm_plane = wp.zeros((h // 2, w // 2), dtype=wp.vec3)  # inverse depth and its gradient
-                self.pm_score = wp.zeros((h // 2, w // 2), dtype=float)
-                self.pm_full_plane = wp.zeros((h, w), dtype=wp.vec3)
+        self.coarse = self._sweep_buffers(h // 2, w // 2, n_src, 16 * math.ceil(n_planes / 16))
+        # the refinement uses the fine level's window statistics only: no cost volume
+        fine_planes = self.config.fine_planes if self.config.method == "sweep" else 0
+        self.fine = self._sweep_buffers(h, w, n_src, fine_planes)
+        self._ensure_parameters(n_src)
+        if self.config.method == "patchmatch":
+            self.pm_plane = self._alloc((h // 2, w // 2), wp.vec3)  # inverse depth and its gradient
+            self.pm_score = self._alloc((h // 2, w // 2), float)
+            self.pm_full_plane = self._alloc((h, w), wp.vec3)
         self._shape = shape
+
+    def _ensure_parameters(self, n_src: int) -> None:
+        """A map's small parameters, one device allocation uploaded in one copy: the plane homographies' terms A
+        (mat33) and b (vec3), the coarse level's sources then the fine level's, and the sources' cache slots
+        (int32). On CUDA they are written into a kept page-locked host twin; on the CPU device into the array."""
+        wp = self.wp
+        a_end, b_end = 18 * n_src, 24 * n_src
+        self._parameters = self._alloc(25 * n_src, wp.float32)
+
+        def part(start: int, n: int, dtype):
+            return wp.array(ptr=self._parameters.ptr + 4 * start, shape=(n,), dtype=dtype,
+                            device=self._parameters.device)
+
+        self.A_c, self.A_f = part(0, n_src, wp.mat33), part(9 * n_src, n_src, wp.mat33)
+        self.b_c, self.b_f = part(a_end, n_src, wp.vec3), part(a_end + 3 * n_src, n_src, wp.vec3)
+        self.src_slots = part(b_end, n_src, wp.int32)
+        self._parameters_host = self._alloc_host(25 * n_src, wp.float32, pinned=True) if self._cuda else None
+        host = (self._parameters_host if self._cuda else self._parameters).numpy()
+        self._parameters_event = None  # the last upload from the host twin (reused once it is read)
+        self._host_A = host[:a_end].reshape(2 * n_src, 3, 3)
+        self._host_b = host[a_end:b_end].reshape(2 * n_src, 3)
+        self._host_slots = host[b_end:].view(np.int32)
+
+    def _write_terms(self, terms: tuple) -> None:
+        """The homography terms into the parameters' host side (waiting, on CUDA, for its last upload)."""
+        if self._parameters_event is not None:
+            self.wp.synchronize_event(self._parameters_event)
+            self._parameters_event = None
+        (A_c, b_c), (A_f, b_f) = terms
+        n = len(A_c)
+        self._host_A[:n] = A_c
+        self._host_A[n:] = A_f
+        self._host_b[:n] = b_c
+        self._host_b[n:] = b_f
+
+    def _upload_parameters(self, slots: list[int]) -> None:
+        self._host_slots[:] = slots
+        if self._cuda:
+            self._copy_in(self._parameters, self._parameters_host, self._parameters.capacity)
+            self._parameters_event = self._event()
+        else:  # written in place: the CPU device's array is host memory
+            self.ops["uploads"] += 1
+            self.ops["uploaded_bytes"] += self._parameters.capacity
 
     # --- steps ------------------------------------------------------------------------------------------------
     def _slots(self, views: list[KeyframeView]) -> tuple[list[int], list[int]]:
@@ -271,47 +424,51 @@ class DepthEstimator:
         needed = {v.kf_id for v in views}
         slots, prepared = [], []
         for view in views:
-            fingerprint = _fingerprint(view)
             entry = self._cached.get(view.kf_id)
-            if entry is None or entry[1] != fingerprint:
-                slot = entry[0] if entry is not None else self._free_slot(needed)
-                self._prepare(view, slot)
-                prepared.append(view.kf_id)
-                entry = (slot, fingerprint)
+            if entry is None or not (_refers_to(entry.colour, view.colour) and _refers_to(entry.mask, view.mask)):
+                fingerprint = _fingerprint(view)
+                if entry is None or entry.fingerprint != fingerprint:
+                    slot = entry.slot if entry is not None else self._free_slot(needed)
+                    self._prepare(view, slot)
+                    prepared.append(view.kf_id)
+                else:
+                    slot = entry.slot
+                entry = _CachedView(slot, fingerprint, _ref(view.colour), _ref(view.mask))
                 self._cached[view.kf_id] = entry
             self._cached.move_to_end(view.kf_id)
-            slots.append(entry[0])
+            slots.append(entry.slot)
         return slots, prepared
 
     def _free_slot(self, needed: set) -> int:
-        used = {slot for slot, _ in self._cached.values()}
+        used = {entry.slot for entry in self._cached.values()}
         free = [i for i in range(self._view_shape[2]) if i not in used]
         if free:
             return free[0]
         victim = next(kf_id for kf_id in self._cached if kf_id not in needed)
-        return self._cached.pop(victim)[0]
+        return self._cached.pop(victim).slot
 
     def _prepare(self, view: KeyframeView, slot: int) -> None:
         """Upload one view's colour and mask into its cache slot: grey with the field of view and dilated
-        highlights excluded, its half-resolution mean, and why each pixel may not be used."""
-        wp = self.wp
+        highlights excluded, its half-resolution mean, and why each pixel may not be used. The device's mask is
+        uploaded only when the view brings another mask array than the last one (a camera's keyframes share
+        one; like an image, a mask is not changed in place)."""
         cfg = self.config
         h, w = view.colour.shape[:2]
-        grey = self.full_grey[slot]
-        self._upload(0, self.colour[slot], view.colour)
+        colour, grey, half_grey, state = self._slot_arrays[slot]
+        self._upload(0, colour, view.colour)
         if view.mask is None:
-            self.mask.fill_(1)
-        else:
+            if self._mask_of is not _ALL_IN_VIEW:
+                self._fill(self.mask, 1)
+                self._mask_of = _ALL_IN_VIEW
+        elif self._mask_of is _ALL_IN_VIEW or not _refers_to(self._mask_of, view.mask):
             self._upload(1, self.mask, view.mask)
-        wp.launch(k.prepare_view, dim=(h, w), device=self.device,
-                  inputs=[self.colour[slot], self.mask, cfg.highlight_value, cfg.highlight_saturation, grey,
-                          self.highlight_flags])
-        self.highlight.zero_()
-        wp.launch(k.dilate_scatter, dim=(h, w), device=self.device,
-                  inputs=[self.highlight_flags, cfg.highlight_dilate_px, self.highlight])
-        wp.launch(k.exclude, dim=(h, w), device=self.device, inputs=[self.mask, self.highlight, grey,
-                                                                     self.state[slot]])
-        wp.launch(k.half_mean, dim=(h // 2, w // 2), device=self.device, inputs=[grey, self.half_grey[slot]])
+            self._mask_of = _ref(view.mask)
+        self._launch(k.prepare_view, (h, w), [colour, self.mask, cfg.highlight_value, cfg.highlight_saturation,
+                                              grey, self.highlight_flags])
+        self._fill(self.highlight, 0)
+        self._launch(k.dilate_scatter, (h, w), [self.highlight_flags, cfg.highlight_dilate_px, self.highlight])
+        self._launch(k.exclude, (h, w), [self.mask, self.highlight, grey, state])
+        self._launch(k.half_mean, (h // 2, w // 2), [grey, half_grey])
 
     def _upload(self, index: int, target, data: np.ndarray) -> None:
         """``data`` (cast to uint8) into the device array ``target``: on CUDA, for an estimator that keeps host
@@ -319,53 +476,52 @@ class DepthEstimator:
         while the host goes on; a pageable one is staged by the driver, at a third of that), each reused once its
         last upload has been read."""
         if not self._staging:
-            target.assign(np.ascontiguousarray(data, np.uint8))
+            data = np.ascontiguousarray(data, np.uint8)
+            self._copy_in(target, self.wp.array(data, dtype=self.wp.uint8, device="cpu", copy=False), data.nbytes)
             return
         host, array, uploaded = self._staging[index]
         if uploaded is not None:
             self.wp.synchronize_event(uploaded)
         np.copyto(array, data, casting="unsafe")
-        self.wp.copy(target, host)
-        self._staging[index] = (host, array, self.wp.get_stream(self.device).record_event())
+        self._copy_in(target, host, array.nbytes)
+        self._staging[index] = (host, array, self._event())
 
     def _window_stats(self, level: _Sweep, ref) -> None:
         h, w = ref.shape
         r = self.config.window_radius_px
-        self.wp.launch(k.window_rows, dim=(h, w), device=self.device, inputs=[ref, r, level.rows])
-        self.wp.launch(k.window_cols, dim=(h, w), device=self.device,
-                       inputs=[level.rows, r, self.config.min_texture, self.config.min_valid_fraction, level.std])
+        self._launch(k.window_rows, (h, w), [ref, r, level.rows])
+        self._launch(k.window_cols, (h, w), [level.rows, r, self.config.min_texture, self.config.min_valid_fraction,
+                                             level.std])
 
     def _sweep(self, level: _Sweep, ref, src, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
                min_scored: int) -> None:
-        wp = self.wp
         cfg = self.config
         h, w = ref.shape
         r = cfg.window_radius_px
         sample_into = level.zncc if self.sweep == "sliding" else level.samples
-        wp.launch(k.warp_samples, dim=(n_src, h, w), device=self.device,
-                  inputs=[ref, src, self.src_slots, A, b, level.base, rho0, drho, n_planes, sample_into])
+        self._launch(k.warp_samples, (n_src, h, w),
+                     [ref, src, self.src_slots, A, b, level.base, rho0, drho, n_planes, sample_into])
         if self.sweep == "sliding":
             # the samples are in the ZNCC volume, which the column pass overwrites once the rows have summed them
-            wp.launch(k.sweep_rows, dim=(n_src, n_planes, h), device=self.device,
-                      inputs=[ref, level.zncc, r, level.sums])
-            wp.launch(k.sweep_cols, dim=(n_src, n_planes, w), device=self.device,
-                      inputs=[level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
+            self._launch(k.sweep_rows, (n_src, n_planes, h), [ref, level.zncc, r, level.sums])
+            self._launch(k.sweep_cols, (n_src, n_planes, w),
+                         [level.sums, level.std, r, cfg.min_texture, cfg.min_valid_fraction, level.zncc])
         else:
             dim = (n_src, n_planes, math.ceil(h / WINDOW_BAND_ROWS), w)
             if r == k.RING_RADIUS:
-                wp.launch(k.sweep_window_ring, dim=dim, device=self.device,
-                          inputs=[ref, level.samples, level.std, WINDOW_BAND_ROWS, cfg.min_texture,
-                                  cfg.min_valid_fraction, level.zncc])
+                self._launch(k.sweep_window_ring, dim, [ref, level.samples, level.std, WINDOW_BAND_ROWS,
+                                                        cfg.min_texture, cfg.min_valid_fraction, level.zncc])
             else:
-                wp.launch(k.sweep_window, dim=dim, device=self.device,
-                          inputs=[ref, level.samples, level.std, r, WINDOW_BAND_ROWS, cfg.min_texture,
-                                  cfg.min_valid_fraction, level.zncc])
-        wp.launch(k.select_plane, dim=(h, w), device=self.device,
-                  inputs=[level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored, level.plane, level.best,
-                          level.second])
+                self._launch(k.sweep_window, dim, [ref, level.samples, level.std, r, WINDOW_BAND_ROWS,
+                                                   cfg.min_texture, cfg.min_valid_fraction, level.zncc])
+        self._launch(k.select_plane, (h, w), [level.zncc, n_src, n_planes, min(cfg.best_k, n_src), min_scored,
+                                              level.plane, level.best, level.second])
 
-    def _sync_time(self, times: dict, name: str, t0: float) -> float:
-        self.wp.synchronize_device(self.device)
+    def _step(self, times: dict, name: str, t0: float, waited: bool = False) -> float:
+        """A step's end: its time since ``t0`` (with ``profile``, once the device has done it; ``waited``: the
+        step waited already)."""
+        if self.profile and not waited:
+            self._synchronize()
         t1 = time.perf_counter()
         times[name] = round((t1 - t0) * 1000.0, 3)
         return t1
@@ -377,7 +533,7 @@ class DepthEstimator:
         that source's own depth map) adds the forward-backward check for the sources it holds. ``on_device``: the
         map's depth and confidence are left on the device, as Warp arrays that this estimator's next ``compute``
         or ``check_geometry`` overwrites (only the funnel's counts come back; ``stats["kept_pixels"]`` says
-        whether it has any depth)."""
+        whether it has any depth). Either way the device has finished the map when it returns."""
         # Warp's current stream is one per device for the whole process: take turns with the other threads
         # that drive this device (a CUDA graph capture in the front-end must not catch these launches)
         with device_lock(self.device):
@@ -387,11 +543,10 @@ class DepthEstimator:
         """A cached view's colour on the device ((H, W, 3) uint8 Warp array, as uploaded), or None when it is not
         cached; valid until the view leaves the cache (a later ``compute``)."""
         entry = self._cached.get(kf_id)
-        return None if entry is None else self.colour[entry[0]]
+        return None if entry is None else self._slot_arrays[entry.slot][0]
 
     def _compute(self, ref: KeyframeView, sources: list[KeyframeView],
                  source_depths: dict[int, DepthMap] | None, on_device: bool = False) -> DepthMap:
-        wp = self.wp
         cfg = self.config
         if not sources:
             raise ReconstructionError(f"keyframe {ref.kf_id}: a depth map needs at least one source view")
@@ -408,6 +563,7 @@ class DepthEstimator:
         if w < 16 or h < 16:
             raise ReconstructionError(f"keyframe {ref.kf_id}: {w}x{h} is too small for multi-view stereo")
         n_src = len(sources)
+        self.ops = dict.fromkeys(DEVICE_OPS, 0)
         times: dict[str, float] = {}
         t0 = time.perf_counter()
         near, far = ref.depth_range_m or (cfg.default_near_m, cfg.default_far_m)
@@ -415,65 +571,61 @@ class DepthEstimator:
         if far <= near:
             raise ReconstructionError(f"keyframe {ref.kf_id}: depth_range_m {ref.depth_range_m} is empty")
         rho_lo, rho_hi = 1.0 / far, 1.0 / near
+        # the new reference (and any source not cached) goes to the device first: the device prepares it while
+        # the host works out the planes
+        self._ensure_checks(h, w)
+        self._ensure_views(h, w, n_src + 1)
+        slots, prepared = self._slots([ref] + list(sources))
+        t0 = self._step(times, "prepare_ms", t0)
+
         K_ref = np.asarray(ref.K, float)
-        fine_terms = [_homography_terms(K_ref, np.asarray(s.K, float), *_relative(ref, s)) for s in sources]
-        coarse_terms = [_homography_terms(_half_K(K_ref), _half_K(s.K), *_relative(ref, s)) for s in sources]
-        shift = _max_shift_px(coarse_terms, (w // 2, h // 2), rho_lo, rho_hi)
+        terms = _homography_terms(ref, sources)
+        shift = _max_shift_px(*terms[0], (w // 2, h // 2), rho_lo, rho_hi)
         n_planes = int(np.clip(math.ceil(shift / cfg.coarse_step_px) + 1, cfg.min_planes, cfg.max_planes))
         self._ensure(h, w, n_src, n_planes)
         drho_c = (rho_hi - rho_lo) / (n_planes - 1)
         step_px = max(shift, 1e-6) / (n_planes - 1)  # the largest image motion from one coarse plane to the next
         drho_f = 2.0 * cfg.fine_range_px / step_px * drho_c / (cfg.fine_planes - 1)
         rho0_f = -0.5 * (cfg.fine_planes - 1) * drho_f
-        # a sweep samples the plane homographies of every source at once: their terms go up in two small copies
-        terms = coarse_terms + fine_terms
-        self.A.assign(np.array([a for a, _ in terms], np.float32))
-        self.b.assign(np.array([b for _, b in terms], np.float32))
-        A_c, A_f = self.A[:n_src], self.A[n_src:]
-        b_c, b_f = self.b[:n_src], self.b[n_src:]
-        t0 = self._sync_time(times, "setup_ms", t0)
-
-        slots, prepared = self._slots([ref] + list(sources))
-        self.src_slots.assign(np.array(slots[1:], np.int32))
+        # every source's plane homographies and cache slot go up in one small copy
+        self._write_terms(terms)
+        self._upload_parameters(slots[1:])
+        A_c, A_f, b_c, b_f = self.A_c, self.A_f, self.b_c, self.b_f
         fine, coarse = self.fine, self.coarse
-        ref_full, ref_half = self.full_grey[slots[0]], self.half_grey[slots[0]]
+        _, ref_full, ref_half, ref_state = self._slot_arrays[slots[0]]
         self._window_stats(coarse, ref_half)
         self._window_stats(fine, ref_full)
-        t0 = self._sync_time(times, "prepare_ms", t0)
+        t0 = self._step(times, "setup_ms", t0)
 
-        coarse.base.zero_()
+        # (the coarse level's base inverse depth stays 0: its planes lie at rho_lo + i drho_c)
         self._sweep(coarse, ref_half, self.half_grey, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
                     max(3, math.ceil(cfg.min_scored_fraction * n_planes)))
-        t0 = self._sync_time(times, "coarse_sweep_ms", t0)
+        t0 = self._step(times, "coarse_sweep_ms", t0)
 
         if cfg.method == "patchmatch":
-            t0 = self._patchmatch(times, t0, slots[0], ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo, rho_hi,
-                                  drho_c, step_px, K_ref, ref.kf_id)
+            t0 = self._patchmatch(times, t0, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo,
+                                  rho_hi, drho_c, step_px, K_ref, ref.kf_id)
         else:
-            wp.launch(k.upsample_rho, dim=(h, w), device=self.device,
-                      inputs=[coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
+            self._launch(k.upsample_rho, (h, w), [coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
             self._sweep(fine, ref_full, self.full_grey, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src,
                         cfg.fine_planes)
-            t0 = self._sync_time(times, "fine_sweep_ms", t0)
+            t0 = self._step(times, "fine_sweep_ms", t0)
 
-            wp.launch(k.finalise, dim=(h, w), device=self.device,
-                      inputs=[self.state[slots[0]], ref_full, fine.std, coarse.plane, coarse.best, coarse.second,
-                              n_planes, cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc,
-                              fine.base, fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f,
-                              cfg.min_zncc, cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views,
-                              self.depth, self.confidence, self.code])
-            wp.launch(k.support, dim=(h, w), device=self.device,
-                      inputs=[self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
-                              self.supported])
-            wp.launch(k.apply_support, dim=(h, w), device=self.device,
-                      inputs=[self.supported, self.depth, self.confidence, self.code])
+            self._launch(k.finalise, (h, w),
+                         [ref_state, ref_full, fine.std, coarse.plane, coarse.best, coarse.second, n_planes,
+                          cfg.window_radius_px, cfg.max_depth_jump_px / step_px, cfg.edge_min_zncc, fine.base,
+                          fine.zncc, n_src, fine.plane, fine.best, cfg.fine_planes, rho0_f, drho_f, cfg.min_zncc,
+                          cfg.min_margin, cfg.margin_scale, cfg.view_min_zncc, cfg.min_views, self.depth,
+                          self.confidence, self.code])
+            self._launch(k.support, (h, w), [self.depth, self.code, cfg.support_radius_px, cfg.support_max_rel,
+                                             cfg.min_support, self.supported])
+            self._launch(k.apply_support, (h, w), [self.supported, self.depth, self.confidence, self.code])
         given = [s for s in sources if source_depths and s.kf_id in source_depths]
         if given:
             self._geometric(ref.kf_id, ref.K, ref.T_world_camera, [source_depths[s.kf_id] for s in given])
-        self.counts.zero_()
-        wp.launch(k.count_codes, dim=(h, math.ceil(w / COUNT_SPAN)), device=self.device,
-                  inputs=[self.code, COUNT_SPAN, self.counts])
-        t0 = self._sync_time(times, "checks_ms", t0)
+        self._fill(self.counts, 0)
+        self._launch(k.count_codes, (h, math.ceil(w / COUNT_SPAN)), [self.code, COUNT_SPAN, self.counts])
+        t0 = self._step(times, "checks_ms", t0)
 
         out, counts = self._download(with_map=not on_device)
         if on_device:
@@ -481,17 +633,17 @@ class DepthEstimator:
         funnel = {name: int(counts[i:].sum()) for i, name in enumerate(FUNNEL)}
         if not given:
             funnel.pop("geometry_agrees")
-        self._sync_time(times, "download_ms", t0)
+        self._step(times, "download_ms", t0, waited=True)
         times["total_ms"] = round(sum(times.values()), 3)
-        stats = {"funnel": funnel, "times_ms": times, "method": cfg.method, "planes": n_planes,
-                 "depth_range_m": (near, far),
+        stats = {"funnel": funnel, "times_ms": times, "profiled": self.profile, "device_ops": dict(self.ops),
+                 "method": cfg.method, "planes": n_planes, "depth_range_m": (near, far),
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
                  "prepared": prepared, "kept_pixels": list(funnel.values())[-1]}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
 
-    def _patchmatch(self, times: dict, t0: float, ref_slot: int, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
+    def _patchmatch(self, times: dict, t0: float, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
                     rho_lo: float, rho_hi: float, drho_c: float, step_px: float, K_ref: np.ndarray,
                     kf_id: int) -> float:
         """The coarse sweep's depth refined per pixel with slanted windows (``[depth] method = "patchmatch"``:
@@ -511,50 +663,51 @@ class DepthEstimator:
         half = list(common)
         half[1:3] = [A_c, b_c]
         seed = (cfg.patchmatch_seed * 7919 + kf_id) % (2 ** 31 - 1)
-        wp.launch(pm.init_planes, dim=(hc, wc), device=self.device,
-                  inputs=[self.coarse.plane, rho_lo, drho_c, rho_lo, rho_hi, focal_half, cfg.patchmatch_max_slope,
-                          cfg.patchmatch_perturb_slope, seed, ref_half, self.coarse.std, self.half_grey, *half,
-                          self.pm_plane, self.pm_score])
+        self._launch(pm.init_planes, (hc, wc),
+                     [self.coarse.plane, rho_lo, drho_c, rho_lo, rho_hi, focal_half, cfg.patchmatch_max_slope,
+                      cfg.patchmatch_perturb_slope, seed, ref_half, self.coarse.std, self.half_grey, *half,
+                      self.pm_plane, self.pm_score])
         for it in range(cfg.patchmatch_iterations):
             shrink = 0.5 ** it
             for parity in (0, 1):
-                wp.launch(pm.propagate, dim=(hc, (wc + 1) // 2), device=self.device,
-                          inputs=[parity, it, seed, cfg.patchmatch_far_px, rho_lo, rho_hi, focal_half,
-                                  cfg.patchmatch_max_slope, cfg.patchmatch_perturb_px * rho_per_px * shrink,
-                                  cfg.patchmatch_perturb_slope * shrink, ref_half, self.coarse.std, self.half_grey,
-                                  *half, self.pm_plane, self.pm_score])
-        t0 = self._sync_time(times, "patchmatch_ms", t0)
+                self._launch(pm.propagate, (hc, (wc + 1) // 2),
+                             [parity, it, seed, cfg.patchmatch_far_px, rho_lo, rho_hi, focal_half,
+                              cfg.patchmatch_max_slope, cfg.patchmatch_perturb_px * rho_per_px * shrink,
+                              cfg.patchmatch_perturb_slope * shrink, ref_half, self.coarse.std, self.half_grey,
+                              *half, self.pm_plane, self.pm_score])
+        t0 = self._step(times, "patchmatch_ms", t0)
         full = list(common)
         full[5:7] = [cfg.window_radius_px, 1]
         full[1:3] = [A_f, b_f]
         # a full-resolution pixel's image motion is twice a half-resolution one's for the same inverse depth
-        wp.launch(pm.finalise_planes, dim=(h, w), device=self.device,
-                  inputs=[self.state[ref_slot], ref_full, self.fine.std, self.pm_plane, self.full_grey, *full,
-                          rho_lo, rho_hi, 0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc,
-                          cfg.view_min_zncc, cfg.min_views, self.depth, self.confidence, self.code,
-                          self.pm_full_plane, wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()),
-                          cfg.patchmatch_angle_weight])
+        self._launch(pm.finalise_planes, (h, w),
+                     [ref_state, ref_full, self.fine.std, self.pm_plane, self.full_grey, *full, rho_lo, rho_hi,
+                      0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc, cfg.view_min_zncc,
+                      cfg.min_views, self.depth, self.confidence, self.code, self.pm_full_plane,
+                      wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()), cfg.patchmatch_angle_weight])
         # support against the pixel's plane; the depth-edge check reaches as far as the half-resolution window does
-        wp.launch(pm.plane_support, dim=(h, w), device=self.device,
-                  inputs=[self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel,
-                          cfg.min_support, 2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel,
-                          cfg.patchmatch_edge_slope, float(K_ref[0, 0]), cfg.patchmatch_edge_min, self.supported])
-        wp.launch(pm.apply_plane_support, dim=(h, w), device=self.device,
-                  inputs=[self.supported, self.depth, self.confidence, self.code])
+        self._launch(pm.plane_support, (h, w),
+                     [self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
+                      2 * cfg.patchmatch_window_radius_px, cfg.patchmatch_edge_rel, cfg.patchmatch_edge_slope,
+                      float(K_ref[0, 0]), cfg.patchmatch_edge_min, self.supported])
+        self._launch(pm.apply_plane_support, (h, w), [self.supported, self.depth, self.confidence, self.code])
         return t0
 
     def _download(self, with_map: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
         """(2, H, W) depth and confidence (``with_map``; else None), and the funnel codes' histogram, as host
-        arrays of their own."""
+        arrays of their own, after one wait."""
         array = None
         if with_map:
             host, array = self._host_buffer()
-            self.wp.copy(host, self.out)
-        counts = self.counts
+            self._copy_out(host, self.out)
         if self._host_counts is not None:
-            self.wp.copy(self._host_counts, self.counts)
+            self._copy_out(self._host_counts, self.counts)
             counts = self._host_counts
-        self.wp.synchronize_device(self.device)
+        else:  # the CPU device's array is host memory
+            counts = self.counts
+            self.ops["downloads"] += 1
+            self.ops["downloaded_bytes"] += counts.capacity
+        self._synchronize()
         return array, counts.numpy().copy()
 
     def _host_buffer(self) -> tuple[object, np.ndarray]:
@@ -565,13 +718,18 @@ class DepthEstimator:
             if sys.getrefcount(entry[1]) <= self._host_refs:
                 return entry
         if len(self._host_buffers) < self._keep_host_buffers:
-            buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu", pinned=self._pinned)
+            buffer = self._alloc_host(self.out.shape, float, pinned=self._pinned)
             entry = (buffer, buffer.numpy())
             self._host_buffers.append(entry)
             self._host_refs = sys.getrefcount(entry[1])  # this estimator's own references (the same each time)
             return entry
         buffer = self.wp.empty(self.out.shape, dtype=float, device="cpu")
         return buffer, buffer.numpy()
+
+    def _assign(self, target, values: np.ndarray) -> None:
+        """A host float array into the device's (a pageable copy: the geometric check's inputs)."""
+        values = np.ascontiguousarray(values, np.float32)
+        self._copy_in(target, self.wp.array(values, dtype=float, device="cpu", copy=False), values.nbytes)
 
     def rejection_codes(self) -> np.ndarray:
         """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
@@ -589,10 +747,11 @@ class DepthEstimator:
 
     def _check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
         h, w = depth_map.depth_m.shape
+        self.ops = dict.fromkeys(DEVICE_OPS, 0)
         self._ensure_checks(h, w)
         t0 = time.perf_counter()
-        self.depth.assign(np.ascontiguousarray(depth_map.depth_m, np.float32))
-        self.confidence.assign(np.ascontiguousarray(depth_map.confidence, np.float32))
+        self._assign(self.depth, depth_map.depth_m)
+        self._assign(self.confidence, depth_map.confidence)
         self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps)
         (depth, confidence), _ = self._download()
         stats = dict(depth_map.stats or {})
@@ -600,6 +759,7 @@ class DepthEstimator:
         stats["geometric_sources"] = [m.kf_id for m in source_maps]
         stats["times_ms"] = dict(stats.get("times_ms", {}),
                                  geometry_ms=round((time.perf_counter() - t0) * 1000.0, 3))
+        stats["geometry_device_ops"] = dict(self.ops)
         return DepthMap(depth_map.kf_id, depth, confidence, depth_map.K, depth_map.T_world_camera, stats)
 
     def _geometric(self, kf_id: int, K_ref, T_world_ref, maps: list[DepthMap]) -> None:
@@ -608,22 +768,21 @@ class DepthEstimator:
         cfg = self.config
         h, w = self.depth.shape
         K_ref = np.asarray(K_ref, float)
-        self.agree.zero_()
+        self._fill(self.agree, 0)
         for dm in maps:
             if dm.depth_m.shape != (h, w):
                 raise ReconstructionError(f"depth map of keyframe {dm.kf_id} is {dm.depth_m.shape}, keyframe "
                                           f"{kf_id}'s ({h}, {w}): the geometric check needs one size")
             T_src_ref = np.linalg.inv(np.asarray(dm.T_world_camera, float)) @ np.asarray(T_world_ref, float)
-            self.src_depth.assign(np.ascontiguousarray(dm.depth_m, np.float32))
+            self._assign(self.src_depth, dm.depth_m)
             K_src = np.asarray(dm.K, float)
-            wp.launch(k.geometric_agreement, dim=(h, w), device=self.device,
-                      inputs=[self.depth, wp.mat33(*np.linalg.inv(K_ref).ravel()), wp.mat33(*K_ref.ravel()),
-                              wp.mat33(*T_src_ref[:3, :3].ravel()), wp.vec3(*T_src_ref[:3, 3]),
-                              wp.mat33(*K_src.ravel()), wp.mat33(*np.linalg.inv(K_src).ravel()), self.src_depth,
-                              cfg.geometric_max_px, cfg.geometric_max_rel, self.agree])
-        wp.launch(k.apply_agreement, dim=(h, w), device=self.device,
-                  inputs=[self.agree, min(cfg.geometric_min_views, len(maps)), self.depth, self.confidence,
-                          self.code])
+            self._launch(k.geometric_agreement, (h, w),
+                         [self.depth, wp.mat33(*np.linalg.inv(K_ref).ravel()), wp.mat33(*K_ref.ravel()),
+                          wp.mat33(*T_src_ref[:3, :3].ravel()), wp.vec3(*T_src_ref[:3, 3]), wp.mat33(*K_src.ravel()),
+                          wp.mat33(*np.linalg.inv(K_src).ravel()), self.src_depth, cfg.geometric_max_px,
+                          cfg.geometric_max_rel, self.agree])
+        self._launch(k.apply_agreement, (h, w), [self.agree, min(cfg.geometric_min_views, len(maps)), self.depth,
+                                                 self.confidence, self.code])
 
 
 def compute_depth(ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
