@@ -363,6 +363,10 @@ def _wander_sigma(model: _EpipolarModel, params: np.ndarray, free: int, joint_si
 
 # --- online ------------------------------------------------------------------------------------------------------
 
+# a drift is called one only when it is this many standard errors of the offset (and the threshold) away
+DRIFT_SIGNIFICANCE = 3.0
+
+
 @dataclass(frozen=True)
 class OffsetReading:
     """The monitor's current view: the offset its window supports, how far that is from the applied one,
@@ -373,6 +377,9 @@ class OffsetReading:
     drifted: bool
     samples: int
     motion_px_s: float  # RMS of the measured image motion in the window: too little and nothing is decided
+    # the offset's standard error (Gauss-Newton: the residual's spread over the predicted motion's change); a
+    # drift within DRIFT_SIGNIFICANCE of it is not called one (a window of smooth motion pins no offset)
+    uncertainty_ns: int | None = None
 
 
 class TimeOffsetMonitor:
@@ -457,4 +464,22 @@ class TimeOffsetMonitor:
                 offset_s += 0.5 * self.step_s * (c0 - c2) / denom
         offset_ns = int(round(offset_s * 1e9))
         drift = offset_ns - self.applied_offset_ns
-        return OffsetReading(offset_ns, drift, abs(drift) > self.drift_threshold_ns, len(meas), motion)
+        sigma_ns = self._uncertainty_ns(tv + offset_s, tp, pred, float(np.nanmin(cost)))
+        drifted = abs(drift) > self.drift_threshold_ns and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns
+        return OffsetReading(offset_ns, drift, drifted, len(meas), motion, sigma_ns)
+
+    @staticmethod
+    def _uncertainty_ns(tk: np.ndarray, tp: np.ndarray, pred: np.ndarray, min_cost: float) -> int:
+        """The standard error of the shift at its optimum: a residual of variance s^2 per component against a
+        predicted motion whose rate of change is a(t) pins the shift to s / sqrt(sum |a|^2). The residual's
+        variance comes from the cost (the median of a 2-D Gaussian's squared length is 2 ln 2 of its variance)."""
+        inside = (tk >= tp[0]) & (tk <= tp[-1])
+        t = tk[inside]
+        h = 0.01  # s: the rate of change over the predicted motion's own smoothing scale, not its sample noise
+        rate = np.column_stack([(np.interp(t + h, tp, pred[:, c]) - np.interp(t - h, tp, pred[:, c])) / (2 * h)
+                                for c in (1, 2)])
+        information = float(np.sum(rate ** 2))
+        if information <= 0.0:
+            return 10 ** 12
+        variance = max(min_cost, 0.0) / (2.0 * math.log(2.0))
+        return int(round(math.sqrt(variance / information) * 1e9))

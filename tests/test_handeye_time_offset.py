@@ -102,6 +102,51 @@ def test_offset_monitor_follows_the_offset_and_flags_drift(true_offset_ms):
     assert reading.samples == pytest.approx(8.0 / 0.04, abs=2)  # the window, not the whole history
 
 
+def test_offset_monitor_calls_no_drift_where_the_window_pins_no_offset():
+    """Motion at a nearly constant speed carries almost no timing: the best shift wanders by hundreds of ms
+    with the tracking noise, and its standard error says so; none of it is called a drift."""
+    def steady(t_s):
+        return np.column_stack([30 + 2 * np.sin(2 * np.pi * 0.05 * t_s), 10 + 0 * t_s])
+
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        monitor = TimeOffsetMonitor(window_s=10.0, search_s=0.5, drift_threshold_ns=50_000_000)
+        t_robot = np.arange(0.0, 14.0, 0.005)
+        for tk, p in zip(t_robot, steady(t_robot)):
+            monitor.add_predicted(int(tk * 1e9), p)
+        for tv in np.arange(0.5, 13.0, 1 / 60):
+            monitor.add_measured(int(tv * 1e9), steady(np.array([tv]))[0] + rng.normal(0, 5.0, 2))
+        reading = monitor.reading()
+        assert reading.offset_ns is not None and reading.uncertainty_ns > 100_000_000
+        assert not reading.drifted
+
+
+def test_the_watch_changes_its_state_only_after_readings_in_a_row():
+    from lapreco_hil.calib.time_offset import OffsetReading
+    from lapreco_hil.runtime.time_offset_watch import READINGS_TO_SWITCH, TimeOffsetWatch
+
+    class Scripted:
+        def __init__(self, drifts):
+            self.drifts = list(drifts)
+
+        def reading(self):
+            d = self.drifts.pop(0)
+            return OffsetReading(d, d, abs(d) > 50_000_000, 500, 40.0, 5_000_000)
+
+    now = [0.0]
+    # drifted, ok, drifted, drifted, ok, drifted, ok, ok (ms)
+    script = [90, 0, 90, 90, 0, 90, 0, 0]
+    watch = TimeOffsetWatch(np.eye(3), 0, monitor=Scripted(d * 1_000_000 for d in script), clock=lambda: now[0])
+    states = []
+    for k in range(len(script)):
+        now[0] = 10.0 * k
+        watch.reading()
+        states.append(watch.health().ok)
+    assert READINGS_TO_SWITCH == 2
+    assert states == [True, True, True, False, False, False, False, True]
+    assert watch.summary()["drifted"] is False
+
+
 def test_offset_monitor_refuses_to_judge_a_still_camera():
     monitor = TimeOffsetMonitor(min_samples=20)
     for k in range(400):
@@ -295,6 +340,9 @@ def test_a_live_run_watches_the_time_offset_from_its_own_tracks(true_offset_ms):
     reading = watch.reading()
     assert reading.offset_ns is not None
     assert abs(reading.offset_ns * 1e-6 - true_offset_ms) < 10.0  # a quarter of the 40 ms frame period
+    assert not watch.drifted  # one reading does not change the state
+    now[0] = 103.0  # the next search, READING_PERIOD_S on
+    watch.reading()
     health = watch.health()
     assert health.ok == (abs(true_offset_ms) <= 50.0)
     assert watch.summary()["drifted"] == (abs(true_offset_ms) > 50.0)

@@ -20,6 +20,9 @@ READING_PERIOD_S = 2.0
 # a drift beyond this is reported: geared joints' backlash alone reads as ~20 ms of delay in the image motion
 # (docs/calibration-handeye.md), and the slips worth a warning are tens to thousands of milliseconds
 DRIFT_THRESHOLD_NS = 50_000_000
+# readings in a row that must disagree with the watch's state (drifted or not) before it changes: one window's
+# estimate can stray, and a warning that comes and goes every reading tells the user nothing
+READINGS_TO_SWITCH = 2
 
 
 class TimeOffsetWatch:
@@ -32,6 +35,8 @@ class TimeOffsetWatch:
         self.clock = clock
         self._reading = OffsetReading(None, None, False, 0, 0.0)
         self._next_reading = 0.0
+        self._drifted = False  # the state reported: changed by READINGS_TO_SWITCH readings in a row
+        self._against = 0  # readings in a row that disagree with it
 
     def observe(self, prev: Observations, obs: Observations, motion: FrameMotion) -> None:
         """One frame's measured and predicted image motion (tracks seen in both frames, those with a depth)."""
@@ -60,13 +65,23 @@ class TimeOffsetWatch:
         if now >= self._next_reading:
             self._next_reading = now + READING_PERIOD_S
             self._reading = self.monitor.reading()
+            if self._reading.offset_ns is not None:
+                self._against = self._against + 1 if self._reading.drifted != self._drifted else 0
+                if self._against >= READINGS_TO_SWITCH:
+                    self._drifted, self._against = self._reading.drifted, 0
         return self._reading
+
+    @property
+    def drifted(self) -> bool:
+        """Whether the offset in use has drifted: the last READINGS_TO_SWITCH readings said so (and no as many
+        said otherwise since)."""
+        return self._drifted
 
     def health(self) -> Condition:
         r = self.reading()
         if r.offset_ns is None:
             return Condition("watching", True)
-        if r.drifted:
+        if self._drifted:
             return Condition("drifted", False, f"the video and the poses line up at {r.offset_ns / 1e6:+.0f} ms, "
                              f"{r.drift_ns / 1e6:+.0f} ms from the {self.applied_offset_ns / 1e6:+.0f} ms in use; "
                              "estimate it again (lapreco calibrate time-offset SESSION) and pass it on",
@@ -77,5 +92,6 @@ class TimeOffsetWatch:
         r = self._reading
         return {"applied_ms": self.applied_offset_ns / 1e6,
                 "estimated_ms": None if r.offset_ns is None else r.offset_ns / 1e6,
-                "drift_ms": None if r.drift_ns is None else r.drift_ns / 1e6, "drifted": r.drifted,
-                "window_samples": r.samples}
+                "drift_ms": None if r.drift_ns is None else r.drift_ns / 1e6,
+                "uncertainty_ms": None if r.uncertainty_ns is None else r.uncertainty_ns / 1e6,
+                "drifted": self._drifted, "window_samples": r.samples}
