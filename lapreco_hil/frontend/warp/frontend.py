@@ -6,7 +6,8 @@ tracks' part first, so the host reads their colours while detection finishes). I
 are read on the host from the frame in hand, at each track's position in the distorted frame.
 
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
-its kernels launch one by one (the pose is a kernel argument). ``match_view`` brings this frame's tracker image
+its motion goes up to the device first, so it too is a graph replay (one graph per kind of frame: buffer parity,
+with or without a motion, LK's levels, the track budget). ``match_view`` brings this frame's tracker image
 back once and matches on the host (``frontend.epipolar``).
 """
 
@@ -122,6 +123,10 @@ class WarpFrontEnd:
             # pose-predicted starts (FrameMotion): each slot's depth (<= 0: none), the start positions, the
             # epipolar sweep's scratch, and whether LK starts from them (0 in every captured graph)
             self._depth = wp.zeros(n, dtype=float)
+            # the frame's motion (T_cur_prev; 1 / near, 1 / far), read by the prediction kernels from the device
+            # so that a captured graph replays them for any motion
+            self._motion_T = wp.zeros(1, dtype=wp.mat44)
+            self._inverse_range = wp.zeros(1, dtype=wp.vec2)
             self._guess = wp.zeros(n, dtype=wp.vec2)
             self._use_guess = wp.zeros(1, dtype=wp.int32)
             self._sweep_scores = wp.zeros((n, predict.SWEEP_SAMPLES), dtype=float)
@@ -162,9 +167,14 @@ class WarpFrontEnd:
             self._out_kept, self._out_all = ((wp.zeros(n, dtype=wp.vec4, pinned=pinned),
                                               wp.zeros(n + RESULT_HEADER, dtype=wp.int32, pinned=pinned))
                                              for _ in range(2))
+            # a frame's motion goes up from here (the slots' depths, T_cur_prev, the inverse depth range); the
+            # previous frame's copies are done by then (each frame ends waiting for its results)
+            self._motion_up = (wp.zeros(n, dtype=float, pinned=pinned), wp.zeros(1, dtype=wp.mat44, pinned=pinned),
+                               wp.zeros(1, dtype=wp.vec2, pinned=pinned))
         # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
         self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
+        self._motion_up_np = tuple(a.numpy() for a in self._motion_up)
         # events the host waits on: the surviving tracks' results are in, the frame's results are in
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self._done = wp.Event(self.device) if self.device.is_cuda else None
@@ -174,8 +184,10 @@ class WarpFrontEnd:
         self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
-        self._graphs = [None, None]  # one CUDA graph per frame, per buffer parity
-        self._runs = [0, 0]
+        # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget); the
+        # launches of each kind run once eagerly (modules loaded, scratch allocated) before it is captured
+        self._graphs: dict[tuple, object] = {}
+        self._runs: dict[tuple, int] = {}
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
         self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
@@ -267,9 +279,9 @@ class WarpFrontEnd:
         level = min(epipolar.SWEEP_LEVEL, self.levels - 1)
         prev, cur = 1 - self._cur, self._cur
         predict.predict_starts(self._pyr[prev], self._pyr[cur], offs[level], ws[level], hs[level], level,
-                               self._pts[prev], self._count[prev], self._depth, self.camera.K,
-                               np.asarray(motion.T_cur_prev, np.float64), motion.depth_range_m, self._sweep_scores,
-                               self._sweep_cand, self._guess, self._sweep_found, self.device)
+                               self._pts[prev], self._count[prev], self._depth, self.camera.K, self._motion_T,
+                               self._inverse_range, self._sweep_scores, self._sweep_cand, self._guess,
+                               self._sweep_found, self.device)
 
     def _keep_kernels(self) -> None:
         """The drift check (or LK's own verdict) and the field-of-view test, then compaction of the surviving
@@ -415,8 +427,8 @@ class WarpFrontEnd:
     def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
         """The frame's motion to the device: each slot's depth (its own, its neighbours', or none), the flag
         that makes LK start from the predicted positions, LK's pyramid levels for the prediction's uncertainty
-        and the frame's track budget (``epipolar.prediction_plan``). Frames with a motion launch
-        their kernels one by one (the motion's pose is a kernel argument, so no captured graph replays them)."""
+        and the frame's track budget (``epipolar.prediction_plan``). The depths and the motion go up through
+        pinned buffers, and the prediction kernels read them there (a captured graph replays them)."""
         self._motion = motion
         self._lk_levels = self.levels
         self._budget = self.config.max_features
@@ -427,9 +439,12 @@ class WarpFrontEnd:
                                                            uv, ids, depth, motion, self.camera.K)
         self._lk_levels = lk_levels + 1  # (with full resolution)
         self._depth_range = motion.depth_range_m
-        slots = np.zeros(track_capacity(self.config), np.float32)
-        slots[:len(depth)] = np.nan_to_num(depth, nan=0.0)
-        self._depth.assign(slots)
+        depth_up, T_up, range_up = self._motion_up_np
+        depth_up[:] = 0.0
+        depth_up[:len(depth)] = np.nan_to_num(depth, nan=0.0)
+        T_up[:], range_up[:] = predict.motion_params(motion.T_cur_prev, motion.depth_range_m)
+        for target, source in zip((self._depth, self._motion_T, self._inverse_range), self._motion_up):
+            wp.copy(target, source)
         self._use_guess.fill_(1)
 
     def _process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
@@ -455,21 +470,21 @@ class WarpFrontEnd:
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
-        if self.device.is_cuda and self.use_graphs and not self.profile and self._runs[cur] >= 1 and (
-                self._motion is None):
-            if self._graphs[cur] is None:
-                try:
-                    with wp.ScopedCapture(device=self.device) as capture:
-                        self._frame_kernels()
-                    self._graphs[cur] = capture.graph
-                except Exception as exc:  # e.g. a driver without conditional graph nodes (CUDA < 12.4)
-                    log.warning("front-end: CUDA graph capture failed (%s); launching kernels one by one", exc)
-                    self.use_graphs = False
-        if self.use_graphs and not self.profile and self._graphs[cur] is not None and self._motion is None:
-            wp.capture_launch(self._graphs[cur])
+        kind = (cur, self._motion is not None, self._lk_levels, self._budget)
+        graphs = self.device.is_cuda and self.use_graphs and not self.profile
+        if graphs and self._runs.get(kind, 0) >= 1 and kind not in self._graphs:
+            try:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._frame_kernels()
+                self._graphs[kind] = capture.graph
+            except Exception as exc:  # e.g. a driver without conditional graph nodes (CUDA < 12.4)
+                log.warning("front-end: CUDA graph capture failed (%s); launching kernels one by one", exc)
+                self.use_graphs = graphs = False
+        if graphs and kind in self._graphs:
+            wp.capture_launch(self._graphs[kind])
         else:
             self._frame_kernels()
-        self._runs[cur] += 1
+        self._runs[kind] = self._runs.get(kind, 0) + 1
         # the surviving tracks' results and colours are read while detection runs (new tracks only append)
         if self._tracked is not None:
             wp.synchronize_event(self._tracked)

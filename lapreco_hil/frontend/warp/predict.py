@@ -4,6 +4,7 @@ depth on pyramid level SWEEP_LEVEL). The same steps as ``frontend.epipolar`` (nu
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from lapreco_hil.frontend import epipolar
@@ -27,16 +28,27 @@ def _project(K: wp.vec4, R: wp.mat33, t: wp.vec3, uv: wp.vec2, z: float) -> wp.v
     return wp.vec2(K[0] * p[0] / p[2] + K[2], K[1] * p[1] / p[2] + K[3])
 
 
+@wp.func
+def _rotation(T: wp.mat44) -> wp.mat33:
+    return wp.mat33(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+
+
+@wp.func
+def _translation(T: wp.mat44) -> wp.vec3:
+    return wp.vec3(T[0, 3], T[1, 3], T[2, 3])
+
+
 @wp.kernel
 def _predict(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), depth: wp.array(dtype=float),
-             K: wp.vec4, R: wp.mat33, t: wp.vec3, guess: wp.array(dtype=wp.vec2)):
+             K: wp.vec4, motion: wp.array(dtype=wp.mat44), guess: wp.array(dtype=wp.vec2)):
     """Tracks with a depth: their projection; the others NaN until the sweep finds them."""
     f = wp.tid()
     if f >= count[0]:
         return
     d = depth[f]
     if d > 0.0:
-        guess[f] = _project(K, R, t, pts[f], d)
+        T = motion[0]
+        guess[f] = _project(K, _rotation(T), _translation(T), pts[f], d)
     else:
         guess[f] = wp.vec2(wp.nan, wp.nan)
 
@@ -44,15 +56,18 @@ def _predict(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), dept
 @wp.kernel
 def _sweep_scores(prev: wp.array(dtype=float), cur: wp.array(dtype=float), off: int, w: int, h: int, scale: float,
                   pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), depth: wp.array(dtype=float),
-                  K: wp.vec4, R: wp.mat33, t: wp.vec3, inv_near: float, inv_far: float,
+                  K: wp.vec4, motion: wp.array(dtype=wp.mat44), inverse_range: wp.array(dtype=wp.vec2),
                   scores: wp.array2d(dtype=float), cand: wp.array2d(dtype=wp.vec2)):
     """One thread per (track without depth, inverse-depth sample): ZNCC of the track's patch in the previous
     level image against the current one at the sample's projection (-1 where the patch leaves the level)."""
     f, s = wp.tid()
     if f >= count[0] or depth[f] > 0.0:
         return
+    inv_near = inverse_range[0][0]
+    inv_far = inverse_range[0][1]
     inv = inv_near + (inv_far - inv_near) * float(s) / float(SWEEP_SAMPLES - 1)
-    c = _project(K, R, t, pts[f], 1.0 / inv)
+    T = motion[0]
+    c = _project(K, _rotation(T), _translation(T), pts[f], 1.0 / inv)
     cand[f, s] = c
     q = c * scale
     r = float(SWEEP_HALF)
@@ -135,22 +150,28 @@ def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_s
                                                               float(epipolar.FORWARD_BACKWARD_PX), status, searched],
               device=device)
 
+def motion_params(T_cur_prev, depth_range_m) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's motion as ``predict_starts`` reads it from the device: (T_cur_prev as one float32 4x4, the
+    inverse depth range (1 / near, 1 / far) as one float32 pair)."""
+    near, far = depth_range_m
+    return (np.asarray(T_cur_prev, np.float32).reshape(1, 4, 4),
+            np.array([[1.0 / near, 1.0 / far]], np.float32))
+
+
 def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_w: int, level_h: int, level: int,
-                   pts: wp.array, count: wp.array, depth: wp.array, K, T_cur_prev, depth_range_m,
+                   pts: wp.array, count: wp.array, depth: wp.array, K, motion: wp.array, inverse_range: wp.array,
                    scores: wp.array, cand: wp.array, guess: wp.array, found: wp.array, device) -> None:
     """``guess`` <- where each of the first ``count[0]`` tracks starts LK: projected at ``depth`` (> 0), else
     swept along its epipolar line on pyramid ``level`` (``scores``, ``cand``: (n, SWEEP_SAMPLES) scratch);
     where the sweep finds no clear match, the line's far end (``found`` 0). K is the 3x3 intrinsics of both
-    frames (one camera)."""
+    frames (one camera); the motion is read from the device (``motion``: T_cur_prev, ``inverse_range``: 1 / near,
+    1 / far; ``motion_params``), so a captured graph replays these launches for any frame's motion."""
     Kv = wp.vec4(float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2]))
-    R = wp.mat33(*[float(v) for v in T_cur_prev[:3, :3].ravel()])
-    t = wp.vec3(*[float(v) for v in T_cur_prev[:3, 3]])
     n = pts.shape[0]
-    wp.launch(_predict, dim=n, inputs=[pts, count, depth, Kv, R, t, guess], device=device)
+    wp.launch(_predict, dim=n, inputs=[pts, count, depth, Kv, motion, guess], device=device)
     scale = 1.0 / (1 << level)
-    near, far = depth_range_m
     wp.launch(_sweep_scores, dim=(n, SWEEP_SAMPLES), inputs=[
-        prev_pyr, cur_pyr, level_off, level_w, level_h, scale, pts, count, depth, Kv, R, t, 1.0 / near, 1.0 / far,
+        prev_pyr, cur_pyr, level_off, level_w, level_h, scale, pts, count, depth, Kv, motion, inverse_range,
         scores, cand], device=device)
     wp.launch(_sweep_pick, dim=n, inputs=[scores, cand, count, depth, scale, epipolar.MIN_SCORE, epipolar.MARGIN,
                                            epipolar.SECOND_RADIUS, guess, found], device=device)
