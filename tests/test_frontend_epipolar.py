@@ -152,29 +152,40 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
 def test_frames_with_a_motion_replay_as_graphs_what_they_launch_one_by_one(warp_cpu):
     """The Warp front-end captures a frame with a motion as a CUDA graph too (the motion is read from the device),
     one per kind of frame: the graphs' tracks are the launches' to the bit, frame after frame. (On the CPU device
-    both run the launches; with LAPRECO_TEST_DEVICE=cuda:0 this checks the graphs.)"""
+    both run the launches; with LAPRECO_TEST_DEVICE=cuda:0 this checks the graphs. On CUDA new corners take
+    their slots, and so their ids, in the order their threads get there: the tracks are compared as sets.)"""
     left, _, K, _, _ = hamlyn()
     left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
     K = np.diag([2.0, 2.0, 1.0]) @ K
     grey = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
-    T, H = plane_motion(K, 0.08, 25.0, np.radians(2.0))
-    frames = [cv2.cvtColor(warp_frame(grey, np.linalg.matrix_power(H, k)), cv2.COLOR_GRAY2BGR) for k in range(6)]
+    # a different motion every frame, back and forth (a graph that kept the motion it was captured with would be
+    # caught: each kind of frame is launched once, captured the next time, and replayed after that)
+    steps = [plane_motion(K, 0.08, (-1) ** k * (30.0 + 4.0 * k), (-1) ** k * np.radians(1.0 + 0.5 * k))
+             for k in range(7)]
+    to_first = [np.eye(3)]
+    for _, H in steps:
+        to_first.append(H @ to_first[-1])
+    frames = [cv2.cvtColor(warp_frame(grey, H), cv2.COLOR_GRAY2BGR) for H in to_first]
 
     def run(graphs):
         fe = make_frontend("warp", camera(K, left), TrackerConfig(redetect_below=0.001), DEVICE)
         fe.use_graphs = graphs
         out = [fe.process(Frame(frames[0], 0, 0))]
-        for k in range(1, len(frames)):
+        for k, (T, _) in enumerate(steps, start=1):
             out.append(fe.process(Frame(frames[k], k, k), FrameMotion(T, depth_range_m=(0.03, 0.3))))
         return fe, out
 
     with_graphs, replayed = run(True)
     _, launched = run(False)
+    def tracks(obs):
+        return obs.uv[np.lexsort(obs.uv.T[::-1])]
+
     for a, b in zip(replayed, launched):
-        assert np.array_equal(a.track_ids, b.track_ids) and np.array_equal(a.uv, b.uv)
+        assert np.array_equal(tracks(a), tracks(b))
     assert len(replayed[-1]) > 100
     if DEVICE.startswith("cuda"):
-        assert any(kind[1] for kind in with_graphs._graphs), with_graphs._graphs.keys()
+        replays = [kind for kind, runs in with_graphs._runs.items() if kind[1] and runs >= 3]
+        assert replays and all(kind in with_graphs._graphs for kind in replays), with_graphs._runs
 
 
 def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
