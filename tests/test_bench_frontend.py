@@ -1,0 +1,27 @@
+"""``lapreco bench frontend``: its live-path pass gives every frame after the first the camera's motion (the
+true relative pose and the tracks' rendered depths), as a live run's pose source and map do."""
+
+import numpy as np
+
+from lapreco_hil.bench import frontend as bench
+from lapreco_hil.geometry import inv_T
+
+
+def test_the_live_path_pass_gives_each_frame_its_true_motion_and_depths(warp_cpu):
+    camera, frames, truth = bench._frames("skull", 160, 120, 3, "cpu")
+    motion = bench._live_motion(truth, bench.SCENE_DEPTH_M)
+    assert motion(None, 0) is None
+    from lapreco_hil.frontend.opencv import OpenCVFrontEnd
+    from lapreco_hil.config import TrackerConfig
+
+    fe = OpenCVFrontEnd(camera, TrackerConfig(max_features=100, min_distance_px=4.0))
+    obs = fe.process(frames[0])
+    m = motion(obs, 1)
+    np.testing.assert_allclose(m.T_cur_prev, inv_T(truth[1][1]) @ truth[0][1], atol=1e-12)
+    assert len(m.track_ids) > 0.5 * len(obs) and np.all(m.depth_m > 0)
+    assert set(m.track_ids) <= set(obs.track_ids)
+
+    result = bench.run("cpu", [(160, 120)], [100], frames=4, warmup=1)
+    live = result["rows"][0]["warp"]["with_motion"]
+    assert live["total_ms"] > 0 and live["tracks_median"] > 0
+    assert "+motion" in bench.format_table(result)
