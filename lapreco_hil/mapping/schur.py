@@ -528,35 +528,70 @@ def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndar
     return r, np.transpose(Jc, (2, 0, 1)), np.transpose(Jp, (2, 0, 1))
 
 
-def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
-    """Whitened prior and tie errors, and (optionally) their Jacobians: [(error (n, 6), [(pose idx (n,),
-    J (n, 6, 6))])]."""
+def _pose_errors(p: BAProblem, lay: _Layout, poses: np.ndarray) -> list[tuple]:
+    """The priors' and ties' errors at ``poses``, what their loss and Jacobians need: per kind of factor
+    (whitened error (n, 6), error (n, 6), its whitening (n, 6, 6), its poses (prior: (i,), tie: (i, j)),
+    a tie's T_i^-1 T_j (n, 4, 4) or None, 0.5 |whitened error|^2). A state keeps them with its poses: the error
+    at a trial's poses is the next linearisation's."""
     out = []
     if len(lay.prior_idx):
         i = lay.prior_idx
         e = se3_log(lay.prior_inv @ poses[i])
-        J = lay.prior_R @ right_jacobian_inverse(e) if jacobians else None
-        out.append((np.einsum("nij,nj->ni", lay.prior_R, e), [(i, J)]))
+        out.append((np.einsum("nij,nj->ni", lay.prior_R, e), e, lay.prior_R, (i,), None))
     if len(p.tie_pairs):
         i, j = p.tie_pairs[:, 0], p.tie_pairs[:, 1]
         B = np.linalg.inv(poses[i]) @ poses[j]
         e = se3_log(lay.tie_inv @ B)
-        blocks = []
-        if jacobians:
-            Jj = lay.tie_R @ right_jacobian_inverse(e)
-            blocks = [(i, -Jj @ adjoint(np.linalg.inv(B))), (j, Jj)]
-        out.append((np.einsum("nij,nj->ni", lay.tie_R, e), blocks))
+        out.append((np.einsum("nij,nj->ni", lay.tie_R, e), e, lay.tie_R, (i, j), B))
+    return [(*f, 0.5 * float(np.sum(f[0] * f[0]))) for f in out]
+
+
+def _pose_jacobians(errors: list[tuple]) -> list[tuple]:
+    """[(whitened error (n, 6), [(pose idx (n,), whitened J (n, 6, 6))])] of ``_pose_errors``' factors."""
+    out = []
+    for err, e, R, idx, B, _ in errors:
+        J = R @ right_jacobian_inverse(e)
+        out.append((err, [(idx[0], J)] if B is None else [(idx[0], -J @ adjoint(np.linalg.inv(B))), (idx[1], J)]))
     return out
 
 
-def _plus_pose_factors(p: BAProblem, lay: _Layout, poses, total: float) -> float:
-    """``total`` (the reprojection losses) plus 0.5 |whitened error|^2 of the priors and ties."""
-    for err, _ in _pose_factors(p, lay, poses, jacobians=False):
-        total += 0.5 * float(np.sum(err * err))
+def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
+    """Whitened prior and tie errors, and (optionally) their Jacobians: [(error (n, 6), [(pose idx (n,),
+    J (n, 6, 6))])]."""
+    errors = _pose_errors(p, lay, poses)
+    if jacobians:
+        return _pose_jacobians(errors)
+    return [(f[0], []) for f in errors]
+
+
+def _pose_normal_terms(lay: _Layout, errors: list[tuple]) -> list[tuple]:
+    """The pose factors' terms of the normal equations, for ``_with_pose_factors`` (made while the device
+    linearises): per factor and pose, (free column blocks, J^T e) and [((column blocks a, :, b, :), Ja^T Jb)]."""
+    out = []
+    for err, jac in _pose_jacobians(errors):
+        for idx_a, Ja in jac:
+            ca = lay.col[idx_a]
+            ok = ca >= 0
+            blocks = []
+            for idx_b, Jb in jac:
+                cb = lay.col[idx_b]
+                both = ok & (cb >= 0)
+                blocks.append(((ca[both], slice(None), cb[both], slice(None)),
+                               np.transpose(Ja[both], (0, 2, 1)) @ Jb[both]))
+            out.append((ca[ok], np.einsum("nji,nj->ni", Ja[ok], err[ok]), blocks))
+    return out
+
+
+def _plus_pose_factors(p: BAProblem, lay: _Layout, poses, total: float, errors: list | None = None) -> float:
+    """``total`` (the reprojection losses) plus 0.5 |whitened error|^2 of the priors and ties (``errors``: their
+    ``_pose_errors`` at ``poses``, where known)."""
+    for f in _pose_errors(p, lay, poses) if errors is None else errors:
+        total += f[-1]
     return total
 
 
-def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
+def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float,
+           errors: list | None = None) -> float:
     """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
     if lay.kernels is not None:
         lay.kernels.set_state(poses, points)
@@ -564,28 +599,33 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
     else:
         ru, rv = _project(p, lay, poses, points)[:2]
         total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
-    return _plus_pose_factors(p, lay, poses, total)
+    return _plus_pose_factors(p, lay, poses, total, errors)
 
 
 def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
-                         lam: float | None = None) -> _Linear:
+                         lam: float | None = None, errors: list | None = None) -> _Linear:
     """``_linearize`` by the kernels at their current state (``poses`` on the host); the landmark blocks stay on
     the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None), and are eliminated at ``lam``
-    with it where given (``ObservationKernels.linearize``)."""
+    with it where given (``ObservationKernels.launch_linearize``). The host makes the pose factors' terms while
+    the device works."""
     on_device = lay.kernels.schur_on_device
-    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.linearize(sigma, loss, k, landmarks=not on_device,
-                                                                lam=lam if on_device else None)
+    lay.kernels.launch_linearize(sigma, loss, k, lam if on_device else None)
+    errors = _pose_errors(p, lay, poses) if errors is None else errors
+    terms = _pose_normal_terms(lay, errors)
     n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
+    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize(landmarks=not on_device)
     diagonal = np.arange(n_free)
     Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
-    return _with_pose_factors(p, lay, poses, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq)
+    return _with_pose_factors(lay, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq, errors, terms)
 
 
-def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
+def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float,
+               errors: list | None = None) -> _Linear:
     if lay.kernels is not None:
         lay.kernels.set_state(poses, points)
-        return _linearize_on_device(p, lay, poses, sigma, loss, k)
+        return _linearize_on_device(p, lay, poses, sigma, loss, k, errors=errors)
+    errors = _pose_errors(p, lay, poses) if errors is None else errors
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
     r2 = ru * ru + rv * rv
@@ -613,25 +653,21 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
             run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
             Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
             gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
-    return _with_pose_factors(p, lay, poses, Hcc, gc, Hpp, gp, W, error0)
+    return _with_pose_factors(lay, Hcc, gc, Hpp, gp, W, error0, errors, _pose_normal_terms(lay, errors))
 
 
-def _with_pose_factors(p: BAProblem, lay: _Layout, poses, Hcc, gc, Hpp, gp, W, error0: float) -> _Linear:
-    """The linearisation with the priors' and ties' terms added to the pose blocks."""
+def _with_pose_factors(lay: _Layout, Hcc, gc, Hpp, gp, W, error0: float, errors: list, terms: list) -> _Linear:
+    """The linearisation with the priors' and ties' terms (``_pose_errors``, ``_pose_normal_terms``) added to
+    the pose blocks."""
     n_free = len(lay.free)
     H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
-    for err, jac in _pose_factors(p, lay, poses, jacobians=True):
-        error0 += 0.5 * float(np.sum(err * err))
-        for idx_a, Ja in jac:
-            ca = lay.col[idx_a]
-            ok = ca >= 0
-            np.add.at(g2, ca[ok], np.einsum("nji,nj->ni", Ja[ok], err[ok]))
-            for idx_b, Jb in jac:
-                cb = lay.col[idx_b]
-                both = ok & (cb >= 0)
-                np.add.at(H4, (ca[both], slice(None), cb[both], slice(None)),
-                          np.transpose(Ja[both], (0, 2, 1)) @ Jb[both])
+    for f in errors:
+        error0 += f[-1]
+    for cols, g, blocks in terms:
+        np.add.at(g2, cols, g)
+        for index, H in blocks:
+            np.add.at(H4, index, H)
     return _Linear(Hcc, gc, Hpp, gp, W, error0)
 
 
@@ -789,6 +825,7 @@ class _Step:
     step2: float  # |d|^2
     poses: np.ndarray  # (P, 4, 4) the trial poses
     reprojection_error: float | None = None  # the trial's, where the device evaluated it with the step
+    pose_errors: list | None = None  # the trial poses' ``_pose_errors``, once made
 
 
 def _trial_poses(lay: _Layout, poses: np.ndarray, dc: np.ndarray) -> np.ndarray:
@@ -803,6 +840,12 @@ class _HostState:
 
     def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
         self.p, self.lay, self.poses, self._points, self._trial = p, lay, poses, points, None
+        self._pose_errors = None  # the pose factors' ``_pose_errors`` at ``poses``, once made
+
+    def pose_errors(self) -> list:
+        if self._pose_errors is None:
+            self._pose_errors = _pose_errors(self.p, self.lay, self.poses)
+        return self._pose_errors
 
     def points(self) -> np.ndarray:
         return self._points
@@ -811,10 +854,10 @@ class _HostState:
         return _reprojection(self.p, self.lay, self.poses, self._points, jacobians=False, behind=behind)
 
     def error(self, sigma: float, loss: str, k: float) -> float:
-        return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+        return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k, self.pose_errors())
 
     def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
-        return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+        return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k, self.pose_errors())
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         step = _solve_damped(self.lay, lin, lam, timing)
@@ -826,20 +869,28 @@ class _HostState:
 
     def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
         self._trial = self._points + step.dp
-        return _error(self.p, self.lay, step.poses, self._trial, sigma, loss, k)
+        step.pose_errors = _pose_errors(self.p, self.lay, step.poses)
+        return _error(self.p, self.lay, step.poses, self._trial, sigma, loss, k, step.pose_errors)
 
     def accept(self, step: _Step) -> None:
-        self.poses, self._points = step.poses, self._trial
+        self.poses, self._points, self._pose_errors = step.poses, self._trial, step.pose_errors
 
 
 class _DeviceState:
     """The Warp path's state: the landmarks stay on the kernels' device from the solve's start to its end (read
     back once); the poses, a few, on both sides (the host's pose factors and camera system need them; each trial's
-    are uploaded once). A step is applied and its error evaluated there, one read-back each (``ObservationKernels``)."""
+    are uploaded once). A step is applied and its error evaluated there, one read-back each (``ObservationKernels``);
+    the host works on the pose factors between a launch and its read-back."""
 
     def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
         self.p, self.lay, self.kernels, self.poses = p, lay, lay.kernels, poses
         self.kernels.set_state(poses, points)
+        self._pose_errors = None  # the pose factors' ``_pose_errors`` at ``poses``, once made
+
+    def pose_errors(self) -> list:
+        if self._pose_errors is None:
+            self._pose_errors = _pose_errors(self.p, self.lay, self.poses)
+        return self._pose_errors
 
     def points(self) -> np.ndarray:
         return self.kernels.points()
@@ -848,42 +899,47 @@ class _DeviceState:
         return self.kernels.residuals(behind)
 
     def error(self, sigma: float, loss: str, k: float) -> float:
-        return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k))
+        return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k), self.pose_errors())
 
     def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
         """(with the landmarks eliminated at ``lam``, the damping LM tries first, where that runs here)"""
-        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam)
+        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam, self.pose_errors())
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         """The step, its trial state made on the device and its reprojection error evaluated there with it (LM
-        reads it only where the model predicts a decrease: the same decisions, one read-back fewer)."""
+        reads it only where the model predicts a decrease: the same decisions, one read-back fewer), the trial
+        poses' pose-factor errors made on the host meanwhile."""
         if self.kernels.schur_on_device:
             dc = _eliminate_on_device(self.lay, lin, lam, timing)
             if dc is None:
                 return None
             t0 = time.perf_counter()
             trial = _trial_poses(self.lay, self.poses, dc)
-            dp_gp, dp_dp, error = self.kernels.back_substitute(dc, trial, sigma, loss, k)
+            self.kernels.launch_back_substitute(dc, trial, sigma, loss, k)
+            pose_errors = _pose_errors(self.p, self.lay, trial)
+            dp_gp, dp_dp, error = self.kernels.read_step()
             timing["solve_s"] += time.perf_counter() - t0
             return _Step(dc, None, float(dc.ravel() @ lin.gc) + dp_gp, float(dc.ravel() @ dc.ravel()) + dp_dp,
-                         trial, error)
+                         trial, error, pose_errors)
         step = _solve_damped(self.lay, lin, lam, timing)  # the landmarks eliminated through host BLAS
         if step is None:
             return None
         dc, dp = step
         t0 = time.perf_counter()
         trial = _trial_poses(self.lay, self.poses, dc)
-        error = self.kernels.try_step(dp, trial, sigma, loss, k)[2]
+        self.kernels.launch_try_step(dp, trial, sigma, loss, k)
+        pose_errors = _pose_errors(self.p, self.lay, trial)
+        error = self.kernels.read_step()[2]
         timing["error_s"] += time.perf_counter() - t0
         return _Step(dc, None, float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel()),
-                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), trial, error)
+                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), trial, error, pose_errors)
 
     def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
-        return _plus_pose_factors(self.p, self.lay, step.poses, step.reprojection_error)
+        return _plus_pose_factors(self.p, self.lay, step.poses, step.reprojection_error, step.pose_errors)
 
     def accept(self, step: _Step) -> None:
         self.kernels.accept()
-        self.poses = step.poses
+        self.poses, self._pose_errors = step.poses, step.pose_errors
 
 
 def _new_state(p: BAProblem, lay: _Layout):

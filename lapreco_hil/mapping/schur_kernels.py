@@ -392,6 +392,7 @@ class ObservationKernels:
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
         self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
+        self._linearized_at = None  # the damping of the linearisation started (None: no elimination with it)
         self._host = {}  # host mirrors, made at first use
         self._commands = {}  # recorded launches (``_launch``)
         self._chunks: dict[int, tuple] = {}
@@ -476,20 +477,23 @@ class ObservationKernels:
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
-        """Launch by a command recorded at the first launch with these arrays (``wp.launch(record_cmd=True)``),
-        its other parameters set again: a replay costs a fifth of a launch's argument packing."""
+        """Launch by a command recorded at the kernel's first launch of this size (``wp.launch(record_cmd=True)``),
+        only the parameters that differ from its last launch's set again (the current and the trial state's
+        arrays swap, the scalars change per stage): a replay costs a fifth of a launch's argument packing."""
         if dim <= 0:
             return
         args = [*inputs, *outputs]
-        key = (kernel.key, dim, *(id(a) if isinstance(a, wp.array) else None for a in args))
-        command = self._commands.get(key)
-        if command is None:
-            command = self._commands[key] = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs,
-                                                      outputs=outputs, record_cmd=True)
+        key = (kernel.key, dim)
+        recorded = self._commands.get(key)
+        if recorded is None:
+            command = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, outputs=outputs,
+                                record_cmd=True)
         else:
-            for i, a in enumerate(args):
-                if not isinstance(a, wp.array):
+            command, last = recorded
+            for i, (a, b) in enumerate(zip(args, last)):
+                if a is not b and (isinstance(a, wp.array) or isinstance(b, wp.array) or a != b):
                     command.set_param_at_index(i, a)
+        self._commands[key] = (command, args)
         command.launch()
         self.ops["launches"] += 1
 
@@ -513,11 +517,14 @@ class ObservationKernels:
 
     # --- the launches --------------------------------------------------------------------------------------------
     def linearize(self, sigma: float, loss: str, k: float, landmarks: bool, lam: float | None = None):
-        """Linearise at the current state: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2, and
-        with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies. With ``lam``
-        (the elimination on the device) the landmarks are eliminated at that damping too, read back with the pose
-        system in one copy, for ``schur_complement(lam)``: the device works while the host adds the pose
-        factors."""
+        """``launch_linearize`` and ``read_linearize`` at once."""
+        self.launch_linearize(sigma, loss, k, lam)
+        return self.read_linearize(landmarks)
+
+    def launch_linearize(self, sigma: float, loss: str, k: float, lam: float | None = None) -> None:
+        """Start a linearisation at the current state, read back by ``read_linearize`` (the host works on its pose
+        factors meanwhile). With ``lam`` (the elimination on the device) the landmarks are eliminated at that
+        damping too, read back with the pose system in one copy, for ``schur_complement(lam)``."""
         with device_lock(self.device):
             self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
             self._launch(_linearize, self.n_obs,
@@ -526,6 +533,14 @@ class ObservationKernels:
                          [self.W, self.Hpp, self.gp, self.pose_system])
             if lam is not None:
                 self._eliminate(lam, zeroed=True)
+        self._linearized_at = lam
+
+    def read_linearize(self, landmarks: bool):
+        """The linearisation ``launch_linearize`` started: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of
+        s |r|^2, and with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies."""
+        lam = self._linearized_at
+        with device_lock(self.device):
+            if lam is not None:
                 flat = self._download(self.system)[0]
             else:
                 flat = self._download(self.linear if landmarks else self.pose_system)[0]
@@ -622,15 +637,22 @@ class ObservationKernels:
             self._eliminate(lam)
             return self._camera_system(self._download(self.eliminated)[0])
 
-    def _try(self, sigma: float, loss: str, k: float):
-        """(d.gp, d.d, the trial state's reprojection error) once its landmarks are written: one read-back."""
-        self._error_launch(1 - self.cur, sigma, loss, k, 2)
-        sums = self._download(self.sums)[0]
+    def read_step(self):
+        """(d.gp, d.d, the trial's reprojection error) of the step ``launch_back_substitute`` or
+        ``launch_try_step`` started: one read-back."""
+        with device_lock(self.device):
+            sums = self._download(self.sums)[0]
         return float(sums[0]), float(sums[1]), float(sums[2])
 
     def back_substitute(self, dc: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
-        """The landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to make
-        the trial state with ``trial_poses``: (d.gp, d.d, the trial's reprojection error), one read-back."""
+        """``launch_back_substitute`` and ``read_step`` at once."""
+        self.launch_back_substitute(dc, trial_poses, sigma, loss, k)
+        return self.read_step()
+
+    def launch_back_substitute(self, dc: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str,
+                               k: float) -> None:
+        """Start the landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to
+        make the trial state with ``trial_poses``, and the trial's reprojection error (``read_step``)."""
         # (the uploads first: one from pageable memory waits for the stream)
         self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
         self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
@@ -640,15 +662,20 @@ class ObservationKernels:
                 self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
             self._launch(_back_substitute, self.n_points, [self.L, self.gp, self.Wdc, self.X[self.cur]],
                          [self.dp, self.X[1 - self.cur], self.sums])
-            return self._try(sigma, loss, k)
+            self._error_launch(1 - self.cur, sigma, loss, k, 2)
 
     def try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
-        """The trial state of landmark moves ``dp`` (N, 3) solved on the host and ``trial_poses``:
-        (d.gp, d.d, its reprojection error), one read-back."""
+        """``launch_try_step`` and ``read_step`` at once."""
+        self.launch_try_step(dp, trial_poses, sigma, loss, k)
+        return self.read_step()
+
+    def launch_try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float) -> None:
+        """Start the trial state of landmark moves ``dp`` (N, 3) solved on the host and ``trial_poses``, and its
+        reprojection error (``read_step``)."""
         self._upload(self.dp, np.ascontiguousarray(dp, np.float64))
         self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
         with device_lock(self.device):
             self._zero(self.sums)
             self._launch(_trial_points, self.n_points, [self.dp, self.X[self.cur], self.gp],
                          [self.X[1 - self.cur], self.sums])
-            return self._try(sigma, loss, k)
+            self._error_launch(1 - self.cur, sigma, loss, k, 2)
