@@ -18,7 +18,7 @@ from lapreco_hil.geometry import inv_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping import schur
 from lapreco_hil.mapping.mapper import Mapper
-from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma, sigma_of_mad
 from lapreco_hil.mapping.synthetic import make_problem, make_sweep_problem
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
@@ -78,6 +78,23 @@ def test_the_robust_scale_is_numpys_median_by_one_selection(rng):
             assert mad_sigma(values) == reference(values)
             np.testing.assert_array_equal(values, before)
     assert mad_sigma(np.full(6, np.nan), floor=0.3) == 1.0
+
+
+def test_the_robust_scale_found_on_the_device_is_the_hosts(rng):
+    """The medians found on the kernels' device by sorts (a GPU's way: one scalar read back) give exactly
+    ``mad_sigma``'s scale: odd and even counts of finite components, ties, NaN and inf left out, none at all."""
+    p = make_problem(np.random.default_rng(5), n_views=4, n_points=60, jump=0.03).problem
+    kernels = schur._layout(schur.pose_major(p)[0], DEVICE, device_scale=True).kernels
+    n_obs = len(p.obs_pose)
+    for n_finite in (0, 1, 2, 3, 4, 101, 2 * n_obs):
+        for values in (rng.normal(size=2 * n_obs), rng.standard_cauchy(size=2 * n_obs),
+                       rng.integers(0, 4, 2 * n_obs).astype(float)):
+            values[rng.permutation(2 * n_obs)[n_finite:]] = rng.choice([np.nan, np.inf, -np.inf])
+            kernels._upload(kernels.residual, values.reshape(-1, 2))
+            kernels._launch_mad()
+            count, mad = kernels._download(kernels.scale_sums)[0][:2]
+            assert count == n_finite
+            assert sigma_of_mad(float(mad) if count else None) == mad_sigma(values)
 
 
 def _numeric_jacobian(f, n, eps=1e-6):
@@ -394,6 +411,26 @@ def test_the_state_stays_on_the_device_across_lm(device_schur):
         assert many["uploads"] <= few["uploads"] + 2 * (solves - sum(s["solves"] for s in runs[1].stats["stages"]))
     else:  # the landmark blocks too: the host eliminates them
         assert many["downloaded_bytes"] > per_solve + linearisations * 8 * 12 * n_points
+
+
+def test_a_solve_with_its_scales_found_on_the_device_is_the_hosts():
+    """The robust solve with its scales' medians found on the kernels' device (CUDA's default): the same scales,
+    steps and answers as with the host's selections, the residuals read back once, at the end."""
+    syn = make_problem(np.random.default_rng(6), n_views=6, n_points=300, jump=0.03, highlight=0.02)
+    host = schur.solve_robust_schur(syn.problem, RobustSchedule(), device=DEVICE, device_scale=False)
+    dev = schur.solve_robust_schur(syn.problem, RobustSchedule(), device=DEVICE, device_scale=True)
+    n_obs = len(syn.problem.obs_pose)
+    assert host.stats["device_ops"]["downloaded_bytes"] - dev.stats["device_ops"]["downloaded_bytes"] >= 16 * n_obs
+    if not str(DEVICE).startswith("cpu"):
+        # (on CUDA the atomic sums differ from run to run in their last bits: two solves need not take one path)
+        assert [s["sigma_px"] for s in dev.stats["stages"]] == pytest.approx(
+            [s["sigma_px"] for s in host.stats["stages"]], rel=1e-9)
+        return
+    assert [s["sigma_px"] for s in dev.stats["stages"]] == [s["sigma_px"] for s in host.stats["stages"]]
+    assert dev.stats["sigma_px"] == host.stats["sigma_px"]
+    np.testing.assert_array_equal(dev.poses, host.poses)
+    np.testing.assert_array_equal(dev.residuals_px, host.residuals_px)
+    np.testing.assert_array_equal(dev.stats["inlier_obs"], host.stats["inlier_obs"])
 
 
 @pytest.mark.parametrize("device_schur", [True, False])

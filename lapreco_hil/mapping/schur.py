@@ -46,8 +46,8 @@ import scipy.linalg.blas
 import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
-from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
-from lapreco_hil.mapping.robust import RobustSchedule
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, redundancy
+from lapreco_hil.mapping.robust import RobustSchedule, sigma_of_mad
 
 log = logging.getLogger(__name__)
 
@@ -401,9 +401,11 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     return chunks
 
 
-def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> _Layout:
+def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
+            device_scale: bool | None = None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
-    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``)."""
+    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
+    ``device_scale`` the robust scale's medians are found there (None: on CUDA; ``ObservationKernels``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -426,7 +428,8 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     if device != "numpy":
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
-        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur)
+        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
+                                     scale_on_device=device_scale)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -1027,12 +1030,12 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _setup(problem: BAProblem, device: str, device_schur: bool | None):
+def _setup(problem: BAProblem, device: str, device_schur: bool | None, device_scale: bool | None = None):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur))
+    lay = _layout(p, device, _device_schur(device, device_schur), device_scale)
     return p, perm, lay, time.perf_counter() - t0
 
 
@@ -1063,24 +1066,39 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                      "device_ops": _device_ops(lay)})
 
 
+def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
+    """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
+    (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
+    residuals (NaN behind the camera) too, else None."""
+    kernels = getattr(state, "kernels", None)
+    if kernels is not None and kernels.scale_on_device:
+        count, mad, *r = kernels.residual_mad(with_residuals)
+        sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
+        return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
+    r = state.residuals(np.nan)
+    return pixel_sigma(p, r, schedule), r
+
+
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
-                       blas_threads: int = 1, device_schur: bool | None = None) -> BAResult:
+                       blas_threads: int = 1, device_schur: bool | None = None,
+                       device_scale: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
-    ``solve_schur``'s."""
+    ``solve_schur``'s; ``device_scale``: the robust scales' medians found on the kernels' device by sorts (one
+    scalar read back instead of the residuals; the same values); None: on CUDA devices only."""
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, device_scale)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0
     timing = _new_timing()
     for n, stage in enumerate(schedule.stages):
         t1 = time.perf_counter()
-        sigma = pixel_sigma(p, state.residuals(np.nan), schedule)
+        sigma = _robust_scale(p, state, schedule)[0]
         scale_s += time.perf_counter() - t1
         stage_timing = _new_timing()
         with _blas_threads(blas_threads):
@@ -1095,12 +1113,11 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
                        "iteration_timing": per_it, "solves": solves})
     t1 = time.perf_counter()
-    r = state.residuals(np.nan)
+    sigma_final, r = _robust_scale(p, state, schedule, with_residuals=True)
     residuals = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
     residuals += r[:, 1] * r[:, 1]
     np.sqrt(residuals, out=residuals)
     residuals[~np.isfinite(residuals)] = np.inf
-    sigma_final = pixel_sigma(p, r, schedule)
     scale_s += time.perf_counter() - t1
     threshold = schedule.inlier_threshold_px(sigma_final)
     residuals = _unsorted(residuals, perm)

@@ -159,6 +159,52 @@ def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
 
 
 @wp.kernel
+def _scale_keys(r: wp.array(dtype=wp.vec2d), keys: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.float64)):
+    """The residual components as sort keys, +inf where not finite (behind the camera: NaN), and the count of
+    the finite ones (the robust scale ignores the others, as ``robust.mad_sigma``)."""
+    o = wp.tid()
+    n = wp.float64(0.0)
+    for c in range(2):
+        v = r[o][c]
+        if wp.isfinite(v):
+            keys[2 * o + c] = v
+            n += wp.float64(1.0)
+        else:
+            keys[2 * o + c] = wp.float64(wp.inf)
+    wp.atomic_add(count, 0, n)
+
+
+@wp.func
+def _sorted_median(keys: wp.array(dtype=wp.float64), n: int) -> wp.float64:
+    """The median of sorted ``keys[:n]``, as ``robust._median_in_place`` gives it (the middle value or the mean
+    of the two)."""
+    if n % 2 == 1:
+        return keys[n // 2]
+    return (keys[n // 2 - 1] + keys[n // 2]) / wp.float64(2.0)
+
+
+@wp.kernel
+def _median_of_sorted(keys: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.float64),
+                      out: wp.array(dtype=wp.float64)):
+    """``out[1]``: the median of sorted ``keys[:count[0]]`` (unchanged where there are none)."""
+    n = int(count[0])
+    if n > 0:
+        out[1] = _sorted_median(keys, n)
+
+
+@wp.kernel
+def _median_deviations(count: wp.array(dtype=wp.float64), median: wp.array(dtype=wp.float64),
+                       keys: wp.array(dtype=wp.float64)):
+    """In place, |component - median| of the finite components sorted in ``keys`` (+inf for the others), as
+    ``robust.mad_sigma`` subtracts it (``median[1]``: ``_median_of_sorted``'s)."""
+    i = wp.tid()
+    if i < int(count[0]):
+        keys[i] = wp.abs(keys[i] - median[1])
+    else:
+        keys[i] = wp.float64(wp.inf)
+
+
+@wp.kernel
 def _whitened_batch(obs: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.int64), width: wp.array(dtype=wp.int64),
                     obs_point: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d),
                     Z: wp.array(dtype=wp.float64)):
@@ -336,9 +382,13 @@ class ObservationKernels:
     launches (memsets included), uploads, downloads (and their bytes) and allocations: on the CPU device a
     download is a read of the array's memory, on CUDA a copy and a wait."""
 
-    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
+    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
+                 scale_on_device: bool | None = None) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
+        # the robust scale's medians by two sorts here, one scalar read back: a GPU's way (the residuals' read-back
+        # and the host's selections cost more); on the CPU device the host selects them (None: on CUDA only)
+        self.scale_on_device = self._cuda is not None if scale_on_device is None else bool(scale_on_device)
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
@@ -371,7 +421,16 @@ class ObservationKernels:
                  "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
                  "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
                  "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+        if self.scale_on_device:
+            # the residual components, then their deviations, sorted (a radix sort's keys and values take twice
+            # their count); the count of finite ones and the median
+            parts.update({"scale_keys": (4 * O, wp.float64), "scale_values": (4 * O, wp.int32),
+                          "scale_sums": (2, wp.float64)})
         arena = self._alloc_arena(parts)
+        if self.scale_on_device:
+            self.scale_keys, self.scale_values, self.scale_sums = (
+                arena[k] for k in ("scale_keys", "scale_values", "scale_sums"))
+            self.scale_count = self._view(self.scale_sums, 0, 1, wp.float64)
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
@@ -565,6 +624,37 @@ class ObservationKernels:
                          [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
                           float(behind)], [self.residual])
             return self._download(self.residual)[0][:self.n_obs].copy()
+
+    def residual_mad(self, with_residuals: bool = False):
+        """The median absolute deviation about the median of the current state's finite residual components
+        (``robust.mad_sigma``'s, before its factor), by two sorts here (``scale_on_device``): (their count, the
+        MAD), and with ``with_residuals`` the (O, 2) residuals too (NaN behind the camera; a copy), in one
+        read-back."""
+        O = self.n_obs
+        with device_lock(self.device):
+            self._launch(_residuals, O,
+                         [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
+                          float("nan")], [self.residual])
+            self._launch_mad()
+            views = self._download(*([self.scale_sums, self.residual] if with_residuals else [self.scale_sums]))
+        count, mad = int(views[0][0]), float(views[0][1])
+        return (count, mad, views[1][:O].copy()) if with_residuals else (count, mad)
+
+    def _launch_mad(self) -> None:
+        """``scale_sums``: the count of the finite components in ``residual`` and their MAD about their median."""
+        O, keys, values, sums = self.n_obs, self.scale_keys, self.scale_values, self.scale_sums
+        self._zero(sums)
+        self._launch(_scale_keys, O, [self.residual], [keys, self.scale_count])
+        self._sort(keys, values, 2 * O)
+        self._launch(_median_of_sorted, 1, [keys, self.scale_count], [sums])  # the components' median
+        self._launch(_median_deviations, 2 * O, [self.scale_count, sums], [keys])
+        self._sort(keys, values, 2 * O)
+        self._launch(_median_of_sorted, 1, [keys, self.scale_count], [sums])  # their deviations' median
+
+    def _sort(self, keys, values, n: int) -> None:
+        """``keys[:n]`` sorted in place (a radix sort: ``keys`` and ``values`` hold 2 n)."""
+        wp.utils.radix_sort_pairs(keys, values, n)
+        self.ops["launches"] += 1
 
     def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
         self._launch(_error, self.n_obs,
