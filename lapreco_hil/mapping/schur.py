@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
+import scipy.linalg.lapack
 import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
@@ -761,16 +762,10 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
             rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
-    dc = np.zeros(0)
-    if n6:
-        try:
-            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
-                                        check_finite=False)
-        except np.linalg.LinAlgError:
-            dc = np.full(n6, np.nan)
-        if not np.all(np.isfinite(dc)):
-            timing["solve_s"] += time.perf_counter() - t1
-            return None
+    dc = _solve_camera_system(S, rhs)
+    if dc is None:
+        timing["solve_s"] += time.perf_counter() - t1
+        return None
     # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
     x = lin.gp.copy()
     if n6:
@@ -789,11 +784,14 @@ def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     positive definite."""
     if not len(rhs):
         return np.zeros(0)
-    try:
-        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
-                                    check_finite=False)
-    except np.linalg.LinAlgError:
+    # (LAPACK's potrf and potrs, as scipy's cho_factor and cho_solve call them, without their wrappers' checks:
+    # half their time on a window's system)
+    factor, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=0)
+    if info > 0:
         return None
+    dc, info_solve = scipy.linalg.lapack.dpotrs(factor, rhs, lower=1)
+    if info < 0 or info_solve < 0:
+        raise ValueError(f"LAPACK potrf/potrs: illegal argument {min(info, info_solve)}")
     return dc if np.all(np.isfinite(dc)) else None
 
 
