@@ -607,19 +607,27 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
     return _plus_pose_factors(p, lay, poses, total, errors)
 
 
+def _start_linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
+                               lam: float | None = None, errors: list | None = None) -> tuple[list, list]:
+    """Start ``_linearize_on_device``'s linearisation on the device and make the pose factors' terms while it
+    works: (their ``_pose_errors``, ``_pose_normal_terms``) for ``_linearize_on_device(started=...)``."""
+    on_device = lay.kernels.schur_on_device
+    lay.kernels.launch_linearize(sigma, loss, k, lam if on_device else None, landmarks=not on_device)
+    errors = _pose_errors(p, lay, poses) if errors is None else errors
+    return errors, _pose_normal_terms(lay, errors)
+
+
 def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
-                         lam: float | None = None, errors: list | None = None) -> _Linear:
+                         lam: float | None = None, errors: list | None = None,
+                         started: tuple | None = None) -> _Linear:
     """``_linearize`` by the kernels at their current state (``poses`` on the host); the landmark blocks stay on
     the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None), and are eliminated at ``lam``
     with it where given (``ObservationKernels.launch_linearize``). The host makes the pose factors' terms while
-    the device works."""
-    on_device = lay.kernels.schur_on_device
-    lay.kernels.launch_linearize(sigma, loss, k, lam if on_device else None)
-    errors = _pose_errors(p, lay, poses) if errors is None else errors
-    terms = _pose_normal_terms(lay, errors)
+    the device works; ``started``: ``_start_linearize_on_device``'s, where it started already."""
+    errors, terms = started or _start_linearize_on_device(p, lay, poses, sigma, loss, k, lam, errors)
     n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
-    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize(landmarks=not on_device)
+    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize()
     diagonal = np.arange(n_free)
     Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
     return _with_pose_factors(lay, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq, errors, terms)
@@ -855,6 +863,9 @@ class _HostState:
     def residuals(self, behind: float) -> np.ndarray:
         return _reprojection(self.p, self.lay, self.poses, self._points, jacobians=False, behind=behind)
 
+    def start(self, sigma: float, loss: str, k: float, lam: float) -> None:
+        """(the device's way of starting a linearisation early: nothing to do here)"""
+
     def error(self, sigma: float, loss: str, k: float) -> float:
         return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k, self.pose_errors())
 
@@ -888,6 +899,7 @@ class _DeviceState:
         self.p, self.lay, self.kernels, self.poses = p, lay, lay.kernels, poses
         self.kernels.set_state(poses, points)
         self._pose_errors = None  # the pose factors' ``_pose_errors`` at ``poses``, once made
+        self._started = None  # ((sigma, loss, k, lambda), its pose-factor terms) of a linearisation started
 
     def pose_errors(self) -> list:
         if self._pose_errors is None:
@@ -900,12 +912,19 @@ class _DeviceState:
     def residuals(self, behind: float) -> np.ndarray:
         return self.kernels.residuals(behind)
 
+    def start(self, sigma: float, loss: str, k: float, lam: float) -> None:
+        """Start the linearisation that LM asks for after the error (read back with it: one wait fewer)."""
+        self._started = (sigma, loss, k, lam), _start_linearize_on_device(self.p, self.lay, self.poses, sigma, loss,
+                                                                          k, lam, self.pose_errors())
+
     def error(self, sigma: float, loss: str, k: float) -> float:
         return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k), self.pose_errors())
 
     def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
         """(with the landmarks eliminated at ``lam``, the damping LM tries first, where that runs here)"""
-        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam, self.pose_errors())
+        started = self._started[1] if self._started and self._started[0] == (sigma, loss, k, lam) else None
+        self._started = None
+        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam, self.pose_errors(), started)
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         """The step, its trial state made on the device and its reprojection error evaluated there with it (LM
@@ -954,6 +973,8 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     """One LM run from ``state`` (left at its result): (error before, error after, iterations, per-iteration
     times, damped systems solved: one per lambda tried)."""
     t0 = time.perf_counter()
+    if max_iterations:  # (the first linearisation starts before the error: a device reads both back at once)
+        state.start(sigma, loss, k, LAMBDA_INITIAL)
     error = state.error(sigma, loss, k)
     timing["error_s"] += time.perf_counter() - t0
     error_before = error

@@ -451,7 +451,9 @@ class ObservationKernels:
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
         self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
-        self._linearized_at = None  # the damping of the linearisation started (None: no elimination with it)
+        # the linearisation started: its damping (None: no elimination with it), whether the landmark blocks are
+        # read back, the array to read back (None: read already) and its read-back where ``error`` brought it
+        self._linearized_at, self._landmarks_read, self._linearization, self._linearization_view = None, False, None, None
         self._host = {}  # host mirrors, made at first use
         self._commands = {}  # recorded launches (``_launch``)
         self._chunks: dict[int, tuple] = {}
@@ -577,13 +579,15 @@ class ObservationKernels:
     # --- the launches --------------------------------------------------------------------------------------------
     def linearize(self, sigma: float, loss: str, k: float, landmarks: bool, lam: float | None = None):
         """``launch_linearize`` and ``read_linearize`` at once."""
-        self.launch_linearize(sigma, loss, k, lam)
-        return self.read_linearize(landmarks)
+        self.launch_linearize(sigma, loss, k, lam, landmarks)
+        return self.read_linearize()
 
-    def launch_linearize(self, sigma: float, loss: str, k: float, lam: float | None = None) -> None:
+    def launch_linearize(self, sigma: float, loss: str, k: float, lam: float | None = None,
+                         landmarks: bool = False) -> None:
         """Start a linearisation at the current state, read back by ``read_linearize`` (the host works on its pose
-        factors meanwhile). With ``lam`` (the elimination on the device) the landmarks are eliminated at that
-        damping too, read back with the pose system in one copy, for ``schur_complement(lam)``."""
+        factors meanwhile), or with the next ``error``. With ``lam`` (the elimination on the device) the landmarks
+        are eliminated at that damping too, read back with the pose system in one copy, for
+        ``schur_complement(lam)``; with ``landmarks`` their blocks are read back too (the host eliminates them)."""
         with device_lock(self.device):
             self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
             self._launch(_linearize, self.n_obs,
@@ -592,17 +596,19 @@ class ObservationKernels:
                          [self.W, self.Hpp, self.gp, self.pose_system])
             if lam is not None:
                 self._eliminate(lam, zeroed=True)
-        self._linearized_at = lam
+        self._linearized_at, self._landmarks_read = lam, landmarks
+        self._linearization = self.system if lam is not None else self.linear if landmarks else self.pose_system
+        self._linearization_view = None
 
-    def read_linearize(self, landmarks: bool):
+    def read_linearize(self):
         """The linearisation ``launch_linearize`` started: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of
-        s |r|^2, and with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies."""
-        lam = self._linearized_at
-        with device_lock(self.device):
-            if lam is not None:
-                flat = self._download(self.system)[0]
-            else:
-                flat = self._download(self.linear if landmarks else self.pose_system)[0]
+        s |r|^2, and with its ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here).
+        Copies."""
+        lam, landmarks, flat = self._linearized_at, self._landmarks_read, self._linearization_view
+        if flat is None:
+            with device_lock(self.device):
+                flat = self._download(self._linearization)[0]
+        self._linearization = self._linearization_view = None
         F, N = self.n_free, self.n_points
         system = flat[12 * N:] if landmarks else flat
         blocks = system[:36 * F].reshape(F, 6, 6).copy()
@@ -662,11 +668,16 @@ class ObservationKernels:
                       float(k), LOSS_CODES[loss], slot], [self.sums])
 
     def error(self, sigma: float, loss: str, k: float) -> float:
-        """The sum of the reprojection losses at the current state."""
+        """The sum of the reprojection losses at the current state; a linearisation started and not read back
+        yet (``launch_linearize``) comes back with it, in one wait."""
         with device_lock(self.device):
             self._zero(self.sums)
             self._error_launch(self.cur, sigma, loss, k, 2)
-            return float(self._download(self.sums)[0][2])
+            if self._linearization is not None and self._linearization_view is None:
+                sums, self._linearization_view = self._download(self.sums, self._linearization)
+            else:
+                sums = self._download(self.sums)[0]
+            return float(sums[2])
 
     def set_landmark_factors(self, L: np.ndarray) -> None:
         """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_batch``."""
