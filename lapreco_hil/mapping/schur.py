@@ -403,10 +403,10 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
 
 
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
-            device_scale: bool | None = None) -> _Layout:
+            gpu_reductions: bool | None = None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
-    ``device_scale`` the robust scale's medians are found there (None: on CUDA; ``ObservationKernels``)."""
+    ``gpu_reductions`` its sums and medians taken a GPU's ways (None: on CUDA; ``ObservationKernels``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -430,7 +430,7 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
         kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
-                                     scale_on_device=device_scale)
+                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -1049,12 +1049,12 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _setup(problem: BAProblem, device: str, device_schur: bool | None, device_scale: bool | None = None):
+def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur), device_scale)
+    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions)
     return p, perm, lay, time.perf_counter() - t0
 
 
@@ -1090,7 +1090,7 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals:
     (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
     residuals (NaN behind the camera) too, else None."""
     kernels = getattr(state, "kernels", None)
-    if kernels is not None and kernels.scale_on_device:
+    if kernels is not None and kernels.gpu_reductions:
         count, mad, *r = kernels.residual_mad(with_residuals)
         sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
         return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
@@ -1100,17 +1100,18 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals:
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None,
-                       device_scale: bool | None = None) -> BAResult:
+                       gpu_reductions: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
-    ``solve_schur``'s; ``device_scale``: the robust scales' medians found on the kernels' device by sorts (one
-    scalar read back instead of the residuals; the same values); None: on CUDA devices only."""
+    ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
+    (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
+    values, the sums to round-off); None: on CUDA devices only."""
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, device_scale)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0

@@ -69,80 +69,119 @@ def _camera_point(T: wp.mat44d, X: wp.vec3d) -> wp.vec3d:
                     T[0, 2] * d0 + T[1, 2] * d1 + T[2, 2] * d2)
 
 
+@wp.func
+def _add_pose_terms(pose_system: wp.array(dtype=wp.float64), n_free: int, c: int, H: wp.spatial_matrixd,
+                    g: wp.spatial_vectord):
+    """A free pose's block and gradient terms summed into ``pose_system`` (``_linearize``)."""
+    for a_ in range(6):
+        for b_ in range(6):
+            wp.atomic_add(pose_system, 36 * c + 6 * a_ + b_, H[a_, b_])
+        wp.atomic_add(pose_system, 36 * n_free + 6 * c + a_, g[a_])
+
+
 @wp.kernel
 def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
                obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
                X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int,
-               n_free: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
+               n_free: int, per_thread: int, n_obs: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
                gp: wp.array(dtype=wp.vec3d), pose_system: wp.array(dtype=wp.float64)):
     """Each observation's terms summed into its landmark's block (Hpp, gp) and its free pose's, in
-    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2."""
-    o = wp.tid()
-    i = obs_pose[o]
-    j = obs_point[o]
-    Tm = T[i]
-    Xc = _camera_point(Tm, X[j])
+    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2. A thread
+    takes ``per_thread`` consecutive observations (pose-major: mostly one pose's) and sums their pose terms
+    before adding them in (a GPU's way: fewer atomics on few addresses); with one, the serial order of the CPU
+    device."""
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     fx = K[0]
     fy = K[1]
-    # behind the camera: GTSAM's constant error 2 fx, no gradient
-    ru = wp.float64(2.0) * fx
-    rv = wp.float64(2.0) * fx
-    ju = wp.spatial_vectord()
-    jv = wp.spatial_vectord()
-    pu = wp.vec3d()
-    pv = wp.vec3d()
-    if Xc[2] > zero:
-        z = Xc[2]
-        xn = Xc[0] / z
-        yn = Xc[1] / z
-        ru = fx * xn + K[2] - uv[o][0]
-        rv = fy * yn + K[3] - uv[o][1]
-        a = fx / z
-        b = fy / z
-        # d residual / d (rotation, translation) of T Exp(xi)
-        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
-        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
-        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
-        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
-        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
-        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
-        pu = a * (c0 - xn * c2)
-        pv = b * (c1 - yn * c2)
-    r2 = ru * ru + rv * rv
-    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
-    wp.atomic_add(pose_system, 42 * n_free, s * r2)
-    wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
-    wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
-    c = obs_col[o]
-    Wo = mat36d()
-    if c >= 0:
-        for a_ in range(3):
-            for b_ in range(6):
-                Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
-        Hc = s * (wp.outer(ju, ju) + wp.outer(jv, jv))
-        g = s * (ju * ru + jv * rv)
-        for a_ in range(6):
-            for b_ in range(6):
-                wp.atomic_add(pose_system, 36 * c + 6 * a_ + b_, Hc[a_, b_])
-            wp.atomic_add(pose_system, 36 * n_free + 6 * c + a_, g[a_])
-    W[o] = Wo
+    first = wp.tid() * per_thread
+    H_sum = wp.spatial_matrixd()
+    g_sum = wp.spatial_vectord()
+    sr2_sum = zero
+    c_sum = int(-1)
+    for o in range(first, wp.min(first + per_thread, n_obs)):
+        i = obs_pose[o]
+        j = obs_point[o]
+        Tm = T[i]
+        Xc = _camera_point(Tm, X[j])
+        # behind the camera: GTSAM's constant error 2 fx, no gradient
+        ru = wp.float64(2.0) * fx
+        rv = wp.float64(2.0) * fx
+        ju = wp.spatial_vectord()
+        jv = wp.spatial_vectord()
+        pu = wp.vec3d()
+        pv = wp.vec3d()
+        if Xc[2] > zero:
+            z = Xc[2]
+            xn = Xc[0] / z
+            yn = Xc[1] / z
+            ru = fx * xn + K[2] - uv[o][0]
+            rv = fy * yn + K[3] - uv[o][1]
+            a = fx / z
+            b = fy / z
+            # d residual / d (rotation, translation) of T Exp(xi)
+            ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
+            jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
+            # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
+            c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
+            c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
+            c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
+            pu = a * (c0 - xn * c2)
+            pv = b * (c1 - yn * c2)
+        r2 = ru * ru + rv * rv
+        s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
+        if o == first:
+            sr2_sum = s * r2
+        else:
+            sr2_sum += s * r2
+        wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
+        wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+        c = obs_col[o]
+        Wo = mat36d()
+        if c >= 0:
+            for a_ in range(3):
+                for b_ in range(6):
+                    Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
+            Hc = s * (wp.outer(ju, ju) + wp.outer(jv, jv))
+            g = s * (ju * ru + jv * rv)
+            if c == c_sum:
+                H_sum += Hc
+                g_sum += g
+            else:
+                if c_sum >= 0:
+                    _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
+                H_sum = Hc
+                g_sum = g
+                c_sum = c
+        W[o] = Wo
+    if c_sum >= 0:
+        _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
+    if first < n_obs:
+        wp.atomic_add(pose_system, 42 * n_free, sr2_sum)
 
 
 @wp.kernel
 def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
            T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
-           k: wp.float64, loss: int, slot: int, total: wp.array(dtype=wp.float64)):
-    """The sum of the reprojection losses, into ``total[slot]``."""
-    o = wp.tid()
-    Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
-    ru = wp.float64(2.0) * K[0]
-    rv = wp.float64(2.0) * K[0]
-    if Xc[2] > wp.float64(0.0):
-        ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
-        rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
-    wp.atomic_add(total, slot, _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k))
+           k: wp.float64, loss: int, slot: int, per_thread: int, n_obs: int, total: wp.array(dtype=wp.float64)):
+    """The sum of the reprojection losses, into ``total[slot]``: a thread sums ``per_thread`` consecutive
+    observations' before adding them in (as ``_linearize``)."""
+    first = wp.tid() * per_thread
+    loss_sum = wp.float64(0.0)
+    for o in range(first, wp.min(first + per_thread, n_obs)):
+        Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
+        ru = wp.float64(2.0) * K[0]
+        rv = wp.float64(2.0) * K[0]
+        if Xc[2] > wp.float64(0.0):
+            ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
+            rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
+        e = _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k)
+        if o == first:
+            loss_sum = e
+        else:
+            loss_sum += e
+    if first < n_obs:
+        wp.atomic_add(total, slot, loss_sum)
 
 
 @wp.kernel
@@ -159,19 +198,16 @@ def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
 
 
 @wp.kernel
-def _scale_keys(r: wp.array(dtype=wp.vec2d), keys: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.float64)):
-    """The residual components as sort keys, +inf where not finite (behind the camera: NaN), and the count of
-    the finite ones (the robust scale ignores the others, as ``robust.mad_sigma``)."""
+def _scale_keys(r: wp.array(dtype=wp.vec2d), keys: wp.array(dtype=wp.float64)):
+    """The residual components as sort keys, +inf where not finite (behind the camera: NaN): the robust scale
+    ignores those, as ``robust.mad_sigma`` does."""
     o = wp.tid()
-    n = wp.float64(0.0)
     for c in range(2):
         v = r[o][c]
         if wp.isfinite(v):
             keys[2 * o + c] = v
-            n += wp.float64(1.0)
         else:
             keys[2 * o + c] = wp.float64(wp.inf)
-    wp.atomic_add(count, 0, n)
 
 
 @wp.func
@@ -184,22 +220,33 @@ def _sorted_median(keys: wp.array(dtype=wp.float64), n: int) -> wp.float64:
 
 
 @wp.kernel
-def _median_of_sorted(keys: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.float64),
-                      out: wp.array(dtype=wp.float64)):
-    """``out[1]``: the median of sorted ``keys[:count[0]]`` (unchanged where there are none)."""
-    n = int(count[0])
+def _median_of_sorted(keys: wp.array(dtype=wp.float64), n_keys: int, count_them: int,
+                      sums: wp.array(dtype=wp.float64)):
+    """``sums[1]``: the median of the finite ones of sorted ``keys[:n_keys]`` (unchanged where there are none),
+    ``sums[0]`` their count, found here (the first +inf, by bisection) with ``count_them``."""
+    n = int(0)
+    if count_them != 0:
+        hi = n_keys
+        while n < hi:
+            mid = (n + hi) // 2
+            if keys[mid] < wp.float64(wp.inf):
+                n = mid + 1
+            else:
+                hi = mid
+        sums[0] = wp.float64(n)
+    else:
+        n = int(sums[0])
     if n > 0:
-        out[1] = _sorted_median(keys, n)
+        sums[1] = _sorted_median(keys, n)
 
 
 @wp.kernel
-def _median_deviations(count: wp.array(dtype=wp.float64), median: wp.array(dtype=wp.float64),
-                       keys: wp.array(dtype=wp.float64)):
+def _median_deviations(sums: wp.array(dtype=wp.float64), keys: wp.array(dtype=wp.float64)):
     """In place, |component - median| of the finite components sorted in ``keys`` (+inf for the others), as
-    ``robust.mad_sigma`` subtracts it (``median[1]``: ``_median_of_sorted``'s)."""
+    ``robust.mad_sigma`` subtracts it (``sums``: ``_median_of_sorted``'s count and median)."""
     i = wp.tid()
-    if i < int(count[0]):
-        keys[i] = wp.abs(keys[i] - median[1])
+    if i < int(sums[0]):
+        keys[i] = wp.abs(keys[i] - sums[1])
     else:
         keys[i] = wp.float64(wp.inf)
 
@@ -321,6 +368,75 @@ def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.in
 
 
 @wp.func
+def _block_row(za: mat36d, zb: mat36d, a: int) -> vec6d:
+    """Row ``a`` of za^T zb."""
+    v = vec6d()
+    for b in range(6):
+        v[b] = za[0, a] * zb[0, b] + za[1, a] * zb[1, b] + za[2, a] * zb[2, b]
+    return v
+
+
+@wp.kernel
+def _window_table(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32), n_free: int,
+                  table: wp.array(dtype=wp.int32)):
+    """``table[landmark x F + free pose]``: the observation of a landmark by a free pose (-1 where none: filled
+    before), for ``_schur_window``."""
+    o = wp.tid()
+    c = obs_col[o]
+    if c >= 0:
+        table[obs_point[o] * n_free + c] = o
+
+
+@wp.kernel
+def _whiten_observations(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                         W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Z: wp.array(dtype=mat36d)):
+    """Z = L^-1 W of each observation by a free pose (L: its landmark's Cholesky factor), for ``_schur_window``."""
+    o = wp.tid()
+    if obs_col[o] >= 0:
+        Z[o] = _whiten(L[obs_point[o]], W[o])
+
+
+@wp.kernel
+def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=mat36d), Lg: wp.array(dtype=wp.vec3d),
+                  n_free: int, n_points: int, per_thread: int, M: wp.array(dtype=wp.float64),
+                  r: wp.array(dtype=wp.float64)):
+    """``_schur_blocks``' sums the way a window's few poses allow (each landmark seen once by a pose:
+    ``_window_table``; Z: ``_whiten_observations``'): a thread per pose pair (ca >= cb, the lower block
+    triangle's), block row and run of ``per_thread`` landmarks sums z_a^T z_b (row a) over the landmarks that
+    both poses see, and for a diagonal pair z_a^T L^-1 gp, before adding them in: a few atomics per thread, not
+    per landmark."""
+    t = wp.tid()
+    a = t % 6
+    rest = t // 6
+    n_pairs = n_free * (n_free + 1) // 2
+    q = rest % n_pairs
+    first = (rest // n_pairs) * per_thread
+    # the pair of the lower triangle's q-th entry, row by row: ca (ca + 1) / 2 <= q < (ca + 1) (ca + 2) / 2
+    ca = int(wp.floor((wp.sqrt(wp.float64(8 * q + 1)) - wp.float64(1.0)) / wp.float64(2.0)))
+    while ca * (ca + 1) // 2 > q:
+        ca = ca - 1
+    while (ca + 1) * (ca + 2) // 2 <= q:
+        ca = ca + 1
+    cb = q - ca * (ca + 1) // 2
+    m_sum = vec6d()
+    r_sum = wp.float64(0.0)
+    for j in range(first, wp.min(first + per_thread, n_points)):
+        oa = table[j * n_free + ca]
+        ob = table[j * n_free + cb]
+        if oa >= 0 and ob >= 0:
+            za = Z[oa]
+            m_sum += _block_row(za, Z[ob], a)
+            if ca == cb:
+                lg = Lg[j]
+                r_sum += za[0, a] * lg[0] + za[1, a] * lg[1] + za[2, a] * lg[2]
+    n6 = 6 * n_free
+    for b in range(6):
+        wp.atomic_add(M, (6 * ca + a) * n6 + 6 * cb + b, m_sum[b])
+    if ca == cb:
+        wp.atomic_add(r, 6 * ca + a, r_sum)
+
+
+@wp.func
 def _move_point(j: int, d: wp.vec3d, X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
                 X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
     """The trial landmark X + d, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both)."""
@@ -356,6 +472,14 @@ def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc
     _move_point(j, d, X, gp, X_trial, sums)
 
 
+# with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
+# one of ``_schur_window`` this many landmarks' blocks of one pose pair, before their atomics
+GPU_OBS_PER_THREAD = 16
+GPU_POINTS_PER_THREAD = 16
+# a problem of at most this many free poses, each landmark seen once by a pose, has its landmarks eliminated by
+# ``_schur_window`` there (a thread per pose pair, block row and run of landmarks: its work grows as poses^2)
+WINDOW_POSES = 32
+
 # the parts of an arena start on multiples of 32 words (256 bytes of float64: CUDA's allocation alignment)
 _ALIGN_WORDS = 32
 
@@ -383,12 +507,16 @@ class ObservationKernels:
     download is a read of the array's memory, on CUDA a copy and a wait."""
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
-                 scale_on_device: bool | None = None) -> None:
+                 gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
-        # the robust scale's medians by two sorts here, one scalar read back: a GPU's way (the residuals' read-back
-        # and the host's selections cost more); on the CPU device the host selects them (None: on CUDA only)
-        self.scale_on_device = self._cuda is not None if scale_on_device is None else bool(scale_on_device)
+        # a GPU's ways of reducing (None: on CUDA only): the robust scale's medians by two sorts here (one scalar
+        # read back, not the residuals and the host's selections), sums taken per thread over several observations
+        # before their atomics (a few addresses take them all), a window's landmarks eliminated by pose pairs
+        # (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
+        # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
+        self.gpu_reductions = self._cuda is not None if gpu_reductions is None else bool(gpu_reductions)
+        self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
@@ -399,7 +527,10 @@ class ObservationKernels:
         # the problem's index arrays, one upload; with the elimination here, the observations by free poses
         # grouped by landmark, each with the end of its landmark's group
         indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
-        if self.schur_on_device:
+        # the landmarks eliminated here by pose pairs (``_schur_window``) or by observations (``_schur_blocks``)
+        self.window = (self.schur_on_device and self.gpu_reductions and bool(unique_pairs)
+                       and 0 < n_free <= WINDOW_POSES)
+        if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
             pm = np.flatnonzero(np.asarray(obs_col) >= 0)
             # (a stable sort of small integers is numpy's radix sort)
@@ -416,21 +547,23 @@ class ObservationKernels:
         # T0, X0 and T1, X1: the current and the trial state (``cur`` indexes the current one). ``step_sums``: a
         # step's sum of W dc per landmark and its sums (d.gp, d.d, the trial's reprojection error).
         n6, n_system = 6 * n_free, 42 * n_free + 1
+        n_table = N * n_free if self.window else 0
         n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
                  "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
                  "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
                  "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
-        if self.scale_on_device:
+        if self.window:
+            parts.update({"table": (n_table, wp.int32), "Z": (O, mat36d)})
+        if self.gpu_reductions:
             # the residual components, then their deviations, sorted (a radix sort's keys and values take twice
             # their count); the count of finite ones and the median
             parts.update({"scale_keys": (4 * O, wp.float64), "scale_values": (4 * O, wp.int32),
                           "scale_sums": (2, wp.float64)})
         arena = self._alloc_arena(parts)
-        if self.scale_on_device:
+        if self.gpu_reductions:
             self.scale_keys, self.scale_values, self.scale_sums = (
                 arena[k] for k in ("scale_keys", "scale_values", "scale_sums"))
-            self.scale_count = self._view(self.scale_sums, 0, 1, wp.float64)
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
@@ -450,12 +583,17 @@ class ObservationKernels:
             self.r = self._view(work, start + n6 * n6, n6, wp.float64)
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
+        self._commands = {}  # recorded launches (``_launch``)
+        if self.window:
+            self.table, self.Z = arena["table"], arena["Z"]
+            self.table.fill_(-1)
+            self.ops["launches"] += 1
+            self._launch(_window_table, O, [self.obs_point, self.obs_col, n_free], [self.table])
         self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
         # the linearisation started: its damping (None: no elimination with it), whether the landmark blocks are
         # read back, the array to read back (None: read already) and its read-back where ``error`` brought it
         self._linearized_at, self._landmarks_read, self._linearization, self._linearization_view = None, False, None, None
         self._host = {}  # host mirrors, made at first use
-        self._commands = {}  # recorded launches (``_launch``)
         self._chunks: dict[int, tuple] = {}
 
     # --- buffers and transfers -------------------------------------------------------------------------------
@@ -590,10 +728,10 @@ class ObservationKernels:
         ``schur_complement(lam)``; with ``landmarks`` their blocks are read back too (the host eliminates them)."""
         with device_lock(self.device):
             self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
-            self._launch(_linearize, self.n_obs,
+            self._launch(_linearize, -(-self.n_obs // self.per_thread),
                          [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
-                          self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free],
-                         [self.W, self.Hpp, self.gp, self.pose_system])
+                          self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free, self.per_thread,
+                          self.n_obs], [self.W, self.Hpp, self.gp, self.pose_system])
             if lam is not None:
                 self._eliminate(lam, zeroed=True)
         self._linearized_at, self._landmarks_read = lam, landmarks
@@ -633,7 +771,7 @@ class ObservationKernels:
 
     def residual_mad(self, with_residuals: bool = False):
         """The median absolute deviation about the median of the current state's finite residual components
-        (``robust.mad_sigma``'s, before its factor), by two sorts here (``scale_on_device``): (their count, the
+        (``robust.mad_sigma``'s, before its factor), by two sorts here (``gpu_reductions``): (their count, the
         MAD), and with ``with_residuals`` the (O, 2) residuals too (NaN behind the camera; a copy), in one
         read-back."""
         O = self.n_obs
@@ -650,12 +788,12 @@ class ObservationKernels:
         """``scale_sums``: the count of the finite components in ``residual`` and their MAD about their median."""
         O, keys, values, sums = self.n_obs, self.scale_keys, self.scale_values, self.scale_sums
         self._zero(sums)
-        self._launch(_scale_keys, O, [self.residual], [keys, self.scale_count])
+        self._launch(_scale_keys, O, [self.residual], [keys])
         self._sort(keys, values, 2 * O)
-        self._launch(_median_of_sorted, 1, [keys, self.scale_count], [sums])  # the components' median
-        self._launch(_median_deviations, 2 * O, [self.scale_count, sums], [keys])
+        self._launch(_median_of_sorted, 1, [keys, 2 * O, 1], [sums])  # their count and median
+        self._launch(_median_deviations, 2 * O, [sums], [keys])
         self._sort(keys, values, 2 * O)
-        self._launch(_median_of_sorted, 1, [keys, self.scale_count], [sums])  # their deviations' median
+        self._launch(_median_of_sorted, 1, [keys, 2 * O, 0], [sums])  # their deviations' median
 
     def _sort(self, keys, values, n: int) -> None:
         """``keys[:n]`` sorted in place (a radix sort: ``keys`` and ``values`` hold 2 n)."""
@@ -663,9 +801,9 @@ class ObservationKernels:
         self.ops["launches"] += 1
 
     def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
-        self._launch(_error, self.n_obs,
+        self._launch(_error, -(-self.n_obs // self.per_thread),
                      [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
-                      float(k), LOSS_CODES[loss], slot], [self.sums])
+                      float(k), LOSS_CODES[loss], slot, self.per_thread, self.n_obs], [self.sums])
 
     def error(self, sigma: float, loss: str, k: float) -> float:
         """The sum of the reprojection losses at the current state; a linearisation started and not read back
@@ -715,9 +853,16 @@ class ObservationKernels:
         if not zeroed:
             self._zero(self.eliminated)
         self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)], [self.L, self.Lg, self.failed])
-        self._launch(_schur_blocks, self.n_pm,
-                     [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
-                      6 * self.n_free], [self.M, self.r])
+        if self.window:
+            n_runs = -(-self.n_points // GPU_POINTS_PER_THREAD)
+            self._launch(_whiten_observations, self.n_obs, [self.obs_point, self.obs_col, self.W, self.L], [self.Z])
+            self._launch(_schur_window, 6 * (self.n_free * (self.n_free + 1) // 2) * n_runs,
+                         [self.table, self.Z, self.Lg, self.n_free, self.n_points, GPU_POINTS_PER_THREAD],
+                         [self.M, self.r])
+        else:
+            self._launch(_schur_blocks, self.n_pm,
+                         [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                          6 * self.n_free], [self.M, self.r])
 
     def _camera_system(self, flat: np.ndarray):
         """(M, r) copied from a read-back ``eliminated``; None where a landmark block failed."""
