@@ -437,28 +437,8 @@ def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=mat36d), Lg
 
 
 @wp.func
-def _move_point(j: int, d: wp.vec3d, X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
-                X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
-    """The trial landmark X + d, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both)."""
-    X_trial[j] = X[j] + d
-    wp.atomic_add(sums, 0, wp.dot(d, gp[j]))
-    wp.atomic_add(sums, 1, wp.dot(d, d))
-
-
-@wp.kernel
-def _trial_points(dp: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
-                  X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
-    """The trial landmarks of moves ``dp`` solved on the host (``_move_point``)."""
-    j = wp.tid()
-    _move_point(j, dp[j], X, gp, X_trial, sums)
-
-
-@wp.kernel
-def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
-                     X: wp.array(dtype=wp.vec3d), dp: wp.array(dtype=wp.vec3d), X_trial: wp.array(dtype=wp.vec3d),
-                     sums: wp.array(dtype=wp.float64)):
-    """Each landmark's move: dp = -V^-1 (gp + sum of W dc), V = L L^T, and the trial landmark (``_move_point``)."""
-    j = wp.tid()
+def _solve_move(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d), j: int):
+    """A landmark's move dp = -V^-1 (gp + sum of W dc), V = L L^T."""
     l = L[j]
     x = gp[j] + Wdc[j]
     y0 = x[0] / l[0]
@@ -467,9 +447,35 @@ def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc
     u2 = y2 / l[5]
     u1 = (y1 - l[4] * u2) / l[2]
     u0 = (y0 - l[1] * u1 - l[3] * u2) / l[0]
-    d = -wp.vec3d(u0, u1, u2)
-    dp[j] = d
-    _move_point(j, d, X, gp, X_trial, sums)
+    return -wp.vec3d(u0, u1, u2)
+
+
+@wp.kernel
+def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
+                 X: wp.array(dtype=wp.vec3d), per_thread: int, n_points: int, dp: wp.array(dtype=wp.vec3d),
+                 X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
+    """The trial landmarks X + dp, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both), a
+    thread's ``per_thread`` landmarks' before adding them in (as ``_linearize``). With ``solve`` the moves are
+    solved here first, by ``schur_complement``'s factors (``_solve_move``: the back-substitution), else they are
+    the host's, in ``dp``."""
+    first = wp.tid() * per_thread
+    gd = wp.float64(0.0)
+    dd = wp.float64(0.0)
+    for j in range(first, wp.min(first + per_thread, n_points)):
+        d = dp[j]
+        if solve != 0:
+            d = _solve_move(L, gp, Wdc, j)
+            dp[j] = d
+        X_trial[j] = X[j] + d
+        if j == first:
+            gd = wp.dot(d, gp[j])
+            dd = wp.dot(d, d)
+        else:
+            gd += wp.dot(d, gp[j])
+            dd += wp.dot(d, d)
+    if first < n_points:
+        wp.atomic_add(sums, 0, gd)
+        wp.atomic_add(sums, 1, dd)
 
 
 # with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
@@ -906,7 +912,8 @@ class ObservationKernels:
             self._zero(self.step_sums)
             if self.n_free:
                 self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
-            self._launch(_back_substitute, self.n_points, [self.L, self.gp, self.Wdc, self.X[self.cur]],
+            self._launch(_move_points, -(-self.n_points // self.per_thread),
+                         [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
                          [self.dp, self.X[1 - self.cur], self.sums])
             self._error_launch(1 - self.cur, sigma, loss, k, 2)
 
@@ -922,6 +929,7 @@ class ObservationKernels:
         self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
         with device_lock(self.device):
             self._zero(self.sums)
-            self._launch(_trial_points, self.n_points, [self.dp, self.X[self.cur], self.gp],
-                         [self.X[1 - self.cur], self.sums])
+            self._launch(_move_points, -(-self.n_points // self.per_thread),
+                         [0, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
+                         [self.dp, self.X[1 - self.cur], self.sums])
             self._error_launch(1 - self.cur, sigma, loss, k, 2)
