@@ -27,6 +27,8 @@ instead, by atomics (``device_schur``). The system is solved by a dense Cholesky
 On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
 keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
 the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
+Each read-back waits for the device: the host launches, does its pose-factor work, then reads. On a GPU the
+kernels reduce a GPU's way and the robust scales' medians are found there (``ObservationKernels``).
 """
 
 from __future__ import annotations

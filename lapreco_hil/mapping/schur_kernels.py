@@ -7,7 +7,8 @@ they run on the GPU. Float64 throughout, as GTSAM computes.
 
 ``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
 and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
-factorisation.
+factorisation. On CUDA the sums reduce a GPU's way (``gpu_reductions``: fewer atomics, a window's elimination by
+pose pairs, the robust scale by sorts); on the CPU device one observation's terms at a time, in order.
 """
 
 from __future__ import annotations
