@@ -71,6 +71,67 @@ def _camera_point(T: wp.mat44d, X: wp.vec3d) -> wp.vec3d:
 
 
 @wp.func
+def _observation_terms(o: int, obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                       uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                       K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int):
+    """An observation's residual (ru, rv), its Jacobians' rows by the pose tangent (ju, jv) and by the landmark
+    (pu, pv), and its weight s (whitening and robust reweighting, squared)."""
+    i = obs_pose[o]
+    j = obs_point[o]
+    Tm = T[i]
+    Xc = _camera_point(Tm, X[j])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    fx = K[0]
+    fy = K[1]
+    # behind the camera: GTSAM's constant error 2 fx, no gradient
+    ru = wp.float64(2.0) * fx
+    rv = wp.float64(2.0) * fx
+    ju = wp.spatial_vectord()
+    jv = wp.spatial_vectord()
+    pu = wp.vec3d()
+    pv = wp.vec3d()
+    if Xc[2] > zero:
+        z = Xc[2]
+        xn = Xc[0] / z
+        yn = Xc[1] / z
+        ru = fx * xn + K[2] - uv[o][0]
+        rv = fy * yn + K[3] - uv[o][1]
+        a = fx / z
+        b = fy / z
+        # d residual / d (rotation, translation) of T Exp(xi)
+        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
+        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
+        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
+        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
+        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
+        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
+        pu = a * (c0 - xn * c2)
+        pv = b * (c1 - yn * c2)
+    r2 = ru * ru + rv * rv
+    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
+    return s, ru, rv, ju, jv, pu, pv
+
+
+@wp.func
+def _landmark_terms(j: int, s: wp.float64, ru: wp.float64, rv: wp.float64, pu: wp.vec3d, pv: wp.vec3d,
+                    W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d)):
+    wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
+    wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+
+
+@wp.func
+def _landmark_pose_block(s: wp.float64, ju: wp.spatial_vectord, jv: wp.spatial_vectord, pu: wp.vec3d,
+                         pv: wp.vec3d) -> mat36d:
+    """s Jp^T Jc: the observation's landmark-pose block."""
+    Wo = mat36d()
+    for a_ in range(3):
+        for b_ in range(6):
+            Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
+    return Wo
+
+
+@wp.func
 def _add_pose_terms(pose_system: wp.array(dtype=wp.float64), n_free: int, c: int, H: wp.spatial_matrixd,
                     g: wp.spatial_vectord):
     """A free pose's block and gradient terms summed into ``pose_system`` (``_linearize``)."""
@@ -84,76 +145,96 @@ def _add_pose_terms(pose_system: wp.array(dtype=wp.float64), n_free: int, c: int
 def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
                obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
                X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int,
-               n_free: int, per_thread: int, n_obs: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
+               n_free: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
                gp: wp.array(dtype=wp.vec3d), pose_system: wp.array(dtype=wp.float64)):
     """Each observation's terms summed into its landmark's block (Hpp, gp) and its free pose's, in
-    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2. A thread
-    takes ``per_thread`` consecutive observations (pose-major: mostly one pose's) and sums their pose terms
-    before adding them in (a GPU's way: fewer atomics on few addresses); with one, the serial order of the CPU
-    device."""
+    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2. (The
+    CPU device's: one observation per thread, the terms of ``_observation_terms`` written out as before, its
+    speed there unchanged; ``_linearize_runs``: a GPU's.)"""
+    o = wp.tid()
+    i = obs_pose[o]
+    j = obs_point[o]
+    Tm = T[i]
+    Xc = _camera_point(Tm, X[j])
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     fx = K[0]
     fy = K[1]
+    # behind the camera: GTSAM's constant error 2 fx, no gradient
+    ru = wp.float64(2.0) * fx
+    rv = wp.float64(2.0) * fx
+    ju = wp.spatial_vectord()
+    jv = wp.spatial_vectord()
+    pu = wp.vec3d()
+    pv = wp.vec3d()
+    if Xc[2] > zero:
+        z = Xc[2]
+        xn = Xc[0] / z
+        yn = Xc[1] / z
+        ru = fx * xn + K[2] - uv[o][0]
+        rv = fy * yn + K[3] - uv[o][1]
+        a = fx / z
+        b = fy / z
+        # d residual / d (rotation, translation) of T Exp(xi)
+        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
+        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
+        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
+        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
+        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
+        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
+        pu = a * (c0 - xn * c2)
+        pv = b * (c1 - yn * c2)
+    r2 = ru * ru + rv * rv
+    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
+    wp.atomic_add(pose_system, 42 * n_free, s * r2)
+    wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
+    wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+    c = obs_col[o]
+    Wo = mat36d()
+    if c >= 0:
+        for a_ in range(3):
+            for b_ in range(6):
+                Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
+        Hc = s * (wp.outer(ju, ju) + wp.outer(jv, jv))
+        g = s * (ju * ru + jv * rv)
+        for a_ in range(6):
+            for b_ in range(6):
+                wp.atomic_add(pose_system, 36 * c + 6 * a_ + b_, Hc[a_, b_])
+            wp.atomic_add(pose_system, 36 * n_free + 6 * c + a_, g[a_])
+    W[o] = Wo
+
+
+@wp.kernel
+def _linearize_runs(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                    obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
+                    X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int,
+                    n_free: int, per_thread: int, n_obs: int, W: wp.array(dtype=mat36d),
+                    Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d),
+                    pose_system: wp.array(dtype=wp.float64)):
+    """``_linearize`` a GPU's way: a thread takes ``per_thread`` consecutive observations (pose-major: mostly
+    one pose's) and sums their pose terms before adding them in (the sum of s |r|^2 took an atomic per
+    observation on one address)."""
     first = wp.tid() * per_thread
     H_sum = wp.spatial_matrixd()
     g_sum = wp.spatial_vectord()
-    sr2_sum = zero
+    sr2_sum = wp.float64(0.0)
     c_sum = int(-1)
     for o in range(first, wp.min(first + per_thread, n_obs)):
-        i = obs_pose[o]
-        j = obs_point[o]
-        Tm = T[i]
-        Xc = _camera_point(Tm, X[j])
-        # behind the camera: GTSAM's constant error 2 fx, no gradient
-        ru = wp.float64(2.0) * fx
-        rv = wp.float64(2.0) * fx
-        ju = wp.spatial_vectord()
-        jv = wp.spatial_vectord()
-        pu = wp.vec3d()
-        pv = wp.vec3d()
-        if Xc[2] > zero:
-            z = Xc[2]
-            xn = Xc[0] / z
-            yn = Xc[1] / z
-            ru = fx * xn + K[2] - uv[o][0]
-            rv = fy * yn + K[3] - uv[o][1]
-            a = fx / z
-            b = fy / z
-            # d residual / d (rotation, translation) of T Exp(xi)
-            ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
-            jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
-            # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
-            c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
-            c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
-            c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
-            pu = a * (c0 - xn * c2)
-            pv = b * (c1 - yn * c2)
-        r2 = ru * ru + rv * rv
-        s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
-        if o == first:
-            sr2_sum = s * r2
-        else:
-            sr2_sum += s * r2
-        wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
-        wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+        s, ru, rv, ju, jv, pu, pv = _observation_terms(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss)
+        sr2_sum += s * (ru * ru + rv * rv)
+        _landmark_terms(obs_point[o], s, ru, rv, pu, pv, W, Hpp, gp)
         c = obs_col[o]
         Wo = mat36d()
         if c >= 0:
-            for a_ in range(3):
-                for b_ in range(6):
-                    Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
-            Hc = s * (wp.outer(ju, ju) + wp.outer(jv, jv))
-            g = s * (ju * ru + jv * rv)
-            if c == c_sum:
-                H_sum += Hc
-                g_sum += g
-            else:
+            Wo = _landmark_pose_block(s, ju, jv, pu, pv)
+            if c != c_sum:
                 if c_sum >= 0:
                     _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
-                H_sum = Hc
-                g_sum = g
+                H_sum = wp.spatial_matrixd()
+                g_sum = wp.spatial_vectord()
                 c_sum = c
+            H_sum += s * (wp.outer(ju, ju) + wp.outer(jv, jv))
+            g_sum += s * (ju * ru + jv * rv)
         W[o] = Wo
     if c_sum >= 0:
         _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
@@ -161,26 +242,39 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
         wp.atomic_add(pose_system, 42 * n_free, sr2_sum)
 
 
+@wp.func
+def _observation_loss(o: int, obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                      uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                      K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int) -> wp.float64:
+    Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
+    ru = wp.float64(2.0) * K[0]
+    rv = wp.float64(2.0) * K[0]
+    if Xc[2] > wp.float64(0.0):
+        ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
+        rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
+    return _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k)
+
+
 @wp.kernel
 def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
            T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
-           k: wp.float64, loss: int, slot: int, per_thread: int, n_obs: int, total: wp.array(dtype=wp.float64)):
-    """The sum of the reprojection losses, into ``total[slot]``: a thread sums ``per_thread`` consecutive
-    observations' before adding them in (as ``_linearize``)."""
+           k: wp.float64, loss: int, slot: int, total: wp.array(dtype=wp.float64)):
+    """The sum of the reprojection losses, into ``total[slot]``."""
+    o = wp.tid()
+    wp.atomic_add(total, slot, _observation_loss(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss))
+
+
+@wp.kernel
+def _error_runs(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int, slot: int, per_thread: int,
+                n_obs: int, total: wp.array(dtype=wp.float64)):
+    """``_error`` a GPU's way: a thread sums ``per_thread`` consecutive observations' losses before adding
+    them in."""
     first = wp.tid() * per_thread
     loss_sum = wp.float64(0.0)
     for o in range(first, wp.min(first + per_thread, n_obs)):
-        Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
-        ru = wp.float64(2.0) * K[0]
-        rv = wp.float64(2.0) * K[0]
-        if Xc[2] > wp.float64(0.0):
-            ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
-            rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
-        e = _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k)
-        if o == first:
-            loss_sum = e
-        else:
-            loss_sum += e
+        loss_sum += _observation_loss(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss)
     if first < n_obs:
         wp.atomic_add(total, slot, loss_sum)
 
@@ -735,10 +829,14 @@ class ObservationKernels:
         ``schur_complement(lam)``; with ``landmarks`` their blocks are read back too (the host eliminates them)."""
         with device_lock(self.device):
             self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
-            self._launch(_linearize, -(-self.n_obs // self.per_thread),
-                         [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
-                          self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free, self.per_thread,
-                          self.n_obs], [self.W, self.Hpp, self.gp, self.pose_system])
+            inputs = [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur], self.K,
+                      1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free]
+            outputs = [self.W, self.Hpp, self.gp, self.pose_system]
+            if self.per_thread > 1:
+                self._launch(_linearize_runs, -(-self.n_obs // self.per_thread),
+                             inputs + [self.per_thread, self.n_obs], outputs)
+            else:
+                self._launch(_linearize, self.n_obs, inputs, outputs)
             if lam is not None:
                 self._eliminate(lam, zeroed=True)
         self._linearized_at, self._landmarks_read = lam, landmarks
@@ -808,9 +906,13 @@ class ObservationKernels:
         self.ops["launches"] += 1
 
     def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
-        self._launch(_error, -(-self.n_obs // self.per_thread),
-                     [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
-                      float(k), LOSS_CODES[loss], slot, self.per_thread, self.n_obs], [self.sums])
+        inputs = [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
+                  float(k), LOSS_CODES[loss], slot]
+        if self.per_thread > 1:
+            self._launch(_error_runs, -(-self.n_obs // self.per_thread), inputs + [self.per_thread, self.n_obs],
+                         [self.sums])
+        else:
+            self._launch(_error, self.n_obs, inputs, [self.sums])
 
     def error(self, sigma: float, loss: str, k: float) -> float:
         """The sum of the reprojection losses at the current state; a linearisation started and not read back
