@@ -149,14 +149,17 @@ def test_prior_and_tie_jacobians_match_finite_differences(rng):
                 np.testing.assert_allclose(J[n], _numeric_jacobian(moved, 6), rtol=1e-5, atol=1e-4)
 
 
+@pytest.mark.parametrize("gpu_reductions", [False, True])
 @pytest.mark.parametrize("loss", ["none", "cauchy", "tukey", "huber"])
-def test_kernels_linearise_as_numpy_does(loss):
+def test_kernels_linearise_as_numpy_does(loss, gpu_reductions):
     """The Warp kernels' normal-equation blocks, error and elimination blocks against the numpy path's, with a
-    fixed pose and a point behind a camera in the problem."""
+    fixed pose and a point behind a camera in the problem; one observation per thread (the CPU device's way) and
+    runs of observations whose poses change within a run (a GPU's)."""
     syn = make_problem(np.random.default_rng(8), n_views=5, n_points=80, jump=0.1)
     p, _ = schur.pose_major(dataclasses.replace(syn.problem, fixed=np.arange(5) == 0))
     p.points[3] = 2 * p.poses[1][:3, 3] - p.points[3]  # behind camera 1 (and others)
-    ref, dev = schur._layout(p), schur._layout(p, DEVICE)
+    ref, dev = schur._layout(p), schur._layout(p, DEVICE, gpu_reductions=gpu_reductions)
+    assert dev.kernels.per_thread == (16 if gpu_reductions else 1)
     a = schur._linearize(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     b = schur._linearize(p, dev, p.poses, p.points, 0.7, loss, 2.5)
     for x, y in ((a.Hcc, b.Hcc), (a.gc, b.gc), (a.Hpp, b.Hpp), (a.gp, b.gp),

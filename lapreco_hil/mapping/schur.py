@@ -977,6 +977,8 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     t0 = time.perf_counter()
     if max_iterations:  # (the first linearisation starts before the error: a device reads both back at once)
         state.start(sigma, loss, k, LAMBDA_INITIAL)
+        timing["linearize_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
     error = state.error(sigma, loss, k)
     timing["error_s"] += time.perf_counter() - t0
     error_before = error

@@ -902,7 +902,8 @@ class ObservationKernels:
 
     def _sort(self, keys, values, n: int) -> None:
         """``keys[:n]`` sorted in place (a radix sort: ``keys`` and ``values`` hold 2 n)."""
-        wp.utils.radix_sort_pairs(keys, values, n)
+        with wp.ScopedDevice(self.device):  # (the sort runs in the current device's context and stream)
+            wp.utils.radix_sort_pairs(keys, values, n)
         self.ops["launches"] += 1
 
     def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
