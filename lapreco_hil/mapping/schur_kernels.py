@@ -462,15 +462,6 @@ def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.in
             _add_block(M, n6, ca, ca, za, zb, True)
 
 
-@wp.func
-def _block_row(za: mat36d, zb: mat36d, a: int) -> vec6d:
-    """Row ``a`` of za^T zb."""
-    v = vec6d()
-    for b in range(6):
-        v[b] = za[0, a] * zb[0, b] + za[1, a] * zb[1, b] + za[2, a] * zb[2, b]
-    return v
-
-
 @wp.kernel
 def _window_table(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32), n_free: int,
                   table: wp.array(dtype=wp.int32)):
@@ -484,20 +475,23 @@ def _window_table(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=w
 
 @wp.kernel
 def _whiten_observations(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
-                         W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Z: wp.array(dtype=mat36d)):
-    """Z = L^-1 W of each observation by a free pose (L: its landmark's Cholesky factor), for ``_schur_window``."""
+                         W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Z: wp.array(dtype=wp.vec3d)):
+    """Z = L^-1 W of each observation by a free pose (L: its landmark's Cholesky factor), for ``_schur_window``:
+    its six columns, ``Z[6 o + b]`` (a thread there reads the one it needs)."""
     o = wp.tid()
     if obs_col[o] >= 0:
-        Z[o] = _whiten(L[obs_point[o]], W[o])
+        z = _whiten(L[obs_point[o]], W[o])
+        for b in range(6):
+            Z[6 * o + b] = wp.vec3d(z[0, b], z[1, b], z[2, b])
 
 
 @wp.kernel
-def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=mat36d), Lg: wp.array(dtype=wp.vec3d),
+def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=wp.vec3d), Lg: wp.array(dtype=wp.vec3d),
                   n_free: int, n_points: int, per_thread: int, M: wp.array(dtype=wp.float64),
                   r: wp.array(dtype=wp.float64)):
     """``_schur_blocks``' sums the way a window's few poses allow (each landmark seen once by a pose:
-    ``_window_table``; Z: ``_whiten_observations``'): a thread per pose pair (ca >= cb, the lower block
-    triangle's), block row and run of ``per_thread`` landmarks sums z_a^T z_b (row a) over the landmarks that
+    ``_window_table``; Z: ``_whiten_observations``' columns): a thread per pose pair (ca >= cb, the lower block
+    triangle's), block row a and run of ``per_thread`` landmarks sums row a of z_a^T z_b over the landmarks that
     both poses see, and for a diagonal pair z_a^T L^-1 gp, before adding them in: a few atomics per thread, not
     per landmark."""
     t = wp.tid()
@@ -519,11 +513,12 @@ def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=mat36d), Lg
         oa = table[j * n_free + ca]
         ob = table[j * n_free + cb]
         if oa >= 0 and ob >= 0:
-            za = Z[oa]
-            m_sum += _block_row(za, Z[ob], a)
+            za = Z[6 * oa + a]
+            b0 = 6 * ob
+            m_sum += vec6d(wp.dot(za, Z[b0]), wp.dot(za, Z[b0 + 1]), wp.dot(za, Z[b0 + 2]), wp.dot(za, Z[b0 + 3]),
+                           wp.dot(za, Z[b0 + 4]), wp.dot(za, Z[b0 + 5]))
             if ca == cb:
-                lg = Lg[j]
-                r_sum += za[0, a] * lg[0] + za[1, a] * lg[1] + za[2, a] * lg[2]
+                r_sum += wp.dot(za, Lg[j])
     n6 = 6 * n_free
     for b in range(6):
         wp.atomic_add(M, (6 * ca + a) * n6 + 6 * cb + b, m_sum[b])
@@ -655,7 +650,7 @@ class ObservationKernels:
                  "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
                  "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
         if self.window:
-            parts.update({"table": (n_table, wp.int32), "Z": (O, mat36d)})
+            parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
         if self.gpu_reductions:
             # the residual components, then their deviations, sorted (a radix sort's keys and values take twice
             # their count); the count of finite ones and the median
