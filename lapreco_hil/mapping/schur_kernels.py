@@ -598,9 +598,10 @@ class ObservationKernels:
     The state (the poses, as (P,) 4x4 matrices, and the landmarks) stays here across LM iterations: a trial state
     is written beside the current one (the trial poses uploaded, the landmarks moved here) and ``accept`` makes it
     current. Every buffer is allocated once per solve; the host reads back one buffer per step it needs (the
-    pose system, the eliminated camera system, the trial's sums) into a host array allocated once. ``ops`` counts
-    launches (memsets included), uploads, downloads (and their bytes) and allocations: on the CPU device a
-    download is a read of the array's memory, on CUDA a copy and a wait."""
+    pose system, the eliminated camera system, the trial's sums) into a host array allocated once; the work that
+    one waits for is started by a ``launch_*`` and read by a ``read_*`` (or with ``error``), so that the host works
+    in between. ``ops`` counts launches (memsets and sorts included), uploads, downloads (and their bytes) and
+    allocations: on the CPU device a download is a read of the array's memory, on CUDA a copy and a wait."""
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
                  gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
@@ -688,7 +689,8 @@ class ObservationKernels:
         self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
         # the linearisation started: its damping (None: no elimination with it), whether the landmark blocks are
         # read back, the array to read back (None: read already) and its read-back where ``error`` brought it
-        self._linearized_at, self._landmarks_read, self._linearization, self._linearization_view = None, False, None, None
+        self._linearized_at, self._landmarks_read = None, False
+        self._linearization = self._linearization_view = None
         self._host = {}  # host mirrors, made at first use
         self._chunks: dict[int, tuple] = {}
 
