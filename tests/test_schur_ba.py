@@ -18,7 +18,7 @@ from lapreco_hil.geometry import inv_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping import schur
 from lapreco_hil.mapping.mapper import Mapper
-from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma, sigma_of_mad
 from lapreco_hil.mapping.synthetic import make_problem, make_sweep_problem
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
@@ -80,6 +80,23 @@ def test_the_robust_scale_is_numpys_median_by_one_selection(rng):
     assert mad_sigma(np.full(6, np.nan), floor=0.3) == 1.0
 
 
+def test_the_robust_scale_found_on_the_device_is_the_hosts(rng):
+    """The medians found on the kernels' device by sorts (a GPU's way: one scalar read back) give exactly
+    ``mad_sigma``'s scale: odd and even counts of finite components, ties, NaN and inf left out, none at all."""
+    p = make_problem(np.random.default_rng(5), n_views=4, n_points=60, jump=0.03).problem
+    kernels = schur._layout(schur.pose_major(p)[0], DEVICE, gpu_reductions=True).kernels
+    n_obs = len(p.obs_pose)
+    for n_finite in (0, 1, 2, 3, 4, 101, 2 * n_obs):
+        for values in (rng.normal(size=2 * n_obs), rng.standard_cauchy(size=2 * n_obs),
+                       rng.integers(0, 4, 2 * n_obs).astype(float)):
+            values[rng.permutation(2 * n_obs)[n_finite:]] = rng.choice([np.nan, np.inf, -np.inf])
+            kernels._upload(kernels.residual, values.reshape(-1, 2))
+            kernels._launch_mad()
+            count, mad = kernels._download(kernels.scale_sums)[0][:2]
+            assert count == n_finite
+            assert sigma_of_mad(float(mad) if count else None) == mad_sigma(values)
+
+
 def _numeric_jacobian(f, n, eps=1e-6):
     cols = []
     for i in range(n):
@@ -132,14 +149,22 @@ def test_prior_and_tie_jacobians_match_finite_differences(rng):
                 np.testing.assert_allclose(J[n], _numeric_jacobian(moved, 6), rtol=1e-5, atol=1e-4)
 
 
+@pytest.mark.parametrize("gpu_reductions", [False, True])
 @pytest.mark.parametrize("loss", ["none", "cauchy", "tukey", "huber"])
-def test_kernels_linearise_as_numpy_does(loss):
+def test_kernels_linearise_as_numpy_does(loss, gpu_reductions):
     """The Warp kernels' normal-equation blocks, error and elimination blocks against the numpy path's, with a
-    fixed pose and a point behind a camera in the problem."""
+    fixed pose and a point behind a camera in the problem; one observation per thread (the CPU device's way) and
+    runs of observations whose poses change within a run (a GPU's)."""
     syn = make_problem(np.random.default_rng(8), n_views=5, n_points=80, jump=0.1)
-    p, _ = schur.pose_major(dataclasses.replace(syn.problem, fixed=np.arange(5) == 0))
+    q = syn.problem
+    keep = np.ones(len(q.obs_pose), bool)
+    keep[[5, 17, 200]] = False  # (80 views per pose: runs of 16 would never hold two poses)
+    p, _ = schur.pose_major(dataclasses.replace(q, fixed=np.arange(5) == 0, obs_pose=q.obs_pose[keep],
+                                                obs_point=q.obs_point[keep], obs_uv=q.obs_uv[keep]))
     p.points[3] = 2 * p.poses[1][:3, 3] - p.points[3]  # behind camera 1 (and others)
-    ref, dev = schur._layout(p), schur._layout(p, DEVICE)
+    ref, dev = schur._layout(p), schur._layout(p, DEVICE, gpu_reductions=gpu_reductions)
+    runs = p.obs_pose[:len(p.obs_pose) // 16 * 16].reshape(-1, 16)
+    assert dev.kernels.per_thread == (16 if gpu_reductions else 1) and np.any(runs[:, 0] != runs[:, -1])
     a = schur._linearize(p, ref, p.poses, p.points, 0.7, loss, 2.5)
     b = schur._linearize(p, dev, p.poses, p.points, 0.7, loss, 2.5)
     for x, y in ((a.Hcc, b.Hcc), (a.gc, b.gc), (a.Hpp, b.Hpp), (a.gp, b.gp),
@@ -343,17 +368,24 @@ def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
         p = dataclasses.replace(p, has_prior=has_prior, tie_pairs=pairs,
                                 tie_T=np.array([inv_T(syn.true_poses[i]) @ syn.true_poses[j] for i, j in pairs]),
                                 tie_covs=np.repeat(np.diag([1e-4**2] * 3 + [1e-5**2] * 3)[None], 4, 0))
-    host = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=False)
-    dev = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=True)
-    assert [s["iterations"] for s in dev.stats["stages"]] == [s["iterations"] for s in host.stats["stages"]]
-    np.testing.assert_allclose(dev.poses, host.poses, atol=1e-9)
-    # the landmarks that keep inlier views by two poses; one that Tukey leaves a single weighted view (or two by
-    # one pose) is free along its ray, and moves by the round-off
-    inlier_pairs = np.unique(np.column_stack([p.obs_point, p.obs_pose])[dev.stats["inlier_obs"]], axis=0)
-    kept = np.bincount(inlier_pairs[:, 0], minlength=len(p.points)) >= 2
-    assert kept.mean() > 0.9
-    np.testing.assert_allclose(dev.points[kept], host.points[kept], atol=1e-8)
-    np.testing.assert_array_equal(dev.stats["inlier_obs"], host.stats["inlier_obs"])
+    host = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=False, gpu_reductions=False)
+    for gpu_reductions in (False, True):
+        # (a GPU's reductions: sums per thread, the window's elimination by pose pairs, the scales by sorts)
+        dev = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=True,
+                                       gpu_reductions=gpu_reductions)
+        assert [s["iterations"] for s in dev.stats["stages"]] == [s["iterations"] for s in host.stats["stages"]]
+        np.testing.assert_allclose(dev.poses, host.poses, atol=1e-9)
+        assert [s["sigma_px"] for s in dev.stats["stages"]] == pytest.approx(
+            [s["sigma_px"] for s in host.stats["stages"]], rel=1e-9)
+        # the landmarks that keep inlier views by two poses; one that Tukey leaves a single weighted view (or two
+        # by one pose) is free along its ray, and moves by the round-off
+        inlier_pairs = np.unique(np.column_stack([p.obs_point, p.obs_pose])[dev.stats["inlier_obs"]], axis=0)
+        kept = np.bincount(inlier_pairs[:, 0], minlength=len(p.points)) >= 2
+        assert kept.mean() > 0.9
+        np.testing.assert_allclose(dev.points[kept], host.points[kept], atol=1e-8)
+        np.testing.assert_array_equal(dev.stats["inlier_obs"], host.stats["inlier_obs"])
+    # the window's elimination by pose pairs where each landmark is seen once by a pose (else by observations)
+    assert schur._layout(schur.pose_major(p)[0], DEVICE, True, gpu_reductions=True).kernels.window == (case != "twice")
     if case == "outliers":
         ref = ba.solve_robust(p, RobustSchedule())
         assert rms_mm(dev.poses, syn.true_poses) == pytest.approx(rms_mm(ref.poses, syn.true_poses), rel=0.02)
@@ -394,6 +426,24 @@ def test_the_state_stays_on_the_device_across_lm(device_schur):
         assert many["uploads"] <= few["uploads"] + 2 * (solves - sum(s["solves"] for s in runs[1].stats["stages"]))
     else:  # the landmark blocks too: the host eliminates them
         assert many["downloaded_bytes"] > per_solve + linearisations * 8 * 12 * n_points
+
+
+def test_a_solve_with_its_scales_found_on_the_device_reads_the_residuals_once():
+    """With a GPU's reductions (CUDA's default) the robust scales' medians are found on the kernels' device: the
+    residuals are read back once, at the end, and the scales are the host's (the sums differ by round-off only)."""
+    syn = make_problem(np.random.default_rng(6), n_views=6, n_points=300, jump=0.03, highlight=0.02)
+    host = schur.solve_robust_schur(syn.problem, RobustSchedule(), device=DEVICE, gpu_reductions=False)
+    dev = schur.solve_robust_schur(syn.problem, RobustSchedule(), device=DEVICE, gpu_reductions=True)
+    n_obs = len(syn.problem.obs_pose)
+    # (two stages: the residuals (O, 2) read back before each on the host's way; a count and a MAD on the GPU's)
+    saved = host.stats["device_ops"]["downloaded_bytes"] - dev.stats["device_ops"]["downloaded_bytes"]
+    assert [s["solves"] for s in dev.stats["stages"]] == [s["solves"] for s in host.stats["stages"]]
+    assert saved == 2 * 16 * n_obs - 3 * 16
+    assert [s["sigma_px"] for s in dev.stats["stages"]] == pytest.approx(
+        [s["sigma_px"] for s in host.stats["stages"]], rel=1e-9)
+    assert dev.stats["sigma_px"] == pytest.approx(host.stats["sigma_px"], rel=1e-9)
+    np.testing.assert_allclose(dev.poses, host.poses, atol=1e-9)
+    np.testing.assert_array_equal(dev.stats["inlier_obs"], host.stats["inlier_obs"])
 
 
 @pytest.mark.parametrize("device_schur", [True, False])

@@ -34,10 +34,17 @@ def mad_sigma(residuals_xy: np.ndarray, floor: float = 0.0) -> float:
     finite = np.isfinite(e)
     e = e[finite] if not finite.all() else e.copy()
     if e.size == 0:
-        return max(floor, 1.0)
+        return sigma_of_mad(None, floor)
     median = _median_in_place(e)
     np.subtract(e, median, out=e)
-    return max(float(MAD_TO_SIGMA * _median_in_place(np.abs(e, out=e))), floor)
+    return sigma_of_mad(_median_in_place(np.abs(e, out=e)), floor)
+
+
+def sigma_of_mad(mad: float | None, floor: float = 0.0) -> float:
+    """``mad_sigma`` of a median absolute deviation found elsewhere (a GPU's sort); None: no finite component."""
+    if mad is None:
+        return max(floor, 1.0)
+    return max(float(MAD_TO_SIGMA * mad), floor)
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,8 @@ instead, by atomics (``device_schur``). The system is solved by a dense Cholesky
 On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
 keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
 the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
+Each read-back waits for the device: the host launches, does its pose-factor work, then reads. On a GPU the
+kernels reduce a GPU's way and the robust scales' medians are found there (``ObservationKernels``).
 """
 
 from __future__ import annotations
@@ -43,11 +45,12 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
+import scipy.linalg.lapack
 import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
-from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma
-from lapreco_hil.mapping.robust import RobustSchedule
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, redundancy
+from lapreco_hil.mapping.robust import RobustSchedule, sigma_of_mad
 
 log = logging.getLogger(__name__)
 
@@ -287,8 +290,9 @@ def pose_major(problem: BAProblem) -> tuple[BAProblem, np.ndarray]:
         return problem, np.arange(len(obs_pose))
     # (a stable sort of 16-bit integers is numpy's radix sort: a few times faster than of 64-bit ones)
     perm = np.argsort(obs_pose.astype(np.int16) if len(problem.poses) < 2**15 else obs_pose, kind="stable")
-    return dataclasses.replace(problem, obs_pose=problem.obs_pose[perm], obs_point=problem.obs_point[perm],
-                               obs_uv=problem.obs_uv[perm]), perm
+    # (``np.take`` along an axis: a tenth of the time of a fancy index of the (O, 2) rows)
+    return dataclasses.replace(problem, obs_pose=np.take(obs_pose, perm), obs_point=np.take(problem.obs_point, perm),
+                               obs_uv=np.take(problem.obs_uv, perm, axis=0)), perm
 
 
 @dataclass
@@ -400,9 +404,11 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     return chunks
 
 
-def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> _Layout:
+def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
+            gpu_reductions: bool | None = None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
-    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``)."""
+    that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
+    ``gpu_reductions`` its sums and medians taken a GPU's ways (None: on CUDA; ``ObservationKernels``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -425,7 +431,8 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False) -> 
     if device != "numpy":
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
-        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur)
+        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
+                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -528,35 +535,70 @@ def _reprojection(p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndar
     return r, np.transpose(Jc, (2, 0, 1)), np.transpose(Jp, (2, 0, 1))
 
 
-def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
-    """Whitened prior and tie errors, and (optionally) their Jacobians: [(error (n, 6), [(pose idx (n,),
-    J (n, 6, 6))])]."""
+def _pose_errors(p: BAProblem, lay: _Layout, poses: np.ndarray) -> list[tuple]:
+    """The priors' and ties' errors at ``poses``, what their loss and Jacobians need: per kind of factor
+    (whitened error (n, 6), error (n, 6), its whitening (n, 6, 6), its poses (prior: (i,), tie: (i, j)),
+    a tie's T_i^-1 T_j (n, 4, 4) or None, 0.5 |whitened error|^2). A state keeps them with its poses: the error
+    at a trial's poses is the next linearisation's."""
     out = []
     if len(lay.prior_idx):
         i = lay.prior_idx
         e = se3_log(lay.prior_inv @ poses[i])
-        J = lay.prior_R @ right_jacobian_inverse(e) if jacobians else None
-        out.append((np.einsum("nij,nj->ni", lay.prior_R, e), [(i, J)]))
+        out.append((np.einsum("nij,nj->ni", lay.prior_R, e), e, lay.prior_R, (i,), None))
     if len(p.tie_pairs):
         i, j = p.tie_pairs[:, 0], p.tie_pairs[:, 1]
         B = np.linalg.inv(poses[i]) @ poses[j]
         e = se3_log(lay.tie_inv @ B)
-        blocks = []
-        if jacobians:
-            Jj = lay.tie_R @ right_jacobian_inverse(e)
-            blocks = [(i, -Jj @ adjoint(np.linalg.inv(B))), (j, Jj)]
-        out.append((np.einsum("nij,nj->ni", lay.tie_R, e), blocks))
+        out.append((np.einsum("nij,nj->ni", lay.tie_R, e), e, lay.tie_R, (i, j), B))
+    return [(*f, 0.5 * float(np.sum(f[0] * f[0]))) for f in out]
+
+
+def _pose_jacobians(errors: list[tuple]) -> list[tuple]:
+    """[(whitened error (n, 6), [(pose idx (n,), whitened J (n, 6, 6))])] of ``_pose_errors``' factors."""
+    out = []
+    for err, e, R, idx, B, _ in errors:
+        J = R @ right_jacobian_inverse(e)
+        out.append((err, [(idx[0], J)] if B is None else [(idx[0], -J @ adjoint(np.linalg.inv(B))), (idx[1], J)]))
     return out
 
 
-def _plus_pose_factors(p: BAProblem, lay: _Layout, poses, total: float) -> float:
-    """``total`` (the reprojection losses) plus 0.5 |whitened error|^2 of the priors and ties."""
-    for err, _ in _pose_factors(p, lay, poses, jacobians=False):
-        total += 0.5 * float(np.sum(err * err))
+def _pose_factors(p: BAProblem, lay: _Layout, poses: np.ndarray, jacobians: bool):
+    """Whitened prior and tie errors, and (optionally) their Jacobians: [(error (n, 6), [(pose idx (n,),
+    J (n, 6, 6))])]."""
+    errors = _pose_errors(p, lay, poses)
+    if jacobians:
+        return _pose_jacobians(errors)
+    return [(f[0], []) for f in errors]
+
+
+def _pose_normal_terms(lay: _Layout, errors: list[tuple]) -> list[tuple]:
+    """The pose factors' terms of the normal equations, for ``_with_pose_factors`` (made while the device
+    linearises): per factor and pose, (free column blocks, J^T e) and [((column blocks a, :, b, :), Ja^T Jb)]."""
+    out = []
+    for err, jac in _pose_jacobians(errors):
+        for idx_a, Ja in jac:
+            ca = lay.col[idx_a]
+            ok = ca >= 0
+            blocks = []
+            for idx_b, Jb in jac:
+                cb = lay.col[idx_b]
+                both = ok & (cb >= 0)
+                blocks.append(((ca[both], slice(None), cb[both], slice(None)),
+                               np.transpose(Ja[both], (0, 2, 1)) @ Jb[both]))
+            out.append((ca[ok], np.einsum("nji,nj->ni", Ja[ok], err[ok]), blocks))
+    return out
+
+
+def _plus_pose_factors(p: BAProblem, lay: _Layout, poses, total: float, errors: list | None = None) -> float:
+    """``total`` (the reprojection losses) plus 0.5 |whitened error|^2 of the priors and ties (``errors``: their
+    ``_pose_errors`` at ``poses``, where known)."""
+    for f in _pose_errors(p, lay, poses) if errors is None else errors:
+        total += f[-1]
     return total
 
 
-def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> float:
+def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float,
+           errors: list | None = None) -> float:
     """GTSAM's graph.error: the sum of the reprojection losses plus 0.5 |whitened error|^2 of priors, ties."""
     if lay.kernels is not None:
         lay.kernels.set_state(poses, points)
@@ -564,28 +606,41 @@ def _error(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k
     else:
         ru, rv = _project(p, lay, poses, points)[:2]
         total = float(np.sum(robust_loss(loss, np.sqrt(ru * ru + rv * rv) / sigma, k)))
-    return _plus_pose_factors(p, lay, poses, total)
+    return _plus_pose_factors(p, lay, poses, total, errors)
+
+
+def _start_linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
+                               lam: float | None = None, errors: list | None = None) -> tuple[list, list]:
+    """Start ``_linearize_on_device``'s linearisation on the device and make the pose factors' terms while it
+    works: (their ``_pose_errors``, ``_pose_normal_terms``) for ``_linearize_on_device(started=...)``."""
+    on_device = lay.kernels.schur_on_device
+    lay.kernels.launch_linearize(sigma, loss, k, lam if on_device else None, landmarks=not on_device)
+    errors = _pose_errors(p, lay, poses) if errors is None else errors
+    return errors, _pose_normal_terms(lay, errors)
 
 
 def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: str, k: float,
-                         lam: float | None = None) -> _Linear:
+                         lam: float | None = None, errors: list | None = None,
+                         started: tuple | None = None) -> _Linear:
     """``_linearize`` by the kernels at their current state (``poses`` on the host); the landmark blocks stay on
     the device where the elimination runs there (``_Linear.Hpp``, ``gp`` None), and are eliminated at ``lam``
-    with it where given (``ObservationKernels.linearize``)."""
-    on_device = lay.kernels.schur_on_device
-    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.linearize(sigma, loss, k, landmarks=not on_device,
-                                                                lam=lam if on_device else None)
+    with it where given (``ObservationKernels.launch_linearize``). The host makes the pose factors' terms while
+    the device works; ``started``: ``_start_linearize_on_device``'s, where it started already."""
+    errors, terms = started or _start_linearize_on_device(p, lay, poses, sigma, loss, k, lam, errors)
     n_free = len(lay.free)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
+    blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize()
     diagonal = np.arange(n_free)
     Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
-    return _with_pose_factors(p, lay, poses, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq)
+    return _with_pose_factors(lay, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq, errors, terms)
 
 
-def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float) -> _Linear:
+def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: str, k: float,
+               errors: list | None = None) -> _Linear:
     if lay.kernels is not None:
         lay.kernels.set_state(poses, points)
-        return _linearize_on_device(p, lay, poses, sigma, loss, k)
+        return _linearize_on_device(p, lay, poses, sigma, loss, k, errors=errors)
+    errors = _pose_errors(p, lay, poses) if errors is None else errors
     ru, rv, xn, yn, zs, front = _project(p, lay, poses, points)
     Jc, Jp = _jacobians(p, lay, poses, xn, yn, zs, front)
     r2 = ru * ru + rv * rv
@@ -613,25 +668,21 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
             run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
             Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
             gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
-    return _with_pose_factors(p, lay, poses, Hcc, gc, Hpp, gp, W, error0)
+    return _with_pose_factors(lay, Hcc, gc, Hpp, gp, W, error0, errors, _pose_normal_terms(lay, errors))
 
 
-def _with_pose_factors(p: BAProblem, lay: _Layout, poses, Hcc, gc, Hpp, gp, W, error0: float) -> _Linear:
-    """The linearisation with the priors' and ties' terms added to the pose blocks."""
+def _with_pose_factors(lay: _Layout, Hcc, gc, Hpp, gp, W, error0: float, errors: list, terms: list) -> _Linear:
+    """The linearisation with the priors' and ties' terms (``_pose_errors``, ``_pose_normal_terms``) added to
+    the pose blocks."""
     n_free = len(lay.free)
     H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
-    for err, jac in _pose_factors(p, lay, poses, jacobians=True):
-        error0 += 0.5 * float(np.sum(err * err))
-        for idx_a, Ja in jac:
-            ca = lay.col[idx_a]
-            ok = ca >= 0
-            np.add.at(g2, ca[ok], np.einsum("nji,nj->ni", Ja[ok], err[ok]))
-            for idx_b, Jb in jac:
-                cb = lay.col[idx_b]
-                both = ok & (cb >= 0)
-                np.add.at(H4, (ca[both], slice(None), cb[both], slice(None)),
-                          np.transpose(Ja[both], (0, 2, 1)) @ Jb[both])
+    for f in errors:
+        error0 += f[-1]
+    for cols, g, blocks in terms:
+        np.add.at(g2, cols, g)
+        for index, H in blocks:
+            np.add.at(H4, index, H)
     return _Linear(Hcc, gc, Hpp, gp, W, error0)
 
 
@@ -721,16 +772,10 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
             rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
-    dc = np.zeros(0)
-    if n6:
-        try:
-            dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
-                                        check_finite=False)
-        except np.linalg.LinAlgError:
-            dc = np.full(n6, np.nan)
-        if not np.all(np.isfinite(dc)):
-            timing["solve_s"] += time.perf_counter() - t1
-            return None
+    dc = _solve_camera_system(S, rhs)
+    if dc is None:
+        timing["solve_s"] += time.perf_counter() - t1
+        return None
     # back-substitution: dp = -V^-1 (gp + W^T dc) per landmark
     x = lin.gp.copy()
     if n6:
@@ -749,11 +794,14 @@ def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     positive definite."""
     if not len(rhs):
         return np.zeros(0)
-    try:
-        dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, lower=True, check_finite=False), rhs,
-                                    check_finite=False)
-    except np.linalg.LinAlgError:
+    # (LAPACK's potrf and potrs, as scipy's cho_factor and cho_solve call them, without their wrappers' checks:
+    # half their time on a window's system)
+    factor, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=0)
+    if info > 0:
         return None
+    dc, info_solve = scipy.linalg.lapack.dpotrs(factor, rhs, lower=1)
+    if info < 0 or info_solve < 0:
+        raise ValueError(f"LAPACK potrf/potrs: illegal argument {min(info, info_solve)}")
     return dc if np.all(np.isfinite(dc)) else None
 
 
@@ -789,6 +837,7 @@ class _Step:
     step2: float  # |d|^2
     poses: np.ndarray  # (P, 4, 4) the trial poses
     reprojection_error: float | None = None  # the trial's, where the device evaluated it with the step
+    pose_errors: list | None = None  # the trial poses' ``_pose_errors``, once made
 
 
 def _trial_poses(lay: _Layout, poses: np.ndarray, dc: np.ndarray) -> np.ndarray:
@@ -803,6 +852,12 @@ class _HostState:
 
     def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
         self.p, self.lay, self.poses, self._points, self._trial = p, lay, poses, points, None
+        self._pose_errors = None  # the pose factors' ``_pose_errors`` at ``poses``, once made
+
+    def pose_errors(self) -> list:
+        if self._pose_errors is None:
+            self._pose_errors = _pose_errors(self.p, self.lay, self.poses)
+        return self._pose_errors
 
     def points(self) -> np.ndarray:
         return self._points
@@ -810,11 +865,14 @@ class _HostState:
     def residuals(self, behind: float) -> np.ndarray:
         return _reprojection(self.p, self.lay, self.poses, self._points, jacobians=False, behind=behind)
 
+    def start(self, sigma: float, loss: str, k: float, lam: float) -> None:
+        """(the device's way of starting a linearisation early: nothing to do here)"""
+
     def error(self, sigma: float, loss: str, k: float) -> float:
-        return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+        return _error(self.p, self.lay, self.poses, self._points, sigma, loss, k, self.pose_errors())
 
     def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
-        return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k)
+        return _linearize(self.p, self.lay, self.poses, self._points, sigma, loss, k, self.pose_errors())
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         step = _solve_damped(self.lay, lin, lam, timing)
@@ -826,20 +884,29 @@ class _HostState:
 
     def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
         self._trial = self._points + step.dp
-        return _error(self.p, self.lay, step.poses, self._trial, sigma, loss, k)
+        step.pose_errors = _pose_errors(self.p, self.lay, step.poses)
+        return _error(self.p, self.lay, step.poses, self._trial, sigma, loss, k, step.pose_errors)
 
     def accept(self, step: _Step) -> None:
-        self.poses, self._points = step.poses, self._trial
+        self.poses, self._points, self._pose_errors = step.poses, self._trial, step.pose_errors
 
 
 class _DeviceState:
     """The Warp path's state: the landmarks stay on the kernels' device from the solve's start to its end (read
     back once); the poses, a few, on both sides (the host's pose factors and camera system need them; each trial's
-    are uploaded once). A step is applied and its error evaluated there, one read-back each (``ObservationKernels``)."""
+    are uploaded once). A step is applied and its error evaluated there, one read-back each (``ObservationKernels``);
+    the host works on the pose factors between a launch and its read-back."""
 
     def __init__(self, p: BAProblem, lay: _Layout, poses: np.ndarray, points: np.ndarray) -> None:
         self.p, self.lay, self.kernels, self.poses = p, lay, lay.kernels, poses
         self.kernels.set_state(poses, points)
+        self._pose_errors = None  # the pose factors' ``_pose_errors`` at ``poses``, once made
+        self._started = None  # ((sigma, loss, k, lambda), its pose-factor terms) of a linearisation started
+
+    def pose_errors(self) -> list:
+        if self._pose_errors is None:
+            self._pose_errors = _pose_errors(self.p, self.lay, self.poses)
+        return self._pose_errors
 
     def points(self) -> np.ndarray:
         return self.kernels.points()
@@ -847,43 +914,55 @@ class _DeviceState:
     def residuals(self, behind: float) -> np.ndarray:
         return self.kernels.residuals(behind)
 
+    def start(self, sigma: float, loss: str, k: float, lam: float) -> None:
+        """Start the linearisation that LM asks for after the error (read back with it: one wait fewer)."""
+        self._started = (sigma, loss, k, lam), _start_linearize_on_device(self.p, self.lay, self.poses, sigma, loss,
+                                                                          k, lam, self.pose_errors())
+
     def error(self, sigma: float, loss: str, k: float) -> float:
-        return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k))
+        return _plus_pose_factors(self.p, self.lay, self.poses, self.kernels.error(sigma, loss, k), self.pose_errors())
 
     def linearize(self, sigma: float, loss: str, k: float, lam: float) -> _Linear:
         """(with the landmarks eliminated at ``lam``, the damping LM tries first, where that runs here)"""
-        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam)
+        started = self._started[1] if self._started and self._started[0] == (sigma, loss, k, lam) else None
+        self._started = None
+        return _linearize_on_device(self.p, self.lay, self.poses, sigma, loss, k, lam, self.pose_errors(), started)
 
     def solve(self, lin: _Linear, lam: float, sigma: float, loss: str, k: float, timing: dict) -> _Step | None:
         """The step, its trial state made on the device and its reprojection error evaluated there with it (LM
-        reads it only where the model predicts a decrease: the same decisions, one read-back fewer)."""
+        reads it only where the model predicts a decrease: the same decisions, one read-back fewer), the trial
+        poses' pose-factor errors made on the host meanwhile."""
         if self.kernels.schur_on_device:
             dc = _eliminate_on_device(self.lay, lin, lam, timing)
             if dc is None:
                 return None
             t0 = time.perf_counter()
             trial = _trial_poses(self.lay, self.poses, dc)
-            dp_gp, dp_dp, error = self.kernels.back_substitute(dc, trial, sigma, loss, k)
+            self.kernels.launch_back_substitute(dc, trial, sigma, loss, k)
+            pose_errors = _pose_errors(self.p, self.lay, trial)
+            dp_gp, dp_dp, error = self.kernels.read_step()
             timing["solve_s"] += time.perf_counter() - t0
             return _Step(dc, None, float(dc.ravel() @ lin.gc) + dp_gp, float(dc.ravel() @ dc.ravel()) + dp_dp,
-                         trial, error)
+                         trial, error, pose_errors)
         step = _solve_damped(self.lay, lin, lam, timing)  # the landmarks eliminated through host BLAS
         if step is None:
             return None
         dc, dp = step
         t0 = time.perf_counter()
         trial = _trial_poses(self.lay, self.poses, dc)
-        error = self.kernels.try_step(dp, trial, sigma, loss, k)[2]
+        self.kernels.launch_try_step(dp, trial, sigma, loss, k)
+        pose_errors = _pose_errors(self.p, self.lay, trial)
+        error = self.kernels.read_step()[2]
         timing["error_s"] += time.perf_counter() - t0
         return _Step(dc, None, float(dc.ravel() @ lin.gc + dp.ravel() @ lin.gp.ravel()),
-                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), trial, error)
+                     float(dc.ravel() @ dc.ravel() + dp.ravel() @ dp.ravel()), trial, error, pose_errors)
 
     def trial_error(self, step: _Step, sigma: float, loss: str, k: float) -> float:
-        return _plus_pose_factors(self.p, self.lay, step.poses, step.reprojection_error)
+        return _plus_pose_factors(self.p, self.lay, step.poses, step.reprojection_error, step.pose_errors)
 
     def accept(self, step: _Step) -> None:
         self.kernels.accept()
-        self.poses = step.poses
+        self.poses, self._pose_errors = step.poses, step.pose_errors
 
 
 def _new_state(p: BAProblem, lay: _Layout):
@@ -896,6 +975,12 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     """One LM run from ``state`` (left at its result): (error before, error after, iterations, per-iteration
     times, damped systems solved: one per lambda tried)."""
     t0 = time.perf_counter()
+    started_s = 0.0
+    if max_iterations:  # (the first linearisation starts before the error: a device reads both back at once)
+        state.start(sigma, loss, k, LAMBDA_INITIAL)
+        started_s = time.perf_counter() - t0
+        timing["linearize_s"] += started_s
+        t0 = time.perf_counter()
     error = state.error(sigma, loss, k)
     timing["error_s"] += time.perf_counter() - t0
     error_before = error
@@ -904,6 +989,8 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
         return error_before, error, iterations, per_iteration, solves
     while True:
         it_times = {k_: timing[k_] for k_ in _new_timing()}
+        if not per_iteration:  # (its linearisation started before the error)
+            it_times["linearize_s"] -= started_s
         t0 = time.perf_counter()
         lin = state.linearize(sigma, loss, k, lam)
         timing["linearize_s"] += time.perf_counter() - t0
@@ -970,12 +1057,12 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _setup(problem: BAProblem, device: str, device_schur: bool | None):
+def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur))
+    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions)
     return p, perm, lay, time.perf_counter() - t0
 
 
@@ -1006,24 +1093,40 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                      "device_ops": _device_ops(lay)})
 
 
+def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
+    """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
+    (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
+    residuals (NaN behind the camera) too, else None."""
+    kernels = getattr(state, "kernels", None)
+    if kernels is not None and kernels.gpu_reductions:
+        count, mad, *r = kernels.residual_mad(with_residuals)
+        sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
+        return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
+    r = state.residuals(np.nan)
+    return pixel_sigma(p, r, schedule), r
+
+
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
-                       blas_threads: int = 1, device_schur: bool | None = None) -> BAResult:
+                       blas_threads: int = 1, device_schur: bool | None = None,
+                       gpu_reductions: bool | None = None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
-    ``solve_schur``'s."""
+    ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
+    (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
+    values, the sums to round-off); None: on CUDA devices only."""
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0
     timing = _new_timing()
     for n, stage in enumerate(schedule.stages):
         t1 = time.perf_counter()
-        sigma = pixel_sigma(p, state.residuals(np.nan), schedule)
+        sigma = _robust_scale(p, state, schedule)[0]
         scale_s += time.perf_counter() - t1
         stage_timing = _new_timing()
         with _blas_threads(blas_threads):
@@ -1038,10 +1141,11 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
                        "iteration_timing": per_it, "solves": solves})
     t1 = time.perf_counter()
-    r = state.residuals(np.nan)
-    residuals = np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2)
+    sigma_final, r = _robust_scale(p, state, schedule, with_residuals=True)
+    residuals = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
+    residuals += r[:, 1] * r[:, 1]
+    np.sqrt(residuals, out=residuals)
     residuals[~np.isfinite(residuals)] = np.inf
-    sigma_final = pixel_sigma(p, r, schedule)
     scale_s += time.perf_counter() - t1
     threshold = schedule.inlier_threshold_px(sigma_final)
     residuals = _unsorted(residuals, perm)

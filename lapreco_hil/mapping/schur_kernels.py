@@ -7,7 +7,8 @@ they run on the GPU. Float64 throughout, as GTSAM computes.
 
 ``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
 and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
-factorisation.
+factorisation. On CUDA the sums reduce a GPU's way (``gpu_reductions``: fewer atomics, a window's elimination by
+pose pairs, the robust scale by sorts); on the CPU device one observation's terms at a time, in order.
 """
 
 from __future__ import annotations
@@ -69,6 +70,77 @@ def _camera_point(T: wp.mat44d, X: wp.vec3d) -> wp.vec3d:
                     T[0, 2] * d0 + T[1, 2] * d1 + T[2, 2] * d2)
 
 
+@wp.func
+def _observation_terms(o: int, obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                       uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                       K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int):
+    """An observation's residual (ru, rv), its Jacobians' rows by the pose tangent (ju, jv) and by the landmark
+    (pu, pv), and its weight s (whitening and robust reweighting, squared)."""
+    i = obs_pose[o]
+    j = obs_point[o]
+    Tm = T[i]
+    Xc = _camera_point(Tm, X[j])
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    fx = K[0]
+    fy = K[1]
+    # behind the camera: GTSAM's constant error 2 fx, no gradient
+    ru = wp.float64(2.0) * fx
+    rv = wp.float64(2.0) * fx
+    ju = wp.spatial_vectord()
+    jv = wp.spatial_vectord()
+    pu = wp.vec3d()
+    pv = wp.vec3d()
+    if Xc[2] > zero:
+        z = Xc[2]
+        xn = Xc[0] / z
+        yn = Xc[1] / z
+        ru = fx * xn + K[2] - uv[o][0]
+        rv = fy * yn + K[3] - uv[o][1]
+        a = fx / z
+        b = fy / z
+        # d residual / d (rotation, translation) of T Exp(xi)
+        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
+        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
+        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
+        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
+        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
+        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
+        pu = a * (c0 - xn * c2)
+        pv = b * (c1 - yn * c2)
+    r2 = ru * ru + rv * rv
+    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
+    return s, ru, rv, ju, jv, pu, pv
+
+
+@wp.func
+def _landmark_terms(j: int, s: wp.float64, ru: wp.float64, rv: wp.float64, pu: wp.vec3d, pv: wp.vec3d,
+                    W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d)):
+    wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
+    wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
+
+
+@wp.func
+def _landmark_pose_block(s: wp.float64, ju: wp.spatial_vectord, jv: wp.spatial_vectord, pu: wp.vec3d,
+                         pv: wp.vec3d) -> mat36d:
+    """s Jp^T Jc: the observation's landmark-pose block."""
+    Wo = mat36d()
+    for a_ in range(3):
+        for b_ in range(6):
+            Wo[a_, b_] = s * (pu[a_] * ju[b_] + pv[a_] * jv[b_])
+    return Wo
+
+
+@wp.func
+def _add_pose_terms(pose_system: wp.array(dtype=wp.float64), n_free: int, c: int, H: wp.spatial_matrixd,
+                    g: wp.spatial_vectord):
+    """A free pose's block and gradient terms summed into ``pose_system`` (``_linearize``)."""
+    for a_ in range(6):
+        for b_ in range(6):
+            wp.atomic_add(pose_system, 36 * c + 6 * a_ + b_, H[a_, b_])
+        wp.atomic_add(pose_system, 36 * n_free + 6 * c + a_, g[a_])
+
+
 @wp.kernel
 def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
                obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
@@ -76,7 +148,9 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
                n_free: int, W: wp.array(dtype=mat36d), Hpp: wp.array(dtype=wp.mat33d),
                gp: wp.array(dtype=wp.vec3d), pose_system: wp.array(dtype=wp.float64)):
     """Each observation's terms summed into its landmark's block (Hpp, gp) and its free pose's, in
-    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2."""
+    ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2. (The
+    CPU device's: one observation per thread, the terms of ``_observation_terms`` written out as before, its
+    speed there unchanged; ``_linearize_runs``: a GPU's.)"""
     o = wp.tid()
     i = obs_pose[o]
     j = obs_point[o]
@@ -131,18 +205,78 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
 
 
 @wp.kernel
-def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
-           T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
-           k: wp.float64, loss: int, slot: int, total: wp.array(dtype=wp.float64)):
-    """The sum of the reprojection losses, into ``total[slot]``."""
-    o = wp.tid()
+def _linearize_runs(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                    obs_col: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d),
+                    X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int,
+                    n_free: int, per_thread: int, n_obs: int, W: wp.array(dtype=mat36d),
+                    Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3d),
+                    pose_system: wp.array(dtype=wp.float64)):
+    """``_linearize`` a GPU's way: a thread takes ``per_thread`` consecutive observations (pose-major: mostly
+    one pose's) and sums their pose terms before adding them in (the sum of s |r|^2 took an atomic per
+    observation on one address)."""
+    first = wp.tid() * per_thread
+    H_sum = wp.spatial_matrixd()
+    g_sum = wp.spatial_vectord()
+    sr2_sum = wp.float64(0.0)
+    c_sum = int(-1)
+    for o in range(first, wp.min(first + per_thread, n_obs)):
+        s, ru, rv, ju, jv, pu, pv = _observation_terms(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss)
+        sr2_sum += s * (ru * ru + rv * rv)
+        _landmark_terms(obs_point[o], s, ru, rv, pu, pv, W, Hpp, gp)
+        c = obs_col[o]
+        Wo = mat36d()
+        if c >= 0:
+            Wo = _landmark_pose_block(s, ju, jv, pu, pv)
+            if c != c_sum:
+                if c_sum >= 0:
+                    _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
+                H_sum = wp.spatial_matrixd()
+                g_sum = wp.spatial_vectord()
+                c_sum = c
+            H_sum += s * (wp.outer(ju, ju) + wp.outer(jv, jv))
+            g_sum += s * (ju * ru + jv * rv)
+        W[o] = Wo
+    if c_sum >= 0:
+        _add_pose_terms(pose_system, n_free, c_sum, H_sum, g_sum)
+    if first < n_obs:
+        wp.atomic_add(pose_system, 42 * n_free, sr2_sum)
+
+
+@wp.func
+def _observation_loss(o: int, obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                      uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                      K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int) -> wp.float64:
     Xc = _camera_point(T[obs_pose[o]], X[obs_point[o]])
     ru = wp.float64(2.0) * K[0]
     rv = wp.float64(2.0) * K[0]
     if Xc[2] > wp.float64(0.0):
         ru = K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0]
         rv = K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1]
-    wp.atomic_add(total, slot, _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k))
+    return _loss(loss, wp.sqrt(ru * ru + rv * rv) * inv_sigma, k)
+
+
+@wp.kernel
+def _error(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32), uv: wp.array(dtype=wp.vec2d),
+           T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d), K: wp.vec4d, inv_sigma: wp.float64,
+           k: wp.float64, loss: int, slot: int, total: wp.array(dtype=wp.float64)):
+    """The sum of the reprojection losses, into ``total[slot]``."""
+    o = wp.tid()
+    wp.atomic_add(total, slot, _observation_loss(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss))
+
+
+@wp.kernel
+def _error_runs(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.int32),
+                uv: wp.array(dtype=wp.vec2d), T: wp.array(dtype=wp.mat44d), X: wp.array(dtype=wp.vec3d),
+                K: wp.vec4d, inv_sigma: wp.float64, k: wp.float64, loss: int, slot: int, per_thread: int,
+                n_obs: int, total: wp.array(dtype=wp.float64)):
+    """``_error`` a GPU's way: a thread sums ``per_thread`` consecutive observations' losses before adding
+    them in."""
+    first = wp.tid() * per_thread
+    loss_sum = wp.float64(0.0)
+    for o in range(first, wp.min(first + per_thread, n_obs)):
+        loss_sum += _observation_loss(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss)
+    if first < n_obs:
+        wp.atomic_add(total, slot, loss_sum)
 
 
 @wp.kernel
@@ -156,6 +290,60 @@ def _residuals(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
         r[o] = wp.vec2d(K[0] * Xc[0] / Xc[2] + K[2] - uv[o][0], K[1] * Xc[1] / Xc[2] + K[3] - uv[o][1])
     else:
         r[o] = wp.vec2d(behind, behind)
+
+
+@wp.kernel
+def _scale_keys(r: wp.array(dtype=wp.vec2d), keys: wp.array(dtype=wp.float64)):
+    """The residual components as sort keys, +inf where not finite (behind the camera: NaN): the robust scale
+    ignores those, as ``robust.mad_sigma`` does."""
+    o = wp.tid()
+    for c in range(2):
+        v = r[o][c]
+        if wp.isfinite(v):
+            keys[2 * o + c] = v
+        else:
+            keys[2 * o + c] = wp.float64(wp.inf)
+
+
+@wp.func
+def _sorted_median(keys: wp.array(dtype=wp.float64), n: int) -> wp.float64:
+    """The median of sorted ``keys[:n]``, as ``robust._median_in_place`` gives it (the middle value or the mean
+    of the two)."""
+    if n % 2 == 1:
+        return keys[n // 2]
+    return (keys[n // 2 - 1] + keys[n // 2]) / wp.float64(2.0)
+
+
+@wp.kernel
+def _median_of_sorted(keys: wp.array(dtype=wp.float64), n_keys: int, count_them: int,
+                      sums: wp.array(dtype=wp.float64)):
+    """``sums[1]``: the median of the finite ones of sorted ``keys[:n_keys]`` (unchanged where there are none),
+    ``sums[0]`` their count, found here (the first +inf, by bisection) with ``count_them``."""
+    n = int(0)
+    if count_them != 0:
+        hi = n_keys
+        while n < hi:
+            mid = (n + hi) // 2
+            if keys[mid] < wp.float64(wp.inf):
+                n = mid + 1
+            else:
+                hi = mid
+        sums[0] = wp.float64(n)
+    else:
+        n = int(sums[0])
+    if n > 0:
+        sums[1] = _sorted_median(keys, n)
+
+
+@wp.kernel
+def _median_deviations(sums: wp.array(dtype=wp.float64), keys: wp.array(dtype=wp.float64)):
+    """In place, |component - median| of the finite components sorted in ``keys`` (+inf for the others), as
+    ``robust.mad_sigma`` subtracts it (``sums``: ``_median_of_sorted``'s count and median)."""
+    i = wp.tid()
+    if i < int(sums[0]):
+        keys[i] = wp.abs(keys[i] - sums[1])
+    else:
+        keys[i] = wp.float64(wp.inf)
 
 
 @wp.kernel
@@ -274,29 +462,73 @@ def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.in
             _add_block(M, n6, ca, ca, za, zb, True)
 
 
+@wp.kernel
+def _window_table(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32), n_free: int,
+                  table: wp.array(dtype=wp.int32)):
+    """``table[landmark x F + free pose]``: the observation of a landmark by a free pose (-1 where none: filled
+    before), for ``_schur_window``."""
+    o = wp.tid()
+    c = obs_col[o]
+    if c >= 0:
+        table[obs_point[o] * n_free + c] = o
+
+
+@wp.kernel
+def _whiten_observations(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                         W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Z: wp.array(dtype=wp.vec3d)):
+    """Z = L^-1 W of each observation by a free pose (L: its landmark's Cholesky factor), for ``_schur_window``:
+    its six columns, ``Z[6 o + b]`` (a thread there reads the one it needs)."""
+    o = wp.tid()
+    if obs_col[o] >= 0:
+        z = _whiten(L[obs_point[o]], W[o])
+        for b in range(6):
+            Z[6 * o + b] = wp.vec3d(z[0, b], z[1, b], z[2, b])
+
+
+@wp.kernel
+def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=wp.vec3d), Lg: wp.array(dtype=wp.vec3d),
+                  n_free: int, n_points: int, per_thread: int, M: wp.array(dtype=wp.float64),
+                  r: wp.array(dtype=wp.float64)):
+    """``_schur_blocks``' sums the way a window's few poses allow (each landmark seen once by a pose:
+    ``_window_table``; Z: ``_whiten_observations``' columns): a thread per pose pair (ca >= cb, the lower block
+    triangle's), block row a and run of ``per_thread`` landmarks sums row a of z_a^T z_b over the landmarks that
+    both poses see, and for a diagonal pair z_a^T L^-1 gp, before adding them in: a few atomics per thread, not
+    per landmark."""
+    t = wp.tid()
+    a = t % 6
+    rest = t // 6
+    n_pairs = n_free * (n_free + 1) // 2
+    q = rest % n_pairs
+    first = (rest // n_pairs) * per_thread
+    # the pair of the lower triangle's q-th entry, row by row: ca (ca + 1) / 2 <= q < (ca + 1) (ca + 2) / 2
+    ca = int(wp.floor((wp.sqrt(wp.float64(8 * q + 1)) - wp.float64(1.0)) / wp.float64(2.0)))
+    while ca * (ca + 1) // 2 > q:
+        ca = ca - 1
+    while (ca + 1) * (ca + 2) // 2 <= q:
+        ca = ca + 1
+    cb = q - ca * (ca + 1) // 2
+    m_sum = vec6d()
+    r_sum = wp.float64(0.0)
+    for j in range(first, wp.min(first + per_thread, n_points)):
+        oa = table[j * n_free + ca]
+        ob = table[j * n_free + cb]
+        if oa >= 0 and ob >= 0:
+            za = Z[6 * oa + a]
+            b0 = 6 * ob
+            m_sum += vec6d(wp.dot(za, Z[b0]), wp.dot(za, Z[b0 + 1]), wp.dot(za, Z[b0 + 2]), wp.dot(za, Z[b0 + 3]),
+                           wp.dot(za, Z[b0 + 4]), wp.dot(za, Z[b0 + 5]))
+            if ca == cb:
+                r_sum += wp.dot(za, Lg[j])
+    n6 = 6 * n_free
+    for b in range(6):
+        wp.atomic_add(M, (6 * ca + a) * n6 + 6 * cb + b, m_sum[b])
+    if ca == cb:
+        wp.atomic_add(r, 6 * ca + a, r_sum)
+
+
 @wp.func
-def _move_point(j: int, d: wp.vec3d, X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
-                X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
-    """The trial landmark X + d, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both)."""
-    X_trial[j] = X[j] + d
-    wp.atomic_add(sums, 0, wp.dot(d, gp[j]))
-    wp.atomic_add(sums, 1, wp.dot(d, d))
-
-
-@wp.kernel
-def _trial_points(dp: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d), gp: wp.array(dtype=wp.vec3d),
-                  X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
-    """The trial landmarks of moves ``dp`` solved on the host (``_move_point``)."""
-    j = wp.tid()
-    _move_point(j, dp[j], X, gp, X_trial, sums)
-
-
-@wp.kernel
-def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
-                     X: wp.array(dtype=wp.vec3d), dp: wp.array(dtype=wp.vec3d), X_trial: wp.array(dtype=wp.vec3d),
-                     sums: wp.array(dtype=wp.float64)):
-    """Each landmark's move: dp = -V^-1 (gp + sum of W dc), V = L L^T, and the trial landmark (``_move_point``)."""
-    j = wp.tid()
+def _solve_move(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d), j: int):
+    """A landmark's move dp = -V^-1 (gp + sum of W dc), V = L L^T."""
     l = L[j]
     x = gp[j] + Wdc[j]
     y0 = x[0] / l[0]
@@ -305,10 +537,44 @@ def _back_substitute(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc
     u2 = y2 / l[5]
     u1 = (y1 - l[4] * u2) / l[2]
     u0 = (y0 - l[1] * u1 - l[3] * u2) / l[0]
-    d = -wp.vec3d(u0, u1, u2)
-    dp[j] = d
-    _move_point(j, d, X, gp, X_trial, sums)
+    return -wp.vec3d(u0, u1, u2)
 
+
+@wp.kernel
+def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d),
+                 X: wp.array(dtype=wp.vec3d), per_thread: int, n_points: int, dp: wp.array(dtype=wp.vec3d),
+                 X_trial: wp.array(dtype=wp.vec3d), sums: wp.array(dtype=wp.float64)):
+    """The trial landmarks X + dp, and d.gp and d.d summed into ``sums`` (LM's model decrease needs both), a
+    thread's ``per_thread`` landmarks' before adding them in (as ``_linearize``). With ``solve`` the moves are
+    solved here first, by ``schur_complement``'s factors (``_solve_move``: the back-substitution), else they are
+    the host's, in ``dp``."""
+    first = wp.tid() * per_thread
+    gd = wp.float64(0.0)
+    dd = wp.float64(0.0)
+    for j in range(first, wp.min(first + per_thread, n_points)):
+        d = dp[j]
+        if solve != 0:
+            d = _solve_move(L, gp, Wdc, j)
+            dp[j] = d
+        X_trial[j] = X[j] + d
+        if j == first:
+            gd = wp.dot(d, gp[j])
+            dd = wp.dot(d, d)
+        else:
+            gd += wp.dot(d, gp[j])
+            dd += wp.dot(d, d)
+    if first < n_points:
+        wp.atomic_add(sums, 0, gd)
+        wp.atomic_add(sums, 1, dd)
+
+
+# with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
+# one of ``_schur_window`` this many landmarks' blocks of one pose pair, before their atomics
+GPU_OBS_PER_THREAD = 16
+GPU_POINTS_PER_THREAD = 16
+# a problem of at most this many free poses, each landmark seen once by a pose, has its landmarks eliminated by
+# ``_schur_window`` there (a thread per pose pair, block row and run of landmarks: its work grows as poses^2)
+WINDOW_POSES = 32
 
 # the parts of an arena start on multiples of 32 words (256 bytes of float64: CUDA's allocation alignment)
 _ALIGN_WORDS = 32
@@ -332,13 +598,22 @@ class ObservationKernels:
     The state (the poses, as (P,) 4x4 matrices, and the landmarks) stays here across LM iterations: a trial state
     is written beside the current one (the trial poses uploaded, the landmarks moved here) and ``accept`` makes it
     current. Every buffer is allocated once per solve; the host reads back one buffer per step it needs (the
-    pose system, the eliminated camera system, the trial's sums) into a host array allocated once. ``ops`` counts
-    launches (memsets included), uploads, downloads (and their bytes) and allocations: on the CPU device a
-    download is a read of the array's memory, on CUDA a copy and a wait."""
+    pose system, the eliminated camera system, the trial's sums) into a host array allocated once; the work that
+    one waits for is started by a ``launch_*`` and read by a ``read_*`` (or with ``error``), so that the host works
+    in between. ``ops`` counts launches (memsets and sorts included), uploads, downloads (and their bytes) and
+    allocations: on the CPU device a download is a read of the array's memory, on CUDA a copy and a wait."""
 
-    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False) -> None:
+    def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
+                 gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
+        # a GPU's ways of reducing (None: on CUDA only): the robust scale's medians by two sorts here (one scalar
+        # read back, not the residuals and the host's selections), sums taken per thread over several observations
+        # before their atomics (a few addresses take them all), a window's landmarks eliminated by pose pairs
+        # (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
+        # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
+        self.gpu_reductions = self._cuda is not None if gpu_reductions is None else bool(gpu_reductions)
+        self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
         self.n_obs, self.n_points, self.n_free = len(p.obs_pose), len(p.points), n_free
@@ -349,7 +624,10 @@ class ObservationKernels:
         # the problem's index arrays, one upload; with the elimination here, the observations by free poses
         # grouped by landmark, each with the end of its landmark's group
         indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
-        if self.schur_on_device:
+        # the landmarks eliminated here by pose pairs (``_schur_window``) or by observations (``_schur_blocks``)
+        self.window = (self.schur_on_device and self.gpu_reductions and bool(unique_pairs)
+                       and 0 < n_free <= WINDOW_POSES)
+        if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
             pm = np.flatnonzero(np.asarray(obs_col) >= 0)
             # (a stable sort of small integers is numpy's radix sort)
@@ -366,12 +644,23 @@ class ObservationKernels:
         # T0, X0 and T1, X1: the current and the trial state (``cur`` indexes the current one). ``step_sums``: a
         # step's sum of W dc per landmark and its sums (d.gp, d.d, the trial's reprojection error).
         n6, n_system = 6 * n_free, 42 * n_free + 1
+        n_table = N * n_free if self.window else 0
         n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
                  "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
                  "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
                  "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+        if self.window:
+            parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
+        if self.gpu_reductions:
+            # the residual components, then their deviations, sorted (a radix sort's keys and values take twice
+            # their count); the count of finite ones and the median
+            parts.update({"scale_keys": (4 * O, wp.float64), "scale_values": (4 * O, wp.int32),
+                          "scale_sums": (2, wp.float64)})
         arena = self._alloc_arena(parts)
+        if self.gpu_reductions:
+            self.scale_keys, self.scale_values, self.scale_sums = (
+                arena[k] for k in ("scale_keys", "scale_values", "scale_sums"))
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
@@ -391,9 +680,18 @@ class ObservationKernels:
             self.r = self._view(work, start + n6 * n6, n6, wp.float64)
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
-        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
-        self._host = {}  # host mirrors, made at first use
         self._commands = {}  # recorded launches (``_launch``)
+        if self.window:
+            self.table, self.Z = arena["table"], arena["Z"]
+            self.table.fill_(-1)
+            self.ops["launches"] += 1
+            self._launch(_window_table, O, [self.obs_point, self.obs_col, n_free], [self.table])
+        self._eliminated_at = None  # (lambda, the camera system) eliminated with the last linearisation
+        # the linearisation started: its damping (None: no elimination with it), whether the landmark blocks are
+        # read back, the array to read back (None: read already) and its read-back where ``error`` brought it
+        self._linearized_at, self._landmarks_read = None, False
+        self._linearization = self._linearization_view = None
+        self._host = {}  # host mirrors, made at first use
         self._chunks: dict[int, tuple] = {}
 
     # --- buffers and transfers -------------------------------------------------------------------------------
@@ -476,20 +774,23 @@ class ObservationKernels:
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
-        """Launch by a command recorded at the first launch with these arrays (``wp.launch(record_cmd=True)``),
-        its other parameters set again: a replay costs a fifth of a launch's argument packing."""
+        """Launch by a command recorded at the kernel's first launch of this size (``wp.launch(record_cmd=True)``),
+        only the parameters that differ from its last launch's set again (the current and the trial state's
+        arrays swap, the scalars change per stage): a replay costs a fifth of a launch's argument packing."""
         if dim <= 0:
             return
         args = [*inputs, *outputs]
-        key = (kernel.key, dim, *(id(a) if isinstance(a, wp.array) else None for a in args))
-        command = self._commands.get(key)
-        if command is None:
-            command = self._commands[key] = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs,
-                                                      outputs=outputs, record_cmd=True)
+        key = (kernel.key, dim)
+        recorded = self._commands.get(key)
+        if recorded is None:
+            command = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, outputs=outputs,
+                                record_cmd=True)
         else:
-            for i, a in enumerate(args):
-                if not isinstance(a, wp.array):
+            command, last = recorded
+            for i, (a, b) in enumerate(zip(args, last)):
+                if a is not b and (isinstance(a, wp.array) or isinstance(b, wp.array) or a != b):
                     command.set_param_at_index(i, a)
+        self._commands[key] = (command, args)
         command.launch()
         self.ops["launches"] += 1
 
@@ -513,22 +814,41 @@ class ObservationKernels:
 
     # --- the launches --------------------------------------------------------------------------------------------
     def linearize(self, sigma: float, loss: str, k: float, landmarks: bool, lam: float | None = None):
-        """Linearise at the current state: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of s |r|^2, and
-        with ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here). Copies. With ``lam``
-        (the elimination on the device) the landmarks are eliminated at that damping too, read back with the pose
-        system in one copy, for ``schur_complement(lam)``: the device works while the host adds the pose
-        factors."""
+        """``launch_linearize`` and ``read_linearize`` at once."""
+        self.launch_linearize(sigma, loss, k, lam, landmarks)
+        return self.read_linearize()
+
+    def launch_linearize(self, sigma: float, loss: str, k: float, lam: float | None = None,
+                         landmarks: bool = False) -> None:
+        """Start a linearisation at the current state, read back by ``read_linearize`` (the host works on its pose
+        factors meanwhile), or with the next ``error``. With ``lam`` (the elimination on the device) the landmarks
+        are eliminated at that damping too, read back with the pose system in one copy, for
+        ``schur_complement(lam)``; with ``landmarks`` their blocks are read back too (the host eliminates them)."""
         with device_lock(self.device):
             self._zero(self.linear if lam is None else self.work)  # (``work``: ``linear`` and ``eliminated``)
-            self._launch(_linearize, self.n_obs,
-                         [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur],
-                          self.K, 1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free],
-                         [self.W, self.Hpp, self.gp, self.pose_system])
+            inputs = [self.obs_pose, self.obs_point, self.obs_col, self.uv, self.T[self.cur], self.X[self.cur], self.K,
+                      1.0 / sigma, float(k), LOSS_CODES[loss], self.n_free]
+            outputs = [self.W, self.Hpp, self.gp, self.pose_system]
+            if self.per_thread > 1:
+                self._launch(_linearize_runs, -(-self.n_obs // self.per_thread),
+                             inputs + [self.per_thread, self.n_obs], outputs)
+            else:
+                self._launch(_linearize, self.n_obs, inputs, outputs)
             if lam is not None:
                 self._eliminate(lam, zeroed=True)
-                flat = self._download(self.system)[0]
-            else:
-                flat = self._download(self.linear if landmarks else self.pose_system)[0]
+        self._linearized_at, self._landmarks_read = lam, landmarks
+        self._linearization = self.system if lam is not None else self.linear if landmarks else self.pose_system
+        self._linearization_view = None
+
+    def read_linearize(self):
+        """The linearisation ``launch_linearize`` started: (pose blocks (F, 6, 6), pose gradients (F, 6), sum of
+        s |r|^2, and with its ``landmarks`` Hpp (N, 3, 3) and gp (N, 3), else None, None: they stay here).
+        Copies."""
+        lam, landmarks, flat = self._linearized_at, self._landmarks_read, self._linearization_view
+        if flat is None:
+            with device_lock(self.device):
+                flat = self._download(self._linearization)[0]
+        self._linearization = self._linearization_view = None
         F, N = self.n_free, self.n_points
         system = flat[12 * N:] if landmarks else flat
         blocks = system[:36 * F].reshape(F, 6, 6).copy()
@@ -551,17 +871,58 @@ class ObservationKernels:
                           float(behind)], [self.residual])
             return self._download(self.residual)[0][:self.n_obs].copy()
 
+    def residual_mad(self, with_residuals: bool = False):
+        """The median absolute deviation about the median of the current state's finite residual components
+        (``robust.mad_sigma``'s, before its factor), by two sorts here (``gpu_reductions``): (their count, the
+        MAD), and with ``with_residuals`` the (O, 2) residuals too (NaN behind the camera; a copy), in one
+        read-back."""
+        O = self.n_obs
+        with device_lock(self.device):
+            self._launch(_residuals, O,
+                         [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
+                          float("nan")], [self.residual])
+            self._launch_mad()
+            views = self._download(*([self.scale_sums, self.residual] if with_residuals else [self.scale_sums]))
+        count, mad = int(views[0][0]), float(views[0][1])
+        return (count, mad, views[1][:O].copy()) if with_residuals else (count, mad)
+
+    def _launch_mad(self) -> None:
+        """``scale_sums``: the count of the finite components in ``residual`` and their MAD about their median."""
+        O, keys, values, sums = self.n_obs, self.scale_keys, self.scale_values, self.scale_sums
+        self._zero(sums)
+        self._launch(_scale_keys, O, [self.residual], [keys])
+        self._sort(keys, values, 2 * O)
+        self._launch(_median_of_sorted, 1, [keys, 2 * O, 1], [sums])  # their count and median
+        self._launch(_median_deviations, 2 * O, [sums], [keys])
+        self._sort(keys, values, 2 * O)
+        self._launch(_median_of_sorted, 1, [keys, 2 * O, 0], [sums])  # their deviations' median
+
+    def _sort(self, keys, values, n: int) -> None:
+        """``keys[:n]`` sorted in place (a radix sort: ``keys`` and ``values`` hold 2 n)."""
+        with wp.ScopedDevice(self.device):  # (the sort runs in the current device's context and stream)
+            wp.utils.radix_sort_pairs(keys, values, n)
+        self.ops["launches"] += 1
+
     def _error_launch(self, state: int, sigma: float, loss: str, k: float, slot: int) -> None:
-        self._launch(_error, self.n_obs,
-                     [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
-                      float(k), LOSS_CODES[loss], slot], [self.sums])
+        inputs = [self.obs_pose, self.obs_point, self.uv, self.T[state], self.X[state], self.K, 1.0 / sigma,
+                  float(k), LOSS_CODES[loss], slot]
+        if self.per_thread > 1:
+            self._launch(_error_runs, -(-self.n_obs // self.per_thread), inputs + [self.per_thread, self.n_obs],
+                         [self.sums])
+        else:
+            self._launch(_error, self.n_obs, inputs, [self.sums])
 
     def error(self, sigma: float, loss: str, k: float) -> float:
-        """The sum of the reprojection losses at the current state."""
+        """The sum of the reprojection losses at the current state; a linearisation started and not read back
+        yet (``launch_linearize``) comes back with it, in one wait."""
         with device_lock(self.device):
             self._zero(self.sums)
             self._error_launch(self.cur, sigma, loss, k, 2)
-            return float(self._download(self.sums)[0][2])
+            if self._linearization is not None and self._linearization_view is None:
+                sums, self._linearization_view = self._download(self.sums, self._linearization)
+            else:
+                sums = self._download(self.sums)[0]
+            return float(sums[2])
 
     def set_landmark_factors(self, L: np.ndarray) -> None:
         """Every landmark's damped Cholesky factor (N, 6: l11 l21 l22 l31 l32 l33), for ``whitened_batch``."""
@@ -599,9 +960,16 @@ class ObservationKernels:
         if not zeroed:
             self._zero(self.eliminated)
         self._launch(_landmark_factors, self.n_points, [self.Hpp, self.gp, float(lam)], [self.L, self.Lg, self.failed])
-        self._launch(_schur_blocks, self.n_pm,
-                     [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
-                      6 * self.n_free], [self.M, self.r])
+        if self.window:
+            n_runs = -(-self.n_points // GPU_POINTS_PER_THREAD)
+            self._launch(_whiten_observations, self.n_obs, [self.obs_point, self.obs_col, self.W, self.L], [self.Z])
+            self._launch(_schur_window, 6 * (self.n_free * (self.n_free + 1) // 2) * n_runs,
+                         [self.table, self.Z, self.Lg, self.n_free, self.n_points, GPU_POINTS_PER_THREAD],
+                         [self.M, self.r])
+        else:
+            self._launch(_schur_blocks, self.n_pm,
+                         [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                          6 * self.n_free], [self.M, self.r])
 
     def _camera_system(self, flat: np.ndarray):
         """(M, r) copied from a read-back ``eliminated``; None where a landmark block failed."""
@@ -622,15 +990,22 @@ class ObservationKernels:
             self._eliminate(lam)
             return self._camera_system(self._download(self.eliminated)[0])
 
-    def _try(self, sigma: float, loss: str, k: float):
-        """(d.gp, d.d, the trial state's reprojection error) once its landmarks are written: one read-back."""
-        self._error_launch(1 - self.cur, sigma, loss, k, 2)
-        sums = self._download(self.sums)[0]
+    def read_step(self):
+        """(d.gp, d.d, the trial's reprojection error) of the step ``launch_back_substitute`` or
+        ``launch_try_step`` started: one read-back."""
+        with device_lock(self.device):
+            sums = self._download(self.sums)[0]
         return float(sums[0]), float(sums[1]), float(sums[2])
 
     def back_substitute(self, dc: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
-        """The landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to make
-        the trial state with ``trial_poses``: (d.gp, d.d, the trial's reprojection error), one read-back."""
+        """``launch_back_substitute`` and ``read_step`` at once."""
+        self.launch_back_substitute(dc, trial_poses, sigma, loss, k)
+        return self.read_step()
+
+    def launch_back_substitute(self, dc: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str,
+                               k: float) -> None:
+        """Start the landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to
+        make the trial state with ``trial_poses``, and the trial's reprojection error (``read_step``)."""
         # (the uploads first: one from pageable memory waits for the stream)
         self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
         self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
@@ -638,17 +1013,24 @@ class ObservationKernels:
             self._zero(self.step_sums)
             if self.n_free:
                 self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
-            self._launch(_back_substitute, self.n_points, [self.L, self.gp, self.Wdc, self.X[self.cur]],
+            self._launch(_move_points, -(-self.n_points // self.per_thread),
+                         [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
                          [self.dp, self.X[1 - self.cur], self.sums])
-            return self._try(sigma, loss, k)
+            self._error_launch(1 - self.cur, sigma, loss, k, 2)
 
     def try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
-        """The trial state of landmark moves ``dp`` (N, 3) solved on the host and ``trial_poses``:
-        (d.gp, d.d, its reprojection error), one read-back."""
+        """``launch_try_step`` and ``read_step`` at once."""
+        self.launch_try_step(dp, trial_poses, sigma, loss, k)
+        return self.read_step()
+
+    def launch_try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float) -> None:
+        """Start the trial state of landmark moves ``dp`` (N, 3) solved on the host and ``trial_poses``, and its
+        reprojection error (``read_step``)."""
         self._upload(self.dp, np.ascontiguousarray(dp, np.float64))
         self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
         with device_lock(self.device):
             self._zero(self.sums)
-            self._launch(_trial_points, self.n_points, [self.dp, self.X[self.cur], self.gp],
-                         [self.X[1 - self.cur], self.sums])
-            return self._try(sigma, loss, k)
+            self._launch(_move_points, -(-self.n_points // self.per_thread),
+                         [0, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
+                         [self.dp, self.X[1 - self.cur], self.sums])
+            self._error_launch(1 - self.cur, sigma, loss, k, 2)
