@@ -282,9 +282,10 @@ def test_warp_sweep_kernels_agree_with_the_numpy_sweep(warp_cpu):
 
 def test_a_stereo_match_is_registered_affinely_across_the_views_foreshortening():
     """A real frame as the left view of a plane slanted 45 degrees, the right view rendered 5 mm aside by the
-    plane's homography, both under one light fixed to the scope: the left-right matches land within 0.08 px
-    (median) of the truth, and unbiased along the baseline. LK's translation-only window alone is off by about
-    0.16 px there (0.7 mm of depth at 6 cm for this baseline); the affine registration removes it."""
+    plane's homography, both under one light fixed to the scope: along the baseline (what depth depends on) the
+    left-right matches land within 0.05 px (median) of the truth, unbiased. LK's translation-only window alone
+    is off by 0.1 px there, biased by +0.05 px (0.3 mm of depth at 6 cm for this baseline); the affine fit along
+    the epipolar line removes it."""
     left, _, K, _, _ = hamlyn()
     gray = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
     h, w = gray.shape
@@ -309,6 +310,6 @@ def test_a_stereo_match_is_registered_affinely_across_the_views_foreshortening()
                                       epipolar.lk_params(cfg.window_px, levels))
     ok = found & inside
     assert ok.sum() > 0.7 * inside.sum(), (ok.sum(), inside.sum())
-    err = uv[ok] - truth[ok]
-    assert np.median(np.linalg.norm(err, axis=1)) < 0.08, np.median(np.linalg.norm(err, axis=1))
-    assert abs(np.mean(err[:, 0])) < 0.02, np.mean(err[:, 0])
+    along = uv[ok, 0] - truth[ok, 0]  # (the baseline is the x axis)
+    assert np.median(np.abs(along)) < 0.05, np.median(np.abs(along))
+    assert abs(np.mean(along)) < 0.02, np.mean(along)
