@@ -321,9 +321,10 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
     sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
     the track is; then LK's window in this view registered affinely (with gain and bias) in the other, as the
-    drift check registers a temporal track, which moves the match where that fit converges and passes the
-    drift check's bounds (elsewhere LK's match stands). Tracker images of both views (8-bit for LK, float for
-    the sweep and the registration). -> (uv in the other view, found).
+    drift check registers a temporal track: the fit moves the match along its epipolar line where it passes the
+    drift check's bounds, LK's match stands where it does not, and a fit that disagrees with LK by more than
+    FORWARD_BACKWARD_PX drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
+    for the sweep and the registration). -> (uv in the other view, found).
 
     Why the registration: a short baseline turns a fraction of a pixel into millimetres of depth (5 mm at 12 cm:
     0.1 px is 0.7 mm), and LK's translation-only window is off by 0.2 px (median) where the surface is seen
