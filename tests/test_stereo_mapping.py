@@ -121,3 +121,33 @@ def test_the_funnel_names_the_stage_that_lost_the_points():
     g.add({"corners": 800, "after_lk": 780, "after_drift_check": 760, "candidates": 700, "triangulated": 650,
            "inliers": 640})
     assert g.lossy_stage() is None
+
+
+def test_a_point_seen_by_both_eyes_at_two_instants_is_an_inlier():
+    """With a stereo rig a point needs the reference camera's three instants, or both eyes at two instants:
+    each instant's left-right match is a depth of its own and the second instant the second look (a fast scan
+    sees most points at two instants only). Both eyes at one of the two instants is not enough, nor is a pair
+    whose partner view is an outlier."""
+    rng = np.random.default_rng(8)
+    rig, _, _, _ = _stereo_world(rng, n_frames=1)
+    mapper = Mapper(K0, MapperConfig(), rig=rig)
+    points = np.array([[0.0, 0.0, 0.07]] * 3)
+    # keyframes 0, 2, 4: the reference camera at instants 0, 2, 4; keyframes 1, 3: their partners at 0 and 2
+    obs_point = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 2])
+    obs_kf = np.array([0, 1, 2, 3, 0, 1, 2, 0, 2, 4])
+    reference = np.isin(obs_kf, [0, 2, 4])
+    instant = np.where(reference, obs_kf, obs_kf - 1)
+    centres = np.column_stack([obs_kf * 0.0005, np.zeros(len(obs_kf)), np.zeros(len(obs_kf))])  # narrow pairs
+    good = np.ones(len(obs_point), bool)
+
+    def inliers(good, instants=instant):
+        return mapper._inlier_points(obs_point, good, 3, 5, reference, 3, points, centres, instants).tolist()
+
+    assert inliers(good) == [True, False, True]
+    assert inliers(good, None) == [False, False, True]  # (without the instants: the reference camera's rule)
+    partner_out = good.copy()
+    partner_out[3] = False
+    assert inliers(partner_out) == [False, False, True]
+    mono = Mapper(K0, MapperConfig())
+    assert mono._inlier_points(obs_point[reference], good[reference], 3, 3, None, None, points,
+                               centres[reference], instant[reference]).tolist() == [False, False, True]

@@ -16,6 +16,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from lapreco_hil.config import TrackerConfig
+from lapreco_hil.frontend.drift import AffineDriftCheck
+
 # the sweep: an 11 x 11 patch on pyramid level 1 (22 x 22 pixels of the full image), 32 to 96 inverse-depth
 # samples (about one per level pixel of the line), a match where ZNCC is above MIN_SCORE and the best score
 # away from it (beyond SECOND_RADIUS level pixels) is at least MARGIN lower
@@ -340,8 +343,15 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
                  depth_range_m: tuple[float, float], lk: dict) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
     sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
-    the track is. Tracker images of both views (8-bit for LK, float for the sweep). -> (uv in the other view,
-    found)."""
+    the track is; then LK's window in this view registered affinely (with gain and bias) in the other, as the
+    drift check registers a temporal track: the fit moves the match along its epipolar line where it passes the
+    drift check's bounds, LK's match stands where it does not, and a fit that disagrees with LK by more than
+    FORWARD_BACKWARD_PX drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
+    for the sweep and the registration). -> (uv in the other view, found).
+
+    Why the registration: a short baseline turns a fraction of a pixel into millimetres of depth (5 mm at 12 cm:
+    0.1 px is 0.7 mm), and LK's translation-only window is off by 0.2 px (median) where the surface is seen
+    slanted, foreshortened differently by the two views (docs/results.md, session 14)."""
     n = len(uv)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
@@ -360,5 +370,38 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
           & (q[:, 1] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1))
     idx = np.flatnonzero(found)
     found[idx[~ok]] = False
-    out[idx[ok]] = q[ok]
+    idx = idx[ok]
+    out[idx] = q[ok]
+    if len(idx):
+        near, far = depth_range_m
+        line = project(uv[idx], np.full(len(idx), float(far)), K_this, K_other, T_other_this) \
+            - project(uv[idx], np.full(len(idx), float(near)), K_this, K_other, T_other_this)
+        out[idx], agree = register_along(this_float, other_float, uv[idx], out[idx], line, lk["winSize"][0])
+        found[idx[~agree]] = False
+        out[idx[~agree]] = np.nan
     return out, found
+
+
+def register_along(this_float: np.ndarray, other_float: np.ndarray, uv: np.ndarray, matched: np.ndarray,
+                   line: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``matched`` (the other view's positions of this view's ``uv``) refined along its epipolar ``line`` (a
+    direction in the other view, per match) by an affine fit: each ``window_px`` patch of this view registered
+    in the other with the drift check's model (gain and bias too). -> (positions, agree). A fit within the drift
+    check's bounds moves its match by its correction along the line; only that part carries depth, and across
+    the line the match keeps LK's position (a real pair's calibration is off by more than the fit would correct
+    there: 0.5 px on the Hamlyn pair). A fit whose correction exceeds FORWARD_BACKWARD_PX disagrees with LK by
+    more than a match may (one of them is wrong, and which is unknown): ``agree`` is False there."""
+    check = AffineDriftCheck(int(window_px), max_residual=TrackerConfig().drift_max_residual)
+    gx = cv2.Sobel(other_float, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+    gy = cv2.Sobel(other_float, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+    matched = np.asarray(matched, np.float64)
+    ref = check.reference_patches(this_float, np.asarray(uv, np.float64))
+    fit = check.register(other_float, gx, gy, ref, np.repeat(np.eye(2)[None], len(uv), 0), matched)
+    direction = line / np.maximum(np.linalg.norm(line, axis=1, keepdims=True), 1e-12)
+    correction = np.sum((fit.positions - matched) * direction, axis=1)
+    moved = matched + correction[:, None] * direction
+    h, w = other_float.shape[:2]
+    x, y = moved[:, 0], moved[:, 1]
+    better = fit.keep & np.isfinite(moved).all(axis=1) & (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    agree = ~(np.abs(correction) > FORWARD_BACKWARD_PX)  # (a fit gone NaN is no evidence against LK)
+    return np.where(better[:, None], moved, matched), agree

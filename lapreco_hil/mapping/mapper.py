@@ -49,6 +49,9 @@ TRIANGULATION_PIECE = 250
 # before the first bundle adjustment, a new point's reprojection error may exceed the pixel gate by this many
 # of its views' prior standard deviations (in pixels)
 PRIOR_GATE_SIGMAS = 3.0
+# with a stereo rig, a point seen by both eyes at this many instants is an inlier: each instant's left-right
+# match is a depth of its own, and the second instant is the second look that catches a mismatch
+STEREO_INLIER_INSTANTS = 2
 
 
 def _spread(seen: list, n: int) -> list:
@@ -401,7 +404,7 @@ class Mapper:
             centres = np.array([self.keyframes[k].T_world_camera[:3, 3] for k in obs_kf.tolist()]).reshape(-1, 3)
             inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids),
                                          self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum(),
-                                         points, centres)
+                                         points, centres, self._instants(obs_kf))
             self.archive.add(np.array(with_point, np.int64), points,
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
@@ -422,14 +425,23 @@ class Mapper:
         """Whether each keyframe is a reference (camera 0) view, not a stereo partner."""
         return np.array([self.keyframes[k].reference is None for k in np.asarray(kf_ids).tolist()], bool)
 
+    def _instants(self, kf_ids: np.ndarray) -> np.ndarray:
+        """The instant of each keyframe: its own id for a reference keyframe, its reference's for a partner."""
+        kfs = self.keyframes
+        return np.array([k if kfs[k].reference is None else kfs[k].reference for k in np.asarray(kf_ids).tolist()],
+                        np.int64)
+
     def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int,
                        reference_obs: np.ndarray | None = None, n_reference_views: int | None = None,
-                       points: np.ndarray | None = None, obs_centres: np.ndarray | None = None) -> np.ndarray:
+                       points: np.ndarray | None = None, obs_centres: np.ndarray | None = None,
+                       obs_instant: np.ndarray | None = None) -> np.ndarray:
         """A landmark is an inlier with enough inlier observations, making up enough of its observations; with a
-        stereo rig, in at least two of the reference camera's keyframes too (where there are two): a stereo match
-        seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch. Given the
-        ``points`` and each observation's camera centre, two inlier instants whose rays meet at least
-        ``two_view_parallax_deg`` apart also make an inlier."""
+        stereo rig, in enough of the reference camera's keyframes too (where there are that many): a stereo match
+        seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch. Given each
+        observation's instant (``obs_instant``), a point seen by both eyes at STEREO_INLIER_INSTANTS instants
+        (every one of those observations an inlier) is an inlier too: two left-right depths and the temporal
+        pair must agree. Given the ``points`` and each observation's camera centre, two inlier instants whose
+        rays meet at least ``two_view_parallax_deg`` apart also make an inlier."""
         cfg = self.config
         counts = np.bincount(obs_point[good], minlength=n_points)
         totals = np.bincount(obs_point, minlength=n_points)
@@ -441,11 +453,24 @@ class Mapper:
         if points is not None and cfg.two_view_parallax_deg > 0:
             angle = widest_ray_angle_deg(points, obs_point[instants], obs_centres[instants], n_points)
             wide = (np.bincount(obs_point[instants], minlength=n_points) >= 2) & (angle >= cfg.two_view_parallax_deg)
-        ok = (enough | wide) & (counts >= cfg.min_inlier_fraction * totals)
+        stereo = np.zeros(n_points, bool)
+        if self.rig is not None and reference_obs is not None and obs_instant is not None:
+            stereo = self._stereo_instants(obs_point, good, reference_obs, obs_instant, n_points) \
+                >= STEREO_INLIER_INSTANTS
+        ok = (enough | wide | stereo) & (counts >= cfg.min_inlier_fraction * totals)
         if self.rig is not None and reference_obs is not None:
             in_reference = np.bincount(obs_point[good & reference_obs], minlength=n_points)
-            ok &= (in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))) | wide
+            ok &= (in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))) | wide | stereo
         return ok
+
+    @staticmethod
+    def _stereo_instants(obs_point: np.ndarray, good: np.ndarray, reference_obs: np.ndarray,
+                         obs_instant: np.ndarray, n_points: int) -> np.ndarray:
+        """Per point, the instants at which both its reference view and a partner view are inliers."""
+        span = int(obs_instant.max()) + 1 if len(obs_instant) else 1
+        key = obs_point.astype(np.int64) * span + obs_instant
+        both = np.intersect1d(key[good & reference_obs], key[good & ~reference_obs])  # (distinct keys)
+        return np.bincount(both // span, minlength=n_points)
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The map as it stands, for the live surface: archived inliers, then every active landmark."""
@@ -724,7 +749,8 @@ class Mapper:
             poses, points = (result.poses, result.points) if cfg.final_global_ba else (problem.poses, problem.points)
             ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids),
                                      reference_pose[problem.obs_pose], int(reference_pose.sum()),
-                                     points, poses[problem.obs_pose][:, :3, 3])
+                                     points, poses[problem.obs_pose][:, :3, 3],
+                                     self._instants(problem.pose_ids)[problem.obs_pose])
             kept = e[ok[problem.obs_point] & np.isfinite(e)]  # every view of the inlier points
             if len(kept):
                 reprojection = {"median_px": float(np.median(kept)), "p95_px": float(np.percentile(kept, 95)),
