@@ -408,7 +408,7 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
             gpu_reductions: bool | None = None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
-    ``gpu_reductions`` its sums and medians taken a GPU's ways (None: on CUDA; ``ObservationKernels``)."""
+    ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -1117,7 +1117,8 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
-    values, the sums to round-off); None: on CUDA devices only."""
+    values, the sums to round-off on the bench's window); opt-in (None: off): in live windows on the H100 it
+    labelled nearly every landmark an inlier, not yet found why (docs/benchmarks.md, session 14)."""
     t0 = time.perf_counter()
     p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
     state = _new_state(p, lay)

@@ -7,8 +7,8 @@ they run on the GPU. Float64 throughout, as GTSAM computes.
 
 ``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
 and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
-factorisation. On CUDA the sums reduce a GPU's way (``gpu_reductions``: fewer atomics, a window's elimination by
-pose pairs, the robust scale by sorts); on the CPU device one observation's terms at a time, in order.
+factorisation. The sums can reduce a GPU's way (``gpu_reductions``, opt-in: fewer atomics, a window's elimination
+by pose pairs, the robust scale by sorts); by default one observation's terms at a time.
 """
 
 from __future__ import annotations
@@ -607,12 +607,13 @@ class ObservationKernels:
                  gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
-        # a GPU's ways of reducing (None: on CUDA only): the robust scale's medians by two sorts here (one scalar
+        # a GPU's ways of reducing (opt-in: live windows on the H100 labelled far more inliers with them, cause not
+        # found; docs/benchmarks.md, session 14): the robust scale's medians by two sorts here (one scalar
         # read back, not the residuals and the host's selections), sums taken per thread over several observations
         # before their atomics (a few addresses take them all), a window's landmarks eliminated by pose pairs
         # (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
         # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
-        self.gpu_reductions = self._cuda is not None if gpu_reductions is None else bool(gpu_reductions)
+        self.gpu_reductions = bool(gpu_reductions)
         self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
                     "downloaded_bytes": 0}
