@@ -423,13 +423,18 @@ class Mapper:
 
     def _is_reference(self, kf_ids: np.ndarray) -> np.ndarray:
         """Whether each keyframe is a reference (camera 0) view, not a stereo partner."""
-        return np.array([self.keyframes[k].reference is None for k in np.asarray(kf_ids).tolist()], bool)
+        unique, inverse = np.unique(np.asarray(kf_ids, np.int64), return_inverse=True)
+        return np.array([self.keyframes[k].reference is None for k in unique.tolist()], bool)[inverse]
 
-    def _instants(self, kf_ids: np.ndarray) -> np.ndarray:
-        """The instant of each keyframe: its own id for a reference keyframe, its reference's for a partner."""
+    def _instants(self, kf_ids: np.ndarray) -> np.ndarray | None:
+        """The instant of each keyframe: its own id for a reference keyframe, its reference's for a partner (None
+        without a rig: every keyframe is its own instant)."""
+        if self.rig is None:
+            return None
         kfs = self.keyframes
-        return np.array([k if kfs[k].reference is None else kfs[k].reference for k in np.asarray(kf_ids).tolist()],
-                        np.int64)
+        unique, inverse = np.unique(np.asarray(kf_ids, np.int64), return_inverse=True)
+        return np.array([k if kfs[k].reference is None else kfs[k].reference for k in unique.tolist()],
+                        np.int64)[inverse]
 
     def _inlier_points(self, obs_point: np.ndarray, good: np.ndarray, n_points: int, n_views: int,
                        reference_obs: np.ndarray | None = None, n_reference_views: int | None = None,
@@ -750,7 +755,7 @@ class Mapper:
             ok = self._inlier_points(problem.obs_point, good, len(problem.point_ids), len(problem.pose_ids),
                                      reference_pose[problem.obs_pose], int(reference_pose.sum()),
                                      points, poses[problem.obs_pose][:, :3, 3],
-                                     self._instants(problem.pose_ids)[problem.obs_pose])
+                                     None if self.rig is None else self._instants(problem.pose_ids)[problem.obs_pose])
             kept = e[ok[problem.obs_point] & np.isfinite(e)]  # every view of the inlier points
             if len(kept):
                 reprojection = {"median_px": float(np.median(kept)), "p95_px": float(np.percentile(kept, 95)),
