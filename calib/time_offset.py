@@ -377,8 +377,9 @@ class OffsetReading:
     drifted: bool
     samples: int
     motion_px_s: float  # RMS of the measured image motion in the window: too little and nothing is decided
-    # the offset's standard error (Gauss-Newton: the residual's spread over the predicted motion's change); a
-    # drift within DRIFT_SIGNIFICANCE of it is not called one (a window of smooth motion pins no offset)
+    # the offset's standard error (Gauss-Newton: the residual's spread over the predicted motion's change; None:
+    # no change at all); a drift within DRIFT_SIGNIFICANCE of it is not called one (a window of smooth motion pins
+    # no offset)
     uncertainty_ns: int | None = None
 
 
@@ -465,14 +466,17 @@ class TimeOffsetMonitor:
         offset_ns = int(round(offset_s * 1e9))
         drift = offset_ns - self.applied_offset_ns
         sigma_ns = self._uncertainty_ns(tv + offset_s, tp, pred, float(np.nanmin(cost)))
-        drifted = abs(drift) > self.drift_threshold_ns and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns
+        drifted = (abs(drift) > self.drift_threshold_ns and sigma_ns is not None
+                   and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns)
         return OffsetReading(offset_ns, drift, drifted, len(meas), motion, sigma_ns)
 
     @staticmethod
-    def _uncertainty_ns(tk: np.ndarray, tp: np.ndarray, pred: np.ndarray, min_cost: float) -> int:
+    def _uncertainty_ns(tk: np.ndarray, tp: np.ndarray, pred: np.ndarray, min_cost: float) -> int | None:
         """The standard error of the shift at its optimum: a residual of variance s^2 per component against a
         predicted motion whose rate of change is a(t) pins the shift to s / sqrt(sum |a|^2). The residual's
-        variance comes from the cost (the median of a 2-D Gaussian's squared length is 2 ln 2 of its variance)."""
+        variance comes from the cost (the median of a 2-D Gaussian's squared length is 2 ln 2 of its variance).
+        None where the predicted motion does not change at all (no timing in the window). Residuals correlated
+        over frames (a backlash's lag) make it optimistic."""
         inside = (tk >= tp[0]) & (tk <= tp[-1])
         t = tk[inside]
         h = 0.01  # s: the rate of change over the predicted motion's own smoothing scale, not its sample noise
@@ -480,6 +484,6 @@ class TimeOffsetMonitor:
                                 for c in (1, 2)])
         information = float(np.sum(rate ** 2))
         if information <= 0.0:
-            return 10 ** 12
+            return None
         variance = max(min_cost, 0.0) / (2.0 * math.log(2.0))
         return int(round(math.sqrt(variance / information) * 1e9))

@@ -149,10 +149,10 @@ def test_motion_puts_tracks_where_the_camera_moved_them(warp_cpu, tracker, depth
         assert np.mean(alone < 1.0) > 0.5, np.mean(alone < 1.0)  # measured 0.58 (OpenCV; 3 levels: under 0.3)
 
 
+@pytest.mark.skipif(not DEVICE.startswith("cuda"), reason="CUDA graphs: run with LAPRECO_TEST_DEVICE=cuda:0")
 def test_frames_with_a_motion_replay_as_graphs_what_they_launch_one_by_one(warp_cpu):
     """The Warp front-end captures a frame with a motion as a CUDA graph too (the motion is read from the device),
-    one per kind of frame: the graphs' tracks are the launches' to the bit, frame after frame. (On the CPU device
-    both run the launches; with LAPRECO_TEST_DEVICE=cuda:0 this checks the graphs. On CUDA new corners take
+    one per kind of frame: the graphs' tracks are the launches' to the bit, frame after frame. (New corners take
     their slots, and so their ids, in the order their threads get there: the tracks are compared as sets.)"""
     left, _, K, _, _ = hamlyn()
     left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
@@ -183,9 +183,27 @@ def test_frames_with_a_motion_replay_as_graphs_what_they_launch_one_by_one(warp_
     for a, b in zip(replayed, launched):
         assert np.array_equal(tracks(a), tracks(b))
     assert len(replayed[-1]) > 100
-    if DEVICE.startswith("cuda"):
-        replays = [kind for kind, runs in with_graphs._runs.items() if kind[1] and runs >= 3]
-        assert replays and all(kind in with_graphs._graphs for kind in replays), with_graphs._runs
+    replays = [kind for kind, runs in with_graphs._runs.items() if kind[1] and runs >= 3]
+    assert replays and all(kind in with_graphs._graphs for kind in replays), with_graphs._runs
+
+
+def test_a_small_motion_is_settled_on_the_tracks_own_depths_without_borrowing(monkeypatch):
+    """Most live frames move the tracks a few pixels: start_depths says so from the tracks with a landmark,
+    without the nearest-neighbour search for the others; a larger motion borrows depths as before."""
+    rng = np.random.default_rng(3)
+    K = np.array([[1000.0, 0, 640], [0, 1000.0, 360], [0, 0, 1]])
+    uv = rng.uniform([0, 0], [1280, 720], (400, 2))
+    ids = np.arange(400, dtype=np.int64)
+    known = ids[rng.random(400) < 0.7]
+    small, large = np.eye(4), np.eye(4)
+    small[0, 3], large[0, 3] = 0.0002, 0.002  # 2.5 px and 25 px at 8 cm
+    borrowed = []
+    real_borrow = epipolar.borrow_depths
+    monkeypatch.setattr(epipolar, "borrow_depths", lambda *a: borrowed.append(1) or real_borrow(*a))
+    assert epipolar.start_depths(uv, ids, FrameMotion(small, known, np.full(len(known), 0.08)), K, (1280, 720)) is None
+    assert not borrowed
+    depth = epipolar.start_depths(uv, ids, FrameMotion(large, known, np.full(len(known), 0.08)), K, (1280, 720))
+    assert borrowed and np.isfinite(depth).all()
 
 
 def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():

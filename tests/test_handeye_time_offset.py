@@ -146,6 +146,18 @@ def test_the_watch_changes_its_state_only_after_readings_in_a_row():
     assert states == [True, True, True, False, False, False, False, True]
     assert watch.summary()["drifted"] is False
 
+    # drifted: a reading back at 0 ms, or none (a still camera), keeps the state, and its figures stay the drift's
+    still = OffsetReading(None, None, False, 10, 0.5)
+    script = [OffsetReading(d, d, True, 500, 40.0, 5_000_000) for d in (90_000_000, 90_000_000)]
+    script += [still, OffsetReading(2_000_000, 2_000_000, False, 500, 40.0, 5_000_000), still]
+    watch = TimeOffsetWatch(np.eye(3), 0, monitor=type("M", (), {"reading": lambda self: script.pop(0)})(),
+                            clock=lambda: now[0])
+    for k in range(5):
+        now[0] = 100.0 + 10.0 * k
+        health = watch.health()
+    assert not health.ok and "+90 ms" in health.detail, health
+    assert watch.summary()["drifted"] and watch.summary()["drift_ms"] == 90.0
+
 
 def test_offset_monitor_refuses_to_judge_a_still_camera():
     monitor = TimeOffsetMonitor(min_samples=20)

@@ -228,9 +228,11 @@ class DepthEstimator:
                               f"{config.max_planes}")
 
     def forget(self, kf_id: int | None = None) -> None:
-        """Drop a keyframe's prepared image from the device cache (all of them without ``kf_id``): for a caller
-        that changes a keyframe's image in place, and for timing the preparation."""
+        """Drop a keyframe's prepared image from the device cache (without ``kf_id``: all of them, and the uploaded
+        mask): for a caller that changes a keyframe's image (or, with no ``kf_id``, a mask) in place, since a view
+        that brings the same arrays is taken as unchanged; and for timing the preparation."""
         if kf_id is None:
+            self._mask_of = None
             self._cached.clear()
         else:
             self._cached.pop(kf_id, None)

@@ -108,7 +108,8 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     """Each track's depth for its start in the new frame: its own or its neighbours' (``depths_for_tracks``), the
     far end of a short epipolar segment (``settle_short_lines``), else NaN (searched along its line). None when
     the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10 of them): the
-    frame is then tracked as without a motion."""
+    frame is then tracked as without a motion. That test is made on the tracks' own depths first (at least 10
+    of them), and only if it does not settle it on their own and borrowed depths."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(uv) == 0:
         return None
@@ -340,13 +341,15 @@ def tracks_back(cur_u8: np.ndarray, prev_u8: np.ndarray, cur_uv: np.ndarray, pre
 
 def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarray, other_float: np.ndarray,
                  uv: np.ndarray, K_this: np.ndarray, K_other: np.ndarray, T_other_this: np.ndarray,
-                 depth_range_m: tuple[float, float], lk: dict) -> tuple[np.ndarray, np.ndarray]:
+                 depth_range_m: tuple[float, float], lk: dict,
+                 max_residual: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
     sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
     the track is; then LK's window in this view registered affinely (with gain and bias) in the other, as the
     drift check registers a temporal track: the fit moves the match along its epipolar line where it passes the
-    drift check's bounds, LK's match stands where it does not, and a fit that disagrees with LK by more than
-    FORWARD_BACKWARD_PX drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
+    drift check's bounds (``max_residual``: its residual bound, the tracker's ``drift_max_residual``), LK's match
+    stands where it does not, and a fit that disagrees with LK by more than FORWARD_BACKWARD_PX, passed or not,
+    drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
     for the sweep and the registration). -> (uv in the other view, found).
 
     Why the registration: a short baseline turns a fraction of a pixel into millimetres of depth (5 mm at 12 cm:
@@ -376,22 +379,28 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
         near, far = depth_range_m
         line = project(uv[idx], np.full(len(idx), float(far)), K_this, K_other, T_other_this) \
             - project(uv[idx], np.full(len(idx), float(near)), K_this, K_other, T_other_this)
-        out[idx], agree = register_along(this_float, other_float, uv[idx], out[idx], line, lk["winSize"][0])
+        out[idx], agree = register_along(this_float, other_float, uv[idx], out[idx], line, lk["winSize"][0],
+                                         max_residual)
         found[idx[~agree]] = False
         out[idx[~agree]] = np.nan
     return out, found
 
 
 def register_along(this_float: np.ndarray, other_float: np.ndarray, uv: np.ndarray, matched: np.ndarray,
-                   line: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+                   line: np.ndarray, window_px: int,
+                   max_residual: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``matched`` (the other view's positions of this view's ``uv``) refined along its epipolar ``line`` (a
     direction in the other view, per match) by an affine fit: each ``window_px`` patch of this view registered
     in the other with the drift check's model (gain and bias too). -> (positions, agree). A fit within the drift
     check's bounds moves its match by its correction along the line; only that part carries depth, and across
     the line the match keeps LK's position (a real pair's calibration is off by more than the fit would correct
     there: 0.5 px on the Hamlyn pair). A fit whose correction exceeds FORWARD_BACKWARD_PX disagrees with LK by
-    more than a match may (one of them is wrong, and which is unknown): ``agree`` is False there."""
-    check = AffineDriftCheck(int(window_px), max_residual=TrackerConfig().drift_max_residual)
+    more than a match may (one of them is wrong, and which is unknown), whether or not the fit passed: ``agree``
+    is False there. ``max_residual``: the drift check's bound (``[tracker] drift_max_residual``; None: its
+    default)."""
+    if max_residual is None:
+        max_residual = TrackerConfig().drift_max_residual
+    check = AffineDriftCheck(int(window_px), max_residual=max_residual)
     gx = cv2.Sobel(other_float, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(other_float, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
     matched = np.asarray(matched, np.float64)

@@ -155,7 +155,8 @@ class OpenCVFrontEnd:
         other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config, self.levels)
         uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float,
                                           self._pts.astype(np.float64), self.camera.K, camera.K,
-                                          np.asarray(T_other_this, np.float64), self._depth_range, self._lk)
+                                          np.asarray(T_other_this, np.float64), self._depth_range, self._lk,
+                                          self.config.drift_max_residual)
         return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
 

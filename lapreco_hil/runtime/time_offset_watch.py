@@ -37,6 +37,7 @@ class TimeOffsetWatch:
         self._next_reading = 0.0
         self._drifted = False  # the state reported: changed by READINGS_TO_SWITCH readings in a row
         self._against = 0  # readings in a row that disagree with it
+        self._drifted_reading = self._reading  # the newest reading that said drifted while the state is drifted
 
     def observe(self, prev: Observations, obs: Observations, motion: FrameMotion) -> None:
         """One frame's measured and predicted image motion (tracks seen in both frames, those with a depth)."""
@@ -65,31 +66,38 @@ class TimeOffsetWatch:
         if now >= self._next_reading:
             self._next_reading = now + READING_PERIOD_S
             self._reading = self.monitor.reading()
-            if self._reading.offset_ns is not None:
-                self._against = self._against + 1 if self._reading.drifted != self._drifted else 0
+            r = self._reading
+            # a window with no reading (a still camera) neither confirms nor clears the state
+            if r.offset_ns is not None:
+                self._against = self._against + 1 if r.drifted != self._drifted else 0
                 if self._against >= READINGS_TO_SWITCH:
-                    self._drifted, self._against = self._reading.drifted, 0
+                    self._drifted, self._against = r.drifted, 0
+                if self._drifted and r.drifted:
+                    self._drifted_reading = r
         return self._reading
 
     @property
     def drifted(self) -> bool:
-        """Whether the offset in use has drifted: the last READINGS_TO_SWITCH readings said so (and no as many
-        said otherwise since)."""
+        """Whether the offset in use has drifted: READINGS_TO_SWITCH readings in a row said so, and not as many
+        have said otherwise since."""
         return self._drifted
 
     def health(self) -> Condition:
         r = self.reading()
-        if r.offset_ns is None:
-            return Condition("watching", True)
-        if self._drifted:
+        if self._drifted:  # (its figures: the newest reading that found the drift)
+            r = self._drifted_reading
             return Condition("drifted", False, f"the video and the poses line up at {r.offset_ns / 1e6:+.0f} ms, "
                              f"{r.drift_ns / 1e6:+.0f} ms from the {self.applied_offset_ns / 1e6:+.0f} ms in use; "
                              "estimate it again (lapreco calibrate time-offset SESSION) and pass it on",
                              count_as="time_offset_drifted")
+        if r.offset_ns is None:
+            return Condition("watching", True)
         return Condition("ok", True, f"{r.offset_ns / 1e6:+.0f} ms")
 
     def summary(self) -> dict:
-        r = self._reading
+        """The offset in use, and the newest reading's figures, or while drifted those of the newest reading that
+        found the drift."""
+        r = self._drifted_reading if self._drifted else self._reading
         return {"applied_ms": self.applied_offset_ns / 1e6,
                 "estimated_ms": None if r.offset_ns is None else r.offset_ns / 1e6,
                 "drift_ms": None if r.drift_ns is None else r.drift_ns / 1e6,

@@ -1,9 +1,9 @@
 """The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
 into observations. Track bookkeeping (live counts, ids, compaction, the choice of new corners) stays on the
 device, so on CUDA a frame is the grey conversion on the host, uploaded band by band as it is converted, then
-one graph replay: the image stages, tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
-tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours
-are read on the host from the frame in hand, at each track's position in the distorted frame.
+one graph replay: the image stages, tracking, detection, and two small copies of the per-track results into pinned
+memory (the surviving tracks' part first, so the host reads their colours while detection finishes). Images never
+come back: colours are read on the host from the frame in hand, at each track's position in the distorted frame.
 
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
 its motion goes up to the device first, so it too is a graph replay (one graph per kind of frame: buffer parity,
@@ -412,9 +412,10 @@ class WarpFrontEnd:
             wp.copy(dst, src)
 
     def warm_up(self) -> None:
-        """Compile every kernel (those only frames with a motion launch as well) and capture both frame graphs
-        on black frames (no corners, so no tracks are left behind), so a live run's first frames do not wait tens
-        of seconds for them."""
+        """Compile every kernel (those only frames with a motion launch as well) and capture the graphs of frames
+        without a motion on black frames (no corners, so no tracks are left behind), so a live run's first frames
+        do not wait tens of seconds for them. The graphs of frames with a motion are captured as their kinds
+        first come (a frame's launches, then its capture, a few milliseconds each)."""
         preload_kernels("lapreco_hil.frontend.warp", self.device)  # the motion path's kernels too
         black = np.zeros((self.height, self.width, 3), np.uint8)
         for k in range(4):  # both buffer parities, eager then captured
@@ -468,7 +469,7 @@ class WarpFrontEnd:
                 self._budget = self.config.max_features
 
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
-        # On CUDA a frame is one graph replay per buffer parity, captured on the buffer's second use (once every
+        # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
         kind = (cur, self._motion is not None, self._lk_levels, self._budget)
         graphs = self.device.is_cuda and self.use_graphs and not self.profile
@@ -532,6 +533,7 @@ class WarpFrontEnd:
                                              self.pyramid_levels)
         lk_params = epipolar.lk_params(self.config.window_px, self.pyramid_levels)
         found_uv, found = epipolar.match_across(this_u8, this, other_u8, other_float, uv, self.camera.K, camera.K,
-                                                np.asarray(T_other_this, np.float64), self._depth_range, lk_params)
+                                                np.asarray(T_other_this, np.float64), self._depth_range, lk_params,
+                                                self.config.drift_max_residual)
         return Observations(seq, t_ns, ids[found].copy(), found_uv[found], colors_at(color, found_uv[found]),
                             camera=camera_index)
