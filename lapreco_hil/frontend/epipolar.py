@@ -108,8 +108,8 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     """Each track's depth for its start in the new frame: its own or its neighbours' (``depths_for_tracks``), the
     far end of a short epipolar segment (``settle_short_lines``), else NaN (searched along its line). None when
     the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10 of them): the
-    frame is then tracked as without a motion. That test is made on the tracks' own depths first (at least 10
-    of them), and only if it does not settle it on their own and borrowed depths."""
+    frame is then tracked as without a motion. That test is made on the tracks' own depths where at least 10
+    have one, else on their own and borrowed depths."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(uv) == 0:
         return None
@@ -119,9 +119,10 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     depth = own_depths(ids, motion.track_ids, motion.depth_m)
     if _small_motion(uv, depth, K, T):
         return None
+    settled = np.isfinite(depth).sum() >= 10  # (enough own depths said it: borrowed ones only echo them)
     if not np.isfinite(depth).all():
         depth = borrow_depths(uv, depth, image_size)
-        if _small_motion(uv, depth, K, T):
+        if not settled and _small_motion(uv, depth, K, T):
             return None
     return settle_short_lines(uv, depth, K, T, motion.depth_range_m)
 
