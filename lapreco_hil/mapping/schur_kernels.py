@@ -149,43 +149,11 @@ def _linearize(obs_pose: wp.array(dtype=wp.int32), obs_point: wp.array(dtype=wp.
                gp: wp.array(dtype=wp.vec3d), pose_system: wp.array(dtype=wp.float64)):
     """Each observation's terms summed into its landmark's block (Hpp, gp) and its free pose's, in
     ``pose_system``: the pose blocks (F x 36), then the pose gradients (F x 6), then the sum of s |r|^2. (The
-    CPU device's: one observation per thread, the terms of ``_observation_terms`` written out as before, its
-    speed there unchanged; ``_linearize_runs``: a GPU's.)"""
+    default: one observation per thread; ``_linearize_runs``: the opt-in GPU reductions'.)"""
     o = wp.tid()
-    i = obs_pose[o]
     j = obs_point[o]
-    Tm = T[i]
-    Xc = _camera_point(Tm, X[j])
-    zero = wp.float64(0.0)
-    one = wp.float64(1.0)
-    fx = K[0]
-    fy = K[1]
-    # behind the camera: GTSAM's constant error 2 fx, no gradient
-    ru = wp.float64(2.0) * fx
-    rv = wp.float64(2.0) * fx
-    ju = wp.spatial_vectord()
-    jv = wp.spatial_vectord()
-    pu = wp.vec3d()
-    pv = wp.vec3d()
-    if Xc[2] > zero:
-        z = Xc[2]
-        xn = Xc[0] / z
-        yn = Xc[1] / z
-        ru = fx * xn + K[2] - uv[o][0]
-        rv = fy * yn + K[3] - uv[o][1]
-        a = fx / z
-        b = fy / z
-        # d residual / d (rotation, translation) of T Exp(xi)
-        ju = wp.spatial_vectord(fx * xn * yn, -fx * (one + xn * xn), fx * yn, -a, zero, a * xn)
-        jv = wp.spatial_vectord(fy * (one + yn * yn), -fy * xn * yn, -fy * xn, zero, -b, b * yn)
-        # d residual / d X = d(pixel)/d(camera point) R^T; the rows of R^T are the columns of R
-        c0 = wp.vec3d(Tm[0, 0], Tm[1, 0], Tm[2, 0])
-        c1 = wp.vec3d(Tm[0, 1], Tm[1, 1], Tm[2, 1])
-        c2 = wp.vec3d(Tm[0, 2], Tm[1, 2], Tm[2, 2])
-        pu = a * (c0 - xn * c2)
-        pv = b * (c1 - yn * c2)
+    s, ru, rv, ju, jv, pu, pv = _observation_terms(o, obs_pose, obs_point, uv, T, X, K, inv_sigma, k, loss)
     r2 = ru * ru + rv * rv
-    s = _weight(loss, wp.sqrt(r2) * inv_sigma, k) * inv_sigma * inv_sigma
     wp.atomic_add(pose_system, 42 * n_free, s * r2)
     wp.atomic_add(Hpp, j, s * (wp.outer(pu, pu) + wp.outer(pv, pv)))
     wp.atomic_add(gp, j, s * (pu * ru + pv * rv))
