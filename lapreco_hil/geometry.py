@@ -60,10 +60,7 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """Pose at fraction s in [0, 1] between T0 and T1: slerp on rotation, linear on translation
     (the SE(3) interpolation used for poses at frame times). s outside [0, 1] extrapolates."""
-    r0 = Rotation.from_matrix(T0[:3, :3])
-    dr = (r0.inv() * Rotation.from_matrix(T1[:3, :3])).as_rotvec()
-    R = (r0 * Rotation.from_rotvec(s * dr)).as_matrix()
-    return make_T(R, (1.0 - s) * T0[:3, 3] + s * T1[:3, 3])
+    return interpolate_poses(np.asarray(T0)[None], np.asarray(T1)[None], np.array([s], float))[0]
 
 
 def interpolate_poses(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarray:

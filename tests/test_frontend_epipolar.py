@@ -364,7 +364,7 @@ def test_a_stereo_match_is_registered_affinely_across_the_views_foreshortening()
     truth = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), H).reshape(-1, 2)
     inside = (truth[:, 0] > 25) & (truth[:, 0] < w - 25) & (truth[:, 1] > 25) & (truth[:, 1] < h - 25)
     uv, found = epipolar.match_across(a8, a, b8, b, pts, K, K, T_right_left, (0.02, 0.3),
-                                      epipolar.lk_params(cfg.window_px, levels))
+                                      epipolar.lk_params(cfg.window_px, levels), cfg.drift_max_residual)
     ok = found & inside
     assert ok.sum() > 0.7 * inside.sum(), (ok.sum(), inside.sum())
     along = uv[ok, 0] - truth[ok, 0]  # (the baseline is the x axis)

@@ -37,6 +37,12 @@ def sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)
 
 
+def gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) gradients of a float32 image as ``AffineDriftCheck.register`` takes them: 3x3 Sobel / 8."""
+    return (cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+            cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8))
+
+
 class AffineDriftCheck:
     def __init__(self, patch_px: int = 13, max_iterations: int = 6, max_residual: float = 0.45,
                  max_stretch: float = 1.6, max_correction_px: float = 3.0) -> None:

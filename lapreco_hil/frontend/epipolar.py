@@ -16,8 +16,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lapreco_hil.config import TrackerConfig
-from lapreco_hil.frontend.drift import AffineDriftCheck
+from lapreco_hil.frontend.drift import AffineDriftCheck, gradients
 
 # the sweep: an 11 x 11 patch on pyramid level 1 (22 x 22 pixels of the full image), 32 to 96 inverse-depth
 # samples (about one per level pixel of the line), a match where ZNCC is above MIN_SCORE and the best score
@@ -343,7 +342,7 @@ def tracks_back(cur_u8: np.ndarray, prev_u8: np.ndarray, cur_uv: np.ndarray, pre
 def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarray, other_float: np.ndarray,
                  uv: np.ndarray, K_this: np.ndarray, K_other: np.ndarray, T_other_this: np.ndarray,
                  depth_range_m: tuple[float, float], lk: dict,
-                 max_residual: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 max_residual: float) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
     sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
     the track is; then LK's window in this view registered affinely (with gain and bias) in the other, as the
@@ -388,8 +387,7 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
 
 
 def register_along(this_float: np.ndarray, other_float: np.ndarray, uv: np.ndarray, matched: np.ndarray,
-                   line: np.ndarray, window_px: int,
-                   max_residual: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   line: np.ndarray, window_px: int, max_residual: float) -> tuple[np.ndarray, np.ndarray]:
     """``matched`` (the other view's positions of this view's ``uv``) refined along its epipolar ``line`` (a
     direction in the other view, per match) by an affine fit: each ``window_px`` patch of this view registered
     in the other with the drift check's model (gain and bias too). -> (positions, agree). A fit within the drift
@@ -397,13 +395,9 @@ def register_along(this_float: np.ndarray, other_float: np.ndarray, uv: np.ndarr
     the line the match keeps LK's position (a real pair's calibration is off by more than the fit would correct
     there: 0.5 px on the Hamlyn pair). A fit whose correction exceeds FORWARD_BACKWARD_PX disagrees with LK by
     more than a match may (one of them is wrong, and which is unknown), whether or not the fit passed: ``agree``
-    is False there. ``max_residual``: the drift check's bound (``[tracker] drift_max_residual``; None: its
-    default)."""
-    if max_residual is None:
-        max_residual = TrackerConfig().drift_max_residual
+    is False there. ``max_residual``: the drift check's bound (``[tracker] drift_max_residual``)."""
     check = AffineDriftCheck(int(window_px), max_residual=max_residual)
-    gx = cv2.Sobel(other_float, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(other_float, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+    gx, gy = gradients(other_float)
     matched = np.asarray(matched, np.float64)
     ref = check.reference_patches(this_float, np.asarray(uv, np.float64))
     fit = check.register(other_float, gx, gy, ref, np.repeat(np.eye(2)[None], len(uv), 0), matched)

@@ -14,7 +14,7 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import epipolar
-from lapreco_hil.frontend.drift import AffineDriftCheck
+from lapreco_hil.frontend.drift import AffineDriftCheck, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
 
@@ -98,8 +98,7 @@ class OpenCVFrontEnd:
             searched = searched[keep]
         t2 = time.perf_counter()
         if self.drift is not None and len(self._pts):
-            gx = cv2.Sobel(intensity, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-            gy = cv2.Sobel(intensity, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+            gx, gy = gradients(intensity)
             reg = self.drift.register(intensity, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
             positions = reg.positions.astype(np.float32)

@@ -512,9 +512,12 @@ class Mapper:
         pts, uv = self._resection_points(record)
         if len(pts) < 6:
             return T_init
-        sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
-        T, _ = refine_pose(record.T_prior, record.cov, pts, uv, self.K, sigma, T_init=T_init)
+        T, _ = refine_pose(record.T_prior, record.cov, pts, uv, self.K, self._resection_sigma_px(), T_init=T_init)
         return T
+
+    def _resection_sigma_px(self) -> float:
+        """The pixel noise a frame's resection assumes: the last bundle adjustment's, 1 px before there is one."""
+        return self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
 
     def _predict_pose(self, prior: PosePrior) -> np.ndarray:
         """Start a new keyframe from its prior corrected like the previous keyframe (robot errors drift
@@ -832,9 +835,9 @@ class Mapper:
                 f.T_refined = c @ f.T_prior
         if resect and others:
             chosen = [self._resection_points(f) for f in others]
-            sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else 1.0
             refined = refine_poses(np.array([f.T_prior for f in others]), np.array([f.cov for f in others]),
-                                   [pts for pts, _ in chosen], [uv for _, uv in chosen], self.K, sigma,
+                                   [pts for pts, _ in chosen], [uv for _, uv in chosen], self.K,
+                                   self._resection_sigma_px(),
                                    T_inits=np.array([f.T_refined for f in others]))
             for f, T in zip(others, refined):
                 f.T_refined = T

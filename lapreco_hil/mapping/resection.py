@@ -61,35 +61,45 @@ def refine_pose(T_prior: np.ndarray, cov: np.ndarray, points: np.ndarray, uv: np
     return T, w > 0
 
 
-def _residuals(T, points, uv, K):
-    R, t = T[:3, :3], T[:3, 3]
-    Xc = (points - t) @ R  # camera frame: R^T (X - t)
-    front = Xc[:, 2] > 1e-6
-    zs = np.where(front, Xc[:, 2], 1.0)
-    r = np.column_stack([K[0, 0] * Xc[:, 0] / zs + K[0, 2] - uv[:, 0], K[1, 1] * Xc[:, 1] / zs + K[1, 2] - uv[:, 1]])
+def _residuals(T, points, uv, K, have=None):
+    """Residuals (..., P, 2) of one frame (T (4, 4), points (P, 3)) or a batch (T (F, 4, 4), points (F, P, 3)),
+    NaN behind the camera (or where ``have`` is False: padding), and the camera-frame points (..., P, 3)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    Xc = np.matmul(points - t[..., None, :], R)  # camera frame: R^T (X - t)
+    front = Xc[..., 2] > 1e-6
+    if have is not None:
+        front &= have
+    zs = np.where(front, Xc[..., 2], 1.0)
+    r = np.stack([K[0, 0] * Xc[..., 0] / zs + K[0, 2] - uv[..., 0], K[1, 1] * Xc[..., 1] / zs + K[1, 2] - uv[..., 1]],
+                 axis=-1)
     r[~front] = np.nan
     return r, Xc
 
 
-def _gauss_newton(T, T_prior, info, points, uv, K, loss, threshold, sigma_px, iterations):
+def _jacobians(Xc, front, K):
+    """d(pixel residual)/d(xi) of T Exp(xi), (..., P, 2, 6). The chain rule: d(pixel)/d(Xc) = [[a, 0, b], [0, c,
+    d]], and dXc/d(omega) = [Xc]_x, dXc/dv = -I; multiplied out by hand (no (P, 3, 6) temporaries)."""
     fx, fy = K[0, 0], K[1, 1]
+    x, y, zz = Xc[..., 0], Xc[..., 1], Xc[..., 2]
+    zs = np.where(front, zz, 1.0)
+    a, b = fx / zs, -fx * x / zs**2
+    c, d = fy / zs, -fy * y / zs**2
+    zero = np.zeros_like(a)
+    J = np.empty(x.shape + (2, 6))
+    J[..., 0, :] = np.stack([-b * y, -a * zz + b * x, a * y, -a, zero, -b], axis=-1)
+    J[..., 1, :] = np.stack([c * zz - d * y, d * x, -c * x, zero, -c, -d], axis=-1)
+    return J
+
+
+def _gauss_newton(T, T_prior, info, points, uv, K, loss, threshold, sigma_px, iterations):
     w = np.ones(len(points))
     for _ in range(iterations):
         r, Xc = _residuals(T, points, uv, K)
         front = np.isfinite(r[:, 0])
         r = np.nan_to_num(r)
-        zs = np.where(front, Xc[:, 2], 1.0)
         e = np.linalg.norm(r, axis=1)
         w = np.where(front, irls_weight(loss, e, threshold), 0.0) / sigma_px**2
-        # chain rule: d(pixel)/d(Xc) = [[a, 0, b], [0, c, d]], and for T Exp(xi): dXc/d(omega) = [Xc]_x,
-        # dXc/dv = -I; multiplied out by hand (no (N, 3, 6) temporaries)
-        x, y, zz = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-        a, b = fx / zs, -fx * x / zs**2
-        c, d = fy / zs, -fy * y / zs**2
-        J = np.empty((len(points), 2, 6))
-        J[:, 0] = np.column_stack([-b * y, -a * zz + b * x, a * y, -a, np.zeros_like(a), -b])
-        J[:, 1] = np.column_stack([c * zz - d * y, d * x, -c * x, np.zeros_like(c), -c, -d])
-        J = J.reshape(-1, 6)  # (2N, 6): rows u, v of each observation
+        J = _jacobians(Xc, front, K).reshape(-1, 6)  # (2N, 6): rows u, v of each observation
         wJ = J * np.repeat(w, 2)[:, None]
         H = wJ.T @ J  # a matrix product (BLAS), not a three-operand einsum: far faster
         g = wJ.T @ r.ravel()
@@ -142,25 +152,13 @@ def _refine_batch(T_priors, covs, points, uvs, K, sigma_px, schedule, T):
     Ts, priors = T[solved].copy(), T_priors[solved]
     info = np.linalg.inv(covs[solved])
     for stage in schedule.stages:
-        r, _ = _batch_residuals(Ts, X, uv, have, K)
+        r, _ = _residuals(Ts, X, uv, K, have)
         sigma = np.minimum(_batch_mad_sigma(r, sigma_px), schedule.sigma_ceiling_px)
         Ts = _batch_gauss_newton(Ts, priors, info, X, uv, have, K, stage.loss, stage.k * sigma, sigma,
                                  stage.iterations)
     T = T.copy()
     T[solved] = Ts
     return T
-
-
-def _batch_residuals(T, X, uv, have, K):
-    """(F, P, 2) residuals (NaN behind the camera or padding) and the (F, P, 3) camera-frame points."""
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    Xc = np.matmul(X - t[:, None, :], R)  # R^T (X - t), a batched matrix product (einsum was the slow part)
-    front = (Xc[..., 2] > 1e-6) & have
-    zs = np.where(front, Xc[..., 2], 1.0)
-    r = np.stack([K[0, 0] * Xc[..., 0] / zs + K[0, 2] - uv[..., 0], K[1, 1] * Xc[..., 1] / zs + K[1, 2] - uv[..., 1]],
-                 axis=-1)
-    r[~front] = np.nan
-    return r, Xc
 
 
 def _batch_mad_sigma(r, floor):
@@ -199,7 +197,6 @@ def _batch_exp(xi):
 
 
 def _batch_gauss_newton(T, T_prior, info, X, uv, have, K, loss, threshold, sigma_px, iterations):
-    fx, fy = K[0, 0], K[1, 1]
     F, P = have.shape
     active = np.ones(F, bool)
     prior_inv = np.linalg.inv(T_prior)
@@ -207,20 +204,12 @@ def _batch_gauss_newton(T, T_prior, info, X, uv, have, K, loss, threshold, sigma
         idx = np.flatnonzero(active)
         if not len(idx):
             break
-        r, Xc = _batch_residuals(T[idx], X[idx], uv[idx], have[idx], K)
+        r, Xc = _residuals(T[idx], X[idx], uv[idx], K, have[idx])
         front = np.isfinite(r[..., 0])
         r = np.nan_to_num(r)
-        zs = np.where(front, Xc[..., 2], 1.0)
         e = np.linalg.norm(r, axis=-1)
         w = np.where(front, irls_weight(loss, e, threshold[idx, None]), 0.0) / sigma_px[idx, None] ** 2
-        x, y, zz = Xc[..., 0], Xc[..., 1], Xc[..., 2]
-        a, b = fx / zs, -fx * x / zs**2
-        c, d = fy / zs, -fy * y / zs**2
-        zero = np.zeros_like(a)
-        J = np.empty((len(idx), P, 2, 6))
-        J[:, :, 0] = np.stack([-b * y, -a * zz + b * x, a * y, -a, zero, -b], axis=-1)
-        J[:, :, 1] = np.stack([c * zz - d * y, d * x, -c * x, zero, -c, -d], axis=-1)
-        J = J.reshape(len(idx), 2 * P, 6)
+        J = _jacobians(Xc, front, K).reshape(len(idx), 2 * P, 6)
         wJ = J * np.repeat(w, 2, axis=1)[..., None]
         H = np.matmul(wJ.transpose(0, 2, 1), J) + info[idx]
         rp = _batch_log(prior_inv[idx] @ T[idx])
