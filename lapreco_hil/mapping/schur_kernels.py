@@ -687,7 +687,9 @@ class ObservationKernels:
 
     def _alloc_arena(self, parts: dict) -> dict:
         """One float64 allocation cut into arrays: {name: (length, dtype)} -> {name: array}."""
-        sizes = {k: max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8 for k, (n, dtype) in parts.items()}
+        # (each part's words rounded up: an odd count of int32 rounded down left its last element inside the next
+        # part, where that part's writes overwrote it)
+        sizes = {k: -(-max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8) for k, (n, dtype) in parts.items()}
         offsets, total = self._offsets(sizes)
         arena = self._alloc(total, wp.float64)
         self._arenas.append(arena)  # (its parts are views: they do not keep it)
