@@ -165,12 +165,26 @@ def _subtract_gram(S: np.ndarray, block: slice, Z: np.ndarray) -> None:
 
 
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
+# a cross-product matrix's entries as (component, sign) of its vector, component 3 a zero appended; likewise
+# se(3)'s adjoint ad(xi) = [[hat(w), 0], [hat(v), hat(w)]] of xi = (w, v), component 6 the zero: one gather and
+# one product each, where their entries' assignments took a dozen small numpy calls (the pose factors' host time)
+_HAT_INDEX = np.array([[3, 2, 1], [2, 3, 0], [1, 0, 3]])
+_HAT_SIGN = np.array([[1.0, -1.0, 1.0], [1.0, 1.0, -1.0], [-1.0, 1.0, 1.0]])
+_AD_INDEX = np.array([[6, 2, 1, 6, 6, 6], [2, 6, 0, 6, 6, 6], [1, 0, 6, 6, 6, 6],
+                      [6, 5, 4, 6, 2, 1], [5, 6, 3, 2, 6, 0], [4, 3, 6, 1, 0, 6]])
+_AD_SIGN = np.block([[_HAT_SIGN, np.ones((3, 3))], [_HAT_SIGN, _HAT_SIGN]])
+
+
+def _with_zero(x: np.ndarray) -> np.ndarray:
+    """(n, k) -> (n, k + 1): a zero column appended (the gathers' zero entries: +0 as assigned before)."""
+    out = np.zeros((len(x), x.shape[1] + 1))
+    out[:, :-1] = x
+    return out
+
+
 def hat(w: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, 3, 3) cross-product matrices."""
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    return W
+    return _with_zero(w)[:, _HAT_INDEX] * _HAT_SIGN
 
 
 def _v_coefficients(theta: np.ndarray):
@@ -238,14 +252,12 @@ def adjoint(T: np.ndarray) -> np.ndarray:
 
 def right_jacobian_inverse(xi: np.ndarray) -> np.ndarray:
     """(n, 6) -> (n, 6, 6): d Log(E Exp(d)) / d d at E = Exp(xi) (GTSAM's Pose3::LogmapDerivative)."""
-    ad = np.zeros((len(xi), 6, 6))
-    ad[:, :3, :3] = hat(xi[:, :3])
-    ad[:, 3:, 3:] = ad[:, :3, :3]
-    ad[:, 3:, :3] = hat(xi[:, 3:])
-    term = np.broadcast_to(np.eye(6), ad.shape).copy()
+    ad = _with_zero(xi)[:, _AD_INDEX] * _AD_SIGN
+    term = np.broadcast_to(np.eye(6), ad.shape)
     Jr = term.copy()
     for k in range(1, _JR_TERMS):  # Jr = sum (-ad)^k / (k + 1)!
-        term = -(term @ ad) / (k + 1)
+        term = np.matmul(term, ad)
+        term /= -(k + 1)  # (-x / n and x / -n: the same value)
         Jr += term
         if np.abs(term).max() < 1e-18:  # (small tangents, a prior's error: a few terms reach double precision)
             break
