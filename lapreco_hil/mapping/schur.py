@@ -978,8 +978,9 @@ class _DeviceState:
 
 
 def _new_state(p: BAProblem, lay: _Layout):
-    poses, points = np.array(p.poses, float), np.array(p.points, float)
-    return (_HostState if lay.kernels is None else _DeviceState)(p, lay, poses, points)
+    if lay.kernels is None:  # (the host's state moves its own copies)
+        return _HostState(p, lay, np.array(p.poses, float), np.array(p.points, float))
+    return _DeviceState(p, lay, np.array(p.poses, float), np.asarray(p.points, float))  # (the landmarks uploaded)
 
 
 # --- Levenberg-Marquardt as GTSAM runs it -------------------------------------------------------------------------
@@ -1044,8 +1045,10 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     return error_before, error, iterations, per_iteration, solves
 
 
+@functools.cache
 def _check_device(device: str) -> str:
-    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels."""
+    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels. (Once per name:
+    resolving initialises Warp, a temporary file's redirection each time.)"""
     if device == "numpy":
         return device
     from lapreco_hil.warp_device import resolve_device
@@ -1108,14 +1111,16 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
 def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
     """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
     (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
-    residuals (NaN behind the camera) too, else None."""
+    residuals (NaN behind the camera; on a Warp device valid until its next read-back) too, else None."""
     kernels = getattr(state, "kernels", None)
     if kernels is not None and kernels.gpu_reductions:
         count, mad, *r = kernels.residual_mad(with_residuals)
         sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
         return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
-    r = state.residuals(np.nan)
-    return pixel_sigma(p, r, schedule), r
+    # (on a Warp device the read-back's view, not a copy: ``mad_sigma`` leaves it as it is, and the caller reads
+    # the residuals before the device's next read-back)
+    r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
+    return pixel_sigma(p, r, schedule), (r if with_residuals else None)
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",

@@ -598,11 +598,14 @@ class ObservationKernels:
                        and 0 < n_free <= WINDOW_POSES)
         if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
-            pm = np.flatnonzero(np.asarray(obs_col) >= 0)
+            by_free = np.asarray(obs_col) >= 0
+            pm = None if by_free.all() else np.flatnonzero(by_free)  # (None: every observation)
+            points = obs_point if pm is None else obs_point[pm]
             # (a stable sort of small integers is numpy's radix sort)
-            pm = pm[np.argsort(obs_point[pm].astype(np.int16 if N < 2**15 else np.int64), kind="stable")]
+            order = np.argsort(points.astype(np.int16 if N < 2**15 else np.int64), kind="stable")
+            pm, points = (order if pm is None else pm[order]), points[order]
             indices["pm_obs"] = pm
-            indices["pm_end"] = np.cumsum(np.bincount(obs_point[pm], minlength=N))[obs_point[pm]]
+            indices["pm_end"] = np.cumsum(np.bincount(points, minlength=N))[points]
             self.n_pm = len(pm)
         for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
             setattr(self, name, view)
@@ -615,10 +618,11 @@ class ObservationKernels:
         n6, n_system = 6 * n_free, 42 * n_free + 1
         n_table = N * n_free if self.window else 0
         n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        # (T0, dc, T1 in that order: a step's tangents and its trial poses, into either state's, are one range)
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
-                 "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
-                 "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
-                 "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+                 "T0": (len(p.poses), wp.mat44d), "dc": (max(n_free, 1), vec6d), "T1": (len(p.poses), wp.mat44d),
+                 "X0": (N, wp.vec3d), "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
+                 "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
         if self.window:
             parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
         if self.gpu_reductions:
@@ -633,6 +637,9 @@ class ObservationKernels:
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
+        # T0 to T1's end as float64: a step's upload (``_upload_parts``)
+        self._step_inputs = self._view(arena["T0"], 0, (arena["T1"].ptr - arena["T0"].ptr) // 8 + 16 * len(p.poses),
+                                       wp.float64)
         self.work = work = arena["work"]
         self.step_sums = arena["step_sums"]
         self.linear = self._view(work, 0, 12 * N + n_system, wp.float64)
@@ -728,6 +735,23 @@ class ObservationKernels:
                 wp.copy(array, m.host, count=len(values))
         self.ops["uploads"] += 1
         self.ops["uploaded_bytes"] += m.view[:len(values)].nbytes
+
+    def _upload_parts(self, region, parts) -> None:
+        """[(array, values)] of arrays that are parts of float64 ``region`` uploaded in one copy of the range they
+        span (``values``: float64, each part's leading elements; the padding between parts goes along)."""
+        m = self._mirror(region)
+        lo = hi = None
+        for array, values in parts:
+            start = (array.ptr - region.ptr) // 8
+            flat = np.asarray(values, np.float64).reshape(-1)
+            m.view[start:start + flat.size] = flat
+            lo = start if lo is None else min(lo, start)
+            hi = start + flat.size if hi is None else max(hi, start + flat.size)
+        if m.host is not region:
+            with device_lock(self.device):
+                wp.copy(region, m.host, dest_offset=lo, src_offset=lo, count=hi - lo)
+        self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += 8 * (hi - lo)
 
     def _download(self, *arrays) -> list[np.ndarray]:
         """The arrays' host mirrors' views, after one wait for the copies (valid until the next download)."""
@@ -834,13 +858,15 @@ class ObservationKernels:
         """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
         return self._download(self.W)[0].copy()
 
-    def residuals(self, behind: float) -> np.ndarray:
-        """(O, 2) reprojection residuals at the current state, ``behind`` where the point is behind the camera."""
+    def residuals(self, behind: float, copy: bool = True) -> np.ndarray:
+        """(O, 2) reprojection residuals at the current state, ``behind`` where the point is behind the camera
+        (without ``copy``: the read-back's view, valid until the next download)."""
         with device_lock(self.device):
             self._launch(_residuals, self.n_obs,
                          [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
                           float(behind)], [self.residual])
-            return self._download(self.residual)[0][:self.n_obs].copy()
+            r = self._download(self.residual)[0][:self.n_obs]
+            return r.copy() if copy else r
 
     def residual_mad(self, with_residuals: bool = False):
         """The median absolute deviation about the median of the current state's finite residual components
@@ -977,9 +1003,10 @@ class ObservationKernels:
                                k: float) -> None:
         """Start the landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to
         make the trial state with ``trial_poses``, and the trial's reprojection error (``read_step``)."""
-        # (the uploads first: one from pageable memory waits for the stream)
-        self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
-        self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
+        # (the upload first, the tangents and the trial poses in one copy: one from pageable memory waits for the
+        # stream)
+        self._upload_parts(self._step_inputs, [(self.dc, dc if len(dc) else np.zeros(6)),
+                                               (self.T[1 - self.cur], trial_poses)])
         with device_lock(self.device):
             self._zero(self.step_sums)
             if self.n_free:
