@@ -1134,8 +1134,8 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
-    values, the sums to round-off on the bench's window); opt-in (None: off): in live windows on the H100 it
-    labelled nearly every landmark an inlier, not yet found why (docs/benchmarks.md, session 14)."""
+    values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
+    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md)."""
     t0 = time.perf_counter()
     p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
     state = _new_state(p, lay)

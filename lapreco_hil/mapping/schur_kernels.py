@@ -575,11 +575,10 @@ class ObservationKernels:
                  gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
-        # a GPU's ways of reducing (opt-in: live windows on the H100 labelled far more inliers with them, cause not
-        # found; docs/benchmarks.md, session 14): the robust scale's medians by two sorts here (one scalar
-        # read back, not the residuals and the host's selections), sums taken per thread over several observations
-        # before their atomics (a few addresses take them all), a window's landmarks eliminated by pose pairs
-        # (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
+        # a GPU's ways of reducing (opt-in until re-measured live: docs/benchmarks.md, sessions 14-15): the robust
+        # scale's medians by two sorts here (one scalar read back, not the residuals and the host's selections),
+        # sums taken per thread over several observations before their atomics (a few addresses take them all), a
+        # window's landmarks eliminated by pose pairs (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
         # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
         self.gpu_reductions = bool(gpu_reductions)
         self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
