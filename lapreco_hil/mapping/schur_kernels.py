@@ -578,8 +578,9 @@ class ObservationKernels:
         # a GPU's ways of reducing (opt-in until re-measured live: docs/benchmarks.md, sessions 14-15): the robust
         # scale's medians by two sorts here (one scalar read back, not the residuals and the host's selections),
         # sums taken per thread over several observations before their atomics (a few addresses take them all), a
-        # window's landmarks eliminated by pose pairs (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
-        # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
+        # window's landmarks eliminated by pose pairs (``_schur_window``). The CPU device adds one observation's
+        # terms at a time, in order: the sums of the numpy path's order of old, not the GPU's (which differ by
+        # round-off, as its atomics' order does anyway)
         self.gpu_reductions = bool(gpu_reductions)
         self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
