@@ -495,10 +495,8 @@ def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=wp.vec3d), 
 
 
 @wp.func
-def _solve_move(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d), j: int):
-    """A landmark's move dp = -V^-1 (gp + sum of W dc), V = L L^T."""
-    l = L[j]
-    x = gp[j] + Wdc[j]
+def _solve_move(l: vec6d, x: wp.vec3d):
+    """A landmark's move dp = -V^-1 x, V = L L^T (x: gp + the sum of W dc over its observations)."""
     y0 = x[0] / l[0]
     y1 = (x[1] - l[1] * y0) / l[2]
     y2 = (x[2] - l[3] * y0 - l[4] * y1) / l[5]
@@ -522,7 +520,7 @@ def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec
     for j in range(first, wp.min(first + per_thread, n_points)):
         d = dp[j]
         if solve != 0:
-            d = _solve_move(L, gp, Wdc, j)
+            d = _solve_move(L[j], gp[j] + Wdc[j])
             dp[j] = d
         X_trial[j] = X[j] + d
         if j == first:
@@ -534,6 +532,27 @@ def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec
     if first < n_points:
         wp.atomic_add(sums, 0, gd)
         wp.atomic_add(sums, 1, dd)
+
+
+@wp.kernel
+def _move_points_gathered(pm_obs: wp.array(dtype=wp.int32), pm_starts: wp.array(dtype=wp.int32),
+                          obs_col: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), dc: wp.array(dtype=vec6d),
+                          L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d),
+                          dp: wp.array(dtype=wp.vec3d), X_trial: wp.array(dtype=wp.vec3d),
+                          sums: wp.array(dtype=wp.float64)):
+    """``_move_points``' solve, a thread per landmark, the sum of W dc over its observations by free poses
+    gathered here (``pm_obs``: grouped by landmark, ``pm_starts``: each one's range of them) instead of summed into
+    a buffer by ``_w_times_step``'s atomics first: a launch fewer per step, the same sums in the same order."""
+    j = wp.tid()
+    x = wp.vec3d()
+    for n in range(pm_starts[j], pm_starts[j + 1]):
+        o = pm_obs[n]
+        x += W[o] @ dc[obs_col[o]]
+    d = _solve_move(L[j], gp[j] + x)
+    dp[j] = d
+    X_trial[j] = X[j] + d
+    wp.atomic_add(sums, 0, wp.dot(d, gp[j]))
+    wp.atomic_add(sums, 1, wp.dot(d, d))
 
 
 # with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
@@ -604,8 +623,11 @@ class ObservationKernels:
             # (a stable sort of small integers is numpy's radix sort)
             order = np.argsort(points.astype(np.int16 if N < 2**15 else np.int64), kind="stable")
             pm, points = (order if pm is None else pm[order]), points[order]
+            starts = np.zeros(N + 1, np.int64)
+            np.cumsum(np.bincount(points, minlength=N), out=starts[1:])
             indices["pm_obs"] = pm
-            indices["pm_end"] = np.cumsum(np.bincount(points, minlength=N))[points]
+            indices["pm_end"] = starts[1:][points]
+            indices["pm_starts"] = starts
             self.n_pm = len(pm)
         for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
             setattr(self, name, view)
@@ -1008,12 +1030,17 @@ class ObservationKernels:
         self._upload_parts(self._step_inputs, [(self.dc, dc if len(dc) else np.zeros(6)),
                                                (self.T[1 - self.cur], trial_poses)])
         with device_lock(self.device):
-            self._zero(self.step_sums)
-            if self.n_free:
+            if not self.window:  # (each landmark's observations grouped: ``_schur_blocks``')
+                self._zero(self.sums)
+                self._launch(_move_points_gathered, self.n_points,
+                             [self.pm_obs, self.pm_starts, self.obs_col, self.W, self.dc, self.L, self.gp,
+                              self.X[self.cur]], [self.dp, self.X[1 - self.cur], self.sums])
+            else:
+                self._zero(self.step_sums)
                 self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
-            self._launch(_move_points, -(-self.n_points // self.per_thread),
-                         [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
-                         [self.dp, self.X[1 - self.cur], self.sums])
+                self._launch(_move_points, -(-self.n_points // self.per_thread),
+                             [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
+                             [self.dp, self.X[1 - self.cur], self.sums])
             self._error_launch(1 - self.cur, sigma, loss, k, 2)
 
     def try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
