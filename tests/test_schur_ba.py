@@ -392,6 +392,46 @@ def test_landmarks_eliminated_on_the_device_as_on_the_host(case):
         assert (dev.stats["inlier_obs"] != ref.stats["inlier_obs"]).sum() <= 3
 
 
+def _live_like_window(rng, n_views: int, n_points: int, n_fixed: int, keep: float, behind: float):
+    """A local window as the live mapper hands it over: its older keyframes fixed and last in the pose list, some
+    observations missing (every landmark keeps two), the observations in no pose's order, a few landmarks behind
+    a camera."""
+    p = make_problem(rng, n_views=n_views, n_points=n_points, jump=0.03, highlight=0.02, instrument=0.01).problem
+    kept = rng.random(len(p.obs_pose)) < keep
+    kept |= np.bincount(p.obs_point[kept], minlength=n_points)[p.obs_point] < 2
+    order = rng.permutation(np.flatnonzero(kept))
+    points = p.points.copy()
+    away = rng.random(n_points) < behind
+    points[away, 2] *= -1.0
+    return dataclasses.replace(p, fixed=np.arange(n_views) >= n_views - n_fixed, points=points,
+                               obs_pose=p.obs_pose[order], obs_point=p.obs_point[order], obs_uv=p.obs_uv[order])
+
+
+def test_windows_in_a_row_with_a_gpus_reductions_as_without():
+    """A live worker's run of windows (sizes, fixed poses, missing observations, landmarks behind a camera),
+    solved with a GPU's reductions (sums per run of observations, the elimination by pose pairs, the scales by
+    sorts) and without: the same labels, scales and poses. Among them windows whose landmark x free-pose table
+    (int32, ``_schur_window``'s) has N F = 1 mod 64 entries: its arena part's words were counted rounded down, so
+    that its last entry lay in the next part, the whitened blocks, whose writes overwrote it with a garbage
+    observation index (a crash on the CPU device; on a GPU an illegal address, after which every later window in
+    that worker failed)."""
+    rng = np.random.default_rng(23)
+    windows = [(5, 333, 0, 1.0, 0.0), (9, 183, 2, 0.8, 0.01), (4, 60, 1, 0.7, 0.0), (12, 250, 3, 0.6, 0.02),
+               (3, 43, 0, 1.0, 0.0), (7, 300, 0, 0.9, 0.0)]
+    for n_views, n_points, n_fixed, keep, behind in windows:
+        p = _live_like_window(rng, n_views, n_points, n_fixed, keep, behind)
+        kernels = schur._layout(schur.pose_major(p)[0], DEVICE, True, gpu_reductions=True).kernels
+        n_free = n_views - n_fixed
+        assert kernels.window
+        assert kernels.table.ptr + 4 * n_points * n_free <= kernels.Z.ptr  # the table's last entry its own
+        default = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=True)
+        gpu = schur.solve_robust_schur(p, RobustSchedule(), device=DEVICE, device_schur=True, gpu_reductions=True)
+        np.testing.assert_array_equal(gpu.stats["inlier_obs"], default.stats["inlier_obs"])
+        assert [s["sigma_px"] for s in gpu.stats["stages"]] + [gpu.stats["sigma_px"]] == pytest.approx(
+            [s["sigma_px"] for s in default.stats["stages"]] + [default.stats["sigma_px"]], rel=1e-7)
+        np.testing.assert_allclose(gpu.poses, default.poses, atol=1e-8)
+
+
 @pytest.mark.parametrize("device_schur", [True, False])
 def test_the_state_stays_on_the_device_across_lm(device_schur):
     """On a Warp device the buffers are allocated once per solve, and the host reads back, per damped system,

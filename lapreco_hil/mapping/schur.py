@@ -165,12 +165,26 @@ def _subtract_gram(S: np.ndarray, block: slice, Z: np.ndarray) -> None:
 
 
 # --- SE(3) in GTSAM's convention: xi = (omega, v), T Exp(xi) ------------------------------------------------
+# a cross-product matrix's entries as (component, sign) of its vector, component 3 a zero appended; likewise
+# se(3)'s adjoint ad(xi) = [[hat(w), 0], [hat(v), hat(w)]] of xi = (w, v), component 6 the zero: one gather and
+# one product each, where their entries' assignments took a dozen small numpy calls (the pose factors' host time)
+_HAT_INDEX = np.array([[3, 2, 1], [2, 3, 0], [1, 0, 3]])
+_HAT_SIGN = np.array([[1.0, -1.0, 1.0], [1.0, 1.0, -1.0], [-1.0, 1.0, 1.0]])
+_AD_INDEX = np.array([[6, 2, 1, 6, 6, 6], [2, 6, 0, 6, 6, 6], [1, 0, 6, 6, 6, 6],
+                      [6, 5, 4, 6, 2, 1], [5, 6, 3, 2, 6, 0], [4, 3, 6, 1, 0, 6]])
+_AD_SIGN = np.block([[_HAT_SIGN, np.ones((3, 3))], [_HAT_SIGN, _HAT_SIGN]])
+
+
+def _with_zero(x: np.ndarray) -> np.ndarray:
+    """(n, k) -> (n, k + 1): a zero column appended (the gathers' zero entries: +0 as assigned before)."""
+    out = np.zeros((len(x), x.shape[1] + 1))
+    out[:, :-1] = x
+    return out
+
+
 def hat(w: np.ndarray) -> np.ndarray:
     """(n, 3) -> (n, 3, 3) cross-product matrices."""
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    return W
+    return _with_zero(w)[:, _HAT_INDEX] * _HAT_SIGN
 
 
 def _v_coefficients(theta: np.ndarray):
@@ -238,14 +252,12 @@ def adjoint(T: np.ndarray) -> np.ndarray:
 
 def right_jacobian_inverse(xi: np.ndarray) -> np.ndarray:
     """(n, 6) -> (n, 6, 6): d Log(E Exp(d)) / d d at E = Exp(xi) (GTSAM's Pose3::LogmapDerivative)."""
-    ad = np.zeros((len(xi), 6, 6))
-    ad[:, :3, :3] = hat(xi[:, :3])
-    ad[:, 3:, 3:] = ad[:, :3, :3]
-    ad[:, 3:, :3] = hat(xi[:, 3:])
-    term = np.broadcast_to(np.eye(6), ad.shape).copy()
+    ad = _with_zero(xi)[:, _AD_INDEX] * _AD_SIGN
+    term = np.broadcast_to(np.eye(6), ad.shape)
     Jr = term.copy()
     for k in range(1, _JR_TERMS):  # Jr = sum (-ad)^k / (k + 1)!
-        term = -(term @ ad) / (k + 1)
+        term = np.matmul(term, ad)
+        term /= -(k + 1)  # (-x / n and x / -n: the same value)
         Jr += term
         if np.abs(term).max() < 1e-18:  # (small tangents, a prior's error: a few terms reach double precision)
             break
@@ -966,8 +978,9 @@ class _DeviceState:
 
 
 def _new_state(p: BAProblem, lay: _Layout):
-    poses, points = np.array(p.poses, float), np.array(p.points, float)
-    return (_HostState if lay.kernels is None else _DeviceState)(p, lay, poses, points)
+    if lay.kernels is None:  # (the host's state moves its own copies)
+        return _HostState(p, lay, np.array(p.poses, float), np.array(p.points, float))
+    return _DeviceState(p, lay, np.array(p.poses, float), np.asarray(p.points, float))  # (the landmarks uploaded)
 
 
 # --- Levenberg-Marquardt as GTSAM runs it -------------------------------------------------------------------------
@@ -1032,8 +1045,10 @@ def _lm(state, sigma: float, loss: str, k: float, max_iterations: int, timing: d
     return error_before, error, iterations, per_iteration, solves
 
 
+@functools.cache
 def _check_device(device: str) -> str:
-    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels."""
+    """"numpy", or the Warp device (cpu, cuda, cuda:N) that runs the per-observation kernels. (Once per name:
+    resolving initialises Warp, a temporary file's redirection each time.)"""
     if device == "numpy":
         return device
     from lapreco_hil.warp_device import resolve_device
@@ -1096,14 +1111,16 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
 def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
     """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
     (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
-    residuals (NaN behind the camera) too, else None."""
+    residuals (NaN behind the camera; on a Warp device valid until its next read-back) too, else None."""
     kernels = getattr(state, "kernels", None)
     if kernels is not None and kernels.gpu_reductions:
         count, mad, *r = kernels.residual_mad(with_residuals)
         sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
         return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
-    r = state.residuals(np.nan)
-    return pixel_sigma(p, r, schedule), r
+    # (on a Warp device the read-back's view, not a copy: ``mad_sigma`` leaves it as it is, and the caller reads
+    # the residuals before the device's next read-back)
+    r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
+    return pixel_sigma(p, r, schedule), (r if with_residuals else None)
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
@@ -1117,8 +1134,8 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
-    values, the sums to round-off on the bench's window); opt-in (None: off): in live windows on the H100 it
-    labelled nearly every landmark an inlier, not yet found why (docs/benchmarks.md, session 14)."""
+    values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
+    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md)."""
     t0 = time.perf_counter()
     p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
     state = _new_state(p, lay)

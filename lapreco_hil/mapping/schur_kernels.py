@@ -495,10 +495,8 @@ def _schur_window(table: wp.array(dtype=wp.int32), Z: wp.array(dtype=wp.vec3d), 
 
 
 @wp.func
-def _solve_move(L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), Wdc: wp.array(dtype=wp.vec3d), j: int):
-    """A landmark's move dp = -V^-1 (gp + sum of W dc), V = L L^T."""
-    l = L[j]
-    x = gp[j] + Wdc[j]
+def _solve_move(l: vec6d, x: wp.vec3d):
+    """A landmark's move dp = -V^-1 x, V = L L^T (x: gp + the sum of W dc over its observations)."""
     y0 = x[0] / l[0]
     y1 = (x[1] - l[1] * y0) / l[2]
     y2 = (x[2] - l[3] * y0 - l[4] * y1) / l[5]
@@ -522,7 +520,7 @@ def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec
     for j in range(first, wp.min(first + per_thread, n_points)):
         d = dp[j]
         if solve != 0:
-            d = _solve_move(L, gp, Wdc, j)
+            d = _solve_move(L[j], gp[j] + Wdc[j])
             dp[j] = d
         X_trial[j] = X[j] + d
         if j == first:
@@ -534,6 +532,27 @@ def _move_points(solve: int, L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec
     if first < n_points:
         wp.atomic_add(sums, 0, gd)
         wp.atomic_add(sums, 1, dd)
+
+
+@wp.kernel
+def _move_points_gathered(pm_obs: wp.array(dtype=wp.int32), pm_starts: wp.array(dtype=wp.int32),
+                          obs_col: wp.array(dtype=wp.int32), W: wp.array(dtype=mat36d), dc: wp.array(dtype=vec6d),
+                          L: wp.array(dtype=vec6d), gp: wp.array(dtype=wp.vec3d), X: wp.array(dtype=wp.vec3d),
+                          dp: wp.array(dtype=wp.vec3d), X_trial: wp.array(dtype=wp.vec3d),
+                          sums: wp.array(dtype=wp.float64)):
+    """``_move_points``' solve, a thread per landmark, the sum of W dc over its observations by free poses
+    gathered here (``pm_obs``: grouped by landmark, ``pm_starts``: each one's range of them) instead of summed into
+    a buffer by ``_w_times_step``'s atomics first: a launch fewer per step, the same sums in the same order."""
+    j = wp.tid()
+    x = wp.vec3d()
+    for n in range(pm_starts[j], pm_starts[j + 1]):
+        o = pm_obs[n]
+        x += W[o] @ dc[obs_col[o]]
+    d = _solve_move(L[j], gp[j] + x)
+    dp[j] = d
+    X_trial[j] = X[j] + d
+    wp.atomic_add(sums, 0, wp.dot(d, gp[j]))
+    wp.atomic_add(sums, 1, wp.dot(d, d))
 
 
 # with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
@@ -575,12 +594,12 @@ class ObservationKernels:
                  gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
-        # a GPU's ways of reducing (opt-in: live windows on the H100 labelled far more inliers with them, cause not
-        # found; docs/benchmarks.md, session 14): the robust scale's medians by two sorts here (one scalar
-        # read back, not the residuals and the host's selections), sums taken per thread over several observations
-        # before their atomics (a few addresses take them all), a window's landmarks eliminated by pose pairs
-        # (``_schur_window``). The CPU device adds one observation's terms at a time, in order: the sums of the
-        # numpy path's order of old, not the GPU's (which differ by round-off, as its atomics' order does anyway)
+        # a GPU's ways of reducing (opt-in until re-measured live: docs/benchmarks.md, sessions 14-15): the robust
+        # scale's medians by two sorts here (one scalar read back, not the residuals and the host's selections),
+        # sums taken per thread over several observations before their atomics (a few addresses take them all), a
+        # window's landmarks eliminated by pose pairs (``_schur_window``). The CPU device adds one observation's
+        # terms at a time, in order: the sums of the numpy path's order of old, not the GPU's (which differ by
+        # round-off, as its atomics' order does anyway)
         self.gpu_reductions = bool(gpu_reductions)
         self.per_thread = GPU_OBS_PER_THREAD if self.gpu_reductions else 1
         self.ops = {"launches": 0, "uploads": 0, "downloads": 0, "allocations": 0, "uploaded_bytes": 0,
@@ -598,11 +617,17 @@ class ObservationKernels:
                        and 0 < n_free <= WINDOW_POSES)
         if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
-            pm = np.flatnonzero(np.asarray(obs_col) >= 0)
+            by_free = np.asarray(obs_col) >= 0
+            pm = None if by_free.all() else np.flatnonzero(by_free)  # (None: every observation)
+            points = obs_point if pm is None else obs_point[pm]
             # (a stable sort of small integers is numpy's radix sort)
-            pm = pm[np.argsort(obs_point[pm].astype(np.int16 if N < 2**15 else np.int64), kind="stable")]
+            order = np.argsort(points.astype(np.int16 if N < 2**15 else np.int64), kind="stable")
+            pm, points = (order if pm is None else pm[order]), points[order]
+            starts = np.zeros(N + 1, np.int64)
+            np.cumsum(np.bincount(points, minlength=N), out=starts[1:])
             indices["pm_obs"] = pm
-            indices["pm_end"] = np.cumsum(np.bincount(obs_point[pm], minlength=N))[obs_point[pm]]
+            indices["pm_end"] = starts[1:][points]
+            indices["pm_starts"] = starts
             self.n_pm = len(pm)
         for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
             setattr(self, name, view)
@@ -615,10 +640,11 @@ class ObservationKernels:
         n6, n_system = 6 * n_free, 42 * n_free + 1
         n_table = N * n_free if self.window else 0
         n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        # (T0, dc, T1 in that order: a step's tangents and its trial poses, into either state's, are one range)
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
-                 "T0": (len(p.poses), wp.mat44d), "T1": (len(p.poses), wp.mat44d), "X0": (N, wp.vec3d),
-                 "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
-                 "dc": (max(n_free, 1), vec6d), "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+                 "T0": (len(p.poses), wp.mat44d), "dc": (max(n_free, 1), vec6d), "T1": (len(p.poses), wp.mat44d),
+                 "X0": (N, wp.vec3d), "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
+                 "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
         if self.window:
             parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
         if self.gpu_reductions:
@@ -633,6 +659,9 @@ class ObservationKernels:
         self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
             arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
+        # T0 to T1's end as float64: a step's upload (``_upload_parts``)
+        self._step_inputs = self._view(arena["T0"], 0, (arena["T1"].ptr - arena["T0"].ptr) // 8 + 16 * len(p.poses),
+                                       wp.float64)
         self.work = work = arena["work"]
         self.step_sums = arena["step_sums"]
         self.linear = self._view(work, 0, 12 * N + n_system, wp.float64)
@@ -687,7 +716,9 @@ class ObservationKernels:
 
     def _alloc_arena(self, parts: dict) -> dict:
         """One float64 allocation cut into arrays: {name: (length, dtype)} -> {name: array}."""
-        sizes = {k: max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8 for k, (n, dtype) in parts.items()}
+        # (each part's words rounded up: an odd count of int32 rounded down left its last element inside the next
+        # part, where that part's writes overwrote it)
+        sizes = {k: -(-max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8) for k, (n, dtype) in parts.items()}
         offsets, total = self._offsets(sizes)
         arena = self._alloc(total, wp.float64)
         self._arenas.append(arena)  # (its parts are views: they do not keep it)
@@ -726,6 +757,23 @@ class ObservationKernels:
                 wp.copy(array, m.host, count=len(values))
         self.ops["uploads"] += 1
         self.ops["uploaded_bytes"] += m.view[:len(values)].nbytes
+
+    def _upload_parts(self, region, parts) -> None:
+        """[(array, values)] of arrays that are parts of float64 ``region`` uploaded in one copy of the range they
+        span (``values``: float64, each part's leading elements; the padding between parts goes along)."""
+        m = self._mirror(region)
+        lo = hi = None
+        for array, values in parts:
+            start = (array.ptr - region.ptr) // 8
+            flat = np.asarray(values, np.float64).reshape(-1)
+            m.view[start:start + flat.size] = flat
+            lo = start if lo is None else min(lo, start)
+            hi = start + flat.size if hi is None else max(hi, start + flat.size)
+        if m.host is not region:
+            with device_lock(self.device):
+                wp.copy(region, m.host, dest_offset=lo, src_offset=lo, count=hi - lo)
+        self.ops["uploads"] += 1
+        self.ops["uploaded_bytes"] += 8 * (hi - lo)
 
     def _download(self, *arrays) -> list[np.ndarray]:
         """The arrays' host mirrors' views, after one wait for the copies (valid until the next download)."""
@@ -832,13 +880,15 @@ class ObservationKernels:
         """(O, 3, 6): the last linearisation's s Jp^T Jc per observation."""
         return self._download(self.W)[0].copy()
 
-    def residuals(self, behind: float) -> np.ndarray:
-        """(O, 2) reprojection residuals at the current state, ``behind`` where the point is behind the camera."""
+    def residuals(self, behind: float, copy: bool = True) -> np.ndarray:
+        """(O, 2) reprojection residuals at the current state, ``behind`` where the point is behind the camera
+        (without ``copy``: the read-back's view, valid until the next download)."""
         with device_lock(self.device):
             self._launch(_residuals, self.n_obs,
                          [self.obs_pose, self.obs_point, self.uv, self.T[self.cur], self.X[self.cur], self.K,
                           float(behind)], [self.residual])
-            return self._download(self.residual)[0][:self.n_obs].copy()
+            r = self._download(self.residual)[0][:self.n_obs]
+            return r.copy() if copy else r
 
     def residual_mad(self, with_residuals: bool = False):
         """The median absolute deviation about the median of the current state's finite residual components
@@ -975,16 +1025,22 @@ class ObservationKernels:
                                k: float) -> None:
         """Start the landmarks' moves -V^-1 (gp + sum of W dc) by ``schur_complement``'s factors, applied here to
         make the trial state with ``trial_poses``, and the trial's reprojection error (``read_step``)."""
-        # (the uploads first: one from pageable memory waits for the stream)
-        self._upload(self.dc, np.ascontiguousarray(dc, np.float64).reshape(-1, 6) if len(dc) else np.zeros((1, 6)))
-        self._upload(self.T[1 - self.cur], np.ascontiguousarray(trial_poses, np.float64))
+        # (the upload first, the tangents and the trial poses in one copy: one from pageable memory waits for the
+        # stream)
+        self._upload_parts(self._step_inputs, [(self.dc, dc if len(dc) else np.zeros(6)),
+                                               (self.T[1 - self.cur], trial_poses)])
         with device_lock(self.device):
-            self._zero(self.step_sums)
-            if self.n_free:
+            if not self.window:  # (each landmark's observations grouped: ``_schur_blocks``')
+                self._zero(self.sums)
+                self._launch(_move_points_gathered, self.n_points,
+                             [self.pm_obs, self.pm_starts, self.obs_col, self.W, self.dc, self.L, self.gp,
+                              self.X[self.cur]], [self.dp, self.X[1 - self.cur], self.sums])
+            else:
+                self._zero(self.step_sums)
                 self._launch(_w_times_step, self.n_obs, [self.obs_point, self.obs_col, self.W, self.dc], [self.Wdc])
-            self._launch(_move_points, -(-self.n_points // self.per_thread),
-                         [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
-                         [self.dp, self.X[1 - self.cur], self.sums])
+                self._launch(_move_points, -(-self.n_points // self.per_thread),
+                             [1, self.L, self.gp, self.Wdc, self.X[self.cur], self.per_thread, self.n_points],
+                             [self.dp, self.X[1 - self.cur], self.sums])
             self._error_launch(1 - self.cur, sigma, loss, k, 2)
 
     def try_step(self, dp: np.ndarray, trial_poses: np.ndarray, sigma: float, loss: str, k: float):
