@@ -183,3 +183,37 @@ def test_few_known_tracks_borrow_from_all_of_them_and_none_in_reach_stays_search
     out = epipolar.borrow_depths(uv, depth, SIZE)
     assert out[3] == pytest.approx(0.07) and np.isnan(out[4])  # (288 px of reach: the far corner has none)
     assert np.array_equal(out[:3], depth[:3])
+
+
+@pytest.mark.parametrize("pattern", ["band", "hole", "sparse", "outside", "few"])
+def test_borrowed_depths_where_the_tracks_without_one_gather_equal_the_plain_reference(pattern):
+    """The tree is built only on the known tracks that can be a query's neighbours (a grid's cells around the
+    queries): the same borrowed depths as the brute-force median over every known track, whether the queries
+    gather in a band the motion uncovers (a few cells around them suffice), fill a hole among the landmarks
+    (fewer than NEIGHBOURS near: their whole reach), are few and scattered, or lie among sparse or
+    out-of-image tracks."""
+    rng = np.random.default_rng(11)
+    n = 3000 if pattern != "sparse" else 60
+    uv = rng.uniform([0, 0], SIZE, (n, 2))
+    depth = rng.uniform(0.04, 0.12, n)
+    if pattern == "band":
+        query = uv[:, 0] < 150
+    elif pattern == "hole":
+        query = np.linalg.norm(uv - [900, 500], axis=1) < 200
+    elif pattern == "sparse":
+        query = rng.random(n) < 0.5
+    elif pattern == "few":  # (each query's own cells: its nearest six are often beyond its 3 x 3 block)
+        query = rng.random(n) < 0.03
+    else:
+        uv[:20] += [2500, 0]  # (tracks far off the image: LK garbage the front-ends would drop)
+        query = rng.random(n) < 0.3
+    depth[query] = np.nan
+    expected = ref_borrow(uv, depth, SIZE)
+    np.testing.assert_allclose(epipolar.borrow_depths(uv, depth, SIZE), expected, rtol=1e-15)
+    candidate = epipolar._neighbour_candidates(uv[~query], uv[query], epipolar.NEIGHBOURS,
+                                               epipolar.NEIGHBOUR_RADIUS * max(SIZE))
+    if pattern == "band":
+        assert candidate is not None and candidate.mean() < 0.3  # (the tree: a strip along the band)
+    if pattern == "hole":  # (its middle borrows from landmarks 200-288 px away, beyond its cells' 7 x 7 blocks)
+        assert np.isfinite(expected[np.linalg.norm(uv - [900, 500], axis=1) < 30]).all()
+        assert candidate is not None and not candidate.all()

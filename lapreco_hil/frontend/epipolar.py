@@ -95,6 +95,28 @@ def _moved_sq(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth) -> np
     return x
 
 
+def _shift_px(terms: tuple[np.ndarray, np.ndarray], depth, ends) -> np.ndarray:
+    """How far (px) a pixel's projection (``_homography_terms``) at ``depth`` moves at most when its depth is
+    each of ``ends`` instead (arrays or scalars): NaN where one of them is behind the camera or NaN. Along a
+    track's epipolar line its projection at z moves from that at d by (z - d) e / (w_z w_d), with
+    e = a_xy b_w - b_xy a_w and w the depth in the destination camera: one line direction per track."""
+    a, b = terms
+    e = np.hypot(a[0] * b[2] - b[0] * a[2], a[1] * b[2] - b[1] * a[2])
+    w_at = depth * a[2] + b[2]
+    valid = w_at > 1e-9
+    worst = None
+    for end in ends:
+        w_end = end * a[2] + b[2]
+        valid &= w_end > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shift = np.abs(end - depth) / w_end
+        worst = shift if worst is None else np.maximum(worst, shift)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = e * worst / w_at
+    out[~valid] = np.nan
+    return out
+
+
 def _median_below(values_sq: np.ndarray, threshold: float) -> bool:
     """Whether the median of the square roots of ``values_sq`` (finite, non-negative, at least one) is below
     ``threshold``: counted, not sorted (half the values or more below it, and for an even count the two middle
@@ -155,12 +177,19 @@ def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]
     if n_has == 0 or n_has == len(depth):
         return depth
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    # (an unbalanced tree with loose nodes: half the build, the same nearest neighbours)
-    tree = cKDTree(uv[has], balanced_tree=False, compact_nodes=False)
+    known_uv, known_depth, query_uv = uv[has], depth[has], uv[~has]
     k = min(NEIGHBOURS, n_has)
-    dist, idx = tree.query(uv[~has], k=k, distance_upper_bound=NEIGHBOUR_RADIUS * max(image_size))
+    reach = NEIGHBOUR_RADIUS * max(image_size)
+    candidate = _neighbour_candidates(known_uv, query_uv, k, reach)
+    if candidate is not None:
+        known_uv, known_depth = known_uv[candidate], known_depth[candidate]
+    if len(known_uv) == 0:
+        return depth
+    # (an unbalanced tree with loose nodes: half the build, the same nearest neighbours)
+    tree = cKDTree(known_uv, balanced_tree=False, compact_nodes=False)
+    dist, idx = tree.query(query_uv, k=k, distance_upper_bound=reach)
     dist, idx = dist.reshape(len(dist), k), idx.reshape(len(idx), k)
-    near = depth[has][np.minimum(idx, n_has - 1)]
+    near = known_depth[np.minimum(idx, len(known_uv) - 1)]
     near[~np.isfinite(dist)] = np.nan
     # each row's median over its neighbours in reach (NaN: none, searched); sorting puts the NaNs last
     near.sort(axis=1)
@@ -170,6 +199,42 @@ def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]
     borrowed[count == 0] = np.nan
     depth[~has] = borrowed
     return depth
+
+
+# _neighbour_candidates' grid holds about this many known tracks per cell
+CELL_TRACKS = 2.0
+
+
+def _neighbour_candidates(known_uv: np.ndarray, query_uv: np.ndarray, k: int, reach: float) -> np.ndarray | None:
+    """Which known tracks can be among a query's ``k`` nearest within ``reach`` (a mask; None: all may be), so
+    that the tree is built on those only: where the new tracks without a depth gather (a band the motion
+    uncovers, a region without landmarks) the rest of the image is left out. On a grid of cells: a query whose
+    3 x 3 block of cells holds k known tracks has its k nearest within 2 sqrt(2) cells, so within its 7 x 7
+    block (the rest of 3 cells covers the cells' rounding); another has its within ``reach`` of its cell."""
+    xy = np.concatenate([known_uv, query_uv]).T.copy()  # ((2, N): numpy reduces its rows faster than columns)
+    if not np.isfinite(xy).all():
+        return None
+    low = xy.min(axis=1)
+    extent = np.maximum(xy.max(axis=1) - low, 1.0)
+    per_cell = float(np.sqrt(len(known_uv) / (extent[0] * extent[1] * CELL_TRACKS)))  # (1 / the cell's side)
+    nx, ny = int(extent[0] * per_cell) + 1, int(extent[1] * per_cell) + 1
+    reach_cells = int(np.ceil(reach * per_cell)) + 1  # (+1: the cells' rounding)
+    cells = ((xy[1] - low[1]) * per_cell).astype(np.int64) * nx + ((xy[0] - low[0]) * per_cell).astype(np.int64)
+    known_cells, query_cells = cells[:len(known_uv)], cells[len(known_uv):]
+    counts = np.zeros((ny + 2, nx + 2), np.int32)  # (a border of empty cells: every 3 x 3 block is inside)
+    counts[1:-1, 1:-1] = np.bincount(known_cells, minlength=nx * ny).reshape(ny, nx)
+    block = sum(counts[1 + dy:ny + 1 + dy, 1 + dx:nx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+    dense = block.reshape(-1)[query_cells] >= k
+    marks = np.zeros(nx * ny, np.uint8)
+    marks[query_cells[dense]] = 1
+    needed = cv2.dilate(marks.reshape(ny, nx), np.ones((7, 7), np.uint8))
+    if not dense.all():
+        if reach_cells >= max(nx, ny):
+            return None
+        marks[:] = 0
+        marks[query_cells[~dense]] = 1
+        needed |= cv2.dilate(marks.reshape(ny, nx), np.ones((2 * reach_cells + 1,) * 2, np.uint8))
+    return needed.reshape(-1)[known_cells] > 0
 
 
 # a frame whose tracks the motion moves less than this (median) is tracked as without one: LK's own reach covers
@@ -250,13 +315,8 @@ def _settle_short_lines(terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray,
     if not terms_of_unknown:
         terms = (terms[0][:, unknown], terms[1])
     near, far = depth_range_m
-    mid = 2.0 / (1.0 / near + 1.0 / far)
-    c = _pixels_at(terms, mid)
-    reach_sq = np.zeros(int(np.count_nonzero(unknown)))
-    for end in (near, far):
-        x, y = _pixels_at(terms, end)
-        reach_sq = np.maximum(reach_sq, (x - c[0]) ** 2 + (y - c[1]) ** 2)  # (NaN stays NaN)
-    short = reach_sq <= SHORT_LINE_PX * SHORT_LINE_PX  # (False where NaN)
+    reach = _shift_px(terms, 2.0 / (1.0 / near + 1.0 / far), (near, far))
+    short = reach <= SHORT_LINE_PX  # (False where NaN)
     depth[np.flatnonzero(unknown)[short]] = far
     return depth
 
@@ -291,13 +351,9 @@ def _start_uncertainty_px(terms: tuple[np.ndarray, np.ndarray], ids: np.ndarray,
     near, far = (float(d) for d in motion.depth_range_m)
     settled = ~own & (depth == far)
     relative = np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)
-    at = _pixels_at(terms, depth)
-    spread_sq = None
-    for end in (np.where(settled, near, depth * (1.0 - relative)), np.where(settled, far, depth * (1.0 + relative))):
-        x, y = _pixels_at(terms, end)
-        moved_sq = (x - at[0]) ** 2 + (y - at[1]) ** 2
-        spread_sq = moved_sq if spread_sq is None else np.maximum(spread_sq, moved_sq)  # (NaN stays NaN)
-    spread = np.where(np.isfinite(depth), np.sqrt(spread_sq), SECOND_RADIUS * 2.0 ** SWEEP_LEVEL)
+    spread = _shift_px(terms, depth, (np.where(settled, near, depth * (1.0 - relative)),
+                                      np.where(settled, far, depth * (1.0 + relative))))
+    spread[~np.isfinite(depth)] = SECOND_RADIUS * 2.0 ** SWEEP_LEVEL
     spread = np.nan_to_num(spread, nan=1e6, posinf=1e6)  # behind the camera at one end: unbounded
     return float(max(POSE_UNCERTAINTY_PX, np.percentile(spread, START_QUANTILE)))
 
