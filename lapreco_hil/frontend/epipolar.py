@@ -140,9 +140,11 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
     return borrow_depths(uv, own_depths(ids, known_ids, known_depth), image_size)
 
 
-# own_depths looks ids up in a table indexed by id where the ids span at most this many times their count (a live
-# run's track ids: a window of recent ones), else by sorting
-ID_TABLE_SPAN = 8
+# own_depths looks ids up in a table indexed by id where the ids span at most this many times their count, plus
+# ID_TABLE_MIN (a live run's track ids: a window of recent ones; a table of a few MB costs less than sorting),
+# else by sorting
+ID_TABLE_SPAN = 32
+ID_TABLE_MIN = 65536
 
 
 def own_depths(ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray) -> np.ndarray:
@@ -153,18 +155,20 @@ def own_depths(ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray) 
     if n == 0 or len(known_ids) == 0:
         return depth
     known_depth = np.asarray(known_depth, np.float64)
-    low = int(min(ids.min(), known_ids.min()))
-    span = int(max(ids.max(), known_ids.max())) - low + 1
-    if span <= ID_TABLE_SPAN * (n + len(known_ids)) + 1024:
+    integer = np.issubdtype(ids.dtype, np.integer) and np.issubdtype(known_ids.dtype, np.integer)
+    low = int(min(ids.min(), known_ids.min())) if integer else 0
+    span = int(max(ids.max(), known_ids.max())) - low + 1 if integer else 0
+    if integer and span <= ID_TABLE_SPAN * (n + len(known_ids)) + ID_TABLE_MIN:
         table = np.full(span, np.nan)
         table[known_ids - low] = known_depth
         depth = table[ids - low]
     else:
         order = np.argsort(known_ids)
         sorted_ids = known_ids[order]
-        pos = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
-        hit = sorted_ids[pos] == ids
-        depth[hit] = known_depth[order[pos[hit]]]
+        by_id = np.argsort(ids)  # (sorted queries: searchsorted walks the sorted ids once, not at random)
+        pos = np.clip(np.searchsorted(sorted_ids, ids[by_id]), 0, len(sorted_ids) - 1)
+        hit = sorted_ids[pos] == ids[by_id]
+        depth[by_id[hit]] = known_depth[order[pos[hit]]]
     depth[~(depth > 0)] = np.nan
     return depth
 
