@@ -181,12 +181,11 @@ def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]
     if n_has == 0 or n_has == len(depth):
         return depth
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    known_uv, known_depth, query_uv = uv[has], depth[has], uv[~has]
     k = min(NEIGHBOURS, n_has)
     reach = NEIGHBOUR_RADIUS * max(image_size)
-    candidate = _neighbour_candidates(known_uv, query_uv, k, reach)
-    if candidate is not None:
-        known_uv, known_depth = known_uv[candidate], known_depth[candidate]
+    candidate = _neighbour_candidates(uv, has, k, reach)
+    known = has if candidate is None else candidate
+    known_uv, known_depth, query_uv = uv[known], depth[known], uv[~has]
     if len(known_uv) == 0:
         return depth
     # (an unbalanced tree with loose nodes: half the build, the same nearest neighbours)
@@ -209,22 +208,24 @@ def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]
 CELL_TRACKS = 2.0
 
 
-def _neighbour_candidates(known_uv: np.ndarray, query_uv: np.ndarray, k: int, reach: float) -> np.ndarray | None:
-    """Which known tracks can be among a query's ``k`` nearest within ``reach`` (a mask; None: all may be), so
-    that the tree is built on those only: where the new tracks without a depth gather (a band the motion
-    uncovers, a region without landmarks) the rest of the image is left out. On a grid of cells: a query whose
+def _neighbour_candidates(uv: np.ndarray, known: np.ndarray, k: int, reach: float) -> np.ndarray | None:
+    """Which of the ``known`` tracks (a mask over ``uv``) can be among the others' (the queries') ``k`` nearest
+    within ``reach``: a mask over ``uv`` (None: any known one may be), so that the tree is built on those only:
+    where the tracks without a depth gather (a band the motion uncovers, a region without landmarks) the rest
+    of the image is left out. On a grid of cells: a query whose
     3 x 3 block of cells holds k known tracks has its k nearest within 2 sqrt(2) cells, so within its 7 x 7
     block (the rest of 3 cells covers the cells' rounding); another has its within ``reach`` of its cell."""
-    xy = np.concatenate([known_uv, query_uv]).T.copy()  # ((2, N): numpy reduces its rows faster than columns)
+    xy = uv.T.copy()  # ((2, N): numpy reduces its rows faster than columns)
     if not np.isfinite(xy).all():
         return None
     low = xy.min(axis=1)
     extent = np.maximum(xy.max(axis=1) - low, 1.0)
-    per_cell = float(np.sqrt(len(known_uv) / (extent[0] * extent[1] * CELL_TRACKS)))  # (1 / the cell's side)
+    n_known = int(np.count_nonzero(known))
+    per_cell = float(np.sqrt(n_known / (extent[0] * extent[1] * CELL_TRACKS)))  # (1 / the cell's side)
     nx, ny = int(extent[0] * per_cell) + 1, int(extent[1] * per_cell) + 1
     reach_cells = int(np.ceil(reach * per_cell)) + 1  # (+1: the cells' rounding)
     cells = ((xy[1] - low[1]) * per_cell).astype(np.int64) * nx + ((xy[0] - low[0]) * per_cell).astype(np.int64)
-    known_cells, query_cells = cells[:len(known_uv)], cells[len(known_uv):]
+    known_cells, query_cells = cells[known], cells[~known]
     counts = np.zeros((ny + 2, nx + 2), np.int32)  # (a border of empty cells: every 3 x 3 block is inside)
     counts[1:-1, 1:-1] = np.bincount(known_cells, minlength=nx * ny).reshape(ny, nx)
     block = sum(counts[1 + dy:ny + 1 + dy, 1 + dx:nx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1))
@@ -238,7 +239,9 @@ def _neighbour_candidates(known_uv: np.ndarray, query_uv: np.ndarray, k: int, re
         marks[:] = 0
         marks[query_cells[~dense]] = 1
         needed |= cv2.dilate(marks.reshape(ny, nx), np.ones((2 * reach_cells + 1,) * 2, np.uint8))
-    return needed.reshape(-1)[known_cells] > 0
+    if needed.all():
+        return None
+    return known & (needed.reshape(-1)[cells] > 0)
 
 
 # a frame whose tracks the motion moves less than this (median) is tracked as without one: LK's own reach covers
