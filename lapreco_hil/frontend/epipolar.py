@@ -212,14 +212,14 @@ def _neighbour_candidates(uv: np.ndarray, known: np.ndarray, k: int, reach: floa
     """Which of the ``known`` tracks (a mask over ``uv``) can be among the others' (the queries') ``k`` nearest
     within ``reach``: a mask over ``uv`` (None: any known one may be), so that the tree is built on those only:
     where the tracks without a depth gather (a band the motion uncovers, a region without landmarks) the rest
-    of the image is left out. On a grid of cells: a query whose
-    3 x 3 block of cells holds k known tracks has its k nearest within 2 sqrt(2) cells, so within its 7 x 7
-    block (the rest of 3 cells covers the cells' rounding); another has its within ``reach`` of its cell."""
-    xy = uv.T.copy()  # ((2, N): numpy reduces its rows faster than columns)
-    if not np.isfinite(xy).all():
+    of the image is left out. On a grid of cells: a query whose 3 x 3 block of cells holds k known tracks has its
+    k nearest within 2 sqrt(2) cells, so within its 7 x 7 block (the rest of 3 cells covers the cells'
+    rounding); another has its within ``reach`` of its cell."""
+    xy = uv[:, 0], uv[:, 1]  # (numpy reduces a column by itself faster than an (N, 2) array along axis 0)
+    low = np.array([xy[0].min(), xy[1].min()])
+    extent = np.maximum(np.array([xy[0].max(), xy[1].max()]) - low, 1.0)
+    if not np.isfinite(extent).all():
         return None
-    low = xy.min(axis=1)
-    extent = np.maximum(xy.max(axis=1) - low, 1.0)
     n_known = int(np.count_nonzero(known))
     per_cell = float(np.sqrt(n_known / (extent[0] * extent[1] * CELL_TRACKS)))  # (1 / the cell's side)
     nx, ny = int(extent[0] * per_cell) + 1, int(extent[1] * per_cell) + 1
