@@ -119,8 +119,8 @@ def _shift_px(terms: tuple[np.ndarray, np.ndarray], depth, ends) -> np.ndarray:
 
 def _median_below(values_sq: np.ndarray, threshold: float) -> bool:
     """Whether the median of the square roots of ``values_sq`` (finite, non-negative, at least one) is below
-    ``threshold``: counted, not sorted (half the values or more below it, and for an even count the two middle
-    values' mean where they straddle it)."""
+    ``threshold``: counted, not sorted (more than half of the values below it; for an even count with exactly
+    half below, the mean of the two middle values, which straddle it)."""
     n = len(values_sq)
     below = values_sq < threshold * threshold
     count = int(np.count_nonzero(below))
