@@ -9,7 +9,6 @@ camera to the destination camera.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -43,18 +42,95 @@ class SweepResult:
     score: np.ndarray  # (N,) best ZNCC
 
 
+def _homography_terms(uv: np.ndarray, K_src: np.ndarray, K_dst: np.ndarray,
+                      T_dst_src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What every projection of pixels ``uv`` (N, 2) under ``T_dst_src`` shares, whatever their depths: (3, N)
+    ``K_dst R K_src^-1 [u, v, 1]`` and ``K_dst t``; a pixel at depth z is then ``z * a + b`` dehomogenised
+    (``_pixels_at``), so the several depths one track is projected at cost a few array operations each."""
+    T = np.asarray(T_dst_src, np.float64)
+    fx, fy, cx, cy = float(K_src[0, 0]), float(K_src[1, 1]), float(K_src[0, 2]), float(K_src[1, 2])
+    K_src_inv = np.array([[1.0 / fx, 0.0, -cx / fx], [0.0, 1.0 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+    K_d = np.array([[float(K_dst[0, 0]), 0.0, float(K_dst[0, 2])], [0.0, float(K_dst[1, 1]), float(K_dst[1, 2])],
+                    [0.0, 0.0, 1.0]])  # (as project always did: no skew)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    homogeneous = np.ones((3, len(uv)))
+    homogeneous[:2] = uv.T
+    return (K_d @ T[:3, :3] @ K_src_inv) @ homogeneous, K_d @ T[:3, 3]
+
+
+def _pixels_at(terms: tuple[np.ndarray, np.ndarray], depth) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of the pixels of ``_homography_terms`` at depth z ``depth`` (N,) or scalar: NaN behind the camera
+    (and where the depth is NaN)."""
+    a, b = terms
+    z = depth * a[2] + b[2]
+    behind = ~(z > 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (depth * a[0] + b[0]) / z
+        y = (depth * a[1] + b[1]) / z
+    x[behind] = np.nan
+    y[behind] = np.nan
+    return x, y
+
+
 def project(uv: np.ndarray, depth: np.ndarray, K_src: np.ndarray, K_dst: np.ndarray,
             T_dst_src: np.ndarray) -> np.ndarray:
     """Pixels ``uv`` (N, 2) of the source camera at depth z ``depth`` (N,) -> pixels of the destination camera."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    rays = np.column_stack([(uv[:, 0] - K_src[0, 2]) / K_src[0, 0], (uv[:, 1] - K_src[1, 2]) / K_src[1, 1],
-                            np.ones(len(uv))])
-    p = rays * np.asarray(depth, np.float64).reshape(-1, 1) @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
-    z = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.column_stack([K_dst[0, 0] * p[:, 0] / z + K_dst[0, 2], K_dst[1, 1] * p[:, 1] / z + K_dst[1, 2]])
-    out[~(z > 1e-9)] = np.nan
+    depth = np.asarray(depth, np.float64)
+    x, y = _pixels_at(_homography_terms(uv, K_src, K_dst, T_dst_src), depth.reshape(-1) if depth.ndim else depth)
+    out = np.empty((len(uv), 2))
+    out[:, 0], out[:, 1] = x, y
     return out
+
+
+def _moved_sq(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth) -> np.ndarray:
+    """Squared distance (px^2) from each pixel ``uv`` to its projection at ``depth`` (same K both sides): NaN
+    where the depth is NaN or the point ends behind the camera."""
+    x, y = _pixels_at(terms, depth)
+    x -= uv[:, 0]
+    y -= uv[:, 1]
+    x *= x
+    y *= y
+    x += y
+    return x
+
+
+def _shift_px(terms: tuple[np.ndarray, np.ndarray], depth, ends) -> np.ndarray:
+    """How far (px) a pixel's projection (``_homography_terms``) at ``depth`` moves at most when its depth is
+    each of ``ends`` instead (arrays or scalars): NaN where one of them is behind the camera or NaN. Along a
+    track's epipolar line its projection at z moves from that at d by (z - d) e / (w_z w_d), with
+    e = a_xy b_w - b_xy a_w and w the depth in the destination camera: one line direction per track."""
+    a, b = terms
+    e = np.hypot(a[0] * b[2] - b[0] * a[2], a[1] * b[2] - b[1] * a[2])
+    w_at = depth * a[2] + b[2]
+    valid = w_at > 1e-9
+    worst = None
+    for end in ends:
+        w_end = end * a[2] + b[2]
+        valid &= w_end > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shift = np.abs(end - depth) / w_end
+        worst = shift if worst is None else np.maximum(worst, shift)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = e * worst / w_at
+    out[~valid] = np.nan
+    return out
+
+
+def _median_below(values_sq: np.ndarray, threshold: float) -> bool:
+    """Whether the median of the square roots of ``values_sq`` (finite, non-negative, at least one) is below
+    ``threshold``: counted, not sorted (more than half of the values below it; for an even count with exactly
+    half below, the mean of the two middle values, which straddle it)."""
+    n = len(values_sq)
+    below = values_sq < threshold * threshold
+    count = int(np.count_nonzero(below))
+    if 2 * count > n:  # the middle value (both, for an even count) below
+        return True
+    if n % 2 or 2 * count < n:  # the middle value (or the upper one of two) at or above
+        return False
+    # an even count split evenly: the mean of the largest value below and the smallest one at or above
+    lower, upper = np.sqrt(values_sq[below].max()), np.sqrt(values_sq[~below].min())
+    return bool((lower + upper) / 2 < threshold)
 
 
 def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray,
@@ -64,37 +140,108 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
     return borrow_depths(uv, own_depths(ids, known_ids, known_depth), image_size)
 
 
+# own_depths looks ids up in a table indexed by id where the ids span at most this many times their count, plus
+# ID_TABLE_MIN (a live run's track ids: a window of recent ones; a table of a few MB costs less than sorting),
+# else by sorting
+ID_TABLE_SPAN = 32
+ID_TABLE_MIN = 65536
+
+
 def own_depths(ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray) -> np.ndarray:
     """Each track's own depth where ``known_ids`` has it (and it is positive), else NaN."""
+    ids, known_ids = np.asarray(ids), np.asarray(known_ids)
     n = len(ids)
     depth = np.full(n, np.nan)
     if n == 0 or len(known_ids) == 0:
         return depth
     known_depth = np.asarray(known_depth, np.float64)
-    order = np.argsort(known_ids)
-    sorted_ids = np.asarray(known_ids)[order]
-    pos = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
-    hit = sorted_ids[pos] == ids
-    depth[hit] = known_depth[order[pos[hit]]]
+    integer = np.issubdtype(ids.dtype, np.integer) and np.issubdtype(known_ids.dtype, np.integer)
+    low = int(min(ids.min(), known_ids.min())) if integer else 0
+    span = int(max(ids.max(), known_ids.max())) - low + 1 if integer else 0
+    if integer and span <= ID_TABLE_SPAN * (n + len(known_ids)) + ID_TABLE_MIN:
+        table = np.full(span, np.nan)
+        table[known_ids - low] = known_depth
+        depth = table[ids - low]
+    else:
+        order = np.argsort(known_ids)
+        sorted_ids = known_ids[order]
+        by_id = np.argsort(ids)  # (sorted queries: searchsorted walks the sorted ids once, not at random)
+        pos = np.clip(np.searchsorted(sorted_ids, ids[by_id]), 0, len(sorted_ids) - 1)
+        hit = sorted_ids[pos] == ids[by_id]
+        depth[by_id[hit]] = known_depth[order[pos[hit]]]
     depth[~(depth > 0)] = np.nan
     return depth
 
 
 def borrow_depths(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """``depth`` with each NaN replaced by the median of its nearest tracks' depths (within reach), else left NaN."""
-    depth = depth.copy()
+    depth = np.array(depth, np.float64)
     has = np.isfinite(depth)
-    if has.any() and not has.all():
-        tree = cKDTree(uv[has])
-        k = min(NEIGHBOURS, int(has.sum()))
-        dist, idx = tree.query(uv[~has], k=k, distance_upper_bound=NEIGHBOUR_RADIUS * max(image_size))
-        dist, idx = dist.reshape(len(dist), k), idx.reshape(len(idx), k)
-        near = np.where(np.isfinite(dist), depth[has][np.minimum(idx, int(has.sum()) - 1)], np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a track with no neighbour in reach: NaN, searched
-            borrowed = np.nanmedian(np.where(np.isfinite(dist), near, np.nan), axis=1) if near.size else near
-        depth[~has] = borrowed
+    n_has = int(np.count_nonzero(has))
+    if n_has == 0 or n_has == len(depth):
+        return depth
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    k = min(NEIGHBOURS, n_has)
+    reach = NEIGHBOUR_RADIUS * max(image_size)
+    candidate = _neighbour_candidates(uv, has, k, reach)
+    known = has if candidate is None else candidate
+    known_uv, known_depth, query_uv = uv[known], depth[known], uv[~has]
+    if len(known_uv) == 0:
+        return depth
+    # (an unbalanced tree with loose nodes: half the build, the same nearest neighbours)
+    tree = cKDTree(known_uv, balanced_tree=False, compact_nodes=False)
+    dist, idx = tree.query(query_uv, k=k, distance_upper_bound=reach)
+    dist, idx = dist.reshape(len(dist), k), idx.reshape(len(idx), k)
+    near = known_depth[np.minimum(idx, len(known_uv) - 1)]
+    near[~np.isfinite(dist)] = np.nan
+    # each row's median over its neighbours in reach (NaN: none, searched); sorting puts the NaNs last
+    near.sort(axis=1)
+    count = np.count_nonzero(np.isfinite(near), axis=1)
+    rows = np.arange(len(near))
+    borrowed = (near[rows, np.maximum(count - 1, 0) // 2] + near[rows, count // 2]) / 2
+    borrowed[count == 0] = np.nan
+    depth[~has] = borrowed
     return depth
+
+
+# _neighbour_candidates' grid holds about this many known tracks per cell
+CELL_TRACKS = 2.0
+
+
+def _neighbour_candidates(uv: np.ndarray, known: np.ndarray, k: int, reach: float) -> np.ndarray | None:
+    """Which of the ``known`` tracks (a mask over ``uv``) can be among the others' (the queries') ``k`` nearest
+    within ``reach``: a mask over ``uv`` (None: any known one may be), so that the tree is built on those only:
+    where the tracks without a depth gather (a band the motion uncovers, a region without landmarks) the rest
+    of the image is left out. On a grid of cells: a query whose 3 x 3 block of cells holds k known tracks has its
+    k nearest within 2 sqrt(2) cells, so within its 7 x 7 block (the rest of 3 cells covers the cells'
+    rounding); another has its within ``reach`` of its cell."""
+    xy = uv[:, 0], uv[:, 1]  # (numpy reduces a column by itself faster than an (N, 2) array along axis 0)
+    low = np.array([xy[0].min(), xy[1].min()])
+    extent = np.maximum(np.array([xy[0].max(), xy[1].max()]) - low, 1.0)
+    if not np.isfinite(extent).all():
+        return None
+    n_known = int(np.count_nonzero(known))
+    per_cell = float(np.sqrt(n_known / (extent[0] * extent[1] * CELL_TRACKS)))  # (1 / the cell's side)
+    nx, ny = int(extent[0] * per_cell) + 1, int(extent[1] * per_cell) + 1
+    reach_cells = int(np.ceil(reach * per_cell)) + 1  # (+1: the cells' rounding)
+    cells = ((xy[1] - low[1]) * per_cell).astype(np.int64) * nx + ((xy[0] - low[0]) * per_cell).astype(np.int64)
+    known_cells, query_cells = cells[known], cells[~known]
+    counts = np.zeros((ny + 2, nx + 2), np.int32)  # (a border of empty cells: every 3 x 3 block is inside)
+    counts[1:-1, 1:-1] = np.bincount(known_cells, minlength=nx * ny).reshape(ny, nx)
+    block = sum(counts[1 + dy:ny + 1 + dy, 1 + dx:nx + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+    dense = block.reshape(-1)[query_cells] >= k
+    marks = np.zeros(nx * ny, np.uint8)
+    marks[query_cells[dense]] = 1
+    needed = cv2.dilate(marks.reshape(ny, nx), np.ones((7, 7), np.uint8))
+    if not dense.all():
+        if reach_cells >= max(nx, ny):
+            return None
+        marks[:] = 0
+        marks[query_cells[~dense]] = 1
+        needed |= cv2.dilate(marks.reshape(ny, nx), np.ones((2 * reach_cells + 1,) * 2, np.uint8))
+    if needed.all():
+        return None
+    return known & (needed.reshape(-1)[cells] > 0)
 
 
 # a frame whose tracks the motion moves less than this (median) is tracked as without one: LK's own reach covers
@@ -113,40 +260,41 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     if len(uv) == 0:
         return None
     T = np.asarray(motion.T_cur_prev, np.float64)
+    terms = _homography_terms(uv, K, K, T)  # (shared by every projection below)
     # the small-motion test on the tracks' own depths first: most frames of a live run end here, and borrowing
     # depths for the others (a nearest-neighbour search) costs more than the rest of this together
     depth = own_depths(ids, motion.track_ids, motion.depth_m)
-    if _small_motion(uv, depth, K, T):
+    if _small_motion(uv, terms, depth):
         return None
-    settled = np.isfinite(depth).sum() >= 10  # (enough own depths said it: borrowed ones only echo them)
+    settled = np.count_nonzero(np.isfinite(depth)) >= 10  # (enough own depths said it: borrowed ones only echo)
     if not np.isfinite(depth).all():
         depth = borrow_depths(uv, depth, image_size)
-        if not settled and _small_motion(uv, depth, K, T):
+        if not settled and _small_motion(uv, terms, depth):
             return None
-    return settle_short_lines(uv, depth, K, T, motion.depth_range_m)
+    return _settle_short_lines(terms, depth, motion.depth_range_m)
 
 
-def _small_motion(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> bool:
-    """Whether the motion moves the tracks with a depth by less than SMALL_MOTION_PX (median, at least 10)."""
-    known = np.isfinite(depth)
-    if known.sum() < 10:
+def _small_motion(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray) -> bool:
+    """Whether the motion (``_homography_terms``) moves the tracks with a depth by less than SMALL_MOTION_PX
+    (median, at least 10)."""
+    if np.count_nonzero(np.isfinite(depth)) < 10:
         return False
-    moved = np.linalg.norm(project(uv[known], depth[known], K, K, T_cur_prev) - uv[known], axis=1)
-    moved = moved[np.isfinite(moved)]
-    return bool(len(moved)) and float(np.median(moved)) < SMALL_MOTION_PX
+    moved_sq = _moved_sq(uv, terms, depth)
+    moved_sq = moved_sq[np.isfinite(moved_sq)]
+    return bool(len(moved_sq)) and _median_below(moved_sq, SMALL_MOTION_PX)
 
 
 def start_motion_px(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> float | None:
     """The median distance (px) from each track to its predicted start, over the tracks with a start depth
     (``start_depths``); None when none has one."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    known = np.isfinite(depth)
-    if not known.any():
-        return None
-    moved = np.linalg.norm(project(uv[known], depth[known], K, K, np.asarray(T_cur_prev, np.float64)) - uv[known],
-                           axis=1)
-    moved = moved[np.isfinite(moved)]
-    return float(np.median(moved)) if len(moved) else None
+    return _start_motion_px(uv, _homography_terms(uv, K, K, T_cur_prev), np.asarray(depth, np.float64))
+
+
+def _start_motion_px(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray) -> float | None:
+    moved_sq = _moved_sq(uv, terms, depth)
+    moved_sq = moved_sq[np.isfinite(moved_sq)]
+    return float(np.median(np.sqrt(moved_sq))) if len(moved_sq) else None
 
 
 def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray,
@@ -155,19 +303,28 @@ def settle_short_lines(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_p
     range's far depth: they start LK at the segment's far end, unsearched (where the map knows no depth yet the
     range runs from a centimetre, so its middle is far nearer than tissue usually is; LK's reach covers the
     segment)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    unknown = ~np.isfinite(np.asarray(depth, np.float64))
+    if not unknown.any():
+        return np.array(depth, np.float64)
+    return _settle_short_lines(_homography_terms(uv[unknown], K, K, T_cur_prev), depth, depth_range_m,
+                               terms_of_unknown=True)
+
+
+def _settle_short_lines(terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray, depth_range_m: tuple[float, float],
+                        terms_of_unknown: bool = False) -> np.ndarray:
+    """``settle_short_lines`` from ``_homography_terms`` of every track (or, ``terms_of_unknown``, of only those
+    without a depth)."""
     depth = np.array(depth, np.float64)
     unknown = ~np.isfinite(depth)
     if not unknown.any():
         return depth
+    if not terms_of_unknown:
+        terms = (terms[0][:, unknown], terms[1])
     near, far = depth_range_m
-    a = project(uv[unknown], np.full(unknown.sum(), near), K, K, T_cur_prev)
-    b = project(uv[unknown], np.full(unknown.sum(), far), K, K, T_cur_prev)
-    mid = 2.0 / (1.0 / near + 1.0 / far)
-    c = project(uv[unknown], np.full(unknown.sum(), mid), K, K, T_cur_prev)
-    reach = np.maximum(np.linalg.norm(a - c, axis=1), np.linalg.norm(b - c, axis=1))
-    short = np.isfinite(reach) & (reach <= SHORT_LINE_PX)
-    idx = np.flatnonzero(unknown)[short]
-    depth[idx] = far
+    reach = _shift_px(terms, 2.0 / (1.0 / near + 1.0 / far), (near, far))
+    short = reach <= SHORT_LINE_PX  # (False where NaN)
+    depth[np.flatnonzero(unknown)[short]] = far
     return depth
 
 
@@ -189,21 +346,21 @@ def start_uncertainty_px(uv: np.ndarray, ids: np.ndarray, depth: np.ndarray, mot
     or for a short line settled at the range's far end the whole range), the sweep's resolution for the
     tracks searched along their line (NaN depth), the pose's floor; the START_QUANTILE over the tracks."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    depth = np.asarray(depth, np.float64)
     if len(uv) == 0:
         return POSE_UNCERTAINTY_PX
-    T = np.asarray(motion.T_cur_prev, np.float64)
+    return _start_uncertainty_px(_homography_terms(uv, K, K, motion.T_cur_prev), ids, np.asarray(depth, np.float64),
+                                 motion)
+
+
+def _start_uncertainty_px(terms: tuple[np.ndarray, np.ndarray], ids: np.ndarray, depth: np.ndarray,
+                          motion) -> float:
     own = np.isin(ids, np.asarray(motion.track_ids)[np.asarray(motion.depth_m) > 0])
-    near_far = np.asarray(motion.depth_range_m, np.float64)
-    settled = ~own & (depth == near_far[1])
-    lo = np.where(settled, near_far[0], depth * (1.0 - np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
-    hi = np.where(settled, near_far[1], depth * (1.0 + np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)))
-    known = np.isfinite(depth)
-    spread = np.full(len(uv), SECOND_RADIUS * 2.0 ** SWEEP_LEVEL)
-    if known.any():
-        at = project(uv[known], depth[known], K, K, T)
-        spread[known] = np.maximum(np.linalg.norm(project(uv[known], lo[known], K, K, T) - at, axis=1),
-                                   np.linalg.norm(project(uv[known], hi[known], K, K, T) - at, axis=1))
+    near, far = (float(d) for d in motion.depth_range_m)
+    settled = ~own & (depth == far)
+    relative = np.where(own, OWN_DEPTH_SPREAD, BORROWED_DEPTH_SPREAD)
+    spread = _shift_px(terms, depth, (np.where(settled, near, depth * (1.0 - relative)),
+                                      np.where(settled, far, depth * (1.0 + relative))))
+    spread[~np.isfinite(depth)] = SECOND_RADIUS * 2.0 ** SWEEP_LEVEL
     spread = np.nan_to_num(spread, nan=1e6, posinf=1e6)  # behind the camera at one end: unbounded
     return float(max(POSE_UNCERTAINTY_PX, np.percentile(spread, START_QUANTILE)))
 
@@ -218,11 +375,16 @@ def prediction_plan(config, levels: int, size: tuple[int, int], uv: np.ndarray, 
     from lapreco_hil.frontend.image import predicted_levels
 
     budget, lk_levels = config.max_features, levels
+    if config.fast_features_scale <= 1.0 and not config.reduced_predicted_levels:
+        return budget, lk_levels
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, np.float64)
+    terms = _homography_terms(uv, K, K, motion.T_cur_prev)  # (shared by both measures)
     if config.fast_features_scale > 1.0:
-        budget = track_budget(config, start_motion_px(uv, depth, K, motion.T_cur_prev))
+        budget = track_budget(config, _start_motion_px(uv, terms, depth))
     if config.reduced_predicted_levels:
-        lk_levels = predicted_levels(config, levels, size[0], size[1],
-                                     start_uncertainty_px(uv, ids, depth, motion, K))
+        uncertainty = _start_uncertainty_px(terms, ids, depth, motion) if len(uv) else POSE_UNCERTAINTY_PX
+        lk_levels = predicted_levels(config, levels, size[0], size[1], uncertainty)
     return budget, lk_levels
 
 
