@@ -27,6 +27,9 @@ def _seconds(s) -> str:
 
 def format_table(r: dict) -> str:
     f, lat = r["frames"], r["latency_ms"]
+    failed = r["live"].get("local_ba_worker_failed", 0)
+    warning = ([f"local BA failed in the worker in {failed} of {failed + r['live'].get('local_ba_worker_runs', 0)} "
+                "windows (not applied; the mapper's log has each error)"] if failed else [])
     return "\n".join([
         f"live pipeline, {r['resolution']} at {r['fps_target']:g} fps for {r['seconds']:g} s ({r['device']}, "
         f"{r['tracker']} tracker, {r['source']} source, {r['machine']})",
@@ -38,4 +41,4 @@ def format_table(r: dict) -> str:
         f"{lat.get('p99', 0):.0f} | {r['live'].get('local_ba_skipped', 0)} "
         f"({r['live'].get('local_ba_deferred_share', 0):.1%}) | {r['live'].get('resection_skipped', 0)} | "
         f"{_seconds(r['live'].get('final_ba_s'))} ({_seconds(r['live'].get('final_global_ba_s'))}) |",
-    ])
+    ] + warning)

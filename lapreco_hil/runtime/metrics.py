@@ -106,6 +106,9 @@ class LiveMetrics:
                      "final_global_ba_s": result.stats.get("final_ba_s"),
                      # the mapper process's own time, by kind of work (the usual bottleneck)
                      "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
+                     # the worker's windows: solved, and failed (a failure is logged; its window is not applied)
+                     "local_ba_worker_runs": result.stats.get("local_ba_worker_runs", 0),
+                     "local_ba_worker_failed": result.stats.get("local_ba_worker_failed", 0),
                      # the worker's local BA against the keyframes: jobs, keyframes that came while one was out
                      "local_ba_round_trip": result.stats.get("local_ba_round_trip"),
                      # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
