@@ -52,6 +52,7 @@ from scipy.spatial.transform import Rotation
 from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, redundancy
 from lapreco_hil.mapping.robust import RobustSchedule, sigma_of_mad
 
+
 log = logging.getLogger(__name__)
 
 # GTSAM's LevenbergMarquardtParams defaults (the GTSAM solver sets relativeErrorTol 1e-5 too)
@@ -417,10 +418,11 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
 
 
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
-            gpu_reductions: bool | None = None) -> _Layout:
+            gpu_reductions: bool | None = None, workspace=None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
-    ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``)."""
+    ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``); its device
+    arrays cut from ``workspace``'s buffers where given (``schur_kernels.SchurWorkspace``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -444,7 +446,7 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
         kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
-                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs)
+                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs, workspace=workspace)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -1072,12 +1074,13 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None):
+def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None,
+           workspace=None):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions)
+    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions, workspace)
     return p, perm, lay, time.perf_counter() - t0
 
 
@@ -1125,7 +1128,7 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals:
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None,
-                       gpu_reductions: bool | None = None) -> BAResult:
+                       gpu_reductions: bool | None = None, workspace=None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
@@ -1135,9 +1138,20 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
     values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
-    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md)."""
+    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
+    ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (and a GPU's page-locked mirrors) the solve uses
+    instead of allocating its own, kept by a caller that solves window after window (the BA worker); the same
+    answers. Ignored on numpy."""
+    if workspace is None or device == "numpy":
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None)
+    with workspace.claim():
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, workspace)
+
+
+def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str, blas_threads: int,
+                        device_schur: bool | None, gpu_reductions: bool | None, workspace) -> BAResult:
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0
