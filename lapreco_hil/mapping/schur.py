@@ -330,7 +330,9 @@ class _Layout:
     n_points: int
     chunks: list[_Chunk]
     batches: list[tuple[int, int]]  # runs of chunks whose blocks the kernels make in one launch
-    unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
+    # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed); None: not needed (the
+    # landmarks eliminated on the device by observations), not found
+    unique_pairs: bool | None
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
     tie_R: np.ndarray
@@ -417,6 +419,15 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     return chunks
 
 
+def _unique_pairs(obs_point: np.ndarray, obs_pose: np.ndarray, n_points: int, n_poses: int) -> bool:
+    """Whether no pose sees a landmark twice."""
+    pair = obs_point * n_poses + obs_pose
+    if n_points * n_poses <= 16 * len(pair) + 4096:  # a window's landmark x pose table is small: count into it
+        return len(pair) == 0 or int(np.bincount(pair, minlength=n_points * n_poses).max()) <= 1
+    pair = np.sort(pair)  # (a sort: numpy's hashed unique is slower here)
+    return not np.any(pair[1:] == pair[:-1])
+
+
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
             gpu_reductions: bool | None = None, workspace=None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
@@ -430,15 +441,13 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
     col[free] = np.arange(len(free))
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
-    pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
-    pair = obs_point * n_poses + p.obs_pose
-    if n_points * n_poses <= 16 * len(pair) + 4096:  # a window's landmark x pose table is small: count into it
-        unique_pairs = len(pair) == 0 or int(np.bincount(pair, minlength=n_points * n_poses).max()) <= 1
-    else:  # (a sort: numpy's hashed unique is slower here)
-        pair = np.sort(pair)
-        unique_pairs = not np.any(pair[1:] == pair[:-1])
-    # (the device's elimination needs no chunks)
-    chunks = [] if device_schur and device != "numpy" else _chunks(obs_point, obs_col, n_points, len(free))
+    # (the observations are pose-major: each pose's run found by a search, not a count)
+    pose_starts = np.searchsorted(p.obs_pose, np.arange(n_poses + 1))
+    on_device = device_schur and device != "numpy"
+    # (the device's elimination needs no chunks, nor, unless by pose pairs, to know whether the pairs are unique)
+    unique_pairs = None if on_device and not gpu_reductions else _unique_pairs(obs_point, p.obs_pose, n_points,
+                                                                              n_poses)
+    chunks = [] if on_device else _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
     kernels = None

@@ -693,7 +693,7 @@ class ObservationKernels:
             indices["pm_end"] = starts[1:][points]
             indices["pm_starts"] = starts
             self.n_pm = len(pm)
-        for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
+        for name, view in self._upload_arena(indices).items():
             setattr(self, name, view)
         # every other buffer: parts of one allocation. ``work``: what a linearisation sums into (``linear``, one
         # memset): Hpp (N x 9), gp (N x 3), the pose system (42 F + 1); then, where the landmarks are eliminated
@@ -805,7 +805,8 @@ class ObservationKernels:
         return self._workspace is not None and self._cuda is not None
 
     def _upload_arena(self, values: dict) -> dict:
-        """int32 arrays uploaded in one copy: {name: values} -> {name: array}."""
+        """Integer arrays uploaded as int32 in one copy (each converted as it is written): {name: values} ->
+        {name: array}."""
         offsets, total = self._offsets({k: len(v) for k, v in values.items()})
         if self._workspace is None:
             host = np.zeros(total, np.int32)
