@@ -49,8 +49,8 @@ import scipy.linalg.lapack
 import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
-from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, redundancy
-from lapreco_hil.mapping.robust import RobustSchedule, sigma_of_mad
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, redundancy
+from lapreco_hil.mapping.robust import RobustSchedule, _median_in_place, sigma_of_mad
 
 
 log = logging.getLogger(__name__)
@@ -1120,19 +1120,44 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                      "device_ops": _device_ops(lay)})
 
 
-def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
+def _norms(r: np.ndarray) -> np.ndarray:
+    """(O,) lengths of residuals (O, 2), +inf where not finite (behind the camera)."""
+    norms = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
+    norms += r[:, 1] * r[:, 1]
+    np.sqrt(norms, out=norms)
+    norms[~np.isfinite(norms)] = np.inf
+    return norms
+
+
+def _mad_in_place(r: np.ndarray) -> float | None:
+    """The median absolute deviation about the median of the finite components of ``r``, which it reorders and
+    overwrites (``robust.mad_sigma``'s values, without its copy of them); None where none is finite."""
+    e = r.reshape(-1)
+    finite = np.isfinite(e)
+    if not finite.all():
+        e = e[finite]
+    if not e.size:
+        return None
+    np.subtract(e, _median_in_place(e), out=e)
+    return _median_in_place(np.abs(e, out=e))
+
+
+def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: bool = False):
     """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
-    (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
-    residuals (NaN behind the camera; on a Warp device valid until its next read-back) too, else None."""
+    (``ObservationKernels.residual_mad``: one scalar read back), else on the host in the residuals' read-back
+    itself (it is the solver's own: a Warp device's host mirror, valid until its next read-back, or the host
+    state's new array); and with ``with_norms`` the residuals' lengths (``_norms``, found first), else None."""
     kernels = getattr(state, "kernels", None)
     if kernels is not None and kernels.gpu_reductions:
-        count, mad, *r = kernels.residual_mad(with_residuals)
-        sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
-        return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
-    # (on a Warp device the read-back's view, not a copy: ``mad_sigma`` leaves it as it is, and the caller reads
-    # the residuals before the device's next read-back)
-    r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
-    return pixel_sigma(p, r, schedule), (r if with_residuals else None)
+        count, mad, *r = kernels.residual_mad(with_norms)
+        mad = mad if count else None
+        norms = _norms(r[0]) if with_norms else None
+    else:
+        r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
+        norms = _norms(r) if with_norms else None  # (before the MAD reorders the components)
+        mad = _mad_in_place(r)
+    sigma = sigma_of_mad(mad) / np.sqrt(redundancy(p))  # (as pixel_sigma)
+    return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), norms
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
@@ -1182,11 +1207,7 @@ def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: st
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
                        "iteration_timing": per_it, "solves": solves})
     t1 = time.perf_counter()
-    sigma_final, r = _robust_scale(p, state, schedule, with_residuals=True)
-    residuals = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
-    residuals += r[:, 1] * r[:, 1]
-    np.sqrt(residuals, out=residuals)
-    residuals[~np.isfinite(residuals)] = np.inf
+    sigma_final, residuals = _robust_scale(p, state, schedule, with_norms=True)
     scale_s += time.perf_counter() - t1
     threshold = schedule.inlier_threshold_px(sigma_final)
     residuals = _unsorted(residuals, perm)
