@@ -97,6 +97,26 @@ def test_the_robust_scale_found_on_the_device_is_the_hosts(rng):
             assert sigma_of_mad(float(mad) if count else None) == mad_sigma(values)
 
 
+def test_observations_put_pose_major_as_by_a_stable_sort(rng):
+    """``pose_major``'s permutation is the stable sort's by pose, whether the observations come in a few runs of
+    one pose each (a live window's, keyframe by keyframe: the runs put in order), at random or sorted already."""
+    p = make_problem(np.random.default_rng(1), n_views=12, n_points=50, jump=0.03).problem
+    for trial in range(60):
+        if trial % 3 == 0:  # runs, a pose's possibly in several, some empty
+            runs = rng.integers(0, len(p.poses), int(rng.integers(1, 40)))
+            obs_pose = np.repeat(runs, rng.integers(0, 50, len(runs)))
+        else:
+            obs_pose = rng.integers(0, len(p.poses), int(rng.integers(0, 600)))
+            if trial % 3 == 2:
+                obs_pose.sort()
+        n = len(obs_pose)
+        q = dataclasses.replace(p, obs_pose=obs_pose, obs_point=rng.integers(0, 50, n), obs_uv=rng.random((n, 2)))
+        sorted_q, perm = schur.pose_major(q)
+        np.testing.assert_array_equal(perm, np.argsort(obs_pose, kind="stable"))
+        np.testing.assert_array_equal(sorted_q.obs_uv, q.obs_uv[perm])
+        np.testing.assert_array_equal(sorted_q.obs_point, q.obs_point[perm])
+
+
 def _numeric_jacobian(f, n, eps=1e-6):
     cols = []
     for i in range(n):
