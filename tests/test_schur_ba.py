@@ -507,6 +507,43 @@ def test_windows_of_varying_sizes_through_one_workspace_as_fresh_solves(monkeypa
         schur.solve_robust_schur(p, schedule, workspace=workspace, device=DEVICE)
 
 
+def test_the_ba_worker_solves_its_windows_through_its_workspace_as_fresh_solves():
+    """The live BA worker (its own process, as the live runtime spawns it) keeps one workspace for its windows:
+    windows of three sizes in a row come back as each solved alone here."""
+    import multiprocessing as mp
+
+    from lapreco_hil.mapping.mapper import local_schedule
+    from lapreco_hil.runtime.mapper_process import ba_worker_main
+    from lapreco_hil.runtime.messages import BAJob, EndOfJobs
+
+    config = MapperConfig(ba_solver="schur", ba_device=DEVICE)
+    rng = np.random.default_rng(16)
+    windows = [_live_like_window(rng, *w) for w in [(6, 200, 1, 0.9, 0.0), (9, 400, 2, 0.8, 0.01),
+                                                    (4, 90, 0, 1.0, 0.0)]]
+    ctx = mp.get_context("spawn")
+    jobs, results = ctx.Queue(), ctx.Queue()
+    worker = ctx.Process(target=ba_worker_main, args=(local_schedule(config), jobs, results, os.getpid(), config),
+                         daemon=True)
+    worker.start()
+    try:
+        for i, p in enumerate(windows):
+            jobs.put(BAJob(i, p))
+        jobs.put(EndOfJobs())
+        replies = sorted((results.get(timeout=120) for _ in windows), key=lambda r: r.job_id)
+    finally:
+        worker.join(timeout=30)
+        if worker.is_alive():
+            worker.kill()
+    for p, reply in zip(windows, replies):
+        assert reply.error == ""
+        fresh = schur.solve_robust_schur(p, local_schedule(config), device=DEVICE)
+        np.testing.assert_array_equal(reply.solved.stats["inlier_obs"], fresh.stats["inlier_obs"])
+        np.testing.assert_allclose(reply.solved.poses, fresh.poses, atol=0 if DEVICE == "cpu" else 1e-8)
+    # the second window is the largest: the third's arenas were there already (where the host eliminates the
+    # landmarks, the CPU device's default, its chunks' index arrays are the window's own)
+    assert replies[2].solved.stats["device_ops"]["allocations"] < fresh.stats["device_ops"]["allocations"]
+
+
 @pytest.mark.parametrize("device_schur", [True, False])
 def test_the_state_stays_on_the_device_across_lm(device_schur):
     """On a Warp device the buffers are allocated once per solve, and the host reads back, per damped system,
