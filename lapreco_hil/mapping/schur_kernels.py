@@ -587,7 +587,8 @@ class SchurWorkspace:
     """The Schur solver's device buffers kept from one solve to the next by their owner (the BA worker: one per
     process, its windows solved one after another), so that a window allocates nothing: per Warp device, the
     arena of the solver's arrays, the problem's index arrays and, on a GPU, their page-locked host mirrors (faster
-    transfers, which pageable memory could not be: a page-locked allocation costs more than a window's solve).
+    transfers, which pageable memory could not be: a page-locked allocation costs more than a window's solve),
+    and the kernels' recorded launches (``launches``).
     Each buffer is sized by capacity: it grows to the largest window's need (a quarter more, so that windows
     growing a little at a time do not reallocate each time) and never shrinks; each solve cuts its parts from it
     by its own counts (``ObservationKernels``). One solve at a time: two would share the buffers (``claim``)."""
@@ -596,6 +597,7 @@ class SchurWorkspace:
 
     def __init__(self) -> None:
         self._buffers: dict = {}  # (device, role) -> wp.array
+        self._launches: dict = {}  # device -> {kernel key: (recorded launch, its arguments, its size)}
         self._claimed = False
 
     @contextlib.contextmanager
@@ -622,6 +624,12 @@ class SchurWorkspace:
                else wp.empty(capacity, dtype=dtype, device=device))
         self._buffers[key] = buf
         return buf, True
+
+    def launches(self, device: str) -> dict:
+        """The launches recorded on ``device`` (``ObservationKernels._launch``), kept for the next solve: a
+        replay's parameters are set again where they differ (every array of a new solve), its size where that
+        does, so that a window records none but at the first."""
+        return self._launches.setdefault(str(device), {})
 
     def capacity(self, device: str, role: str) -> int:
         """A buffer's elements (0: none yet)."""
@@ -742,7 +750,8 @@ class ObservationKernels:
             self.r = self._view(work, start + n6 * n6, n6, wp.float64)
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
-        self._commands = {}  # recorded launches (``_launch``)
+        # recorded launches (``_launch``), a workspace's kept from solve to solve
+        self._commands = {} if workspace is None else workspace.launches(device)
         if self.window:
             self.table, self.Z = arena["table"], arena["Z"]
             self.table.fill_(-1)
@@ -916,23 +925,25 @@ class ObservationKernels:
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
-        """Launch by a command recorded at the kernel's first launch of this size (``wp.launch(record_cmd=True)``),
-        only the parameters that differ from its last launch's set again (the current and the trial state's
-        arrays swap, the scalars change per stage): a replay costs a fifth of a launch's argument packing."""
+        """Launch by a command recorded at the kernel's first launch (``wp.launch(record_cmd=True)``), only the
+        parameters that differ from its last launch's set again (the current and the trial state's arrays swap,
+        the scalars change per stage, a new solve's arrays are all new), and its size where that differs: a replay
+        costs a fifth of a launch's argument packing."""
         if dim <= 0:
             return
         args = [*inputs, *outputs]
-        key = (kernel.key, dim)
-        recorded = self._commands.get(key)
+        recorded = self._commands.get(kernel.key)
         if recorded is None:
             command = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, outputs=outputs,
                                 record_cmd=True)
         else:
-            command, last = recorded
+            command, last, last_dim = recorded
+            if dim != last_dim:
+                command.set_dim(dim)
             for i, (a, b) in enumerate(zip(args, last)):
                 if a is not b and (isinstance(a, wp.array) or isinstance(b, wp.array) or a != b):
                     command.set_param_at_index(i, a)
-        self._commands[key] = (command, args)
+        self._commands[kernel.key] = (command, args, dim)
         command.launch()
         self.ops["launches"] += 1
 
