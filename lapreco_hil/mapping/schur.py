@@ -1180,9 +1180,9 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
     values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
     with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
-    ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (and a GPU's page-locked mirrors) the solve uses
-    instead of allocating its own, kept by a caller that solves window after window (the BA worker); the same
-    answers. Ignored on numpy."""
+    ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (a GPU's page-locked mirrors, the
+    recorded launches) the solve uses instead of its own, kept by a caller that solves window after window (the
+    BA worker); the same answers. Ignored on numpy."""
     if workspace is None or device == "numpy":
         return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None)
     with workspace.claim():
