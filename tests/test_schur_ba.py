@@ -97,6 +97,26 @@ def test_the_robust_scale_found_on_the_device_is_the_hosts(rng):
             assert sigma_of_mad(float(mad) if count else None) == mad_sigma(values)
 
 
+def test_observations_put_pose_major_as_by_a_stable_sort(rng):
+    """``pose_major``'s permutation is the stable sort's by pose, whether the observations come in a few runs of
+    one pose each (a live window's, keyframe by keyframe: the runs put in order), at random or sorted already."""
+    p = make_problem(np.random.default_rng(1), n_views=12, n_points=50, jump=0.03).problem
+    for trial in range(60):
+        if trial % 3 == 0:  # runs, a pose's possibly in several, some empty
+            runs = rng.integers(0, len(p.poses), int(rng.integers(1, 40)))
+            obs_pose = np.repeat(runs, rng.integers(0, 50, len(runs)))
+        else:
+            obs_pose = rng.integers(0, len(p.poses), int(rng.integers(0, 600)))
+            if trial % 3 == 2:
+                obs_pose.sort()
+        n = len(obs_pose)
+        q = dataclasses.replace(p, obs_pose=obs_pose, obs_point=rng.integers(0, 50, n), obs_uv=rng.random((n, 2)))
+        sorted_q, perm = schur.pose_major(q)
+        np.testing.assert_array_equal(perm, np.argsort(obs_pose, kind="stable"))
+        np.testing.assert_array_equal(sorted_q.obs_uv, q.obs_uv[perm])
+        np.testing.assert_array_equal(sorted_q.obs_point, q.obs_point[perm])
+
+
 def _numeric_jacobian(f, n, eps=1e-6):
     cols = []
     for i in range(n):
@@ -432,6 +452,98 @@ def test_windows_in_a_row_with_a_gpus_reductions_as_without():
         np.testing.assert_allclose(gpu.poses, default.poses, atol=1e-8)
 
 
+@pytest.mark.parametrize("device_schur, gpu_reductions, host_mirror",
+                         [(True, None, False), (True, None, True), (False, None, False), (True, True, True)])
+def test_windows_of_varying_sizes_through_one_workspace_as_fresh_solves(monkeypatch, device_schur, gpu_reductions,
+                                                                        host_mirror):
+    """A live worker's windows in a row through one ``SchurWorkspace`` (its buffers sized by capacity: grown for
+    a larger window, kept for a smaller one, each window's parts cut by its own counts): the same labels, scales,
+    poses and landmarks as each window solved alone, and nothing allocated where the buffers are large enough
+    already. ``host_mirror``: the transfers through the workspace's one host mirror of the arena (a GPU's
+    page-locked one), forced on the CPU device, so that every part's offset in it is checked too."""
+    from lapreco_hil.mapping import schur_kernels
+
+    if host_mirror:
+        if not str(DEVICE).startswith("cpu"):
+            pytest.skip("on CUDA the host mirror is the real path (the other cases)")
+        monkeypatch.setattr(schur_kernels.ObservationKernels, "_host_arena_mirror",
+                            lambda self: self._workspace is not None)
+    exact = str(DEVICE).startswith("cpu")  # (a GPU's atomic sums differ from run to run in their last bits)
+    rng = np.random.default_rng(15)
+    # (views, landmarks, fixed, kept share, behind share): shrinking, growing past the capacity, odd N F
+    windows = [(6, 300, 1, 0.9, 0.0), (4, 80, 0, 0.7, 0.02), (9, 451, 2, 0.8, 0.01), (5, 333, 0, 1.0, 0.0),
+               (12, 700, 3, 0.6, 0.0), (3, 43, 0, 1.0, 0.0), (9, 450, 2, 0.9, 0.01)]
+    workspace = schur_kernels.SchurWorkspace()
+    schedule = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 3), RobustStage("tukey", TUKEY_C, 3)))
+    fitted = grown = 0
+    for n_views, n_points, n_fixed, keep, behind in windows:
+        p = _live_like_window(rng, n_views, n_points, n_fixed, keep, behind)
+        kwargs = dict(device=DEVICE, device_schur=device_schur, gpu_reductions=gpu_reductions)
+        capacity = workspace.capacity(DEVICE, "arena")
+        reused = schur.solve_robust_schur(p, schedule, workspace=workspace, **kwargs)
+        fresh = schur.solve_robust_schur(p, schedule, **kwargs)
+        np.testing.assert_array_equal(reused.stats["inlier_obs"], fresh.stats["inlier_obs"])
+        scales = [s["sigma_px"] for s in reused.stats["stages"]] + [reused.stats["sigma_px"]]
+        fresh_scales = [s["sigma_px"] for s in fresh.stats["stages"]] + [fresh.stats["sigma_px"]]
+        if exact:
+            assert scales == fresh_scales
+            np.testing.assert_array_equal(reused.poses, fresh.poses)
+            np.testing.assert_array_equal(reused.points, fresh.points)
+            np.testing.assert_array_equal(reused.residuals_px, fresh.residuals_px)
+        else:
+            assert scales == pytest.approx(fresh_scales, rel=1e-7)
+            np.testing.assert_allclose(reused.poses, fresh.poses, atol=1e-8)
+        # the arena grows for a window larger than any before, never shrinks; a window that fits allocates nothing
+        # (where the host eliminates the landmarks its chunks' index arrays are its own)
+        assert workspace.capacity(DEVICE, "arena") >= capacity
+        if workspace.capacity(DEVICE, "arena") == capacity:
+            fitted += 1
+            if device_schur:
+                assert reused.stats["device_ops"]["allocations"] == 0
+        else:
+            grown += 1
+    assert fitted >= 2 and grown >= 3  # (the first window's buffers, then two larger windows)
+    with workspace.claim(), pytest.raises(RuntimeError, match="one solve at a time"):
+        schur.solve_robust_schur(p, schedule, workspace=workspace, device=DEVICE)
+
+
+def test_the_ba_worker_solves_its_windows_through_its_workspace_as_fresh_solves():
+    """The live BA worker (its own process, as the live runtime spawns it) keeps one workspace for its windows:
+    windows of three sizes in a row come back as each solved alone here."""
+    import multiprocessing as mp
+
+    from lapreco_hil.mapping.mapper import local_schedule
+    from lapreco_hil.runtime.mapper_process import ba_worker_main
+    from lapreco_hil.runtime.messages import BAJob, EndOfJobs
+
+    config = MapperConfig(ba_solver="schur", ba_device=DEVICE)
+    rng = np.random.default_rng(16)
+    windows = [_live_like_window(rng, *w) for w in [(6, 200, 1, 0.9, 0.0), (9, 400, 2, 0.8, 0.01),
+                                                    (4, 90, 0, 1.0, 0.0)]]
+    ctx = mp.get_context("spawn")
+    jobs, results = ctx.Queue(), ctx.Queue()
+    worker = ctx.Process(target=ba_worker_main, args=(local_schedule(config), jobs, results, os.getpid(), config),
+                         daemon=True)
+    worker.start()
+    try:
+        for i, p in enumerate(windows):
+            jobs.put(BAJob(i, p))
+        jobs.put(EndOfJobs())
+        replies = sorted((results.get(timeout=120) for _ in windows), key=lambda r: r.job_id)
+    finally:
+        worker.join(timeout=30)
+        if worker.is_alive():
+            worker.kill()
+    for p, reply in zip(windows, replies):
+        assert reply.error == ""
+        fresh = schur.solve_robust_schur(p, local_schedule(config), device=DEVICE)
+        np.testing.assert_array_equal(reply.solved.stats["inlier_obs"], fresh.stats["inlier_obs"])
+        np.testing.assert_allclose(reply.solved.poses, fresh.poses, atol=0 if DEVICE == "cpu" else 1e-8)
+    # the second window is the largest: the third's arenas were there already (where the host eliminates the
+    # landmarks, the CPU device's default, its chunks' index arrays are the window's own)
+    assert replies[2].solved.stats["device_ops"]["allocations"] < fresh.stats["device_ops"]["allocations"]
+
+
 @pytest.mark.parametrize("device_schur", [True, False])
 def test_the_state_stays_on_the_device_across_lm(device_schur):
     """On a Warp device the buffers are allocated once per solve, and the host reads back, per damped system,
@@ -498,9 +610,9 @@ def test_transfers_through_host_copies_as_on_a_gpu(monkeypatch, device_schur):
         # bits, so two solves need not take the same LM steps)
         pytest.skip("a CPU-device test: on CUDA every transfer already goes through its own host copy")
 
-    def separate(self, array):
-        self.array = array
-        self.host = schur_kernels.wp.empty(array.shape, dtype=array.dtype, device="cpu")
+    def separate(self, array, host=None):
+        self.array, self.pinned = array, host is not None
+        self.host = schur_kernels.wp.empty(array.shape, dtype=array.dtype, device="cpu") if host is None else host
         self.view = self.host.numpy()
 
     syn = make_problem(np.random.default_rng(4), n_views=6, n_points=300, jump=0.03, highlight=0.02)

@@ -49,8 +49,9 @@ import scipy.linalg.lapack
 import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
-from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, pixel_sigma, redundancy
-from lapreco_hil.mapping.robust import RobustSchedule, sigma_of_mad
+from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, redundancy
+from lapreco_hil.mapping.robust import RobustSchedule, _median_in_place, sigma_of_mad
+
 
 log = logging.getLogger(__name__)
 
@@ -298,10 +299,17 @@ def pose_major(problem: BAProblem) -> tuple[BAProblem, np.ndarray]:
     """The problem with its observations sorted by pose (each pose's are then one contiguous run, transformed
     by one matrix product), and the permutation (``sorted[i] = original[perm[i]]``)."""
     obs_pose = np.asarray(problem.obs_pose)
-    if np.all(obs_pose[1:] >= obs_pose[:-1]):
+    change = np.flatnonzero(obs_pose[1:] != obs_pose[:-1]) + 1  # where a run of one pose's observations starts
+    if not len(change) or np.all(obs_pose[change] > obs_pose[change - 1]):
         return problem, np.arange(len(obs_pose))
-    # (a stable sort of 16-bit integers is numpy's radix sort: a few times faster than of 64-bit ones)
-    perm = np.argsort(obs_pose.astype(np.int16) if len(problem.poses) < 2**15 else obs_pose, kind="stable")
+    if len(change) <= 4 * len(problem.poses):
+        # a few runs (a live window's observations come keyframe by keyframe): the runs put in order, the same
+        # permutation as the stable sort's
+        starts, ends = np.concatenate([[0], change]), np.concatenate([change, [len(obs_pose)]])
+        order = np.argsort(obs_pose[starts], kind="stable").tolist()
+        perm = np.concatenate([np.arange(starts[i], ends[i]) for i in order])
+    else:  # (a stable sort of 16-bit integers is numpy's radix sort: a few times faster than of 64-bit ones)
+        perm = np.argsort(obs_pose.astype(np.int16) if len(problem.poses) < 2**15 else obs_pose, kind="stable")
     # (``np.take`` along an axis: a tenth of the time of a fancy index of the (O, 2) rows)
     return dataclasses.replace(problem, obs_pose=np.take(obs_pose, perm), obs_point=np.take(problem.obs_point, perm),
                                obs_uv=np.take(problem.obs_uv, perm, axis=0)), perm
@@ -329,7 +337,9 @@ class _Layout:
     n_points: int
     chunks: list[_Chunk]
     batches: list[tuple[int, int]]  # runs of chunks whose blocks the kernels make in one launch
-    unique_pairs: bool  # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed)
+    # no pose sees a point twice (the landmark-pose blocks can be assigned, not summed); None: not needed (the
+    # landmarks eliminated on the device by observations), not found
+    unique_pairs: bool | None
     prior_idx: np.ndarray  # free poses with a prior
     prior_R: np.ndarray  # their whitening
     tie_R: np.ndarray
@@ -416,11 +426,21 @@ def _chunks(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: i
     return chunks
 
 
+def _unique_pairs(obs_point: np.ndarray, obs_pose: np.ndarray, n_points: int, n_poses: int) -> bool:
+    """Whether no pose sees a landmark twice."""
+    pair = obs_point * n_poses + obs_pose
+    if n_points * n_poses <= 16 * len(pair) + 4096:  # a window's landmark x pose table is small: count into it
+        return len(pair) == 0 or int(np.bincount(pair, minlength=n_points * n_poses).max()) <= 1
+    pair = np.sort(pair)  # (a sort: numpy's hashed unique is slower here)
+    return not np.any(pair[1:] == pair[:-1])
+
+
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
-            gpu_reductions: bool | None = None) -> _Layout:
+            gpu_reductions: bool | None = None, workspace=None) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
-    ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``)."""
+    ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``); its device
+    arrays cut from ``workspace``'s buffers where given (``schur_kernels.SchurWorkspace``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -428,15 +448,13 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
     col[free] = np.arange(len(free))
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
-    pose_starts = np.concatenate([[0], np.cumsum(np.bincount(p.obs_pose, minlength=n_poses))])
-    pair = obs_point * n_poses + p.obs_pose
-    if n_points * n_poses <= 16 * len(pair) + 4096:  # a window's landmark x pose table is small: count into it
-        unique_pairs = len(pair) == 0 or int(np.bincount(pair, minlength=n_points * n_poses).max()) <= 1
-    else:  # (a sort: numpy's hashed unique is slower here)
-        pair = np.sort(pair)
-        unique_pairs = not np.any(pair[1:] == pair[:-1])
-    # (the device's elimination needs no chunks)
-    chunks = [] if device_schur and device != "numpy" else _chunks(obs_point, obs_col, n_points, len(free))
+    # (the observations are pose-major: each pose's run found by a search, not a count)
+    pose_starts = np.searchsorted(p.obs_pose, np.arange(n_poses + 1))
+    on_device = device_schur and device != "numpy"
+    # (the device's elimination needs no chunks, nor, unless by pose pairs, to know whether the pairs are unique)
+    unique_pairs = None if on_device and not gpu_reductions else _unique_pairs(obs_point, p.obs_pose, n_points,
+                                                                              n_poses)
+    chunks = [] if on_device else _chunks(obs_point, obs_col, n_points, len(free))
     has_prior = np.ones(n_poses, bool) if p.has_prior is None else np.asarray(p.has_prior, bool)
     prior_idx = np.flatnonzero(has_prior & ~fixed)
     kernels = None
@@ -444,7 +462,7 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
         kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
-                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs)
+                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs, workspace=workspace)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -1072,12 +1090,13 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None):
+def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None,
+           workspace=None):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions)
+    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions, workspace)
     return p, perm, lay, time.perf_counter() - t0
 
 
@@ -1108,24 +1127,49 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                      "device_ops": _device_ops(lay)})
 
 
-def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_residuals: bool = False):
+def _norms(r: np.ndarray) -> np.ndarray:
+    """(O,) lengths of residuals (O, 2), +inf where not finite (behind the camera)."""
+    norms = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
+    norms += r[:, 1] * r[:, 1]
+    np.sqrt(norms, out=norms)
+    norms[~np.isfinite(norms)] = np.inf
+    return norms
+
+
+def _mad_in_place(r: np.ndarray) -> float | None:
+    """The median absolute deviation about the median of the finite components of ``r``, which it reorders and
+    overwrites (``robust.mad_sigma``'s values, without its copy of them); None where none is finite."""
+    e = r.reshape(-1)
+    finite = np.isfinite(e)
+    if not finite.all():
+        e = e[finite]
+    if not e.size:
+        return None
+    np.subtract(e, _median_in_place(e), out=e)
+    return _median_in_place(np.abs(e, out=e))
+
+
+def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: bool = False):
     """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
-    (``ObservationKernels.residual_mad``: one scalar read back), and with ``with_residuals`` the (O, 2)
-    residuals (NaN behind the camera; on a Warp device valid until its next read-back) too, else None."""
+    (``ObservationKernels.residual_mad``: one scalar read back), else on the host in the residuals' read-back
+    itself (it is the solver's own: a Warp device's host mirror, valid until its next read-back, or the host
+    state's new array); and with ``with_norms`` the residuals' lengths (``_norms``, found first), else None."""
     kernels = getattr(state, "kernels", None)
     if kernels is not None and kernels.gpu_reductions:
-        count, mad, *r = kernels.residual_mad(with_residuals)
-        sigma = sigma_of_mad(mad if count else None) / np.sqrt(redundancy(p))  # (as pixel_sigma)
-        return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), (r[0] if r else None)
-    # (on a Warp device the read-back's view, not a copy: ``mad_sigma`` leaves it as it is, and the caller reads
-    # the residuals before the device's next read-back)
-    r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
-    return pixel_sigma(p, r, schedule), (r if with_residuals else None)
+        count, mad, *r = kernels.residual_mad(with_norms)
+        mad = mad if count else None
+        norms = _norms(r[0]) if with_norms else None
+    else:
+        r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
+        norms = _norms(r) if with_norms else None  # (before the MAD reorders the components)
+        mad = _mad_in_place(r)
+    sigma = sigma_of_mad(mad) / np.sqrt(redundancy(p))  # (as pixel_sigma)
+    return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), norms
 
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None,
-                       gpu_reductions: bool | None = None) -> BAResult:
+                       gpu_reductions: bool | None = None, workspace=None) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
@@ -1135,9 +1179,20 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
     values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
-    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md)."""
+    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
+    ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (a GPU's page-locked mirrors, the
+    recorded launches) the solve uses instead of its own, kept by a caller that solves window after window (the
+    BA worker); the same answers. Ignored on numpy."""
+    if workspace is None or device == "numpy":
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None)
+    with workspace.claim():
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, workspace)
+
+
+def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str, blas_threads: int,
+                        device_schur: bool | None, gpu_reductions: bool | None, workspace) -> BAResult:
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0
@@ -1159,11 +1214,7 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
                        "error_before": e0, "error_after": e1, "timing": stage_timing,
                        "iteration_timing": per_it, "solves": solves})
     t1 = time.perf_counter()
-    sigma_final, r = _robust_scale(p, state, schedule, with_residuals=True)
-    residuals = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
-    residuals += r[:, 1] * r[:, 1]
-    np.sqrt(residuals, out=residuals)
-    residuals[~np.isfinite(residuals)] = np.inf
+    sigma_final, residuals = _robust_scale(p, state, schedule, with_norms=True)
     scale_s += time.perf_counter() - t1
     threshold = schedule.inlier_threshold_px(sigma_final)
     residuals = _unsorted(residuals, perm)

@@ -13,6 +13,8 @@ by pose pairs, the robust scale by sorts); by default one observation's terms at
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from lapreco_hil.warp_device import device_lock, init_warp
@@ -569,12 +571,70 @@ _ALIGN_WORDS = 32
 
 class _Mirror:
     """A device array's host side, allocated once: on a CUDA device a host array (one ``wp.copy`` each way,
-    nothing allocated per transfer), on the CPU device the array's own memory (nothing copied)."""
+    nothing allocated per transfer), or ``host``, a part of a workspace's page-locked mirror of the arena the array
+    is part of (``pinned``: an upload from it runs after the call returns); on the CPU device the array's own
+    memory (nothing copied)."""
 
-    def __init__(self, array) -> None:
-        self.array = array
-        self.host = array if array.device.is_cpu else wp.empty(array.shape, dtype=array.dtype, device="cpu")
+    def __init__(self, array, host=None) -> None:
+        self.array, self.pinned = array, host is not None
+        if host is None:
+            host = array if array.device.is_cpu else wp.empty(array.shape, dtype=array.dtype, device="cpu")
+        self.host = host
         self.view = self.host.numpy()  # zero-copy
+
+
+class SchurWorkspace:
+    """The Schur solver's device buffers kept from one solve to the next by their owner (the BA worker: one per
+    process, its windows solved one after another), so that a window allocates nothing: per Warp device, the
+    arena of the solver's arrays, the problem's index arrays and, on a GPU, their page-locked host mirrors (faster
+    transfers, which pageable memory could not be: a page-locked allocation costs more than a window's solve),
+    and the kernels' recorded launches (``launches``).
+    Each buffer is sized by capacity: it grows to the largest window's need (a quarter more, so that windows
+    growing a little at a time do not reallocate each time) and never shrinks; each solve cuts its parts from it
+    by its own counts (``ObservationKernels``). One solve at a time: two would share the buffers (``claim``)."""
+
+    GROWTH = 1.25
+
+    def __init__(self) -> None:
+        self._buffers: dict = {}  # (device, role) -> wp.array
+        self._launches: dict = {}  # device -> {kernel key: (recorded launch, its arguments, its size)}
+        self._claimed = False
+
+    @contextlib.contextmanager
+    def claim(self):
+        """Held by a solve while it uses the buffers."""
+        if self._claimed:
+            raise RuntimeError("a SchurWorkspace serves one solve at a time: give each thread its own")
+        self._claimed = True
+        try:
+            yield self
+        finally:
+            self._claimed = False
+
+    def buffer(self, device: str, role: str, n: int, dtype, pinned: bool = False):
+        """A 1-D buffer of at least ``n`` elements of ``dtype`` (``pinned``: page-locked host memory mirroring
+        ``device``'s) and whether it was allocated now. Its contents are the last solve's."""
+        key = (str(device), role)
+        buf = self._buffers.get(key)
+        if buf is not None and buf.shape[0] >= n:
+            return buf, False
+        capacity = max(int(n), 1) if buf is None else max(int(n), int(self.GROWTH * buf.shape[0]))
+        self._buffers[key] = None  # (the old one freed first)
+        buf = (wp.empty(capacity, dtype=dtype, device="cpu", pinned=True) if pinned
+               else wp.empty(capacity, dtype=dtype, device=device))
+        self._buffers[key] = buf
+        return buf, True
+
+    def launches(self, device: str) -> dict:
+        """The launches recorded on ``device`` (``ObservationKernels._launch``), kept for the next solve: a
+        replay's parameters are set again where they differ (every array of a new solve), its size where that
+        does, so that a window records none but at the first."""
+        return self._launches.setdefault(str(device), {})
+
+    def capacity(self, device: str, role: str) -> int:
+        """A buffer's elements (0: none yet)."""
+        buf = self._buffers.get((str(device), role))
+        return 0 if buf is None else int(buf.shape[0])
 
 
 class ObservationKernels:
@@ -591,9 +651,21 @@ class ObservationKernels:
     allocations: on the CPU device a download is a read of the array's memory, on CUDA a copy and a wait."""
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
-                 gpu_reductions: bool | None = None, unique_pairs: bool = False) -> None:
+                 gpu_reductions: bool | None = None, unique_pairs: bool = False,
+                 workspace: SchurWorkspace | None = None) -> None:
+        """``workspace``: the buffers to cut the arrays from (kept across solves by their owner); None: allocated
+        for this solve."""
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
+        self._workspace = workspace
+        # with a workspace on a GPU: its page-locked mirror of the arena, and the host address ranges uploaded
+        # from it since the last wait (``_host_write``)
+        self._arena = self._arena_host = None
+        self._pending: list[tuple[int, int]] = []
+        self._host = {}  # host mirrors, made at first use
+        if workspace is not None and self._cuda is not None:
+            # (a solve that failed may have left copies from the workspace's page-locked buffers in the stream)
+            wp.synchronize_stream(self._cuda.stream)
         # a GPU's ways of reducing (opt-in until re-measured live: docs/benchmarks.md, sessions 14-15): the robust
         # scale's medians by two sorts here (one scalar read back, not the residuals and the host's selections),
         # sums taken per thread over several observations before their atomics (a few addresses take them all), a
@@ -629,9 +701,8 @@ class ObservationKernels:
             indices["pm_end"] = starts[1:][points]
             indices["pm_starts"] = starts
             self.n_pm = len(pm)
-        for name, view in self._upload_arena({k: np.asarray(v, np.int32) for k, v in indices.items()}).items():
+        for name, view in self._upload_arena(indices).items():
             setattr(self, name, view)
-        self.uv = self._upload_new(np.ascontiguousarray(p.obs_uv, np.float64), wp.vec2d)
         # every other buffer: parts of one allocation. ``work``: what a linearisation sums into (``linear``, one
         # memset): Hpp (N x 9), gp (N x 3), the pose system (42 F + 1); then, where the landmarks are eliminated
         # here, the camera system (``eliminated``), read back with the pose system in one copy (``system``).
@@ -644,7 +715,7 @@ class ObservationKernels:
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
                  "T0": (len(p.poses), wp.mat44d), "dc": (max(n_free, 1), vec6d), "T1": (len(p.poses), wp.mat44d),
                  "X0": (N, wp.vec3d), "X1": (N, wp.vec3d), "dp": (N, wp.vec3d), "step_sums": (3 * N + 3, wp.float64),
-                 "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d)}
+                 "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d), "uv": (O, wp.vec2d)}
         if self.window:
             parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
         if self.gpu_reductions:
@@ -656,8 +727,9 @@ class ObservationKernels:
         if self.gpu_reductions:
             self.scale_keys, self.scale_values, self.scale_sums = (
                 arena[k] for k in ("scale_keys", "scale_values", "scale_sums"))
-        self.W, self.dp, self.dc, self.L, self.Lg, self.residual = (
-            arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual"))
+        self.W, self.dp, self.dc, self.L, self.Lg, self.residual, self.uv = (
+            arena[k] for k in ("W", "dp", "dc", "L", "Lg", "residual", "uv"))
+        self._upload(self.uv, np.asarray(p.obs_uv, np.float64))
         self.T, self.X, self.cur = [arena["T0"], arena["T1"]], [arena["X0"], arena["X1"]], 0
         # T0 to T1's end as float64: a step's upload (``_upload_parts``)
         self._step_inputs = self._view(arena["T0"], 0, (arena["T1"].ptr - arena["T0"].ptr) // 8 + 16 * len(p.poses),
@@ -678,7 +750,8 @@ class ObservationKernels:
             self.r = self._view(work, start + n6 * n6, n6, wp.float64)
             self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
-        self._commands = {}  # recorded launches (``_launch``)
+        # recorded launches (``_launch``), a workspace's kept from solve to solve
+        self._commands = {} if workspace is None else workspace.launches(device)
         if self.window:
             self.table, self.Z = arena["table"], arena["Z"]
             self.table.fill_(-1)
@@ -689,7 +762,6 @@ class ObservationKernels:
         # read back, the array to read back (None: read already) and its read-back where ``error`` brought it
         self._linearized_at, self._landmarks_read = None, False
         self._linearization = self._linearization_view = None
-        self._host = {}  # host mirrors, made at first use
         self._chunks: dict[int, tuple] = {}
 
     # --- buffers and transfers -------------------------------------------------------------------------------
@@ -720,17 +792,50 @@ class ObservationKernels:
         # part, where that part's writes overwrote it)
         sizes = {k: -(-max(n, 1) * wp.types.type_size_in_bytes(dtype) // 8) for k, (n, dtype) in parts.items()}
         offsets, total = self._offsets(sizes)
-        arena = self._alloc(total, wp.float64)
+        if self._workspace is None:
+            arena = self._alloc(total, wp.float64)
+        else:  # (one arena per solve: its parts and its mirror's are cut from the workspace's by this solve's counts)
+            arena = self._workspace_buffer("arena", total, wp.float64)
+            self._arena = arena
+            if self._host_arena_mirror():
+                self._arena_host = self._workspace_buffer("arena_host", total, wp.float64,
+                                                          pinned=self._cuda is not None)
         self._arenas.append(arena)  # (its parts are views: they do not keep it)
         return {k: self._view(arena, offsets[k], n, dtype) for k, (n, dtype) in parts.items()}
 
+    def _workspace_buffer(self, role: str, n: int, dtype, pinned: bool = False):
+        buf, allocated = self._workspace.buffer(self.device, role, n, dtype, pinned)
+        self.ops["allocations"] += int(allocated)
+        return buf
+
+    def _host_arena_mirror(self) -> bool:
+        """Whether the arena's parts are mirrored on the host by the parts of one workspace buffer (page-locked):
+        with a workspace on a GPU. (A test makes it so on the CPU device too: the transfers' offsets.)"""
+        return self._workspace is not None and self._cuda is not None
+
     def _upload_arena(self, values: dict) -> dict:
-        """int32 arrays uploaded in one copy: {name: values} -> {name: array}."""
+        """Integer arrays uploaded as int32 in one copy (each converted as it is written): {name: values} ->
+        {name: array}."""
         offsets, total = self._offsets({k: len(v) for k, v in values.items()})
-        host = np.zeros(total, np.int32)
-        for k, v in values.items():
-            host[offsets[k]:offsets[k] + len(v)] = v
-        arena = self._upload_new(host, wp.int32)
+        if self._workspace is None:
+            host = np.zeros(total, np.int32)
+            for k, v in values.items():
+                host[offsets[k]:offsets[k] + len(v)] = v
+            arena = self._upload_new(host, wp.int32)
+        else:
+            # (the gaps between the parts are left as they are: nothing reads them)
+            arena = self._workspace_buffer("indices", total, wp.int32)
+            staging = arena if self._cuda is None else self._workspace_buffer("indices_host", total, wp.int32,
+                                                                              pinned=True)
+            host = staging.numpy()
+            for k, v in values.items():
+                host[offsets[k]:offsets[k] + len(v)] = v
+            if staging is not arena:
+                with device_lock(self.device):
+                    wp.copy(arena, staging, count=total)
+                self._pending.append((staging.ptr, staging.ptr + 4 * total))
+            self.ops["uploads"] += 1
+            self.ops["uploaded_bytes"] += 4 * total
         self._arenas.append(arena)
         return {k: wp.array(ptr=arena.ptr + 4 * offsets[k], shape=(max(len(v), 1),), dtype=wp.int32,
                             device=arena.device) for k, v in values.items()}
@@ -743,14 +848,38 @@ class ObservationKernels:
     def _mirror(self, array) -> _Mirror:
         key = (array.ptr, array.dtype, array.shape)
         if key not in self._host:
-            if not array.device.is_cpu:
-                self.ops["allocations"] += 1
-            self._host[key] = _Mirror(array)
+            arena = self._arena
+            if self._arena_host is not None and arena.ptr <= array.ptr < arena.ptr + 8 * arena.shape[0]:
+                # (the part of the workspace's page-locked mirror at the array's offset in the arena)
+                host = wp.array(ptr=self._arena_host.ptr + (array.ptr - arena.ptr), shape=array.shape,
+                                dtype=array.dtype, device="cpu")
+                self._host[key] = _Mirror(array, host)
+            else:
+                if not array.device.is_cpu:
+                    self.ops["allocations"] += 1
+                self._host[key] = _Mirror(array)
         return self._host[key]
+
+    def _host_write(self, m: _Mirror, start: int, stop: int) -> None:
+        """Before the host writes bytes [start, stop) of mirror ``m`` for an upload: an upload from page-locked
+        memory is read by the copy when the stream reaches it, so where one of those bytes is still to be read
+        (uploaded since the last wait), wait for the stream first."""
+        if not m.pinned:
+            return
+        lo, hi = m.host.ptr + start, m.host.ptr + stop
+        if any(a < hi and lo < b for a, b in self._pending):
+            self._wait_for_uploads()
+        self._pending.append((lo, hi))
+
+    def _wait_for_uploads(self) -> None:
+        if self._pending and self._cuda is not None:
+            wp.synchronize_stream(self._cuda.stream)
+        self._pending.clear()
 
     def _upload(self, array, values: np.ndarray) -> None:
         """``values`` into the device array (their shape: its numpy view's, or a leading part of it)."""
         m = self._mirror(array)
+        self._host_write(m, 0, m.view[:len(values)].nbytes)
         m.view[:len(values)] = values
         if m.host is not array:
             with device_lock(self.device):
@@ -763,12 +892,16 @@ class ObservationKernels:
         span (``values``: float64, each part's leading elements; the padding between parts goes along)."""
         m = self._mirror(region)
         lo = hi = None
+        flats = []
         for array, values in parts:
             start = (array.ptr - region.ptr) // 8
             flat = np.asarray(values, np.float64).reshape(-1)
-            m.view[start:start + flat.size] = flat
+            flats.append((start, flat))
             lo = start if lo is None else min(lo, start)
             hi = start + flat.size if hi is None else max(hi, start + flat.size)
+        self._host_write(m, 8 * lo, 8 * hi)
+        for start, flat in flats:
+            m.view[start:start + flat.size] = flat
         if m.host is not region:
             with device_lock(self.device):
                 wp.copy(region, m.host, dest_offset=lo, src_offset=lo, count=hi - lo)
@@ -788,26 +921,29 @@ class ObservationKernels:
                 views.append(m.view)
             if self._cuda is not None:  # (the stream the copies went on: the device's current one)
                 wp.synchronize_stream(self._cuda.stream)
+            self._pending.clear()
         return views
 
     def _launch(self, kernel, dim: int, inputs, outputs) -> None:
-        """Launch by a command recorded at the kernel's first launch of this size (``wp.launch(record_cmd=True)``),
-        only the parameters that differ from its last launch's set again (the current and the trial state's
-        arrays swap, the scalars change per stage): a replay costs a fifth of a launch's argument packing."""
+        """Launch by a command recorded at the kernel's first launch (``wp.launch(record_cmd=True)``), only the
+        parameters that differ from its last launch's set again (the current and the trial state's arrays swap,
+        the scalars change per stage, a new solve's arrays are all new), and its size where that differs: a replay
+        costs a fifth of a launch's argument packing."""
         if dim <= 0:
             return
         args = [*inputs, *outputs]
-        key = (kernel.key, dim)
-        recorded = self._commands.get(key)
+        recorded = self._commands.get(kernel.key)
         if recorded is None:
             command = wp.launch(kernel, dim=dim, device=self.device, inputs=inputs, outputs=outputs,
                                 record_cmd=True)
         else:
-            command, last = recorded
+            command, last, last_dim = recorded
+            if dim != last_dim:
+                command.set_dim(dim)
             for i, (a, b) in enumerate(zip(args, last)):
                 if a is not b and (isinstance(a, wp.array) or isinstance(b, wp.array) or a != b):
                     command.set_param_at_index(i, a)
-        self._commands[key] = (command, args)
+        self._commands[kernel.key] = (command, args, dim)
         command.launch()
         self.ops["launches"] += 1
 

@@ -14,6 +14,7 @@ dies, however it dies (``die_with_parent``)."""
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import os
@@ -119,6 +120,10 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) 
         from lapreco_hil.warp_device import preload_kernels, resolve_device
 
         preload_kernels("lapreco_hil.mapping.schur_kernels", resolve_device(mapper_config.ba_device))
+        # this process's windows' device buffers (and a GPU's page-locked mirrors), kept from one to the next
+        from lapreco_hil.mapping.schur_kernels import SchurWorkspace
+
+        solve = functools.partial(solve, workspace=SchurWorkspace())
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     while True:
