@@ -353,9 +353,9 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     drift check's bounds (``max_residual``: its residual bound, the tracker's ``drift_max_residual``), LK's match
     stands where it does not, and a fit that disagrees with LK by more than FORWARD_BACKWARD_PX, passed or not,
     drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
-    for the sweep and the registration). ``search_m``: each track's own (near, far) for the sweep, (N, 2)
-    (``stereo_depth.search_ranges``: around the depth the map gives it); None: ``depth_range_m`` for all.
-    -> (uv in the other view, found).
+    for the sweep and the registration). ``search_m``: each track's own (near, far), (N, 2)
+    (``stereo_depth.search_ranges``: around the depth the map gives it), where a track whose sweep over
+    ``depth_range_m`` was unclear is searched again; None: no second search. -> (uv in the other view, found).
 
     Why the registration: a short baseline turns a fraction of a pixel into millimetres of depth (5 mm at 12 cm:
     0.1 px is 0.7 mm), and LK's translation-only window is off by 0.2 px (median) where the surface is seen
@@ -363,8 +363,15 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     n = len(uv)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    res = sweep(this_float, other_float, uv, K_this, K_other, T_other_this,
-                depth_range_m if search_m is None else search_m)
+    res = sweep(this_float, other_float, uv, K_this, K_other, T_other_this, depth_range_m)
+    if search_m is not None and not res.found.all():
+        # unclear over the whole range (a second place along the line scores nearly as well): searched again
+        # over the track's own range, where one of them may stand clear
+        again = np.flatnonzero(~res.found)
+        near = sweep(this_float, other_float, uv[again], K_this, K_other, T_other_this,
+                     np.asarray(search_m, np.float64)[again])
+        res = SweepResult(res.uv.copy(), res.found.copy(), res.score.copy())
+        res.uv[again], res.found[again], res.score[again] = near.uv, near.found, near.score
     found = res.found.copy()
     out = np.full((n, 2), np.nan)
     if not found.any():

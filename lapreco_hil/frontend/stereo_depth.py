@@ -2,11 +2,11 @@
 
 The left-right sweep (``epipolar.match_across``) searches the whole depth range the map spans, widened (x0.5 to
 x2): at a 5 mm baseline that is a line of some 40 px, and on smooth tissue a second place along it scores within
-the sweep's margin of the best, so a quarter of the tracks went unmatched though the best was right
-(docs/results.md, session 15). A track whose depth is known (its landmark's, carried from the previous frame
-into this one by the camera motion) is searched over STEREO_OWN_SPREAD around it; one without, over
+the sweep's margin of the best, so a quarter of the tracks went unmatched (docs/results.md, session 15). Such a
+track is searched again near its depth: one whose depth is known (its landmark's, carried from the previous
+frame into this one by the camera motion) over STEREO_OWN_SPREAD around it; one without, over
 STEREO_BORROWED_SPREAD around the median of its neighbours' (tissue is smooth at the scale of a few tracks);
-the others over the whole range.
+the others not at all. A match that was clear over the whole range stays as it was.
 """
 
 from __future__ import annotations
