@@ -364,12 +364,13 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     res = sweep(this_float, other_float, uv, K_this, K_other, T_other_this, depth_range_m)
-    if search_m is not None and not res.found.all():
+    own = None if search_m is None else np.asarray(search_m, np.float64).reshape(-1, 2)
+    again = np.zeros(0, np.int64) if own is None else \
+        np.flatnonzero(~res.found & np.any(own != np.asarray(depth_range_m, np.float64), axis=1))
+    if len(again):
         # unclear over the whole range (a second place along the line scores nearly as well): searched again
         # over the track's own range, where one of them may stand clear
-        again = np.flatnonzero(~res.found)
-        near = sweep(this_float, other_float, uv[again], K_this, K_other, T_other_this,
-                     np.asarray(search_m, np.float64)[again])
+        near = sweep(this_float, other_float, uv[again], K_this, K_other, T_other_this, own[again])
         res = SweepResult(res.uv.copy(), res.found.copy(), res.score.copy())
         res.uv[again], res.found[again], res.score[again] = near.uv, near.found, near.score
     found = res.found.copy()
