@@ -14,7 +14,7 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import epipolar, stereo_depth
-from lapreco_hil.frontend.drift import AffineDriftCheck, gradients
+from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
 
@@ -100,8 +100,9 @@ class OpenCVFrontEnd:
             searched = searched[keep]
         t2 = time.perf_counter()
         if self.drift is not None and len(self._pts):
-            gx, gy = gradients(intensity)
-            reg = self.drift.register(intensity, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
+            registered = drift_image(intensity)
+            gx, gy = gradients(registered)
+            reg = self.drift.register(registered, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
             positions = reg.positions.astype(np.float32)
             keep = reg.keep & self._inside(reg.positions)
@@ -112,7 +113,7 @@ class OpenCVFrontEnd:
                 # reference where LK put it
                 positions[anew] = self._pts[anew]
                 keep[anew] = self._inside(self._pts[anew])
-                self._ref[anew] = self.drift.reference_patches(intensity, self._pts[anew])
+                self._ref[anew] = self.drift.reference_patches(registered, self._pts[anew])
                 self._A[anew] = np.eye(2)
             self._filter(keep, positions)
         t_drift = time.perf_counter()
@@ -132,7 +133,7 @@ class OpenCVFrontEnd:
                 self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + n_new)])
                 self._next_id += n_new
                 if self.drift is not None:
-                    self._ref = np.vstack([self._ref, self.drift.reference_patches(intensity, corners)])
+                    self._ref = np.vstack([self._ref, self.drift.reference_patches(drift_image(intensity), corners)])
                     self._A = np.concatenate([self._A, np.repeat(np.eye(2)[None], n_new, 0)])
         t3 = time.perf_counter()
         self._prev, self._prev_float = gray, intensity
