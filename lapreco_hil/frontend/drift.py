@@ -37,27 +37,23 @@ def sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)
 
 
-# The drift check registers its patches on the tracker image smoothed by a Gaussian of this sigma (px; 0: none).
-# Shi-Tomasi picks the corners of a low-contrast patch partly where the sensor noise made them, the noise does not
-# come back in the next frame, and the residual test, relative to the patch's contrast, refused 39 % of the
-# first steps that LK had right at 50 px a frame; smoothed, 16 % (the kept ones as close to the truth:
-# docs/results.md, session 15)
-DRIFT_SMOOTHING_PX = 0.8
-
-
-def drift_smoothing_weights() -> np.ndarray:
-    """The separable Gaussian of DRIFT_SMOOTHING_PX as float32 taps (radius 3 sigma; one tap of 1: none)."""
-    if DRIFT_SMOOTHING_PX <= 0:
+def drift_smoothing_weights(sigma_px: float) -> np.ndarray:
+    """A separable Gaussian of ``sigma_px`` as float32 taps (radius 3 sigma); one tap of 1 for none. Why smooth
+    at all: Shi-Tomasi picks a low-contrast corner partly where the sensor noise made one, that noise does not come
+    back in the next frame, and the residual test, relative to the patch's contrast, refuses the track though it
+    is right (``TrackerConfig.drift_smoothing_px``; docs/results.md, session 15)."""
+    if sigma_px <= 0:
         return np.ones(1, np.float32)
-    radius = int(np.ceil(3.0 * DRIFT_SMOOTHING_PX))
-    g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / DRIFT_SMOOTHING_PX) ** 2)
+    radius = int(np.ceil(3.0 * sigma_px))
+    g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma_px) ** 2)
     return (g / g.sum()).astype(np.float32)
 
 
-def drift_image(image: np.ndarray) -> np.ndarray:
+def drift_image(image: np.ndarray, sigma_px: float) -> np.ndarray:
     """The image the drift check registers on and takes its first patches from: the tracker image (float32)
-    smoothed by DRIFT_SMOOTHING_PX (``drift_smoothing_weights``, border replicated, as the Warp kernels blur)."""
-    taps = drift_smoothing_weights()
+    smoothed with ``drift_smoothing_weights(sigma_px)``, border replicated (as the Warp kernels blur); the image
+    itself for 0."""
+    taps = drift_smoothing_weights(sigma_px)
     if len(taps) == 1:
         return image
     return cv2.sepFilter2D(image, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REPLICATE)

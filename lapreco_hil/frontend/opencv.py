@@ -99,8 +99,8 @@ class OpenCVFrontEnd:
             self._filter(keep, nxt)
             searched = searched[keep]
         t2 = time.perf_counter()
+        registered = drift_image(intensity, cfg.drift_smoothing_px) if self.drift is not None else intensity
         if self.drift is not None and len(self._pts):
-            registered = drift_image(intensity)
             gx, gy = gradients(registered)
             reg = self.drift.register(registered, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
@@ -133,7 +133,7 @@ class OpenCVFrontEnd:
                 self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + n_new)])
                 self._next_id += n_new
                 if self.drift is not None:
-                    self._ref = np.vstack([self._ref, self.drift.reference_patches(drift_image(intensity), corners)])
+                    self._ref = np.vstack([self._ref, self.drift.reference_patches(registered, corners)])
                     self._A = np.concatenate([self._A, np.repeat(np.eye(2)[None], n_new, 0)])
         t3 = time.perf_counter()
         self._prev, self._prev_float = gray, intensity

@@ -103,8 +103,9 @@ class WarpFrontEnd:
             self._low_log, self._low_tmp, self._low_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
             self._pyr = [wp.zeros(total, dtype=float) for _ in range(2)]  # current / previous, swapped
             # level 0 smoothed for the drift check (drift.drift_image), its gradients, and the blur's scratch
-            self._drift_weights = wp.array(drift_smoothing_weights(), dtype=float)
-            self._drift_img, self._drift_gx, self._drift_gy, self._drift_tmp = (wp.zeros(W * H, dtype=float)
+            self._drift_weights = wp.array(drift_smoothing_weights(config.drift_smoothing_px), dtype=float)
+            smoothed = W * H if self._drift_weights.shape[0] > 1 else 1
+            self._drift_img, self._drift_gx, self._drift_gy, self._drift_tmp = (wp.zeros(smoothed, dtype=float)
                                                                                 for _ in range(4))
             self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
@@ -383,8 +384,8 @@ class WarpFrontEnd:
         corners.score_threshold(self._hist, count, self._budget, self._cut, self._taken, dev)
         corners.take_corners(self._cells, self._cell_state, self._max_eig, self._cut, self._occ, self._stamp, count,
                              self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
-        drift_check.sample_patches(self._drift_images()[0], self.width, self.height, self._pts[cur], count, self._taken,
-                                   self._patches[cur], self._A[cur], self._steps[cur], dev)
+        drift_check.sample_patches(self._drift_images()[0], self.width, self.height, self._pts[cur], count,
+                                   self._taken, self._patches[cur], self._A[cur], self._steps[cur], dev)
         tracks.commit_new_tracks(self._taken, count, self._n_new, self._next_id, dev)
 
     # --- the frame ----------------------------------------------------------------------------------------------
