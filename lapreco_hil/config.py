@@ -99,6 +99,9 @@ class TrackerConfig:
     drift_check: bool = True
     drift_patch_px: int = ranged(13, ge=3)
     drift_max_residual: float = ranged(0.75, gt=0.0)
+    # the drift check registers on the tracker image smoothed by a Gaussian of this sigma (px; 0: unsmoothed): at
+    # 0.8, more tracks kept on low-contrast texture at fast motion, but less accurate points (docs/results.md, s15)
+    drift_smoothing_px: float = ranged(0.0, ge=0.0)
     # start each track where the pose source's motion says it lands (FrameMotion); off: where it was
     predict: bool = True
     few_views: FewViewsConfig = field(default_factory=FewViewsConfig)

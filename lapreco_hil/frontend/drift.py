@@ -37,6 +37,28 @@ def sample(image: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)
 
 
+def drift_smoothing_weights(sigma_px: float) -> np.ndarray:
+    """A separable Gaussian of ``sigma_px`` as float32 taps (radius 3 sigma); one tap of 1 for none. Why smooth
+    at all: Shi-Tomasi picks a low-contrast corner partly where the sensor noise made one, that noise does not come
+    back in the next frame, and the residual test, relative to the patch's contrast, refuses the track though it
+    is right (``TrackerConfig.drift_smoothing_px``; docs/results.md, session 15)."""
+    if sigma_px <= 0:
+        return np.ones(1, np.float32)
+    radius = int(np.ceil(3.0 * sigma_px))
+    g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma_px) ** 2)
+    return (g / g.sum()).astype(np.float32)
+
+
+def drift_image(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The image the drift check registers on and takes its first patches from: the tracker image (float32)
+    smoothed with ``drift_smoothing_weights(sigma_px)``, border replicated (as the Warp kernels blur); the image
+    itself for 0."""
+    taps = drift_smoothing_weights(sigma_px)
+    if len(taps) == 1:
+        return image
+    return cv2.sepFilter2D(image, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REPLICATE)
+
+
 def gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, y) gradients of a float32 image as ``AffineDriftCheck.register`` takes them: 3x3 Sobel / 8."""
     return (cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),

@@ -418,15 +418,18 @@ def sweep(src_image: np.ndarray, dst_image: np.ndarray, uv: np.ndarray, K_src: n
     n = len(uv)
     if n == 0:
         return SweepResult(np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0))
-    near, far = depth_range_m
+    ranges = np.broadcast_to(np.asarray(depth_range_m, np.float64).reshape(-1, 2), (n, 2))
+    near, far = ranges[:, 0], ranges[:, 1]
     scale = 1.0 / (1 << level)
     src, dst = _level(src_image, level), _level(dst_image, level)
-    ends = np.stack([project(uv, np.full(n, near), K_src, K_dst, T_dst_src),
-                     project(uv, np.full(n, far), K_src, K_dst, T_dst_src)])
+    ends = np.stack([project(uv, near, K_src, K_dst, T_dst_src), project(uv, far, K_src, K_dst, T_dst_src)])
     length = np.nan_to_num(np.linalg.norm(ends[0] - ends[1], axis=1) * scale, nan=np.inf)
     s = int(np.clip(np.ceil(np.max(np.where(np.isfinite(length), length, 0.0))) + 1, MIN_SAMPLES, MAX_SAMPLES))
-    inv = np.linspace(1.0 / near, 1.0 / far, s)
-    cand = project(np.repeat(uv, s, 0), np.tile(1.0 / inv, n), K_src, K_dst, T_dst_src).reshape(n, s, 2)
+    if np.ndim(depth_range_m) == 1:  # one range for all
+        inv = np.tile(np.linspace(1.0 / near[0], 1.0 / far[0], s), (n, 1))
+    else:
+        inv = np.linspace(1.0 / near, 1.0 / far, s, axis=1)
+    cand = project(np.repeat(uv, s, 0), (1.0 / inv).ravel(), K_src, K_dst, T_dst_src).reshape(n, s, 2)
     off = _patch_offsets(patch_px)
     # the source patches, then every candidate's: (n, P) and (n, s, P), bilinear, the border a constant
     # outside the level (a patch off the image cannot match)
@@ -503,8 +506,8 @@ def tracks_back(cur_u8: np.ndarray, prev_u8: np.ndarray, cur_uv: np.ndarray, pre
 
 def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarray, other_float: np.ndarray,
                  uv: np.ndarray, K_this: np.ndarray, K_other: np.ndarray, T_other_this: np.ndarray,
-                 depth_range_m: tuple[float, float], lk: dict,
-                 max_residual: float) -> tuple[np.ndarray, np.ndarray]:
+                 depth_range_m: tuple[float, float], lk: dict, max_residual: float,
+                 search_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``uv`` of this view found in another view of the same instant (a stereo partner): the epipolar
     sweep, LK from its best, and LK back into this view, which must land within FORWARD_BACKWARD_PX of where
     the track is; then LK's window in this view registered affinely (with gain and bias) in the other, as the
@@ -512,7 +515,9 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     drift check's bounds (``max_residual``: its residual bound, the tracker's ``drift_max_residual``), LK's match
     stands where it does not, and a fit that disagrees with LK by more than FORWARD_BACKWARD_PX, passed or not,
     drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
-    for the sweep and the registration). -> (uv in the other view, found).
+    for the sweep and the registration). ``search_m``: each track's own (near, far), (N, 2)
+    (``stereo_depth.search_ranges``: around the depth the map gives it), where a track whose sweep over
+    ``depth_range_m`` was unclear is searched again; None: no second search. -> (uv in the other view, found).
 
     Why the registration: a short baseline turns a fraction of a pixel into millimetres of depth (5 mm at 12 cm:
     0.1 px is 0.7 mm), and LK's translation-only window is off by 0.2 px (median) where the surface is seen
@@ -521,6 +526,15 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     res = sweep(this_float, other_float, uv, K_this, K_other, T_other_this, depth_range_m)
+    own = None if search_m is None else np.asarray(search_m, np.float64).reshape(-1, 2)
+    again = np.zeros(0, np.int64) if own is None else \
+        np.flatnonzero(~res.found & np.any(own != np.asarray(depth_range_m, np.float64), axis=1))
+    if len(again):
+        # unclear over the whole range (a second place along the line scores nearly as well): searched again
+        # over the track's own range, where one of them may stand clear
+        near = sweep(this_float, other_float, uv[again], K_this, K_other, T_other_this, own[again])
+        res = SweepResult(res.uv.copy(), res.found.copy(), res.score.copy())
+        res.uv[again], res.found[again], res.score[again] = near.uv, near.found, near.score
     found = res.found.copy()
     out = np.full((n, 2), np.nan)
     if not found.any():

@@ -13,8 +13,8 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.frontend import epipolar
-from lapreco_hil.frontend.drift import AffineDriftCheck, gradients
+from lapreco_hil.frontend import epipolar, stereo_depth
+from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
 
@@ -34,6 +34,7 @@ class OpenCVFrontEnd:
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._next_id = 0
+        self._known_depths = stereo_depth.known_depths(self._ids, self._pts, None)  # the last motion's, for match_view
         self.drift = (AffineDriftCheck(config.drift_patch_px, max_residual=config.drift_max_residual)
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
@@ -57,6 +58,7 @@ class OpenCVFrontEnd:
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
+        self._known_depths = stereo_depth.known_depths(self._ids, self._pts, motion)
         depth = (epipolar.start_depths(self._pts, self._ids, motion, self.camera.K,
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
         if depth is None:
@@ -97,9 +99,10 @@ class OpenCVFrontEnd:
             self._filter(keep, nxt)
             searched = searched[keep]
         t2 = time.perf_counter()
+        registered = drift_image(intensity, cfg.drift_smoothing_px) if self.drift is not None else intensity
         if self.drift is not None and len(self._pts):
-            gx, gy = gradients(intensity)
-            reg = self.drift.register(intensity, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
+            gx, gy = gradients(registered)
+            reg = self.drift.register(registered, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
             self._A = reg.A
             positions = reg.positions.astype(np.float32)
             keep = reg.keep & self._inside(reg.positions)
@@ -110,7 +113,7 @@ class OpenCVFrontEnd:
                 # reference where LK put it
                 positions[anew] = self._pts[anew]
                 keep[anew] = self._inside(self._pts[anew])
-                self._ref[anew] = self.drift.reference_patches(intensity, self._pts[anew])
+                self._ref[anew] = self.drift.reference_patches(registered, self._pts[anew])
                 self._A[anew] = np.eye(2)
             self._filter(keep, positions)
         t_drift = time.perf_counter()
@@ -130,7 +133,7 @@ class OpenCVFrontEnd:
                 self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + n_new)])
                 self._next_id += n_new
                 if self.drift is not None:
-                    self._ref = np.vstack([self._ref, self.drift.reference_patches(intensity, corners)])
+                    self._ref = np.vstack([self._ref, self.drift.reference_patches(registered, corners)])
                     self._A = np.concatenate([self._A, np.repeat(np.eye(2)[None], n_new, 0)])
         t3 = time.perf_counter()
         self._prev, self._prev_float = gray, intensity
@@ -152,10 +155,13 @@ class OpenCVFrontEnd:
             return empty
         color = undistort_view(image, camera, self._views)
         other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config, self.levels)
-        uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float,
-                                          self._pts.astype(np.float64), self.camera.K, camera.K,
-                                          np.asarray(T_other_this, np.float64), self._depth_range, self._lk,
-                                          self.config.drift_max_residual)
+        pts = self._pts.astype(np.float64)
+        search = stereo_depth.search_ranges(pts, stereo_depth.carried_depths(self._ids, *self._known_depths,
+                                                                             self.camera.K),
+                                            (self.camera.width, self.camera.height), self._depth_range)
+        uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float, pts, self.camera.K,
+                                          camera.K, np.asarray(T_other_this, np.float64), self._depth_range, self._lk,
+                                          self.config.drift_max_residual, search)
         return Observations(seq, t_ns, self._ids[found].copy(), uv[found], colors_at(color, uv[found]),
                             camera=camera_index)
 

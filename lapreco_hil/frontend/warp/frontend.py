@@ -24,9 +24,10 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
-from lapreco_hil.frontend import epipolar, track_capacity
+from lapreco_hil.frontend import epipolar, stereo_depth, track_capacity
 from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
                                         to_u8, tracker_image)
+from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
@@ -101,6 +102,11 @@ class WarpFrontEnd:
             self._lit = wp.zeros((H, W), dtype=float)  # the shading level (blurred log), full resolution
             self._low_log, self._low_tmp, self._low_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
             self._pyr = [wp.zeros(total, dtype=float) for _ in range(2)]  # current / previous, swapped
+            # level 0 smoothed for the drift check (drift.drift_image), its gradients, and the blur's scratch
+            self._drift_weights = wp.array(drift_smoothing_weights(config.drift_smoothing_px), dtype=float)
+            smoothed = W * H if self._drift_weights.shape[0] > 1 else 1
+            self._drift_img, self._drift_gx, self._drift_gy, self._drift_tmp = (wp.zeros(smoothed, dtype=float)
+                                                                                for _ in range(4))
             self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._eig = wp.zeros((H, W), dtype=float)
@@ -197,6 +203,7 @@ class WarpFrontEnd:
         self._motion: FrameMotion | None = None  # this frame's, while it is processed
         self._depth_range = FrameMotion(np.eye(4)).depth_range_m  # the last motion's, for match_view
         self._last = (0, 0, np.zeros(0, np.int64), np.zeros((0, 2)))  # the last frame's seq, t_ns, ids, uv
+        self._known_depths = stereo_depth.known_depths(self._last[2], self._last[3], None)  # for match_view
         self._views: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -248,6 +255,19 @@ class WarpFrontEnd:
         for l in range(1, self.levels):
             pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
         pyramid.sobel_levels(pyr, self._offs, self._ws, self._hs, self.levels, gx, gy, dev)
+        if self.config.drift_check and self._drift_weights.shape[0] > 1:
+            pyramid.blur_1d(pyr, self.width, self.height, self._drift_weights, 1, 0, self._drift_tmp, dev)
+            pyramid.blur_1d(self._drift_tmp, self.width, self.height, self._drift_weights, 0, 1, self._drift_img, dev)
+            pyramid.sobel_levels(self._drift_img, self._offs, self._ws, self._hs, 1, self._drift_gx, self._drift_gy,
+                                 dev)
+
+    def _drift_images(self) -> tuple:
+        """(image, gx, gy) the drift check registers on in the current frame: level 0 smoothed
+        (``drift.drift_image``), or level 0 itself without smoothing."""
+        if self._drift_weights.shape[0] > 1:
+            return self._drift_img, self._drift_gx, self._drift_gy
+        cur = self._cur
+        return self._pyr[cur], self._gx[cur], self._gy[cur]
 
     # --- tracking -----------------------------------------------------------------------------------------------
     def _lk_kernels(self) -> None:
@@ -290,12 +310,13 @@ class WarpFrontEnd:
         prev, cur = 1 - self._cur, self._cur
         dev = self.device
         if cfg.drift_check:
+            img, gx, gy = self._drift_images()
             drift_check.drift_check(
-                self._pyr[cur], self._gx[cur], self._gy[cur], self.width, self.height, self._patches[prev],
+                img, gx, gy, self.width, self.height, self._patches[prev],
                 self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
                 cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev)
             if self._motion is not None:
-                drift_check.reanchor(self._pyr[cur], self.width, self.height, self._searched, self._at_lk,
+                drift_check.reanchor(img, self.width, self.height, self._searched, self._at_lk,
                                      self._count[prev], self._mask, self._lk_pts, self._patches[prev], self._A[prev],
                                      self._keep, dev)
         else:
@@ -363,8 +384,8 @@ class WarpFrontEnd:
         corners.score_threshold(self._hist, count, self._budget, self._cut, self._taken, dev)
         corners.take_corners(self._cells, self._cell_state, self._max_eig, self._cut, self._occ, self._stamp, count,
                              self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
-        drift_check.sample_patches(self._pyr[cur], self.width, self.height, self._pts[cur], count, self._taken,
-                                   self._patches[cur], self._A[cur], self._steps[cur], dev)
+        drift_check.sample_patches(self._drift_images()[0], self.width, self.height, self._pts[cur], count,
+                                   self._taken, self._patches[cur], self._A[cur], self._steps[cur], dev)
         tracks.commit_new_tracks(self._taken, count, self._n_new, self._next_id, dev)
 
     # --- the frame ----------------------------------------------------------------------------------------------
@@ -453,6 +474,7 @@ class WarpFrontEnd:
         t0 = time.perf_counter()
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
+        self._known_depths = stereo_depth.known_depths(self._last[2], self._last[3], motion)
         try:
             depth = None
             if motion is not None and self._n_tracks > 0:
@@ -532,8 +554,10 @@ class WarpFrontEnd:
         other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config,
                                              self.pyramid_levels)
         lk_params = epipolar.lk_params(self.config.window_px, self.pyramid_levels)
+        search = stereo_depth.search_ranges(uv, stereo_depth.carried_depths(ids, *self._known_depths, self.camera.K),
+                                            (self.width, self.height), self._depth_range)
         found_uv, found = epipolar.match_across(this_u8, this, other_u8, other_float, uv, self.camera.K, camera.K,
                                                 np.asarray(T_other_this, np.float64), self._depth_range, lk_params,
-                                                self.config.drift_max_residual)
+                                                self.config.drift_max_residual, search)
         return Observations(seq, t_ns, ids[found].copy(), found_uv[found], colors_at(color, found_uv[found]),
                             camera=camera_index)
