@@ -102,6 +102,9 @@ class TrackerConfig:
     # the drift check registers on the tracker image smoothed by a Gaussian of this sigma (px; 0: unsmoothed): at
     # 0.8, more tracks kept on low-contrast texture at fast motion, but less accurate points (docs/results.md, s15)
     drift_smoothing_px: float = ranged(0.0, ge=0.0)
+    # a stereo match unclear over the map's whole depth range is searched again near the depth the map gives its
+    # track (frontend/stereo_depth): more matches on smooth tissue, a few gross ones more (docs/results.md, s15)
+    stereo_depth_prior: bool = True
     # start each track where the pose source's motion says it lands (FrameMotion); off: where it was
     predict: bool = True
     few_views: FewViewsConfig = field(default_factory=FewViewsConfig)

@@ -37,9 +37,9 @@ def striped_pair():
     return left, right, CameraModel(W, H, F, F, W / 2, H / 2), T, disparity
 
 
-def matched(tracker, known_depth):
+def matched(tracker, known_depth, config=TrackerConfig()):
     left, right, cam, T, disparity = striped_pair()
-    fe = make_frontend(tracker, cam, TrackerConfig(), DEVICE)
+    fe = make_frontend(tracker, cam, config, DEVICE)
     obs0 = fe.process(Frame(left, 0, 0))
     # the next frame, the camera still: the map knows every track's depth (or none)
     ids, depth = (obs0.track_ids, np.full(len(obs0), Z)) if known_depth else (np.zeros(0, np.int64), np.zeros(0))
@@ -59,6 +59,9 @@ def test_a_track_with_a_known_depth_finds_its_stereo_partner_on_repeating_textur
     # without the map's depth the line holds a place every PERIOD px: most matches are unclear and left out
     n_blind, blind, _ = matched(tracker, known_depth=False)
     assert len(blind) < 0.1 * n_blind, (len(blind), n_blind)
+    # and so with the map's depth where the option is off ([tracker] stereo_depth_prior)
+    n_off, off, _ = matched(tracker, known_depth=True, config=TrackerConfig(stereo_depth_prior=False))
+    assert len(off) < 0.1 * n_off, (len(off), n_off)
 
 
 def test_search_ranges_come_from_a_tracks_own_depth_else_its_neighbours():

@@ -34,7 +34,7 @@ class OpenCVFrontEnd:
         self._pts = np.zeros((0, 2), np.float32)
         self._ids = np.zeros(0, np.int64)
         self._next_id = 0
-        self._known_depths = stereo_depth.known_depths(self._ids, self._pts, None)  # the last motion's, for match_view
+        self._stereo_prior = (self._ids, self._pts, None)  # the last frame's tracks and motion, for match_view
         self.drift = (AffineDriftCheck(config.drift_patch_px, max_residual=config.drift_max_residual)
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
@@ -58,7 +58,7 @@ class OpenCVFrontEnd:
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         cfg = self.config
-        self._known_depths = stereo_depth.known_depths(self._ids, self._pts, motion)
+        self._stereo_prior = (self._ids, self._pts, motion)  # (arrays replaced, never written in place)
         depth = (epipolar.start_depths(self._pts, self._ids, motion, self.camera.K,
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
         if depth is None:
@@ -156,9 +156,9 @@ class OpenCVFrontEnd:
         color = undistort_view(image, camera, self._views)
         other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config, self.levels)
         pts = self._pts.astype(np.float64)
-        search = stereo_depth.search_ranges(pts, stereo_depth.carried_depths(self._ids, *self._known_depths,
-                                                                             self.camera.K),
-                                            (self.camera.width, self.camera.height), self._depth_range)
+        search = (stereo_depth.search_ranges(pts, stereo_depth.carried_depths(
+            self._ids, *stereo_depth.known_depths(*self._stereo_prior), self.camera.K),
+            (self.camera.width, self.camera.height), self._depth_range) if self.config.stereo_depth_prior else None)
         uv, found = epipolar.match_across(self._prev, self._prev_float, other_u8, other_float, pts, self.camera.K,
                                           camera.K, np.asarray(T_other_this, np.float64), self._depth_range, self._lk,
                                           self.config.drift_max_residual, search)

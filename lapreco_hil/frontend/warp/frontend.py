@@ -203,7 +203,7 @@ class WarpFrontEnd:
         self._motion: FrameMotion | None = None  # this frame's, while it is processed
         self._depth_range = FrameMotion(np.eye(4)).depth_range_m  # the last motion's, for match_view
         self._last = (0, 0, np.zeros(0, np.int64), np.zeros((0, 2)))  # the last frame's seq, t_ns, ids, uv
-        self._known_depths = stereo_depth.known_depths(self._last[2], self._last[3], None)  # for match_view
+        self._stereo_prior = (self._last[2], self._last[3], None)  # the last frame's tracks and motion, for match_view
         self._views: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -474,7 +474,7 @@ class WarpFrontEnd:
         t0 = time.perf_counter()
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
-        self._known_depths = stereo_depth.known_depths(self._last[2], self._last[3], motion)
+        self._stereo_prior = (self._last[2], self._last[3], motion)  # (arrays replaced, never written in place)
         try:
             depth = None
             if motion is not None and self._n_tracks > 0:
@@ -554,8 +554,9 @@ class WarpFrontEnd:
         other_u8, other_float = tracker_image(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY), self.config,
                                              self.pyramid_levels)
         lk_params = epipolar.lk_params(self.config.window_px, self.pyramid_levels)
-        search = stereo_depth.search_ranges(uv, stereo_depth.carried_depths(ids, *self._known_depths, self.camera.K),
-                                            (self.width, self.height), self._depth_range)
+        search = (stereo_depth.search_ranges(uv, stereo_depth.carried_depths(
+            ids, *stereo_depth.known_depths(*self._stereo_prior), self.camera.K), (self.width, self.height),
+            self._depth_range) if self.config.stereo_depth_prior else None)
         found_uv, found = epipolar.match_across(this_u8, this, other_u8, other_float, uv, self.camera.K, camera.K,
                                                 np.asarray(T_other_this, np.float64), self._depth_range, lk_params,
                                                 self.config.drift_max_residual, search)
