@@ -234,15 +234,7 @@ class Mapper:
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
         self.keyframes.append(kf)
         retirement = self.retirement
-        for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
-            if retirement.is_retired(tid):
-                continue  # its landmark is final
-            seen = self.tracks.get(tid)
-            if seen is None:
-                self.tracks[tid] = seen = []
-                self.tracks_seen += 1
-            retirement.seen(tid, kf.id, seen[-1][0] if seen else None)
-            seen.append((kf.id, uv))
+        self._note_views(kf)
         record.T_refined = kf.T_world_camera
         if self.rig is not None and partners is not None:
             for view in (partners() if callable(partners) else partners):
@@ -256,6 +248,25 @@ class Mapper:
         if cutoff is not None:
             self._retire(cutoff)
         return True
+
+    def _note_views(self, kf: Keyframe) -> None:
+        """Keyframe ``kf``'s view of each of its tracks, appended to the track (one loop over a keyframe's
+        thousands of tracks, its bookkeeping for retirement handed over at once)."""
+        tracks, retired, kid = self.tracks, self.retirement.retired_tracks, kf.id
+        kept, before = [], []
+        for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
+            if tid in retired:
+                continue  # its landmark is final
+            seen = tracks.get(tid)
+            if seen is None:
+                tracks[tid] = [(kid, uv)]
+                before.append(None)
+            else:
+                before.append(seen[-1][0])
+                seen.append((kid, uv))
+            kept.append(tid)
+        self.tracks_seen += before.count(None)
+        self.retirement.seen_in(kid, kept, before)
 
     def _measure_motion(self, obs: Observations) -> None:
         """How far the image moved since the previous frame: the median displacement of the tracks both saw
