@@ -401,20 +401,21 @@ class Mapper:
         retired = retirement.take_tracks(cutoff)
         with_point = [t for t in retired if t in self.landmarks]
         if with_point:
-            obs = [(k, j, uv) for j, t in enumerate(with_point) for k, uv in self.tracks[t]]
-            kf_ids = sorted({k for k, _, _ in obs})
-            index = {k: i for i, k in enumerate(kf_ids)}
+            # their observations flattened once (point j's views in order), no tuple per view
+            seen_by = [self.tracks[t] for t in with_point]
+            flat = list(itertools.chain.from_iterable(seen_by))
+            obs_kf = np.fromiter(map(itemgetter(0), flat), np.int64, len(flat))
+            obs_point = np.repeat(np.arange(len(with_point)), np.fromiter(map(len, seen_by), np.int64, len(seen_by)))
+            kf_ids, obs_pose = np.unique(obs_kf, return_inverse=True)
             points = np.array([self.landmarks[t] for t in with_point])
-            obs_point = np.array([j for _, j, _ in obs], np.int64)
-            r = ba.residual_vectors(self.K, np.array([self.keyframes[k].T_world_camera for k in kf_ids]), points,
-                                    np.array([index[k] for k, _, _ in obs], np.int64), obs_point,
-                                    np.array([uv for _, _, uv in obs]))
+            poses = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])
+            r = ba.residual_vectors(self.K, poses, points, obs_pose, obs_point,
+                                    np.array(list(map(itemgetter(1), flat))))
             sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else self.config.sigma_floor_px
             good = np.linalg.norm(r, axis=1) <= self.final_schedule.inlier_threshold_px(sigma)
-            obs_kf = np.array([k for k, _, _ in obs], np.int64)
-            centres = np.array([self.keyframes[k].T_world_camera[:3, 3] for k in obs_kf.tolist()]).reshape(-1, 3)
+            centres = poses[obs_pose][:, :3, 3]
             inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids),
-                                         self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum(),
+                                         self._is_reference(obs_kf), self._is_reference(kf_ids).sum(),
                                          points, centres, self._instants(obs_kf))
             self.archive.add(np.array(with_point, np.int64), points,
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
@@ -511,11 +512,12 @@ class Mapper:
 
     def _resection_points(self, record: FrameRecord) -> tuple[np.ndarray, np.ndarray]:
         """(landmarks, pixels) of the frame's tracks that have a point, thinned to ``resection_max_points``."""
-        known = [i for i, t in enumerate(record.track_ids.tolist()) if t in self.landmarks]
+        landmarks, ids = self.landmarks, record.track_ids.tolist()
+        known = [i for i, t in enumerate(ids) if t in landmarks]
         cap = self.config.resection_max_points
         if cap and len(known) > cap:  # a 6-DoF pose with a prior is settled long before 2000 points
             known = known[:: -(-len(known) // cap)]
-        pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known]).reshape(-1, 3)
+        pts = np.array([landmarks[ids[i]] for i in known]).reshape(-1, 3)
         return pts, record.uv[known].reshape(-1, 2)
 
     def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
@@ -555,20 +557,19 @@ class Mapper:
         # first and last views (the parallax) and a few evenly between are enough for the initial point, which
         # bundle adjustment then refines with all of them (every view made triangulation a keyframe's main cost).
         views = [_spread(self.tracks[t], TRIANGULATION_VIEWS) for t in cands]
-        V = max(len(v) for v in views)
+        counts = np.fromiter(map(len, views), np.int64, len(views))
+        V = int(counts.max())
         uv = np.zeros((len(cands), V, 2))
         seen = np.zeros((len(cands), V), bool)
         poses = np.tile(np.eye(4), (len(cands), V, 1, 1))  # each track's own views (unused slots: identity)
-        rows, cols, kfs, pts = [], [], [], []
-        for n, v in enumerate(views):
-            for j, (k, p) in enumerate(v):
-                rows.append(n)
-                cols.append(j)
-                kfs.append(k)
-                pts.append(p)
-        uv[rows, cols] = np.array(pts)
+        # every view flattened once (track n's j-th view at row n, column j), no Python loop per view
+        flat = list(itertools.chain.from_iterable(views))
+        rows = np.repeat(np.arange(len(cands)), counts)
+        cols = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+        kfs = np.fromiter(map(itemgetter(0), flat), np.int64, len(flat))
+        uv[rows, cols] = np.array(list(map(itemgetter(1), flat)))
         seen[rows, cols] = True
-        kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
+        kf_ids, which = np.unique(kfs, return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
         if self._corrected:
             res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
@@ -584,7 +585,7 @@ class Mapper:
             z = np.einsum("ni,ni->n", res.points - last[:, :3, 3], last[:, :3, 2])  # depth in the newest view
             rot2, trans2 = self._prior_sigma2(kf_ids)
             rot2_n, trans2_n = rot2[which].reshape(-1), trans2[which].reshape(-1)
-            owner = np.array(rows)
+            owner = rows
             worst_rot2, worst_trans2 = np.zeros(len(cands)), np.zeros(len(cands))
             np.maximum.at(worst_rot2, owner, rot2_n)
             np.maximum.at(worst_trans2, owner, trans2_n)
@@ -610,11 +611,12 @@ class Mapper:
         cost most of a keyframe's time at 2000 tracks. (The margin covers the noise in the two rays.)"""
         if not cands:
             return cands
-        ends = [(s[0], s[-1]) for s in (self.tracks[t] for t in cands)]
-        k0 = np.array([a[0] for a, _ in ends])
-        k1 = np.array([b[0] for _, b in ends])
-        uv0 = np.array([a[1] for a, _ in ends])
-        uv1 = np.array([b[1] for _, b in ends])
+        seen = [self.tracks[t] for t in cands]
+        first, last = list(map(itemgetter(0), seen)), list(map(itemgetter(-1), seen))
+        k0 = np.fromiter(map(itemgetter(0), first), np.int64, len(cands))
+        k1 = np.fromiter(map(itemgetter(0), last), np.int64, len(cands))
+        uv0 = np.array(list(map(itemgetter(1), first)))
+        uv1 = np.array(list(map(itemgetter(1), last)))
         kf_ids, which = np.unique(np.concatenate([k0, k1]), return_inverse=True)
         R = np.array([self.keyframes[k].T_world_camera[:3, :3] for k in kf_ids.tolist()])[which]
         Kinv = np.linalg.inv(self.K)
@@ -704,9 +706,10 @@ class Mapper:
             if not problem.fixed[i] and k >= self.first_active:  # (a worker's result may outlive a keyframe)
                 self.keyframes[k].T_world_camera = result.poses[i]
                 self.keyframes[k].refined = True
-        for j, t in enumerate(problem.point_ids.tolist()):
-            if t in self.landmarks:
-                self.landmarks[t] = result.points[j]
+        landmarks = self.landmarks
+        for t, X in zip(problem.point_ids.tolist(), result.points):
+            if t in landmarks:
+                landmarks[t] = X
         self._corrected |= any(self.keyframes[k].refined for k in problem.pose_ids.tolist()
                                if k < len(self.keyframes))
         self.ba_times.append(result.seconds)
