@@ -462,3 +462,15 @@ def test_the_keyframe_tests_parallax_from_known_common_tracks_is_the_parallax_fo
     common = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)[1:]
     alone = median_parallax_deg(last, obs, prior, K)
     assert alone > 0 and median_parallax_deg(last, obs, prior, K, common) == alone
+
+
+def test_distinct_is_numpys_unique_by_its_count_and_by_its_sort(rng):
+    """``_distinct`` counts short spans (a window's keyframe ids) and sorts long ones (track ids): np.unique
+    either way, with the input's dtype."""
+    from lapreco_hil.mapping.mapper import _distinct
+
+    for values in (rng.integers(200, 230, 5000), rng.integers(-5, 3, 40), rng.integers(0, 10 ** 6, 3000),
+                   np.array([7]), np.zeros(0, np.int64)):
+        got = _distinct(values)
+        np.testing.assert_array_equal(got, np.unique(values))
+        assert got.dtype == values.dtype

@@ -68,7 +68,11 @@ def _spread(seen: list, n: int) -> list:
 
 
 def _distinct(values: np.ndarray) -> np.ndarray:
-    """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4)."""
+    """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4), or
+    by a count where the values span no more than their number (a window's keyframe ids: a tenth of that)."""
+    if len(values) and int(values.max()) - int(values.min()) < len(values):
+        lo = int(values.min())
+        return (np.flatnonzero(np.bincount(values - lo)) + lo).astype(values.dtype, copy=False)
     s = np.sort(values)
     return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
 
