@@ -680,8 +680,9 @@ class Mapper:
             uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
         else:  # the window's observations of its points (one sorted search finds both which and where)
-            rows, sel = rows_of(point_ids, tids)
-            tids, uvs, kfi, obs_point = tids[sel], uvs[sel], kfi[sel], rows[sel]
+            rows, found = rows_of(point_ids, tids)
+            keep = np.flatnonzero(found)  # (``take`` by index: a fifth of four boolean selections' time)
+            tids, uvs, kfi, obs_point = tids.take(keep), uvs.take(keep, axis=0), kfi.take(keep), rows.take(keep)
         seen = _distinct(kfi)
         first_active = self.first_active
         kf_ids = np.concatenate([np.union1d(free, seen[seen >= first_active]), seen[seen < first_active]])
