@@ -474,3 +474,19 @@ def test_distinct_is_numpys_unique_by_its_count_and_by_its_sort(rng):
         got = _distinct(values)
         np.testing.assert_array_equal(got, np.unique(values))
         assert got.dtype == values.dtype
+
+
+def test_a_keyframes_colours_of_some_tracks_are_its_own_for_those_tracks(rng):
+    """``Mapper._colors_in`` (a keyframe's triangulation candidates' colours) gives each track the colour the
+    keyframe saw it in, for tracks in any order, none among them."""
+    from lapreco_hil.mapping.keyframes import Keyframe
+
+    ids = rng.permutation(10_000)[:500]
+    colors = rng.integers(0, 256, (500, 3)).astype(np.uint8)
+    kf = Keyframe(0, 0, 0, PosePrior(np.eye(4), COV, 0), np.eye(4), ids, np.zeros((500, 2)), colors)
+    pick = rng.choice(500, 60, replace=False)
+    got = Mapper._colors_in(kf, ids[pick].tolist())
+    assert list(got) == ids[pick].tolist()
+    for t, i in zip(ids[pick].tolist(), pick.tolist()):
+        np.testing.assert_array_equal(got[t], colors[i])
+    assert Mapper._colors_in(kf, []) == {}

@@ -383,7 +383,7 @@ class Mapper:
         if pending.tracks is None:
             kf = self.keyframes[pending.kf_id]
             pending.tracks = self._triangulation_candidates(kf)
-            pending.colors = dict(zip(kf.track_ids.tolist(), kf.colors))
+            pending.colors = self._colors_in(kf, pending.tracks)
             if limit is not None:
                 return  # choosing them was this piece of work
         n = len(pending.tracks) if limit is None else limit
@@ -399,6 +399,14 @@ class Mapper:
                 self._local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
             else:
                 self._local_ba()
+
+    @staticmethod
+    def _colors_in(kf: Keyframe, tracks: list[int]) -> dict[int, np.ndarray]:
+        """The colour of each of ``tracks`` (some of the keyframe's) in keyframe ``kf``: found by a sorted
+        search, not a dictionary of all its thousands of tracks (most are no candidate)."""
+        order = np.argsort(kf.track_ids, kind="stable")
+        at = order[np.searchsorted(kf.track_ids, np.asarray(tracks, np.int64), sorter=order)]
+        return dict(zip(tracks, kf.colors[at]))
 
     def maintain(self) -> str | None:
         """Idle-time work for a live mapper, one short piece per call: a keyframe's deferred triangulation
