@@ -12,6 +12,7 @@ Poses are T_world_camera; observations are undistorted pixels of the pinhole cam
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import logging
@@ -455,11 +456,11 @@ class Mapper:
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
             self.archive.inlier_observations += int(good.sum())
-        for t in retired:
-            self._tried.discard(t)
-            del self.tracks[t]
-            self.landmarks.pop(t, None)
-            self.landmark_colors.pop(t, None)
+        # (C-level loops over the retired tracks, a thousand or more a keyframe)
+        self._tried.difference_update(retired)
+        collections.deque(map(self.tracks.pop, retired), maxlen=0)
+        collections.deque(map(self.landmarks.pop, retired, itertools.repeat(None)), maxlen=0)
+        collections.deque(map(self.landmark_colors.pop, retired, itertools.repeat(None)), maxlen=0)
         empty = np.zeros(0, np.int64)
         for kf in retirement.take_keyframes_to_empty(self.keyframes, cutoff):
             kf.track_ids, kf.uv, kf.colors = empty, np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
