@@ -70,7 +70,7 @@ def _spread(seen: list, n: int) -> list:
 
 def _distinct(values: np.ndarray) -> np.ndarray:
     """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4), or
-    by a count where the values span no more than their number (a window's keyframe ids: a tenth of that)."""
+    by a count where the values span no more than their number (a window's keyframe ids)."""
     if len(values) and int(values.max()) - int(values.min()) < len(values):
         lo = int(values.min())
         return (np.flatnonzero(np.bincount(values - lo)) + lo).astype(values.dtype, copy=False)
@@ -688,9 +688,9 @@ class Mapper:
             tids = np.repeat(point_ids, [len(s) for s in seen_by])
             uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
-        else:  # the window's observations of its points (one sorted search finds both which and where)
+        else:  # the window's observations of its points (one look-up finds both which and where)
             rows, found = rows_of(point_ids, tids)
-            keep = np.flatnonzero(found)  # (``take`` by index: a fifth of four boolean selections' time)
+            keep = np.flatnonzero(found)  # (taken by index: cheaper than four boolean selections)
             tids, uvs, kfi, obs_point = tids.take(keep), uvs.take(keep, axis=0), kfi.take(keep), rows.take(keep)
         seen = _distinct(kfi)
         first_active = self.first_active

@@ -106,7 +106,7 @@ def _jacobians(Xc, front, K):
 
 def _gauss_newton(T, prior_inv, info, points, uv, K, loss, threshold, sigma_px, iterations, at_T=None):
     """``iterations`` IRLS steps from T (``prior_inv``: the prior's inverse; ``at_T``: ``_residuals`` at T, if
-    known); each is the same arithmetic as before, with fewer numpy calls (this runs for every live frame)."""
+    known). Every live frame runs this: each step in as few numpy calls as its arithmetic allows."""
     w = np.ones(len(points))
     for _ in range(iterations):
         r, Xc = _residuals(T, points, uv, K) if at_T is None else at_T
