@@ -406,3 +406,87 @@ def test_keyframe_corrections_interpolated_at_many_frame_times_are_each_frames_o
         want = corr[0] if i == 0 else corr[-1] if i >= len(kt) else interpolate_pose(
             corr[i - 1], corr[i], (t - kt[i - 1]) / (kt[i] - kt[i - 1]))
         assert np.allclose(C, want, atol=1e-12), t
+
+
+def test_rows_of_finds_each_id_where_a_sorted_search_does_by_its_table_and_by_the_search(rng):
+    """``rows_of`` (a local window's observations looked up among its landmarks) gives a sorted search's rows
+    and misses, by its table over a short span of ids and by the search where the span is long or ids lie
+    below the known ones."""
+    from lapreco_hil.mapping.mapper import DENSE_LOOKUP_SPAN, rows_of
+
+    known = np.unique(rng.integers(1000, 5000, 800))
+    short = rng.integers(1000, 6000, 3000)  # some above the known ids, many absent
+    wide = np.concatenate([short, [1000 + DENSE_LOOKUP_SPAN * 10 ** 6]])  # a span the table must not cover
+    below = np.concatenate([short, [3]])
+    for ids in (short, wide, below, known[::-1].copy()):
+        rows, found = rows_of(known, ids)
+        expected = np.isin(ids, known)
+        np.testing.assert_array_equal(found, expected)
+        np.testing.assert_array_equal(rows[found], np.searchsorted(known, ids[found]))
+        assert rows.min() >= 0 and rows.max() < len(known)
+
+
+def test_a_keyframes_views_noted_at_once_keep_the_retirement_bookkeeping_of_one_at_a_time(rng):
+    """``Retirement.seen_in`` (a keyframe's tracks handed over at once) leaves each track last seen where
+    ``seen`` one track at a time does, so a retirement takes the same tracks."""
+    from lapreco_hil.mapping.retirement import Retirement
+
+    config = MapperConfig(active_keyframes=4, retire_batch=1)
+    one, many = Retirement(config), Retirement(config)
+    last: dict[int, int] = {}
+    for kf in range(6):
+        tracks = sorted(set(rng.integers(0, 60, 40).tolist()))
+        before = [last.get(t) for t in tracks]
+        for t, b in zip(tracks, before):
+            one.seen(t, kf, b)
+        many.seen_in(kf, tracks, before)
+        last.update(dict.fromkeys(tracks, kf))
+    for cutoff in (2, 4, 6):
+        assert one.take_tracks(cutoff) == many.take_tracks(cutoff)
+    assert one.retired_tracks == many.retired_tracks and len(many.retired_tracks) == len(last)
+
+
+def test_the_keyframe_tests_parallax_from_known_common_tracks_is_the_parallax_found_alone(rng):
+    """``is_keyframe`` finds the common tracks once and hands them to ``median_parallax_deg``: the same angle
+    as it finds alone, for tracks in any order."""
+    from lapreco_hil.mapping.keyframes import Keyframe, median_parallax_deg
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    ids_a = rng.permutation(400)[:300]
+    ids_b = rng.permutation(np.arange(100, 500))[:350]
+    last = Keyframe(0, 0, 0, PosePrior(np.eye(4), np.eye(6) * 1e-6, 0), np.eye(4), ids_a,
+                    rng.uniform(0, 480, (300, 2)), np.zeros((300, 3), np.uint8))
+    T = make_T(Rotation.from_rotvec([0.0, 0.03, 0.01]).as_matrix(), [0.004, 0.0, 0.0])
+    obs = Observations(1, 1, ids_b, rng.uniform(0, 480, (350, 2)), np.zeros((350, 3), np.uint8))
+    prior = PosePrior(T, np.eye(6) * 1e-6, 1)
+    common = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)[1:]
+    alone = median_parallax_deg(last, obs, prior, K)
+    assert alone > 0 and median_parallax_deg(last, obs, prior, K, common) == alone
+
+
+def test_distinct_is_numpys_unique_by_its_count_and_by_its_sort(rng):
+    """``_distinct`` counts short spans (a window's keyframe ids) and sorts long ones (track ids): np.unique
+    either way, with the input's dtype."""
+    from lapreco_hil.mapping.mapper import _distinct
+
+    for values in (rng.integers(200, 230, 5000), rng.integers(-5, 3, 40), rng.integers(0, 10 ** 6, 3000),
+                   np.array([7]), np.zeros(0, np.int64)):
+        got = _distinct(values)
+        np.testing.assert_array_equal(got, np.unique(values))
+        assert got.dtype == values.dtype
+
+
+def test_a_keyframes_colours_of_some_tracks_are_its_own_for_those_tracks(rng):
+    """``Mapper._colors_in`` (a keyframe's triangulation candidates' colours) gives each track the colour the
+    keyframe saw it in, for tracks in any order, none among them."""
+    from lapreco_hil.mapping.keyframes import Keyframe
+
+    ids = rng.permutation(10_000)[:500]
+    colors = rng.integers(0, 256, (500, 3)).astype(np.uint8)
+    kf = Keyframe(0, 0, 0, PosePrior(np.eye(4), COV, 0), np.eye(4), ids, np.zeros((500, 2)), colors)
+    pick = rng.choice(500, 60, replace=False)
+    got = Mapper._colors_in(kf, ids[pick].tolist())
+    assert list(got) == ids[pick].tolist()
+    for t, i in zip(ids[pick].tolist(), pick.tolist()):
+        np.testing.assert_array_equal(got[t], colors[i])
+    assert Mapper._colors_in(kf, []) == {}

@@ -63,17 +63,21 @@ def is_keyframe(last: Keyframe | None, obs: Observations, prior: PosePrior, K: n
         return True
     if rotation_angle(T0[:3, :3].T @ T1[:3, :3]) > config.keyframe_rotation_rad:
         return True
-    alive = np.isin(last.track_ids, obs.track_ids).sum()
-    if alive < config.keyframe_track_ratio * max(len(last.track_ids), 1):
+    # the tracks both hold, found once for the count and the parallax (a frame's track ids are distinct)
+    common = np.intersect1d(last.track_ids, obs.track_ids, assume_unique=True, return_indices=True)[1:]
+    if len(common[0]) < config.keyframe_track_ratio * max(len(last.track_ids), 1):
         return True
-    return median_parallax_deg(last, obs, prior, K) > config.keyframe_parallax_deg
+    return median_parallax_deg(last, obs, prior, K, common) > config.keyframe_parallax_deg
 
 
-def median_parallax_deg(last: Keyframe, obs: Observations, prior: PosePrior, K: np.ndarray) -> float:
+def median_parallax_deg(last: Keyframe, obs: Observations, prior: PosePrior, K: np.ndarray,
+                        common: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """Median angle between each common track's ray in the last keyframe and in this frame, with the
-    camera rotation between them removed: what a triangulation from the two would get."""
-    common, ia, ib = np.intersect1d(last.track_ids, obs.track_ids, return_indices=True)
-    if len(common) == 0:
+    camera rotation between them removed: what a triangulation from the two would get. ``common``: the
+    common tracks' indices in each (ia, ib), if known."""
+    ia, ib = common if common is not None else \
+        np.intersect1d(last.track_ids, obs.track_ids, return_indices=True)[1:]
+    if len(ia) == 0:
         return 0.0
     Kinv = np.linalg.inv(K)
 

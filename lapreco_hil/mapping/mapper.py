@@ -12,6 +12,7 @@ Poses are T_world_camera; observations are undistorted pixels of the pinhole cam
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import logging
@@ -54,6 +55,11 @@ PRIOR_GATE_SIGMAS = 3.0
 STEREO_INLIER_INSTANTS = 2
 
 
+# ``rows_of`` looks ids up in a table spanning their range when that range is at most this many times the ids
+# looked up (track ids grow with time: a window's span is a few of its sizes), else by a sorted search
+DENSE_LOOKUP_SPAN = 8
+
+
 def _spread(seen: list, n: int) -> list:
     """At most n of a track's views, evenly spread, always the first and the last."""
     m = len(seen)
@@ -63,9 +69,30 @@ def _spread(seen: list, n: int) -> list:
 
 
 def _distinct(values: np.ndarray) -> np.ndarray:
-    """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4)."""
+    """np.unique of an integer array by a sort (numpy's hashed unique took 3 ms on a window's 45k ids; this 0.4), or
+    by a count where the values span no more than their number (a window's keyframe ids)."""
+    if len(values) and int(values.max()) - int(values.min()) < len(values):
+        lo = int(values.min())
+        return (np.flatnonzero(np.bincount(values - lo)) + lo).astype(values.dtype, copy=False)
     s = np.sort(values)
     return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
+
+
+def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of ``ids`` is in ``sorted_ids`` (distinct, ascending, not empty), and whether it is there at
+    all: (rows (meaningless where absent), found). A local window looks tens of thousands of observations up
+    among its landmarks: a table over the ids' span is several times faster than ``np.searchsorted``."""
+    lo = int(sorted_ids[0])
+    if len(ids) and int(ids.min()) >= lo:
+        span = max(int(sorted_ids[-1]), int(ids.max())) - lo + 1
+        if span <= DENSE_LOOKUP_SPAN * (len(ids) + len(sorted_ids)):
+            table = np.full(span, -1, np.int64)
+            table[sorted_ids - lo] = np.arange(len(sorted_ids))
+            rows = table[ids - lo]
+            found = rows >= 0
+            return np.maximum(rows, 0), found
+    rows = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+    return rows, sorted_ids[rows] == ids
 
 
 @dataclass(frozen=True)
@@ -234,15 +261,7 @@ class Mapper:
                       obs.track_ids.copy(), obs.uv.copy(), obs.colors.copy())
         self.keyframes.append(kf)
         retirement = self.retirement
-        for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
-            if retirement.is_retired(tid):
-                continue  # its landmark is final
-            seen = self.tracks.get(tid)
-            if seen is None:
-                self.tracks[tid] = seen = []
-                self.tracks_seen += 1
-            retirement.seen(tid, kf.id, seen[-1][0] if seen else None)
-            seen.append((kf.id, uv))
+        self._note_views(kf)
         record.T_refined = kf.T_world_camera
         if self.rig is not None and partners is not None:
             for view in (partners() if callable(partners) else partners):
@@ -256,6 +275,25 @@ class Mapper:
         if cutoff is not None:
             self._retire(cutoff)
         return True
+
+    def _note_views(self, kf: Keyframe) -> None:
+        """Keyframe ``kf``'s view of each of its tracks, appended to the track (one loop over a keyframe's
+        thousands of tracks, its bookkeeping for retirement handed over at once)."""
+        tracks, retired, kid = self.tracks, self.retirement.retired_tracks, kf.id
+        kept, before = [], []
+        for tid, uv in zip(kf.track_ids.tolist(), kf.uv):
+            if tid in retired:
+                continue  # its landmark is final
+            seen = tracks.get(tid)
+            if seen is None:
+                tracks[tid] = [(kid, uv)]
+                before.append(None)
+            else:
+                before.append(seen[-1][0])
+                seen.append((kid, uv))
+            kept.append(tid)
+        self.tracks_seen += before.count(None)
+        self.retirement.seen_in(kid, kept, before)
 
     def _measure_motion(self, obs: Observations) -> None:
         """How far the image moved since the previous frame: the median displacement of the tracks both saw
@@ -346,7 +384,7 @@ class Mapper:
         if pending.tracks is None:
             kf = self.keyframes[pending.kf_id]
             pending.tracks = self._triangulation_candidates(kf)
-            pending.colors = dict(zip(kf.track_ids.tolist(), kf.colors))
+            pending.colors = self._colors_in(kf, pending.tracks)
             if limit is not None:
                 return  # choosing them was this piece of work
         n = len(pending.tracks) if limit is None else limit
@@ -362,6 +400,14 @@ class Mapper:
                 self._local_ba_wanted = True  # the live mapper hands it to its BA worker (local_ba_job)
             else:
                 self._local_ba()
+
+    @staticmethod
+    def _colors_in(kf: Keyframe, tracks: list[int]) -> dict[int, np.ndarray]:
+        """The colour of each of ``tracks`` (some of the keyframe's) in keyframe ``kf``: found by a sorted
+        search, not a dictionary of all its thousands of tracks (most are no candidate)."""
+        order = np.argsort(kf.track_ids, kind="stable")
+        at = order[np.searchsorted(kf.track_ids, np.asarray(tracks, np.int64), sorter=order)]
+        return dict(zip(tracks, kf.colors[at]))
 
     def maintain(self) -> str | None:
         """Idle-time work for a live mapper, one short piece per call: a keyframe's deferred triangulation
@@ -390,30 +436,31 @@ class Mapper:
         retired = retirement.take_tracks(cutoff)
         with_point = [t for t in retired if t in self.landmarks]
         if with_point:
-            obs = [(k, j, uv) for j, t in enumerate(with_point) for k, uv in self.tracks[t]]
-            kf_ids = sorted({k for k, _, _ in obs})
-            index = {k: i for i, k in enumerate(kf_ids)}
+            # their observations flattened once (point j's views in order), no tuple per view
+            seen_by = [self.tracks[t] for t in with_point]
+            flat = list(itertools.chain.from_iterable(seen_by))
+            obs_kf = np.fromiter(map(itemgetter(0), flat), np.int64, len(flat))
+            obs_point = np.repeat(np.arange(len(with_point)), np.fromiter(map(len, seen_by), np.int64, len(seen_by)))
+            kf_ids, obs_pose = np.unique(obs_kf, return_inverse=True)
             points = np.array([self.landmarks[t] for t in with_point])
-            obs_point = np.array([j for _, j, _ in obs], np.int64)
-            r = ba.residual_vectors(self.K, np.array([self.keyframes[k].T_world_camera for k in kf_ids]), points,
-                                    np.array([index[k] for k, _, _ in obs], np.int64), obs_point,
-                                    np.array([uv for _, _, uv in obs]))
+            poses = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])
+            r = ba.residual_vectors(self.K, poses, points, obs_pose, obs_point,
+                                    np.array(list(map(itemgetter(1), flat))))
             sigma = self.last_sigma_px if np.isfinite(self.last_sigma_px) else self.config.sigma_floor_px
             good = np.linalg.norm(r, axis=1) <= self.final_schedule.inlier_threshold_px(sigma)
-            obs_kf = np.array([k for k, _, _ in obs], np.int64)
-            centres = np.array([self.keyframes[k].T_world_camera[:3, 3] for k in obs_kf.tolist()]).reshape(-1, 3)
+            centres = poses[obs_pose][:, :3, 3]
             inlier = self._inlier_points(obs_point, good, len(with_point), len(kf_ids),
-                                         self._is_reference(obs_kf), self._is_reference(np.array(kf_ids)).sum(),
+                                         self._is_reference(obs_kf), self._is_reference(kf_ids).sum(),
                                          points, centres, self._instants(obs_kf))
             self.archive.add(np.array(with_point, np.int64), points,
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
             self.archive.inlier_observations += int(good.sum())
-        for t in retired:
-            self._tried.discard(t)
-            del self.tracks[t]
-            self.landmarks.pop(t, None)
-            self.landmark_colors.pop(t, None)
+        # (C-level loops over the retired tracks, a thousand or more a keyframe)
+        self._tried.difference_update(retired)
+        collections.deque(map(self.tracks.pop, retired), maxlen=0)
+        collections.deque(map(self.landmarks.pop, retired, itertools.repeat(None)), maxlen=0)
+        collections.deque(map(self.landmark_colors.pop, retired, itertools.repeat(None)), maxlen=0)
         empty = np.zeros(0, np.int64)
         for kf in retirement.take_keyframes_to_empty(self.keyframes, cutoff):
             kf.track_ids, kf.uv, kf.colors = empty, np.zeros((0, 2)), np.zeros((0, 3), np.uint8)
@@ -500,11 +547,12 @@ class Mapper:
 
     def _resection_points(self, record: FrameRecord) -> tuple[np.ndarray, np.ndarray]:
         """(landmarks, pixels) of the frame's tracks that have a point, thinned to ``resection_max_points``."""
-        known = [i for i, t in enumerate(record.track_ids.tolist()) if t in self.landmarks]
+        landmarks, ids = self.landmarks, record.track_ids.tolist()
+        known = [i for i, t in enumerate(ids) if t in landmarks]
         cap = self.config.resection_max_points
         if cap and len(known) > cap:  # a 6-DoF pose with a prior is settled long before 2000 points
             known = known[:: -(-len(known) // cap)]
-        pts = np.array([self.landmarks[int(record.track_ids[i])] for i in known]).reshape(-1, 3)
+        pts = np.array([landmarks[ids[i]] for i in known]).reshape(-1, 3)
         return pts, record.uv[known].reshape(-1, 2)
 
     def _resect(self, record: FrameRecord, T_init: np.ndarray) -> np.ndarray:
@@ -544,20 +592,19 @@ class Mapper:
         # first and last views (the parallax) and a few evenly between are enough for the initial point, which
         # bundle adjustment then refines with all of them (every view made triangulation a keyframe's main cost).
         views = [_spread(self.tracks[t], TRIANGULATION_VIEWS) for t in cands]
-        V = max(len(v) for v in views)
+        counts = np.fromiter(map(len, views), np.int64, len(views))
+        V = int(counts.max())
         uv = np.zeros((len(cands), V, 2))
         seen = np.zeros((len(cands), V), bool)
         poses = np.tile(np.eye(4), (len(cands), V, 1, 1))  # each track's own views (unused slots: identity)
-        rows, cols, kfs, pts = [], [], [], []
-        for n, v in enumerate(views):
-            for j, (k, p) in enumerate(v):
-                rows.append(n)
-                cols.append(j)
-                kfs.append(k)
-                pts.append(p)
-        uv[rows, cols] = np.array(pts)
+        # every view flattened once (track n's j-th view at row n, column j), no Python loop per view
+        flat = list(itertools.chain.from_iterable(views))
+        rows = np.repeat(np.arange(len(cands)), counts)
+        cols = np.arange(len(flat)) - np.repeat(np.cumsum(counts) - counts, counts)
+        kfs = np.fromiter(map(itemgetter(0), flat), np.int64, len(flat))
+        uv[rows, cols] = np.array(list(map(itemgetter(1), flat)))
         seen[rows, cols] = True
-        kf_ids, which = np.unique(np.array(kfs), return_inverse=True)
+        kf_ids, which = np.unique(kfs, return_inverse=True)
         poses[rows, cols] = np.array([self.keyframes[k].T_world_camera for k in kf_ids.tolist()])[which]
         if self._corrected:
             res = triangulate(uv, seen, poses, self.K, cfg.min_parallax_deg, cfg.max_reprojection_px)
@@ -573,7 +620,7 @@ class Mapper:
             z = np.einsum("ni,ni->n", res.points - last[:, :3, 3], last[:, :3, 2])  # depth in the newest view
             rot2, trans2 = self._prior_sigma2(kf_ids)
             rot2_n, trans2_n = rot2[which].reshape(-1), trans2[which].reshape(-1)
-            owner = np.array(rows)
+            owner = rows
             worst_rot2, worst_trans2 = np.zeros(len(cands)), np.zeros(len(cands))
             np.maximum.at(worst_rot2, owner, rot2_n)
             np.maximum.at(worst_trans2, owner, trans2_n)
@@ -599,11 +646,12 @@ class Mapper:
         cost most of a keyframe's time at 2000 tracks. (The margin covers the noise in the two rays.)"""
         if not cands:
             return cands
-        ends = [(s[0], s[-1]) for s in (self.tracks[t] for t in cands)]
-        k0 = np.array([a[0] for a, _ in ends])
-        k1 = np.array([b[0] for _, b in ends])
-        uv0 = np.array([a[1] for a, _ in ends])
-        uv1 = np.array([b[1] for _, b in ends])
+        seen = [self.tracks[t] for t in cands]
+        first, last = list(map(itemgetter(0), seen)), list(map(itemgetter(-1), seen))
+        k0 = np.fromiter(map(itemgetter(0), first), np.int64, len(cands))
+        k1 = np.fromiter(map(itemgetter(0), last), np.int64, len(cands))
+        uv0 = np.array(list(map(itemgetter(1), first)))
+        uv1 = np.array(list(map(itemgetter(1), last)))
         kf_ids, which = np.unique(np.concatenate([k0, k1]), return_inverse=True)
         R = np.array([self.keyframes[k].T_world_camera[:3, :3] for k in kf_ids.tolist()])[which]
         Kinv = np.linalg.inv(self.K)
@@ -640,10 +688,10 @@ class Mapper:
             tids = np.repeat(point_ids, [len(s) for s in seen_by])
             uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
-        else:  # the window's observations of its points (one sorted search finds both which and where)
-            rows = np.minimum(np.searchsorted(point_ids, tids), len(point_ids) - 1)
-            sel = point_ids[rows] == tids
-            tids, uvs, kfi, obs_point = tids[sel], uvs[sel], kfi[sel], rows[sel]
+        else:  # the window's observations of its points (one look-up finds both which and where)
+            rows, found = rows_of(point_ids, tids)
+            keep = np.flatnonzero(found)  # (taken by index: cheaper than four boolean selections)
+            tids, uvs, kfi, obs_point = tids.take(keep), uvs.take(keep, axis=0), kfi.take(keep), rows.take(keep)
         seen = _distinct(kfi)
         first_active = self.first_active
         kf_ids = np.concatenate([np.union1d(free, seen[seen >= first_active]), seen[seen < first_active]])
@@ -693,9 +741,10 @@ class Mapper:
             if not problem.fixed[i] and k >= self.first_active:  # (a worker's result may outlive a keyframe)
                 self.keyframes[k].T_world_camera = result.poses[i]
                 self.keyframes[k].refined = True
-        for j, t in enumerate(problem.point_ids.tolist()):
-            if t in self.landmarks:
-                self.landmarks[t] = result.points[j]
+        landmarks = self.landmarks
+        for t, X in zip(problem.point_ids.tolist(), result.points):
+            if t in landmarks:
+                landmarks[t] = X
         self._corrected |= any(self.keyframes[k].refined for k in problem.pose_ids.tolist()
                                if k < len(self.keyframes))
         self.ba_times.append(result.seconds)

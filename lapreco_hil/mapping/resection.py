@@ -53,11 +53,13 @@ def refine_pose(T_prior: np.ndarray, cov: np.ndarray, points: np.ndarray, uv: np
     if len(points) < 6:
         return T, np.zeros(len(points), bool)
     info = np.linalg.inv(cov)
+    prior_inv = np.linalg.inv(T_prior)
     w = np.zeros(len(points))
     for stage in schedule.stages:
-        r, _ = _residuals(T, points, uv, K)
-        sigma = min(mad_sigma(r, sigma_px), schedule.sigma_ceiling_px)
-        T, w = _gauss_newton(T, T_prior, info, points, uv, K, stage.loss, stage.k * sigma, sigma, stage.iterations)
+        at_T = _residuals(T, points, uv, K)  # the stage's scale, and its first step's residuals
+        sigma = min(mad_sigma(at_T[0], sigma_px), schedule.sigma_ceiling_px)
+        T, w = _gauss_newton(T, prior_inv, info, points, uv, K, stage.loss, stage.k * sigma, sigma, stage.iterations,
+                             at_T)
     return T, w > 0
 
 
@@ -70,8 +72,9 @@ def _residuals(T, points, uv, K, have=None):
     if have is not None:
         front &= have
     zs = np.where(front, Xc[..., 2], 1.0)
-    r = np.stack([K[0, 0] * Xc[..., 0] / zs + K[0, 2] - uv[..., 0], K[1, 1] * Xc[..., 1] / zs + K[1, 2] - uv[..., 1]],
-                 axis=-1)
+    r = np.empty(Xc.shape[:-1] + (2,))
+    r[..., 0] = K[0, 0] * Xc[..., 0] / zs + K[0, 2] - uv[..., 0]
+    r[..., 1] = K[1, 1] * Xc[..., 1] / zs + K[1, 2] - uv[..., 1]
     r[~front] = np.nan
     return r, Xc
 
@@ -84,27 +87,40 @@ def _jacobians(Xc, front, K):
     zs = np.where(front, zz, 1.0)
     a, b = fx / zs, -fx * x / zs**2
     c, d = fy / zs, -fy * y / zs**2
-    zero = np.zeros_like(a)
     J = np.empty(x.shape + (2, 6))
-    J[..., 0, :] = np.stack([-b * y, -a * zz + b * x, a * y, -a, zero, -b], axis=-1)
-    J[..., 1, :] = np.stack([c * zz - d * y, d * x, -c * x, zero, -c, -d], axis=-1)
+    Ju, Jv = J[..., 0, :], J[..., 1, :]
+    np.multiply(-b, y, out=Ju[..., 0])
+    Ju[..., 1] = -a * zz + b * x
+    np.multiply(a, y, out=Ju[..., 2])
+    np.negative(a, out=Ju[..., 3])
+    Ju[..., 4] = 0.0
+    np.negative(b, out=Ju[..., 5])
+    Jv[..., 0] = c * zz - d * y
+    np.multiply(d, x, out=Jv[..., 1])
+    np.multiply(-c, x, out=Jv[..., 2])
+    Jv[..., 3] = 0.0
+    np.negative(c, out=Jv[..., 4])
+    np.negative(d, out=Jv[..., 5])
     return J
 
 
-def _gauss_newton(T, T_prior, info, points, uv, K, loss, threshold, sigma_px, iterations):
+def _gauss_newton(T, prior_inv, info, points, uv, K, loss, threshold, sigma_px, iterations, at_T=None):
+    """``iterations`` IRLS steps from T (``prior_inv``: the prior's inverse; ``at_T``: ``_residuals`` at T, if
+    known). Every live frame runs this: each step in as few numpy calls as its arithmetic allows."""
     w = np.ones(len(points))
     for _ in range(iterations):
-        r, Xc = _residuals(T, points, uv, K)
+        r, Xc = _residuals(T, points, uv, K) if at_T is None else at_T
+        at_T = None
         front = np.isfinite(r[:, 0])
-        r = np.nan_to_num(r)
-        e = np.linalg.norm(r, axis=1)
+        r = np.where(front[:, None], r, 0.0)  # (a fresh array: the caller's residuals keep their NaN)
+        e = np.sqrt(r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1])  # (np.linalg.norm's own sum, bit for bit)
         w = np.where(front, irls_weight(loss, e, threshold), 0.0) / sigma_px**2
         J = _jacobians(Xc, front, K).reshape(-1, 6)  # (2N, 6): rows u, v of each observation
         wJ = J * np.repeat(w, 2)[:, None]
         H = wJ.T @ J  # a matrix product (BLAS), not a three-operand einsum: far faster
         g = wJ.T @ r.ravel()
         # prior: residual log(T_prior^-1 T), Jacobian ~ identity near the prior
-        rp = _log(np.linalg.inv(T_prior) @ T)
+        rp = _log(prior_inv @ T)
         H += info
         g += info @ rp
         try:

@@ -35,6 +35,19 @@ class Retirement:
             self._last_seen_in[before].discard(track)
         self._last_seen_in.setdefault(kf_id, set()).add(track)
 
+    @property
+    def retired_tracks(self) -> set[int]:
+        """The tracks ``is_retired`` says are (the set itself, for a loop over a keyframe's tracks: read only)."""
+        return self._retired_tracks
+
+    def seen_in(self, kf_id: int, tracks: list[int], before: list[int | None]) -> None:
+        """``seen`` for many tracks of keyframe ``kf_id`` at once; ``before[i]``: where ``tracks[i]`` was last seen."""
+        last_seen_in = self._last_seen_in
+        for track, k in zip(tracks, before):
+            if k is not None:
+                last_seen_in[k].discard(track)
+        last_seen_in.setdefault(kf_id, set()).update(tracks)
+
     def _over(self, n_keyframes: int) -> int:
         return n_keyframes - self.first_active - self.active_keyframes
 

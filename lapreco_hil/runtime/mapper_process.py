@@ -35,7 +35,7 @@ from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJob
 log = logging.getLogger(__name__)
 
 SNAPSHOT_PERIOD_S = 0.5  # the map for the live surface is published at most this often
-SNAPSHOT_PIECE = 5000  # landmarks gathered per idle moment for it
+SNAPSHOT_PIECE = 2500  # landmarks gathered per idle moment for it (a frame that arrives waits for one piece)
 YOUNG_GC_PERIOD_S = 1.0  # the mapper's idle-time garbage collection (IdleTimeGC)
 # Frames first: a BA result is applied, the next BA job built and sent, the map snapshot gathered (each a few
 # to tens of milliseconds) when no frame waits, or after this long without such a moment (a long backlog)
