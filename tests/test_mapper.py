@@ -408,24 +408,6 @@ def test_keyframe_corrections_interpolated_at_many_frame_times_are_each_frames_o
         assert np.allclose(C, want, atol=1e-12), t
 
 
-def test_rows_of_finds_each_id_where_a_sorted_search_does_by_its_table_and_by_the_search(rng):
-    """``rows_of`` (a local window's observations looked up among its landmarks) gives a sorted search's rows
-    and misses, by its table over a short span of ids and by the search where the span is long or ids lie
-    below the known ones."""
-    from lapreco_hil.mapping.mapper import DENSE_LOOKUP_SPAN, rows_of
-
-    known = np.unique(rng.integers(1000, 5000, 800))
-    short = rng.integers(1000, 6000, 3000)  # some above the known ids, many absent
-    wide = np.concatenate([short, [1000 + DENSE_LOOKUP_SPAN * 10 ** 6]])  # a span the table must not cover
-    below = np.concatenate([short, [3]])
-    for ids in (short, wide, below, known[::-1].copy()):
-        rows, found = rows_of(known, ids)
-        expected = np.isin(ids, known)
-        np.testing.assert_array_equal(found, expected)
-        np.testing.assert_array_equal(rows[found], np.searchsorted(known, ids[found]))
-        assert rows.min() >= 0 and rows.max() < len(known)
-
-
 def test_a_keyframes_views_noted_at_once_keep_the_retirement_bookkeeping_of_one_at_a_time(rng):
     """``Retirement.seen_in`` (a keyframe's tracks handed over at once) leaves each track last seen where
     ``seen`` one track at a time does, so a retirement takes the same tracks."""

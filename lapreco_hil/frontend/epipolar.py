@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lapreco_hil.frontend.drift import AffineDriftCheck, gradients
+from lapreco_hil.lookup import positions
 
 # the sweep: an 11 x 11 patch on pyramid level 1 (22 x 22 pixels of the full image), 32 to 96 inverse-depth
 # samples (about one per level pixel of the line), a match where ZNCC is above MIN_SCORE and the best score
@@ -140,35 +141,14 @@ def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, kn
     return borrow_depths(uv, own_depths(ids, known_ids, known_depth), image_size)
 
 
-# own_depths looks ids up in a table indexed by id where the ids span at most this many times their count, plus
-# ID_TABLE_MIN (a live run's track ids: a window of recent ones; a table of a few MB costs less than sorting),
-# else by sorting
-ID_TABLE_SPAN = 32
-ID_TABLE_MIN = 65536
-
-
 def own_depths(ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray) -> np.ndarray:
     """Each track's own depth where ``known_ids`` has it (and it is positive), else NaN."""
-    ids, known_ids = np.asarray(ids), np.asarray(known_ids)
     n = len(ids)
     depth = np.full(n, np.nan)
     if n == 0 or len(known_ids) == 0:
         return depth
-    known_depth = np.asarray(known_depth, np.float64)
-    integer = np.issubdtype(ids.dtype, np.integer) and np.issubdtype(known_ids.dtype, np.integer)
-    low = int(min(ids.min(), known_ids.min())) if integer else 0
-    span = int(max(ids.max(), known_ids.max())) - low + 1 if integer else 0
-    if integer and span <= ID_TABLE_SPAN * (n + len(known_ids)) + ID_TABLE_MIN:
-        table = np.full(span, np.nan)
-        table[known_ids - low] = known_depth
-        depth = table[ids - low]
-    else:
-        order = np.argsort(known_ids)
-        sorted_ids = known_ids[order]
-        by_id = np.argsort(ids)  # (sorted queries: searchsorted walks the sorted ids once, not at random)
-        pos = np.clip(np.searchsorted(sorted_ids, ids[by_id]), 0, len(sorted_ids) - 1)
-        hit = sorted_ids[pos] == ids[by_id]
-        depth[by_id[hit]] = known_depth[order[pos[hit]]]
+    at, found = positions(known_ids, ids)
+    depth[found] = np.asarray(known_depth, np.float64)[at[found]]
     depth[~(depth > 0)] = np.nan
     return depth
 

@@ -26,21 +26,14 @@ def carried_depths(ids: np.ndarray, prev_ids: np.ndarray, prev_uv: np.ndarray, p
     """The depth (z) in the current camera of each track of ``ids`` whose depth in the previous frame is known
     (``prev_depth`` at ``prev_uv``, NaN where unknown): its point moved by ``T_cur_prev``; NaN for the others."""
     ids = np.asarray(ids, np.int64)
-    out = np.full(len(ids), np.nan)
-    prev_ids = np.asarray(prev_ids, np.int64)
     known = np.isfinite(prev_depth) & (np.asarray(prev_depth) > 0)
     if not len(ids) or not known.any():
-        return out
-    kid, kuv, kz = prev_ids[known], np.asarray(prev_uv, np.float64)[known], np.asarray(prev_depth, np.float64)[known]
+        return np.full(len(ids), np.nan)
+    kid, kuv, kz = (np.asarray(prev_ids, np.int64)[known], np.asarray(prev_uv, np.float64)[known],
+                    np.asarray(prev_depth, np.float64)[known])
     rays = np.column_stack([(kuv[:, 0] - K[0, 2]) / K[0, 0], (kuv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(kuv))])
     T = np.asarray(T_cur_prev, np.float64)
-    z = (rays * kz[:, None]) @ T[2, :3] + T[2, 3]
-    order = np.argsort(kid)
-    at = np.clip(np.searchsorted(kid[order], ids), 0, len(kid) - 1)
-    hit = kid[order][at] == ids
-    out[hit] = z[order][at[hit]]
-    out[~(out > 0)] = np.nan
-    return out
+    return epipolar.own_depths(ids, kid, (rays * kz[:, None]) @ T[2, :3] + T[2, 3])
 
 
 def search_ranges(uv: np.ndarray, depth: np.ndarray, image_size: tuple[int, int],

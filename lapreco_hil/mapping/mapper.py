@@ -27,6 +27,7 @@ from lapreco_hil.config import MapperConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.funnel import Funnel
 from lapreco_hil.geometry import inv_T, rigid
+from lapreco_hil.lookup import positions
 from lapreco_hil.types import Observations, PosePrior
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.archive import LandmarkArchive
@@ -55,11 +56,6 @@ PRIOR_GATE_SIGMAS = 3.0
 STEREO_INLIER_INSTANTS = 2
 
 
-# ``rows_of`` looks ids up in a table spanning their range when that range is at most this many times the ids
-# looked up (track ids grow with time: a window's span is a few of its sizes), else by a sorted search
-DENSE_LOOKUP_SPAN = 8
-
-
 def _spread(seen: list, n: int) -> list:
     """At most n of a track's views, evenly spread, always the first and the last."""
     m = len(seen)
@@ -76,23 +72,6 @@ def _distinct(values: np.ndarray) -> np.ndarray:
         return (np.flatnonzero(np.bincount(values - lo)) + lo).astype(values.dtype, copy=False)
     s = np.sort(values)
     return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
-
-
-def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where each of ``ids`` is in ``sorted_ids`` (distinct, ascending, not empty), and whether it is there at
-    all: (rows (meaningless where absent), found). A local window looks tens of thousands of observations up
-    among its landmarks: a table over the ids' span is several times faster than ``np.searchsorted``."""
-    lo = int(sorted_ids[0])
-    if len(ids) and int(ids.min()) >= lo:
-        span = max(int(sorted_ids[-1]), int(ids.max())) - lo + 1
-        if span <= DENSE_LOOKUP_SPAN * (len(ids) + len(sorted_ids)):
-            table = np.full(span, -1, np.int64)
-            table[sorted_ids - lo] = np.arange(len(sorted_ids))
-            rows = table[ids - lo]
-            found = rows >= 0
-            return np.maximum(rows, 0), found
-    rows = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
-    return rows, sorted_ids[rows] == ids
 
 
 @dataclass(frozen=True)
@@ -403,11 +382,9 @@ class Mapper:
 
     @staticmethod
     def _colors_in(kf: Keyframe, tracks: list[int]) -> dict[int, np.ndarray]:
-        """The colour of each of ``tracks`` (some of the keyframe's) in keyframe ``kf``: found by a sorted
-        search, not a dictionary of all its thousands of tracks (most are no candidate)."""
-        order = np.argsort(kf.track_ids, kind="stable")
-        at = order[np.searchsorted(kf.track_ids, np.asarray(tracks, np.int64), sorter=order)]
-        return dict(zip(tracks, kf.colors[at]))
+        """The colour of each of ``tracks`` (some of the keyframe's) in keyframe ``kf``: looked up, not a
+        dictionary of all its thousands of tracks (most are no candidate)."""
+        return dict(zip(tracks, kf.colors[positions(kf.track_ids, np.asarray(tracks, np.int64))[0]]))
 
     def maintain(self) -> str | None:
         """Idle-time work for a live mapper, one short piece per call: a keyframe's deferred triangulation
@@ -689,7 +666,7 @@ class Mapper:
             uvs = np.concatenate(list(map(itemgetter(1), obs))).reshape(-1, 2)
             free = np.arange(scope.points_from, len(self.keyframes))
         else:  # the window's observations of its points (one look-up finds both which and where)
-            rows, found = rows_of(point_ids, tids)
+            rows, found = positions(point_ids, tids, keys_sorted=True)
             keep = np.flatnonzero(found)  # (taken by index: cheaper than four boolean selections)
             tids, uvs, kfi, obs_point = tids.take(keep), uvs.take(keep, axis=0), kfi.take(keep), rows.take(keep)
         seen = _distinct(kfi)

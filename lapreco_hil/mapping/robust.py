@@ -32,12 +32,21 @@ def mad_sigma(residuals_xy: np.ndarray, floor: float = 0.0) -> float:
     """Robust sigma of residual components (any shape; NaN/inf ignored): 1.4826 x MAD about the median."""
     e = np.asarray(residuals_xy, dtype=float).ravel()
     finite = np.isfinite(e)
-    e = e[finite] if not finite.all() else e.copy()
-    if e.size == 0:
-        return sigma_of_mad(None, floor)
-    median = _median_in_place(e)
-    np.subtract(e, median, out=e)
-    return sigma_of_mad(_median_in_place(np.abs(e, out=e)), floor)
+    return sigma_of_mad(mad_in_place(e[finite] if not finite.all() else e.copy()), floor)
+
+
+def mad_in_place(values: np.ndarray) -> float | None:
+    """The median absolute deviation about the median of the finite ``values`` (any shape, contiguous): where all
+    are finite, the array itself is reordered and overwritten (no copy; a solver's own read-back); None where
+    none is finite."""
+    e = values.reshape(-1)
+    finite = np.isfinite(e)
+    if not finite.all():
+        e = e[finite]
+    if not e.size:
+        return None
+    np.subtract(e, _median_in_place(e), out=e)
+    return _median_in_place(np.abs(e, out=e))
 
 
 def sigma_of_mad(mad: float | None, floor: float = 0.0) -> float:

@@ -50,7 +50,7 @@ import scipy.linalg.cython_blas
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.mapping.bundle_adjustment import BAProblem, BAResult, redundancy
-from lapreco_hil.mapping.robust import RobustSchedule, _median_in_place, sigma_of_mad
+from lapreco_hil.mapping.robust import RobustSchedule, mad_in_place, sigma_of_mad
 
 
 log = logging.getLogger(__name__)
@@ -1136,19 +1136,6 @@ def _norms(r: np.ndarray) -> np.ndarray:
     return norms
 
 
-def _mad_in_place(r: np.ndarray) -> float | None:
-    """The median absolute deviation about the median of the finite components of ``r``, which it reorders and
-    overwrites (``robust.mad_sigma``'s values, without its copy of them); None where none is finite."""
-    e = r.reshape(-1)
-    finite = np.isfinite(e)
-    if not finite.all():
-        e = e[finite]
-    if not e.size:
-        return None
-    np.subtract(e, _median_in_place(e), out=e)
-    return _median_in_place(np.abs(e, out=e))
-
-
 def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: bool = False):
     """``pixel_sigma`` of the state's residuals, their medians found on the kernels' device where it does
     (``ObservationKernels.residual_mad``: one scalar read back), else on the host in the residuals' read-back
@@ -1162,7 +1149,7 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: boo
     else:
         r = state.residuals(np.nan) if kernels is None else kernels.residuals(np.nan, copy=False)
         norms = _norms(r) if with_norms else None  # (before the MAD reorders the components)
-        mad = _mad_in_place(r)
+        mad = mad_in_place(r)
     sigma = sigma_of_mad(mad) / np.sqrt(redundancy(p))  # (as pixel_sigma)
     return float(min(max(sigma, schedule.sigma_floor_px), schedule.sigma_ceiling_px)), norms
 
