@@ -29,8 +29,9 @@ from multiprocessing.connection import wait as wait_for_any
 
 import numpy as np
 
-from lapreco_hil.runtime.messages import (BAJob, BAResult, EndOfFrames, EndOfJobs, FinalMap, FramePose,
-                                          KeyframePoses, MapperFailed, MapperReady, NewTrackPoints, SlotFree)
+from lapreco_hil.runtime.messages import (BAJob, BAResult, BAWorkerReady, EndOfFrames, EndOfJobs, FinalMap,
+                                          FramePose, KeyframePoses, MapperFailed, MapperReady, NewTrackPoints,
+                                          SlotFree)
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +110,9 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent watch", daemon=True).start()
 
 
-def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) -> None:
-    """Process body: solve each BAJob until EndOfJobs arrives; errors go back, never lost."""
+def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config, ready_q=None) -> None:
+    """Process body: solve each BAJob until EndOfJobs arrives; errors go back, never lost. ``ready_q``: where
+    BAWorkerReady goes once the solver is loaded (the main process holds capture until then)."""
     die_with_parent(parent_pid)
     from lapreco_hil.mapping.mapper import ba_solver
 
@@ -126,6 +128,8 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config) 
         solve = functools.partial(solve, workspace=SchurWorkspace())
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    if ready_q is not None:
+        ready_q.put(BAWorkerReady())
     while True:
         job = jobs_q.get()
         if isinstance(job, EndOfJobs):

@@ -2,6 +2,7 @@
 message, so each side matches on a type and reads named fields instead of positions in a tuple.
 
 main process -> mapper: ``SlotReady`` (a frame's observations wait in that shared-memory slot), ``EndOfFrames``
+BA worker -> main process: ``BAWorkerReady``
 mapper -> main process: ``MapperReady``, ``SlotFree``, ``FramePose``, ``NewTrackPoints``, ``KeyframePoses``; on its pipe
 ``FinalMap`` or
 ``MapperFailed``
@@ -27,6 +28,11 @@ class EndOfFrames:
 @dataclass(frozen=True)
 class MapperReady:
     """The mapper's imports are done and its Mapper made: capture may start."""
+
+
+@dataclass(frozen=True)
+class BAWorkerReady:
+    """The local-BA worker's kernels are loaded: its first window will not wait for a compile."""
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,8 @@ import time
 
 from lapreco_hil.mapping.mapper import local_schedule
 from lapreco_hil.runtime.mapper_process import ba_worker_main, drain, mapper_main
-from lapreco_hil.runtime.messages import (EndOfFrames, EndOfJobs, EndOfResults, FinalMap, MapperFailed, MapperReady,
-                                          SlotReady)
+from lapreco_hil.runtime.messages import (BAWorkerReady, EndOfFrames, EndOfJobs, EndOfResults, FinalMap,
+                                          MapperFailed, MapperReady, SlotReady)
 from lapreco_hil.runtime.shm import MapSnapshot, ObservationRing, unlink_leftovers
 
 log = logging.getLogger(__name__)
@@ -56,14 +56,15 @@ class MapperProcesses:
         self.ring = ObservationRing(rt.mapper_slots, rt.max_tracks, cameras=self.cameras)
         snap_lock = ctx.Lock()
         self.snapshot = MapSnapshot(rt.max_landmarks, snap_lock)
-        self.ready_q, self.done_q = ctx.Queue(), ctx.Queue()
         self._final_recv, send = ctx.Pipe(duplex=False)
         parent = os.getpid()
+        self.ready_q, self.done_q = ctx.Queue(), ctx.Queue()
         if self.use_ba_worker:
             self.ba_jobs, self.ba_results = ctx.Queue(), ctx.Queue()
             self.ba_worker = ctx.Process(target=ba_worker_main, name="lapreco local BA", daemon=True,
                                          args=(local_schedule(self.config.mapper), self.ba_jobs, self.ba_results,
-                                               parent, self.config.mapper))
+                                               parent, self.config.mapper),
+                                         kwargs={"ready_q": self.done_q})
             self.ba_worker.start()
         self.mapper = ctx.Process(
             target=mapper_main, name="lapreco mapper", daemon=True,
@@ -74,15 +75,22 @@ class MapperProcesses:
         self.mapper.start()
         send.close()  # the mapper holds the sending end; a dead mapper then reads as EOF here
 
-    def wait_ready(self, timeout_s: float) -> None:
-        """Until the mapper says it is up (or dies, or the time passes). A KeyboardInterrupt goes to the caller."""
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Until the mapper, and the BA worker if there is one, say they are up: the worker's first window would
+        otherwise wait for its kernels' compile (seconds on a cold cache) while keyframes pile up and their BA is
+        deferred. False when one died or the time passed (the watch then reports a death). A KeyboardInterrupt
+        goes to the caller."""
+        waiting = {MapperReady} | ({BAWorkerReady} if self.ba_worker is not None else set())
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self.mapper.is_alive():
+        while waiting and time.monotonic() < deadline and self.dead() is None:
             try:
-                if isinstance(self.done_q.get(timeout=0.5), MapperReady):
-                    return
+                waiting.discard(type(self.done_q.get(timeout=0.5)))
             except queue.Empty:
                 continue
+        if waiting:
+            log.warning("capture starts before the %s said it was ready",
+                        " and ".join(sorted("mapper" if w is MapperReady else "local BA worker" for w in waiting)))
+        return not waiting
 
     def submit(self, obs, prior, arrival_ns: int, views=()) -> bool:
         """Hand one frame's observations to the mapper (camera 0's, and ``views``: those of the rig's other

@@ -26,8 +26,8 @@ from lapreco_hil.errors import DeviceTimeoutError
 from lapreco_hil.runtime.health import Condition
 from lapreco_hil.mapping.prediction import TrackPoints, frame_motion
 from lapreco_hil.frontend import partner_views
-from lapreco_hil.runtime.messages import (EndOfResults, FramePose, KeyframePoses, MapperReady, NewTrackPoints,
-                                          SlotFree)
+from lapreco_hil.runtime.messages import (BAWorkerReady, EndOfResults, FramePose, KeyframePoses, MapperReady,
+                                          NewTrackPoints, SlotFree)
 from lapreco_hil.runtime.metrics import LiveMetrics
 
 log = logging.getLogger(__name__)
@@ -279,7 +279,7 @@ class Results:
             elif isinstance(msg, NewTrackPoints):
                 if self.track_points is not None:
                     self.track_points.update(msg.track_ids, msg.points)
-            elif not isinstance(msg, MapperReady):  # (MapperReady: when the start stopped waiting for it)
+            elif not isinstance(msg, (MapperReady, BAWorkerReady)):  # (when the start stopped waiting for them)
                 log.error("unexpected message from the mapper: %r", msg)
 
 
