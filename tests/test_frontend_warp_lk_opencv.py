@@ -132,3 +132,52 @@ def test_gradient_windows_read_zero_past_the_border_and_never_out_of_bounds(wp):
     # far off, infinite or NaN: no read beyond the level (finite values within the image's range, or NaN)
     rest = got[4:, :3].ravel()
     assert np.all(np.isnan(rest) | ((rest >= 0) & (rest <= img.max()))), rest
+
+
+def test_the_coarse_levels_looser_step_tolerance_ends_where_the_tight_one_does(wp):
+    """LK stops on a level above full resolution once a step is shorter than LK_COARSE_EPS of that level's
+    pixels (a twentieth, not OpenCV's hundredth): the finest level settles the answer, so on the dot grid moved
+    80 px (the coarse levels' hardest case here) the tracks end where they end with the hundredth everywhere. One
+    step per coarse level (a tolerance no step meets) does not: the tolerance is what decides."""
+    from lapreco_hil.frontend.opencv import OpenCVFrontEnd
+    from lapreco_hil.frontend.warp import lk
+    from lapreco_hil.frontend.warp.frontend import LK_COARSE_EPS, LK_EPS, LK_ITERATIONS, LK_MIN_EIG
+
+    cfg = TrackerConfig()
+    frame = tracking.load_real_frames(names=("viking-dotgrid",))[0]
+    seq = tracking.make_sequence(frame, 80.0, 2)
+    levels = OpenCVFrontEnd(seq.camera, cfg).levels
+    prev, cur = (tracker_image(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY), cfg, levels)[0] for im in seq.images)
+    pts = cv2.goodFeaturesToTrack(prev, 400, cfg.quality_level, cfg.min_distance_px,
+                                  blockSize=cfg.block_size).reshape(-1, 2).astype(np.float32)
+    n = len(pts)
+    P, GX, GY, lv = warp_pyramid(wp, prev, levels + 1)
+    C, _, _, _ = warp_pyramid(wp, cur, levels + 1)
+
+    def track(coarse_eps):
+        out = wp.zeros(n, dtype=wp.vec2, device=DEVICE)
+        status = wp.zeros(n, dtype=wp.int32, device=DEVICE)
+        error = wp.zeros(n, dtype=float, device=DEVICE)
+        lk.lk_track(P, GX, GY, C, *lv, levels + 1, cfg.window_px, LK_ITERATIONS, LK_EPS,
+                    LK_MIN_EIG * HIGHPASS_GAIN**2, cfg.max_lk_error, wp.array(pts, dtype=wp.vec2, device=DEVICE),
+                    wp.array([n], dtype=wp.int32, device=DEVICE), wp.zeros(n, dtype=wp.vec2, device=DEVICE),
+                    wp.zeros(1, dtype=wp.int32, device=DEVICE), out, status, error, DEVICE,
+                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=coarse_eps)
+        return out.numpy(), status.numpy() == 1
+
+    tight_pts, tight_kept = track(LK_EPS)
+    pts_, kept = track(LK_COARSE_EPS)
+    one_pts, one_kept = track(1.0e6)
+    truth = seq.truth(1, seq.to_reference(0, pts))
+    assert LK_COARSE_EPS > LK_EPS
+    assert tight_kept.sum() > 0.85 * n and np.mean(np.linalg.norm(tight_pts - truth, axis=1)[tight_kept] <= 1.0) > 0.9
+    # the same tracks land within 1 px of the truth (those that differ in status were far astray either way:
+    # the grid's period), and there within 0.05 px of the tight tolerance's answer
+    right_tight = tight_kept & (np.linalg.norm(tight_pts - truth, axis=1) <= 1.0)
+    right = kept & (np.linalg.norm(pts_ - truth, axis=1) <= 1.0)
+    assert (right != right_tight).sum() <= 0.005 * n, ((right != right_tight).sum(), right.sum(), right_tight.sum())
+    both = right & right_tight
+    assert np.mean(np.linalg.norm(pts_ - tight_pts, axis=1)[both] <= 0.05) >= 0.99
+    # one step per coarse level: tracks lost or moved
+    moved = np.linalg.norm(one_pts - tight_pts, axis=1) > 0.5
+    assert ((one_kept != tight_kept) | (moved & one_kept & tight_kept)).sum() >= 0.05 * n

@@ -42,6 +42,9 @@ SELECTION_ROUNDS = 8
 LK_MIN_EIG = 1.5e-6
 LK_ITERATIONS = 30  # per pyramid level, as OpenCV's default criteria
 LK_EPS = 0.01  # px: LK stops when a step is shorter, as OpenCV's default criteria
+# px of a level above full resolution: there LK only has to start the next level inside its reach, so steps of
+# a hundredth of a coarse pixel bought nothing (a quarter of LK's iterations, the same tracks: docs/benchmarks.md)
+LK_COARSE_EPS = 0.05
 DRIFT_ITERATIONS = 6  # Gauss-Newton steps of the drift check at most (it stops when converged)
 COLOR_ROW = 64  # points per row of the colour remap
 # the shading estimate's resolution: reduced by a power of two up to this, keeping its sigma at least this many
@@ -279,14 +282,15 @@ class WarpFrontEnd:
                     self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
-                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level)
+                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=LK_COARSE_EPS)
         tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
         if self._motion is not None:
             # LK back into the previous image from where the swept tracks landed
             lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
                         self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                         cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
-                        self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device)
+                        self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device,
+                        coarse_eps=LK_COARSE_EPS)
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
                                      self._count[prev], self._status, self._searched, self.device)
             wp.copy(self._at_lk, self._lk_pts)

@@ -108,7 +108,7 @@ def _make_lk_track(cache: int):
     def _lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
                   cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                   hs: wp.array(dtype=int), levels: int, fine_win: int, coarse_win: int, coarse_from: int,
-                  iterations: int, eps: float, min_eig: float,
+                  iterations: int, eps: float, coarse_eps: float, min_eig: float,
                   max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
                   guess: wp.array(dtype=wp.vec2), use_guess: wp.array(dtype=wp.int32),
                   out_pts: wp.array(dtype=wp.vec2),
@@ -136,6 +136,7 @@ def _make_lk_track(cache: int):
         abs_sum = float(0.0)  # the last iteration's sum of absolute differences over the window
         sums = int(0)  # block sums so far (their shared buffers alternate)
         eps2 = eps * eps
+        coarse_eps2 = coarse_eps * coarse_eps
         n = int(0)
         for li in range(levels):
             lvl = levels - 1 - li
@@ -190,6 +191,7 @@ def _make_lk_track(cache: int):
             nu = wp.vec2(0.0, 0.0)
             last_step = wp.vec2(0.0, 0.0)
             done = int(0)
+            tol2 = wp.where(lvl > 0, coarse_eps2, eps2)
             if ok == 0 or weak:
                 done = 1
             for _it in range(iterations):
@@ -238,7 +240,7 @@ def _make_lk_track(cache: int):
                 abs_sum = b[2]
                 step = wp.vec2(G[2] * b[0] - G[1] * b[1], G[0] * b[1] - G[1] * b[0]) * inv_det
                 nu = nu + step
-                if wp.dot(step, step) < eps2:
+                if wp.dot(step, step) < tol2:
                     done = 1
                 elif _it > 0 and wp.abs(step[0] + last_step[0]) < 0.01 and wp.abs(step[1] + last_step[1]) < 0.01:
                     # the step undoes the last one (oscillation around the optimum): take the midpoint and stop,
@@ -272,14 +274,18 @@ def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array
              hs: wp.array, levels: int, win: int, iterations: int, eps: float, min_eig: float, max_error: float,
              pts: wp.array, count: wp.array, guess: wp.array, use_guess: wp.array, out_pts: wp.array,
              status: wp.array, error: wp.array, device, coarse_win: int | None = None,
-             coarse_from: int | None = None) -> None:
+             coarse_from: int | None = None, coarse_eps: float | None = None) -> None:
     """Track ``pts`` (the first ``count[0]`` of them; every slot is launched) from the ``prev`` pyramid into
     ``cur``, from ``guess`` where ``use_guess[0]`` is 1 (NaN: lost), else from where they were: ``out_pts``,
     ``status`` (1: tracked) and ``error`` (the window's mean absolute difference). The window is ``win`` px,
-    ``coarse_win`` on the levels from ``coarse_from`` up (None: ``win`` throughout)."""
+    ``coarse_win`` on the levels from ``coarse_from`` up (None: ``win`` throughout). LK stops on a level when a
+    step is shorter than ``eps`` px, on the levels above full resolution ``coarse_eps`` px of that level (None:
+    ``eps``): a coarse level only has to start the next one inside its reach, and the finest level's steps
+    settle the answer (docs/benchmarks.md, session 16)."""
     coarse_win = win if coarse_win is None else coarse_win
     coarse_from = levels if coarse_from is None else coarse_from
+    coarse_eps = eps if coarse_eps is None else coarse_eps
     wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
-        prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, coarse_win, coarse_from, iterations, eps, min_eig,
-        max_error, pts, count,
+        prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, coarse_win, coarse_from, iterations, eps, coarse_eps,
+        min_eig, max_error, pts, count,
         guess, use_guess, out_pts, status, error], block_dim=LK_LANES, device=device)
