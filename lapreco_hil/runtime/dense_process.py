@@ -38,6 +38,7 @@ from lapreco_hil.runtime.shm import new_segment_name
 log = logging.getLogger(__name__)
 IMAGE_SLOTS = 8  # keyframe images in flight to the dense process (it takes each within milliseconds)
 PROGRESS_PERIOD_S = 0.25  # counters and stage times are sent this often
+CV2_CORE_DIVISOR = 4  # the dense process's cv2 threads: a quarter of the machine's cores (at least one)
 START_TIMEOUT_S = 300.0  # for the dense process's imports, volume and kernels (compiled if the cache is cold)
 
 
@@ -192,10 +193,14 @@ def dense_main(spec: DenseSpec, slots_name: str, slots: int, shape: tuple, comma
 
 
 def _serve(spec: DenseSpec, images: ImageSlots, commands, answers) -> None:
+    import cv2
+
     from lapreco_hil.dense.surface import DenseSurface
     from lapreco_hil.runtime.stages import Dense, StageLinks
     from lapreco_hil.warp_device import init_warp, preload_kernels
 
+    # cv2's thread pool (undistortion, decoding) on a share of the cores: the tracking process keeps the others
+    cv2.setNumThreads(max(1, (os.cpu_count() or 1) // CV2_CORE_DIVISOR))
     init_warp()
     surface = DenseSurface(spec.camera, spec.config, spec.device, spec.rig, spec.depth_fn, spec.sources_fn)
     # compiled and loaded now: a first depth map would otherwise wait for it mid-run
