@@ -141,3 +141,19 @@ def test_a_dense_process_that_dies_or_fails_is_reported_at_once(warp_cpu, fail, 
         dense.keyframe(3, SimpleNamespace(image=frames[0]), Ts[0])  # ignored now, not queued for nobody
     finally:
         dense.close()
+
+
+def test_a_live_run_whose_dense_process_dies_stops_with_one_clear_error(tmp_path, warp_cpu, monkeypatch):
+    """The whole live runtime (capture, tracking, the mapper processes) with a dense process that exits at its
+    first depth map: the run stops cleanly and says which stage failed and how, instead of hanging."""
+    from lapreco_hil.app.demo import run_demo
+    from lapreco_hil.dense import surface as dense_surface
+    from lapreco_hil.errors import LaprecoError
+
+    monkeypatch.setattr(dense_surface, "stereo_functions", lambda: (WavyDepth(fail="exit"), nearest_views, None))
+    t0 = time.monotonic()
+    with pytest.raises(LaprecoError, match=r"stage 'dense' failed: DenseProcessError: the dense process exited "
+                                           r"\(code 7\)$"):
+        run_demo(scene="apple", frames=40, resolution=(192, 144), out=str(tmp_path), device="cpu", tracker="opencv",
+                 progress=False, runtime="live", surface="dense")
+    assert time.monotonic() - t0 < 120.0

@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,6 +31,9 @@ from lapreco_hil.frontend import partner_views
 from lapreco_hil.runtime.messages import (EndOfResults, FramePose, KeyframePoses, MapperReady, NewTrackPoints,
                                           SlotFree)
 from lapreco_hil.runtime.metrics import LiveMetrics
+
+if TYPE_CHECKING:
+    from lapreco_hil.runtime.dense_process import DenseProcess
 
 log = logging.getLogger(__name__)
 BAD_TIME_SHOWN_S = 0.25  # frame times read as "refused" this long after the last refused frame
