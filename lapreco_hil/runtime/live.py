@@ -10,7 +10,9 @@ behind (DESIGN.md, the seed's Fig 1):
   come first there: a keyframe's new points, BA jobs and results, the map snapshot and garbage collection
   wait for moments when no frame waits, in short pieces (runtime/mapper_process.py);
 - the surface is rebuilt every ``surface_period_s`` from the mapper's latest landmarks, the live textured view
-  rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture.
+  rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture;
+- the dense surface, when on, is made in a process of its own from the keyframes' images (runtime/dense_process.py),
+  so its work takes neither tracking's Python lock nor its Warp stream and device lock.
 
 Latency runs from a frame's capture (the grabber's host-clock stamp where it has one) to its refined pose.
 
