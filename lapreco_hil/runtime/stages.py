@@ -423,8 +423,9 @@ class Dense:
         (``dense.surface.final_poses_and_ranges``): every kept keyframe at its final pose; a DenseResult."""
         from lapreco_hil.warp_device import device_lock
 
-        for item in self._inbox:  # keyframes (and pose updates) that came after the stage stopped
-            self._take(item)
+        for item in self._inbox:  # keyframes that came after the stage stopped (the final poses replace updates)
+            if item[0] == "keyframe":
+                self._take(item)
         self._inbox.clear()
         with device_lock(self.device):
             return self.surface.build_at(poses, ranges)
