@@ -310,9 +310,8 @@ class RuntimeConfig:
     surface_period_s: float = ranged(2.0, gt=0.0)  # live mesh rebuild
     surface_max_points: int = ranged(15_000, ge=4)  # the live mesh is built on at most this many points, evenly thinned
     view_period_s: float = ranged(0.0, ge=0.0)  # live textured view to PNG (0 = off)
-    # the live dense stage's share of the wall time at most: it shares the process (and Python's lock) with
-    # tracking, so a stage busy all the time slows tracking into dropped frames; keyframes it has no time for
-    # are fused by the final build (docs/dense.md, "Live")
+    # the live dense stage's share of the wall time at most: in its own process it still shares the cores and
+    # the GPU with tracking; keyframes it has no time for are fused by the final build (docs/dense.md, "Live")
     dense_busy_share: float = ranged(0.5, gt=0.0, le=1.0)
     record_queue: int = ranged(64, ge=1)
     # the front-end reports a "partial view" while its tracks span less than this share of the view they

@@ -51,6 +51,26 @@ def true_depth_fn(world):
     return depth_fn
 
 
+class TrueDepth:
+    """``true_depth_fn`` that can be pickled to another process (the live run's dense process): it makes its own
+    simulated world of ``scene`` at ``size`` on the CPU device where it is first called."""
+
+    def __init__(self, scene: str, size: tuple[int, int]) -> None:
+        self.scene, self.size = scene, size
+        self._fn = None
+
+    def __getstate__(self) -> dict:
+        return {"scene": self.scene, "size": self.size, "_fn": None}
+
+    def __call__(self, ref, sources, config, device):
+        if self._fn is None:
+            from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+            world = SimWorld(SimSettings(scene=self.scene, width=self.size[0], height=self.size[1], device="cpu"))
+            self._fn = true_depth_fn(world)
+        return self._fn(ref, sources, config, device)
+
+
 def scan_poses(world, n: int, seconds: float = 5.0) -> list[np.ndarray]:
     return [world.true_camera_pose(T0 + int(s * 1e9)) for s in np.linspace(0.0, seconds, n)]
 
@@ -420,15 +440,17 @@ def test_surface_is_an_option_of_demo_replay_and_run():
     assert main(["demo", "--surface", "mesh"]) == 2
 
 
-def test_a_live_run_fuses_keyframes_as_they_come_and_refuses_those_bundle_adjustment_moves(tmp_path, apple_world,
+def test_a_live_run_fuses_keyframes_as_they_come_and_refuses_those_bundle_adjustment_moves(tmp_path, warp_cpu,
                                                                                              monkeypatch):
     """The live runtime's dense stage: keyframes reach it from the mapper's answers (their frames kept by the
-    tracking stage until then), their depth maps are fused during the run and taken out and put back when a
+    tracking stage until then), their depth maps are fused in the dense process during the run and taken out and put back when a
     local BA moves them; the outputs come from the final poses. The renderer's true depth stands in for stereo
     (the stereo itself is tested in test_dense_depth.py), so what is tested is the live plumbing."""
     from lapreco_hil.app.demo import run_demo
 
-    monkeypatch.setattr(dense_surface, "stereo_functions", lambda: (true_depth_fn(apple_world), nearest_views, None))
+    # (picklable: the live run fuses in a process of its own)
+    monkeypatch.setattr(dense_surface, "stereo_functions", lambda: (TrueDepth("apple", (192, 144)), nearest_views,
+                                                                    None))
     report = run_demo(scene="apple", frames=40, resolution=(192, 144), out=str(tmp_path), device="cpu",
                       tracker="opencv", progress=False, runtime="live", surface="dense")
     assert report["runtime"] == "live" and report["surface"] == "dense" and report["surface_note"] is None

@@ -303,9 +303,13 @@ class DenseSurface:
     def build(self, m) -> DenseResult:
         """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
         with the depth range its landmarks span; the mesh and points."""
-        self.refused_final += self.update_poses({k.id: k.T_world_camera for k in m.keyframes if k.id in self.views},
-                                                settled=True)
-        self.set_depth_ranges(depth_ranges(m.keyframes, m.landmark_ids, m.points, m.inlier))
+        return self.build_at(*final_poses_and_ranges(m))
+
+    def build_at(self, poses: dict[int, np.ndarray], ranges: dict[int, tuple[float, float] | None]) -> DenseResult:
+        """``build`` from the finished map's keyframe poses and depth ranges (``final_poses_and_ranges``): what a
+        live run's dense process is sent."""
+        self.refused_final += self.update_poses({k: T for k, T in poses.items() if k in self.views}, settled=True)
+        self.set_depth_ranges(ranges)
         self.fuse_pending()
         return self.extract()
 
@@ -388,6 +392,12 @@ def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[i
     return mx, my, mask > 0
 
 
+def final_poses_and_ranges(m) -> tuple[dict[int, np.ndarray], dict[int, tuple[float, float] | None]]:
+    """A finished map's (``MapResult``) keyframe poses and the depths each one's inlier landmarks span."""
+    poses = {int(k.id): np.asarray(k.T_world_camera, float) for k in m.keyframes}
+    return poses, depth_ranges(m.keyframes, m.landmark_ids, m.points, m.inlier)
+
+
 def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier: np.ndarray,
                  min_points: int = 8) -> dict[int, tuple[float, float] | None]:
     """Per keyframe, the depths its inlier landmarks span (``mapping.prediction.depth_span``: 2nd to 98th
@@ -416,10 +426,10 @@ def surface_mode(config: PipelineConfig, live: bool = False) -> str:
     return mode
 
 
-def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None,
-                      live: bool = False) -> tuple[DenseSurface | None, str | None]:
-    """The run's DenseSurface when its surface is dense (``surface_mode``; None for alpha), or (None, why) with
-    one warning when multi-view stereo is not there: the run then makes the alpha shape."""
+def dense_functions_for(config: PipelineConfig, live: bool = False) -> tuple[tuple[DepthFn, SourcesFn] | None,
+                                                                             str | None]:
+    """The run's (depth function, sources function) when its surface is dense (``surface_mode``; None for alpha),
+    or (None, why) with one warning when multi-view stereo is not there: the run then makes the alpha shape."""
     if surface_mode(config, live) == "alpha":
         return None, None
     depth_fn, sources_fn, why = stereo_functions()
@@ -427,4 +437,13 @@ def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, 
         note = f"dense surface off: {why}; the alpha shape instead"
         log.warning(note)
         return None, note
-    return DenseSurface(camera, config, device, rig, depth_fn, sources_fn), None
+    return (depth_fn, sources_fn), None
+
+
+def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None,
+                      live: bool = False) -> tuple[DenseSurface | None, str | None]:
+    """The run's DenseSurface when its surface is dense (``dense_functions_for``), else (None, why or None)."""
+    functions, note = dense_functions_for(config, live)
+    if functions is None:
+        return None, note
+    return DenseSurface(camera, config, device, rig, *functions), None

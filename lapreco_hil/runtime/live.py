@@ -10,7 +10,9 @@ behind (DESIGN.md, the seed's Fig 1):
   come first there: a keyframe's new points, BA jobs and results, the map snapshot and garbage collection
   wait for moments when no frame waits, in short pieces (runtime/mapper_process.py);
 - the surface is rebuilt every ``surface_period_s`` from the mapper's latest landmarks, the live textured view
-  rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture.
+  rendered every ``view_period_s``; recording has its own queue (drops counted) so disk never stalls capture;
+- the dense surface, when on, is made in a process of its own from the keyframes' images (runtime/dense_process.py),
+  so its work takes neither tracking's Python lock nor its Warp stream and device lock.
 
 Latency runs from a frame's capture (the grabber's host-clock stamp where it has one) to its refined pose.
 
@@ -35,10 +37,10 @@ from lapreco_hil.runtime.coverage import ViewCoverage
 from lapreco_hil.runtime.health import HealthMonitor
 from lapreco_hil.runtime.messages import MapperFailed
 from lapreco_hil.runtime.metrics import LiveMetrics
-from lapreco_hil.warp_device import preload_kernels
+from lapreco_hil.runtime.dense_process import DenseProcess, DenseProcessError, DenseSpec
 from lapreco_hil.runtime.processes import MapperProcesses
 from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
-from lapreco_hil.runtime.stages import (Capture, Dense, LatestView, RecentFrames, Record, Results, StageLinks,
+from lapreco_hil.runtime.stages import (Capture, LatestView, RecentFrames, Record, Results, StageLinks,
                                         Surface, Tracking)
 from lapreco_hil.runtime.supervisor import Supervisor
 
@@ -76,17 +78,17 @@ class LiveRun:
         rig = getattr(grabber, "rig", None)  # the ring's slots hold each of the rig's cameras' observations of a frame
         stereo = rig if rig is not None and rig.is_stereo else None
         # the dense surface ([surface] mode = "dense"): keyframe images kept until the mapper names them, fused in
-        # a stage of its own; None with the alpha shape (or, with a note, where multi-view stereo cannot run)
+        # a process of its own; None with the alpha shape (or, with a note, where multi-view stereo cannot run)
         self.dense, self.recent, self.dense_result, self.surface_note = None, None, None, None
         if camera is not None:
-            from lapreco_hil.dense.surface import dense_surface_for
+            from lapreco_hil.dense.surface import dense_functions_for
 
-            surface, self.surface_note = dense_surface_for(camera, config, device, stereo, live=True)
-            if surface is not None:
+            functions, self.surface_note = dense_functions_for(config, live=True)
+            if functions is not None:
                 view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
-                self.dense = Dense(surface, self.links, self.metrics, device=device,
-                                   period_s=rt.surface_period_s if view else None,
-                                   busy_share=rt.dense_busy_share)
+                spec = DenseSpec(camera, config, device, stereo, *functions,
+                                 period_s=rt.surface_period_s if view else None, busy_share=rt.dense_busy_share)
+                self.dense = DenseProcess(spec, self.links, self.metrics)
                 self.recent = RecentFrames(RECENT_FRAMES)
         self.processes = MapperProcesses(camera.K if camera is not None else None, config, use_ba_worker=use_worker,
                                          cameras=len(rig) if rig is not None else 1, rig=stereo,
@@ -153,11 +155,23 @@ class LiveRun:
             self.tracking.frontend = self._make_frontend()
             if hasattr(self.tracking.frontend, "warm_up"):
                 self.tracking.frontend.warm_up()
+        try:
+            return self._run(seconds)
+        finally:
+            if self.dense is not None:
+                self.dense.close()
+
+    def _run(self, seconds: float | None) -> tuple[object, dict]:
         if self.dense is not None:
-            # its first depth map would otherwise compile under the device lock and stall tracking
-            preload_kernels("lapreco_hil.dense.warp", self.dense.device)
+            self.dense.start()  # (its imports and kernels load while the mapper starts)
         sup = self.supervisor
         sup.start_processes()
+        if self.dense is not None and not self.interrupted:
+            try:
+                self.dense.wait_ready()  # (one that died is reported by its stage's thread, as any stage error)
+            except KeyboardInterrupt:  # Ctrl-C meanwhile: end as from the main loop, cleanly
+                sup.interrupted = True
+                self.links.stop.set()
         stages = {"capture": self.capture.run, "tracking": self.tracking.run,
                   "results": Results(self.processes.done_q, self.processes.slot_freed, self.metrics, self.latest,
                                      self.progress, track_points=self.track_points, dense=self.dense,
@@ -189,7 +203,15 @@ class LiveRun:
         if not result.frames:
             raise ReconstructionError(f"the live run mapped no frames: {self.why_few_frames()}")
         if self.dense is not None and "dense" not in self.links.disabled:
-            self.dense_result = self.dense.finish(result)  # every kept keyframe at its final pose
+            try:
+                self.dense_result = self.dense.finish(result)  # every kept keyframe at its final pose
+            except DenseProcessError as exc:
+                sup.errors["dense"] = str(exc)
+                if self.on_stage_error == "stop":
+                    raise StageError(f"live run stopped: stage 'dense' failed: {exc}") from None
+                log.error("%s; the alpha shape instead", exc)
+                self.links.disabled.add("dense")
+                self.metrics.add("dense_disabled")
         metrics = self.report(result)
         if len(result.frames) < FEW_FRAMES:
             log.warning("the live run mapped only %d frames: %s", len(result.frames), self.why_few_frames())

@@ -9,7 +9,8 @@ what it writes and what it counts are given to its constructor.
 - ``Surface``: the mapper's map snapshot -> the live mesh every ``surface_period_s`` (or the dense surface's
   mesh), the textured view every ``view_period_s`` (no view: no live mesh).
 - ``Dense``: keyframe images (kept by tracking until the mapper names its keyframes) and poses -> depth maps
-  fused into the TSDF volume, re-fused when local BA moves a keyframe, its mesh every ``surface_period_s``.
+  fused into the TSDF volume, re-fused when local BA moves a keyframe, its mesh every ``surface_period_s``; run
+  in a process of its own (runtime/dense_process.py: ``DenseProcess`` is its stand-in in this process).
 - ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture)."""
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +31,9 @@ from lapreco_hil.frontend import partner_views
 from lapreco_hil.runtime.messages import (BAWorkerReady, EndOfResults, FramePose, KeyframePoses, MapperReady,
                                           NewTrackPoints, SlotFree)
 from lapreco_hil.runtime.metrics import LiveMetrics
+
+if TYPE_CHECKING:
+    from lapreco_hil.runtime.dense_process import DenseProcess
 
 log = logging.getLogger(__name__)
 BAD_TIME_SHOWN_S = 0.25  # frame times read as "refused" this long after the last refused frame
@@ -242,7 +247,7 @@ class Tracking:
 
 class Results:
     def __init__(self, messages, slot_freed, metrics: LiveMetrics, latest: LatestView, progress=None,
-                 track_points: TrackPoints | None = None, dense: "Dense | None" = None,
+                 track_points: TrackPoints | None = None, dense: "DenseProcess | None" = None,
                  recent: RecentFrames | None = None) -> None:
         self.messages, self.slot_freed = messages, slot_freed  # a queue of the mapper's messages
         self.metrics, self.latest, self.progress = metrics, latest, progress
@@ -285,7 +290,7 @@ class Results:
 
 class Surface:
     def __init__(self, snapshot, camera, config, out_dir, links: StageLinks, metrics: LiveMetrics,
-                 latest: LatestView, dense: "Dense | None" = None) -> None:
+                 latest: LatestView, dense: "DenseProcess | None" = None) -> None:
         self.snapshot, self.camera, self.config, self.out_dir = snapshot, camera, config, out_dir
         self.links, self.metrics, self.latest = links, metrics, latest
         self.dense = dense  # the live dense surface: its mesh is the live one
@@ -332,18 +337,16 @@ class Surface:
 
 
 class Dense:
-    """The live dense surface (``[surface] mode = "dense"``, lapreco_hil.dense.surface.DenseSurface). Keyframes
-    come from the results stage with their frame; a keyframe's depth map is made and fused once a newer
-    keyframe exists (its neighbours on both sides, the mapper's depth span for it by then), and taken out and
-    put back when local BA moves it. The mesh is extracted every ``period_s`` for the live view (None: no view
-    wants it; meshing the whole volume takes a CPU second, so then only the final outputs mesh it). On a GPU,
-    the depth estimator and the volume take the device in turn with tracking (the device lock) only while they
-    launch and read back, so no kernel lands in a graph being captured; their host work (decoding the kept
-    images and maps, choosing sources) holds no lock, so tracking never waits for it.
+    """The live dense surface's schedule (``[surface] mode = "dense"``, lapreco_hil.dense.surface.DenseSurface),
+    run in the dense process (runtime/dense_process.py, which feeds it and reports for it). Keyframes come with
+    their frame; a keyframe's depth map is made and fused once a newer keyframe exists (its neighbours on both
+    sides, the mapper's depth span for it by then), and taken out and put back when local BA moves it. The mesh
+    is extracted every ``period_s`` for the live view (None: no view wants it; meshing the whole volume takes a
+    CPU second, so then only the final outputs mesh it).
 
-    The stage is busy at most ``busy_share`` of the wall time (it shares the process, and Python's lock, with
-    tracking): after each keyframe it rests in proportion, and when several keyframes are ready it fuses the
-    newest (what the live view wants) and leaves the older ones to the final build."""
+    The stage is busy at most ``busy_share`` of the wall time: after each keyframe it rests in proportion, and
+    when several keyframes are ready it fuses the newest (what the live view wants) and leaves the older ones to
+    the final build."""
 
     def __init__(self, surface, links: StageLinks, metrics: LiveMetrics, *, period_s: float | None,
                  device: str, busy_share: float = 1.0) -> None:
@@ -377,17 +380,7 @@ class Dense:
                 items = list(self._inbox)
                 self._inbox.clear()
             for item in items:
-                if item[0] == "keyframe":
-                    _, kf_id, frame, T = item
-                    self.surface.add_view(kf_id, frame.image, T)
-                    self.order.append(kf_id)
-                else:
-                    msg = item[1]
-                    spans = {int(k): (None if not np.all(np.isfinite(r)) else (float(r[0]), float(r[1])))
-                             for k, r in zip(msg.keyframe_ids, msg.depth_ranges)}
-                    self.surface.set_depth_ranges(spans)
-                    m.add("dense_refused", self.surface.update_poses(dict(zip(msg.keyframe_ids.tolist(),
-                                                                              msg.poses))))
+                self._take(item)
             # every keyframe but the newest has a neighbour on each side by now: its depth map; one that has no
             # source view yet is tried again while it is among the newest few
             ready = self.order[:-1]
@@ -412,16 +405,30 @@ class Dense:
                     self.mesh = self.surface.extract().mesh
                 m.time_stage("dense_mesh", time.perf_counter() - t0)
 
-    def finish(self, result):
-        """The run's dense surface from its final map (every kept keyframe at its final pose): a DenseResult."""
+    def _take(self, item) -> None:
+        if item[0] == "keyframe":
+            _, kf_id, frame, T = item
+            self.surface.add_view(kf_id, frame.image, T)
+            self.order.append(kf_id)
+        else:
+            msg = item[1]
+            spans = {int(k): (None if not np.all(np.isfinite(r)) else (float(r[0]), float(r[1])))
+                     for k, r in zip(msg.keyframe_ids, msg.depth_ranges)}
+            self.surface.set_depth_ranges(spans)
+            self.metrics.add("dense_refused", self.surface.update_poses(dict(zip(msg.keyframe_ids.tolist(),
+                                                                                 msg.poses))))
+
+    def finish(self, poses: dict, ranges: dict):
+        """The run's dense surface from its final map's keyframe poses and depth ranges
+        (``dense.surface.final_poses_and_ranges``): every kept keyframe at its final pose; a DenseResult."""
         from lapreco_hil.warp_device import device_lock
 
-        for item in self._inbox:  # keyframes that came after the stage stopped
+        for item in self._inbox:  # keyframes that came after the stage stopped (the final poses replace updates)
             if item[0] == "keyframe":
-                self.surface.add_view(item[1], item[2].image, item[3])
+                self._take(item)
         self._inbox.clear()
         with device_lock(self.device):
-            return self.surface.build(result)
+            return self.surface.build_at(poses, ranges)
 
 
 class Record:
