@@ -80,7 +80,7 @@ BATCH_ENTRIES = 8_000_000
 # Cuthill-McKee order, is at most 1 / BAND_MAX_SHARE of its width: keyframes co-observe only their neighbours in
 # time, and the band's n b^2 work is then a small share of the dense factorisation's n^3 / 3
 BAND_MIN_FREE_POSES = 64
-BAND_MAX_SHARE = 4
+BAND_MAX_SHARE = 3
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
