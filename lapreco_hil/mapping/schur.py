@@ -837,10 +837,19 @@ def _subtract_gram_band(B: np.ndarray, band: int, idx, Z: np.ndarray) -> None:
     B.ravel()[j[near] * (band + 1) + (i - j)[near]] -= G[p[near], q[near]]
 
 
-def _damped_band(lin: _Linear, lam: float) -> np.ndarray:
-    """The band array of the pose system damped by lambda (its diagonal is the band array's first column)."""
+def _damped(lay: _Layout, lin: _Linear, lam: float) -> np.ndarray:
+    """The pose system damped by lambda: its band array (the diagonal is its first column), or dense. A wide
+    dense one (past BAND_MIN_FREE_POSES: a final pass) takes lambda on its diagonal alone, the same sums without
+    two passes over an identity as wide (a local window's is made as it always was)."""
+    if lay.band is not None:
+        S = lin.Hcc.copy()
+        S[:, 0] += lam
+        return S
+    n6 = lin.Hcc.shape[0]
+    if len(lay.free) <= BAND_MIN_FREE_POSES:
+        return lin.Hcc + lam * np.eye(n6)
     S = lin.Hcc.copy()
-    S[:, 0] += lam
+    S.ravel()[::n6 + 1] += lam
     return S
 
 
@@ -899,7 +908,7 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
     n6 = lin.Hcc.shape[0]
     band = lay.band
     # (its lower triangle is what the factorisation reads)
-    S = lin.Hcc + lam * np.eye(n6) if band is None else _damped_band(lin, lam)
+    S = _damped(lay, lin, lam)
     rhs = -lin.gc.copy()
     on_device = lay.kernels is not None and lay.unique_pairs
     if on_device:
@@ -991,8 +1000,7 @@ def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -
         timing["schur_s"] += time.perf_counter() - t0
         return None
     M, r = eliminated
-    n6 = 6 * len(lay.free)
-    S = lin.Hcc + lam * np.eye(n6) if lay.band is None else _damped_band(lin, lam)
+    S = _damped(lay, lin, lam)
     S -= M  # (its lower triangle: what the factorisation reads; a band array's is all of it)
     rhs = r - lin.gc
     t1 = time.perf_counter()
