@@ -35,15 +35,20 @@ def small_map(seed: int = 3, n_free: int = 72, shuffle: bool = False):
     return syn
 
 
-def assert_same_answer(dense, banded, p):
+def assert_same_answer(dense, banded, p, device: str = "cpu"):
     """Poses and well-seen landmarks to round-off, the same labels. (A landmark left with one weighted view is
-    held along its ray by the damping alone: round-off moves it.)"""
-    np.testing.assert_allclose(banded.poses, dense.poses, rtol=0, atol=1e-11)
+    held along its ray by the damping alone: round-off moves it.) On a GPU, whose atomics sum in a different order
+    run to run, LM's last step may be taken or not (the stop is a relative decrease of 1e-5): within 1e-9 there."""
+    gpu = device.startswith("cuda")
+    np.testing.assert_allclose(banded.poses, dense.poses, rtol=0, atol=1e-9 if gpu else 1e-11)
     views = np.bincount(p.obs_point[dense.stats["inlier_obs"]], minlength=len(p.points))
-    np.testing.assert_allclose(banded.points[views >= 2], dense.points[views >= 2], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(banded.points[views >= 2], dense.points[views >= 2], rtol=0,
+                               atol=1e-8 if gpu else 1e-10)
     assert np.array_equal(banded.stats["inlier_obs"], dense.stats["inlier_obs"])
-    assert banded.final_error == pytest.approx(dense.final_error, rel=1e-10)
-    assert [st["iterations"] for st in banded.stats["stages"]] == [st["iterations"] for st in dense.stats["stages"]]
+    assert banded.final_error == pytest.approx(dense.final_error, rel=1e-8 if gpu else 1e-10)
+    if not gpu:
+        assert [st["iterations"] for st in banded.stats["stages"]] == [st["iterations"]
+                                                                       for st in dense.stats["stages"]]
 
 
 @pytest.mark.parametrize("device, device_schur", [("numpy", None), (DEVICE, False), (DEVICE, True)])
@@ -55,7 +60,7 @@ def test_the_banded_camera_system_gives_the_dense_ones_answer(device, device_sch
     banded = schur.solve_robust_schur(p, FINAL_SCHEDULE, device=device, device_schur=device_schur,
                                       camera_solver="banded")
     assert (dense.stats["camera_solver"], banded.stats["camera_solver"]) == ("dense", "banded")
-    assert_same_answer(dense, banded, p)
+    assert_same_answer(dense, banded, p, device)
     # and it found the map: outliers labelled, poses nearer the truth than the priors
     assert (banded.stats["inlier_obs"] & syn.outlier_obs).sum() <= 0.02 * syn.outlier_obs.sum()
     prior = np.linalg.norm(p.prior_poses[:, :3, 3] - syn.true_poses[:, :3, 3], axis=1).mean()
