@@ -24,40 +24,46 @@ FINAL_SCHEDULE = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStag
 
 def make_live_final_problem(rng: np.random.Generator, n_free: int = 400, n_fixed: int = 8,
                             new_points_per_view: int = 52, min_track: int = 3, mean_track: float = 8.0,
-                            max_track: int = 80, step_m: float = 0.002, pixel_noise: float = 0.5,
+                            max_track: int = 80, long_share: float = 0.04, long_min: int = 40,
+                            step_m: float = 0.002, pixel_noise: float = 0.5,
                             rot_sigma: float = 0.003, trans_sigma: float = 0.0004, drift_rot_rad: float = 0.001,
                             drift_trans_m: float = 0.0002, warm_point_m: float = 0.00002,
                             jump: float = 0.05) -> SyntheticBA:
-    """The live run's active map at its end: ``n_fixed`` retired keyframes then ``n_free`` active ones, ``step_m``
-    apart along a sweep over tissue with relief that turns back half-way (1080p camera); ``new_points_per_view``
-    landmarks start at each keyframe, each seen by a run of ``min_track`` - 1 + geometric(1 / (``mean_track`` -
-    ``min_track`` + 1)) keyframes (at most ``max_track``, cut at the map's end; the mapper triangulates a track
-    once its views are 2 degrees apart); robot priors drawn from their covariance; the start where the local
-    windows left it: the map drifted from the truth as a whole, slowly along the run (up to ``drift_*``), each
-    landmark with the drift of its middle view and ``warm_point_m`` of noise; ``jump`` of the tracks of 4 views or
-    more jumping 6-25 px half-way (their later views corrupted)."""
+    """The live run's active map at its end: ``n_fixed`` retired keyframes then ``n_free`` active ones, about
+    ``step_m`` apart along a scope's survey of one operative field (a Lissajous path over +-25 x +-15 mm, 10 cm
+    above tissue with relief; 1080p camera); ``new_points_per_view`` landmarks start at each keyframe, each seen by
+    a run of consecutive keyframes: most by ``min_track`` - 1 + geometric(1 / (``mean_track`` - ``min_track`` + 1))
+    (at most ``max_track``), ``long_share`` of them by ``long_min`` up to every keyframe (log-uniform: features
+    that stay in view while the scope surveys around them), cut at the map's end; each landmark where every view
+    of its run sees it; robot priors drawn from their covariance; the start where the local windows left it: the
+    map drifted from the truth as a whole, slowly along the run (up to ``drift_*``), each landmark with the drift
+    of its middle view and ``warm_point_m`` of noise; ``jump`` of the tracks of 4 views or more jumping 6-25 px
+    half-way (their later views corrupted). ``long_share=0`` gives a map whose camera system is banded."""
     K = np.array([[1400.0, 0, 960], [0, 1400.0, 540], [0, 0, 1]])
     n_views = n_fixed + n_free
-    # a sweep along x that turns back half-way, with a side-to-side wobble and a height change
-    half = n_views // 2
-    along = step_m * np.concatenate([np.arange(half), half - 1 - np.arange(n_views - half)])
-    side = 0.006 * np.sin(np.arange(n_views) * 0.05) + np.where(np.arange(n_views) < half, 0.0, 0.012)
-    eyes = np.column_stack([along, side, 0.003 * np.cos(np.arange(n_views) * 0.03)])
+    phase = np.arange(n_views) * (step_m / 0.002)
+    eyes = np.column_stack([0.025 * np.sin(2 * np.pi * phase / 97), 0.015 * np.sin(2 * np.pi * phase / 61 + 0.7),
+                            0.003 * np.cos(phase * 0.03)])
     true = np.array([look_at(e, e + np.array([0.0, 0.0, 0.1]), np.array([0, -1.0, 0])) for e in eyes])
     priors = np.array([T @ make_T(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
                                   rng.normal(0, trans_sigma, 3)) for T in true])
     first = np.repeat(np.arange(n_views - 1), new_points_per_view)
     length = np.minimum(min_track - 1 + rng.geometric(1.0 / (mean_track - min_track + 1.0), len(first)), max_track)
+    long = rng.random(len(first)) < long_share
+    length[long] = np.exp(rng.uniform(np.log(long_min), np.log(n_views), int(long.sum()))).astype(np.int64)
     length = np.minimum(length, n_views - first)
     # the retired keyframes keep only the tracks that reach the active ones (the rest were archived with them)
     keep = first + length > n_fixed
     first, length = first[keep], length[keep]
     n_points = len(first)
-    # each landmark near the middle of its run's views, within the part of the image it stays in
-    mid_eye = eyes[first + length // 2]
-    travel = np.linalg.norm(eyes[first + length - 1] - eyes[first], axis=1)
-    spread = np.maximum(0.003, 0.05 - 0.5 * travel)[:, None]
-    xy = mid_eye[:, :2] + rng.uniform(-1.0, 1.0, (n_points, 2)) * spread * np.array([1.0, 0.6])
+    # each landmark where all its views see it: in the overlap of their footprints (10% in from the edges)
+    run_starts = np.cumsum(length) - length
+    views_of = first[np.repeat(np.arange(n_points), length)] + (np.arange(length.sum())
+                                                                 - np.repeat(run_starts, length))
+    lo = np.minimum.reduceat(eyes[views_of, :2], run_starts)
+    hi = np.maximum.reduceat(eyes[views_of, :2], run_starts)
+    half = 0.9 * 0.1 * np.array([K[0, 2], K[1, 2]]) / K[0, 0]
+    xy = rng.uniform(hi - half, lo + half)
     pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
     obs_point = np.repeat(np.arange(n_points), length)
     within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)

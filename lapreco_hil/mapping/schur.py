@@ -356,6 +356,8 @@ class _Layout:
     # as an (6F, band + 1) array B with B[j, i - j] = S[i, j] (i >= j): B.T is LAPACK's lower band storage;
     # None: dense (6F, 6F)
     band: int | None = None
+    # the pose system's blocks (rows, columns) that can be non-zero (``_pose_blocks``)
+    pose_blocks: tuple = ()
 
 
 def _greedy_cuts(first: np.ndarray, last: np.ndarray, views: np.ndarray) -> list[int]:
@@ -534,10 +536,12 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         entries += size
     if chunks:
         batches.append((first, len(chunks)))
-    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
-                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)),
-                   np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
-                   np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels, band)
+    lay = _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
+                  whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)),
+                  np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
+                  np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels, band)
+    lay.pose_blocks = _pose_blocks(lay, np.asarray(p.tie_pairs, np.int64).reshape(-1, 2))
+    return lay
 
 
 def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
@@ -837,20 +841,62 @@ def _subtract_gram_band(B: np.ndarray, band: int, idx, Z: np.ndarray) -> None:
     B.ravel()[j[near] * (band + 1) + (i - j)[near]] -= G[p[near], q[near]]
 
 
+def _wide_dense(lay: _Layout) -> bool:
+    """A dense camera system past BAND_MIN_FREE_POSES (a final pass, never a local window): its damped system is
+    made from the pose system's blocks that can be non-zero (``_pose_blocks``) alone, not by whole-matrix passes
+    (an identity as wide, its sum, a copy: each tens of MB at a few thousand wide)."""
+    return lay.band is None and len(lay.free) > BAND_MIN_FREE_POSES
+
+
+def _pose_blocks(lay: _Layout, tie_pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (row, column) blocks of the pose system where it can be non-zero: the free poses' diagonal blocks
+    (their observations and priors) and the blocks of the ties between two free poses."""
+    ca, cb = lay.col[tie_pairs[:, 0]], lay.col[tie_pairs[:, 1]]
+    both = (ca >= 0) & (cb >= 0)
+    diagonal = np.arange(len(lay.free))
+    return (np.concatenate([diagonal, ca[both], cb[both]]), np.concatenate([diagonal, cb[both], ca[both]]))
+
+
+def _damped_blocks(lay: _Layout, lin: _Linear, lam: float) -> tuple[tuple, np.ndarray]:
+    """The damped pose system's possibly non-zero blocks: (their index into a (F, 6, F, 6) view, (k, 6, 6)
+    values); lambda added on the diagonal blocks' diagonals (H + lambda I there, as the whole sum makes them)."""
+    n_free = len(lay.free)
+    rows, cols = lay.pose_blocks
+    index = (rows, slice(None), cols, slice(None))
+    D = lin.Hcc.reshape(n_free, 6, n_free, 6)[index]
+    D[rows == cols] += lam * np.eye(6)
+    return index, D
+
+
 def _damped(lay: _Layout, lin: _Linear, lam: float) -> np.ndarray:
-    """The pose system damped by lambda: its band array (the diagonal is its first column), or dense. A wide
-    dense one (past BAND_MIN_FREE_POSES: a final pass) takes lambda on its diagonal alone, the same sums without
-    two passes over an identity as wide (a local window's is made as it always was)."""
+    """The pose system damped by lambda: its band array (the diagonal is its first column), or dense (a wide one
+    from its possibly non-zero blocks alone, the same values: ``_wide_dense``)."""
     if lay.band is not None:
         S = lin.Hcc.copy()
         S[:, 0] += lam
         return S
     n6 = lin.Hcc.shape[0]
-    if len(lay.free) <= BAND_MIN_FREE_POSES:
+    if not _wide_dense(lay):
         return lin.Hcc + lam * np.eye(n6)
-    S = lin.Hcc.copy()
-    S.ravel()[::n6 + 1] += lam
+    S = np.zeros((n6, n6))
+    index, D = _damped_blocks(lay, lin, lam)
+    S.reshape(len(lay.free), 6, len(lay.free), 6)[index] = D
     return S
+
+
+def _damped_minus(lay: _Layout, lin: _Linear, lam: float, M: np.ndarray) -> np.ndarray:
+    """The damped pose system minus ``M`` (the landmarks' eliminated blocks, the same shape: dense or a band
+    array): (H + lambda I) - M. A wide dense one is made in ``M`` itself (taken): -M, then (H + lambda I) - M on
+    the pose system's possibly non-zero blocks; the same values (a - b is a + (-b)), zeros' signs aside."""
+    if not _wide_dense(lay):
+        S = _damped(lay, lin, lam)
+        S -= M
+        return S
+    np.negative(M, out=M)
+    index, D = _damped_blocks(lay, lin, lam)
+    M4 = M.reshape(len(lay.free), 6, len(lay.free), 6)
+    M4[index] = D + M4[index]
+    return M
 
 
 # --- one damped step ------------------------------------------------------------------------------------------------
@@ -1000,8 +1046,7 @@ def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -
         timing["schur_s"] += time.perf_counter() - t0
         return None
     M, r = eliminated
-    S = _damped(lay, lin, lam)
-    S -= M  # (its lower triangle: what the factorisation reads; a band array's is all of it)
+    S = _damped_minus(lay, lin, lam, M)  # (its lower triangle: what the factorisation reads; a band array's all)
     rhs = r - lin.gc
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
