@@ -19,10 +19,10 @@ DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 
 
 def small_map(seed: int = 3, n_free: int = 72, shuffle: bool = False):
-    """A live run's final pass in small: 72 free keyframes past 2 retired ones, short tracks (at most 12 views)
-    with 5% jumping half-way; ``shuffle``: its keyframes in a random order (the band only after reordering)."""
+    """A live run's final pass in small, without its long-lived tracks: 72 free keyframes past 2 retired ones,
+    short tracks (at most 12 views) with 5% jumping half-way; ``shuffle``: its keyframes in a random order (the band only after reordering)."""
     syn = make_live_final_problem(np.random.default_rng(seed), n_free=n_free, n_fixed=2, new_points_per_view=12,
-                                  max_track=12)
+                                  max_track=12, long_share=0.0)
     p = syn.problem
     if shuffle:
         order = np.concatenate([np.arange(2), 2 + np.random.default_rng(seed).permutation(n_free)])
@@ -97,11 +97,22 @@ def test_shuffled_keyframes_are_banded_after_a_reverse_cuthill_mckee_order():
     assert_same_answer(dense, banded, p)
 
 
-def test_a_map_whose_keyframes_all_co_observe_stays_dense():
-    """Landmarks seen across the whole map (a camera system with no band): dense, even past the size bound."""
-    syn = make_live_final_problem(np.random.default_rng(0), n_free=80, n_fixed=2, new_points_per_view=4,
-                                  mean_track=60, max_track=82)
-    assert schur._layout(schur.pose_major(syn.problem)[0]).band is None
+def test_a_map_with_long_lived_tracks_stays_dense():
+    """A few landmarks seen across most of the map (as the skull demo's final map has them) fill the camera
+    system: dense, even past the size bound; and the dense system made from the pose system's blocks alone
+    (``_damped_minus``) is the whole-matrix one bit for bit."""
+    syn = make_live_final_problem(np.random.default_rng(0), n_free=80, n_fixed=2, new_points_per_view=8,
+                                  long_share=0.05)
+    p = schur.pose_major(syn.problem)[0]
+    lay = schur._layout(p)
+    assert lay.band is None and schur._wide_dense(lay)
+    lin = schur._linearize(p, lay, p.poses, p.points, 0.7, "cauchy", 2.5)
+    M = np.random.default_rng(1).normal(size=lin.Hcc.shape)
+    expected = lin.Hcc + 1e-3 * np.eye(len(lin.Hcc)) - M
+    assert np.array_equal(schur._damped_minus(lay, lin, 1e-3, M.copy()), expected)
+    assert np.array_equal(schur._damped(lay, lin, 1e-3), lin.Hcc + 1e-3 * np.eye(len(lin.Hcc)))
+    with pytest.raises(ValueError, match="camera_solver"):
+        schur._layout(p, camera_solver="sparse")
     with pytest.raises(ValueError, match="camera_solver"):
         schur._layout(schur.pose_major(syn.problem)[0], camera_solver="sparse")
 
@@ -142,3 +153,19 @@ def test_the_band_solve_matches_the_dense_one_and_refuses_an_indefinite_system(r
     np.testing.assert_allclose(schur._solve_band_system(B.copy(), rhs), np.linalg.solve(S, rhs), rtol=1e-10)
     B[n // 2, 0] = -1.0
     assert schur._solve_band_system(B, rhs) is None
+
+
+def test_the_final_pass_reports_its_size_and_where_its_time_went():
+    """``final_ba_profile`` (the mapper's report of its global BA): the problem's size and the solver's stages."""
+    syn = small_map()
+    p = syn.problem
+    result = schur.solve_robust_schur(p, FINAL_SCHEDULE, device="numpy")
+    profile = schur.final_ba_profile(p, result)
+    views = np.bincount(p.obs_point)
+    assert (profile["free_poses"], profile["landmarks"], profile["observations"]) == (72, len(p.points), len(p.obs_uv))
+    assert profile["track_views_mean_max"] == [pytest.approx(views.mean()), int(views.max())]
+    assert profile["camera_solver"] == "banded" and profile["camera_band"] == result.stats["camera_band"]
+    assert [st["loss"] for st in profile["stages"]] == ["cauchy", "tukey"]
+    assert sum(st["iterations"] for st in profile["stages"]) == result.iterations
+    assert all(st["solves"] >= st["iterations"] for st in profile["stages"])
+    assert profile["timing"]["solve_s"] > 0 and profile["solve_s"] == result.seconds

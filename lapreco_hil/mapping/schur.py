@@ -1334,6 +1334,22 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
                      "device_ops": _device_ops(lay), **_camera_stats(lay)})
 
 
+def final_ba_profile(problem: BAProblem, result: BAResult) -> dict:
+    """A final pass's size and where its time went, for a run's report: free poses, landmarks, observations, the
+    longest track, the camera system's solver, per stage LM iterations, damped systems solved and seconds
+    (linearise, Schur complement, solve, error), and the seconds outside LM."""
+    stats = result.stats
+    views = np.bincount(np.asarray(problem.obs_point), minlength=len(problem.points))
+    return {"free_poses": int(len(problem.poses) - np.count_nonzero(problem.fixed)),
+            "landmarks": int(len(problem.points)), "observations": int(len(problem.obs_point)),
+            "track_views_mean_max": [float(views.mean()) if len(views) else 0.0, int(views.max(initial=0))],
+            "solve_s": result.seconds, "camera_solver": stats.get("camera_solver"),
+            "camera_band": stats.get("camera_band"),
+            "stages": [{"loss": st.get("loss"), "iterations": st.get("iterations"), "solves": st.get("solves"),
+                        "timing": st.get("timing", {})} for st in stats.get("stages", [])],
+            "timing": stats.get("timing", {})}
+
+
 def _norms(r: np.ndarray) -> np.ndarray:
     """(O,) lengths of residuals (O, 2), +inf where not finite (behind the camera)."""
     norms = r[:, 0] * r[:, 0]  # (the norms in place: three times faster than by powers)
