@@ -20,7 +20,8 @@ DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 
 def small_map(seed: int = 3, n_free: int = 72, shuffle: bool = False):
     """A live run's final pass in small, without its long-lived tracks: 72 free keyframes past 2 retired ones,
-    short tracks (at most 12 views) with 5% jumping half-way; ``shuffle``: its keyframes in a random order (the band only after reordering)."""
+    short tracks (at most 12 views) with 5% jumping half-way; ``shuffle``: its keyframes in a random order (the
+    band only after reordering)."""
     syn = make_live_final_problem(np.random.default_rng(seed), n_free=n_free, n_fixed=2, new_points_per_view=12,
                                   max_track=12, long_share=0.0)
     p = syn.problem

@@ -118,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     solve_robust_schur(p, RobustSchedule((RobustStage("cauchy", CAUCHY_K, 1),)), device=args.device)  # (loads)
     views = np.bincount(p.obs_point)
     out = {"problem": {"keyframes": len(p.poses), "free_keyframes": int((~p.fixed).sum()), "points": len(p.points),
-                       "observations": len(p.obs_uv), "long_share": args.long_share, "track_views_mean_max": [float(views.mean()), int(views.max())],
+                       "observations": len(p.obs_uv), "long_share": args.long_share,
+                       "track_views_mean_max": [float(views.mean()), int(views.max())],
                        "start_pose_rms_mm": pose_rms_mm(p.poses, syn.true_poses),
                        "prior_pose_rms_mm": pose_rms_mm(p.prior_poses, syn.true_poses)},
            "device": args.device, "blas_threads": threads, "runs": {}}

@@ -1386,7 +1386,8 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
     uploads, downloads and allocations ({} on numpy); ``camera_solver``, ``camera_band``: how the camera system
-    was held and solved. ``device``, ``blas_threads``, ``device_schur`` and ``camera_solver`` as ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
+    was held and solved. ``device``, ``blas_threads``, ``device_schur`` and ``camera_solver`` as
+    ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
     values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
     with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
