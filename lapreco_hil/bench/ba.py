@@ -1,7 +1,7 @@
 """``lapreco bench ba``: one local-BA window of 10 keyframes x 2000 points (~20k observations) with 5% gross
 outliers, solved the ways the live loop could solve it (GTSAM, the Schur-complement solver), and final passes
-over a long session's map (short tracks) and over a slow sweep's (400 keyframes, tracks of 20-300 views), timed
-on this machine."""
+over a long session's map (short tracks), over a slow sweep's (400 keyframes, tracks of 20-300 views) and over the
+live run's active map at its end (400 keyframes, short tracks: ``ba_live``), timed on this machine."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from lapreco_hil.bench.ba_live import make_live_final_problem
 from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
 from lapreco_hil.mapping import bundle_adjustment as ba
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage, mad_sigma
@@ -182,6 +183,32 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
                       "pose_rms_mm": _pose_rms_mm(rl.poses, sweep.true_poses),
                       "outlier_obs_labelled_inlier": int((rl.stats["inlier_obs"] & sweep.outlier_obs).sum()),
                       "timing": rl.stats["timing"]}
+    # the live run's final global BA (issue 23): 400 active keyframes, most tracks short, 4% long-lived (which fill
+    # its camera system: dense); and the same map without its long-lived tracks (its camera system banded, the
+    # default there, and dense); solved as the mapper's final pass solves them (its BLAS threads, on a GPU the
+    # landmarks eliminated there)
+    live = make_live_final_problem(np.random.default_rng(seed))
+    banded_map = make_live_final_problem(np.random.default_rng(seed), long_share=0.0)
+    labels = {}
+    for name, syn_live, camera_solver in (
+            ("schur_final_ba_live_400kf_15+15", live, "auto"),
+            ("schur_final_ba_live_short_tracks_400kf_15+15", banded_map, "auto"),
+            ("schur_final_ba_live_short_tracks_400kf_15+15_dense", banded_map, "dense")):
+        t, rl = _median_time(lambda s_=syn_live, c=camera_solver: solve_robust_schur(
+            s_.problem, final, device=device, blas_threads=final_pass_threads(), camera_solver=c), 1, cpu)
+        rows[name] = {"s": t, "cpu_s": cpu["s"], "iterations": rl.iterations, "blas_threads": final_pass_threads(),
+                      "camera_solver": rl.stats["camera_solver"], "camera_band": rl.stats["camera_band"],
+                      "solves": [st["solves"] for st in rl.stats["stages"]],
+                      "pose_rms_mm": _pose_rms_mm(rl.poses, syn_live.true_poses),
+                      "inlier_obs": int(rl.stats["inlier_obs"].sum()),
+                      "outlier_obs_labelled_inlier": int((rl.stats["inlier_obs"] & syn_live.outlier_obs).sum()),
+                      "timing": rl.stats["timing"],
+                      "stages": [{"loss": st["loss"], "iterations": st["iterations"], "timing": st["timing"],
+                                  "iteration_timing": st["iteration_timing"]} for st in rl.stats["stages"]]}
+        labels[name] = rl.stats["inlier_obs"]
+    rows["schur_final_ba_live_short_tracks_400kf_15+15"]["labels_differing_from_dense"] = int(
+        (labels["schur_final_ba_live_short_tracks_400kf_15+15"]
+         != labels["schur_final_ba_live_short_tracks_400kf_15+15_dense"]).sum())
     t, built = _median_time(lambda: ba._build(p, ba.robust_pixel_noise(1.0, "cauchy", 2.0)), repeats)
     rows["graph_build_only"] = {"s": t}
     graph, pose_keys, point_keys, _ = built
@@ -212,6 +239,15 @@ def run(repeats: int = 3, seed: int = 0, device: str = "cpu") -> dict:
                                          int(np.bincount(sweep.problem.obs_point).max())],
             "outlier_obs": int(sweep.outlier_obs.sum()),
             "prior_pose_rms_mm": _pose_rms_mm(sweep.problem.prior_poses, sweep.true_poses)},
+        "live_final_ba_problem": {
+            "keyframes": int(len(live.problem.poses)), "free_keyframes": int((~live.problem.fixed).sum()),
+            "points": int(len(live.problem.points)), "observations": int(len(live.problem.obs_uv)),
+            "track_views_min_mean_max": [int(np.bincount(live.problem.obs_point).min()),
+                                         float(np.bincount(live.problem.obs_point).mean()),
+                                         int(np.bincount(live.problem.obs_point).max())],
+            "outlier_obs": int(live.outlier_obs.sum()),
+            "start_pose_rms_mm": _pose_rms_mm(live.problem.poses, live.true_poses),
+            "prior_pose_rms_mm": _pose_rms_mm(live.problem.prior_poses, live.true_poses)},
         "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                     "gtsam": gtsam.__version__ if hasattr(gtsam, "__version__") else "?"},
         "repeats": repeats,
@@ -230,6 +266,10 @@ def format_table(result: dict) -> str:
              "sweep final BA: {keyframes} keyframes x {points} points, {observations} observations, track views "
              "{track_views_min_mean_max}; prior pose RMS {prior_pose_rms_mm:.3f} mm".format(
                  **result["sweep_final_ba_problem"]) if "sweep_final_ba_problem" in result else "",
+             "live final BA: {keyframes} keyframes ({free_keyframes} free) x {points} points, {observations} "
+             "observations, track views {track_views_min_mean_max}; start pose RMS {start_pose_rms_mm:.3f} mm, priors "
+             "{prior_pose_rms_mm:.3f} mm".format(**result["live_final_ba_problem"])
+             if "live_final_ba_problem" in result else "",
              f"Schur solver rows: kernels on Warp device {result.get('schur_device', 'cpu')} (schur_numpy_*: numpy)",
              f"{'method':38s} {'time ms':>9s} {'CPU ms':>8s} {'pose RMS mm':>12s} {'iterations':>10s} "
              f"{'labels != gtsam':>15s}"]

@@ -36,7 +36,7 @@ from lapreco_hil.mapping.prediction import depth_span, depths_in_front
 from lapreco_hil.mapping.resection import refine_pose, refine_poses
 from lapreco_hil.mapping.retirement import Retirement, corrections_at
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
+from lapreco_hil.mapping.schur import final_ba_profile, final_pass_threads, solve_robust_schur
 from lapreco_hil.mapping.triangulation import triangulate, widest_ray_angle_deg
 
 log = logging.getLogger(__name__)
@@ -813,6 +813,7 @@ class Mapper:
             "local_ba_runs": len(self.ba_times) - (1 if problem is not None and cfg.final_global_ba else 0),
             "local_ba_mean_s": float(np.mean(self.ba_times[:-1])) if len(self.ba_times) > 1 else 0.0,
             "final_ba_s": time.perf_counter() - t0,
+            "final_ba": final_ba_profile(problem, result) if problem is not None and cfg.final_global_ba else None,
             "pixel_sigma_mad": self.last_sigma_px,
             "inlier_threshold_px": float(threshold) if problem is not None else None,
             "reprojection": reprojection,

@@ -75,6 +75,12 @@ CHUNK_DENSE_POSES = 32
 CHUNK_WASTE = 1.5
 # the kernels make the blocks of consecutive chunks in one launch, up to this many entries (64 MB) at once
 BATCH_ENTRIES = 8_000_000
+# the camera system of a problem of more than this many free poses (a final pass, never a local window) is
+# solved as a band matrix (LAPACK's banded Cholesky) where its bandwidth, in keyframe order or after a reverse
+# Cuthill-McKee order, is at most 1 / BAND_MAX_SHARE of its width: keyframes co-observe only their neighbours in
+# time, and the band's n b^2 work is then a small share of the dense factorisation's n^3 / 3
+BAND_MIN_FREE_POSES = 64
+BAND_MAX_SHARE = 3
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
@@ -346,6 +352,12 @@ class _Layout:
     prior_inv: np.ndarray  # their priors' inverses
     tie_inv: np.ndarray  # the ties' T_i_j^-1
     kernels: object = None  # schur_kernels.ObservationKernels on a Warp device; None: numpy
+    # the camera system's lower bandwidth (entries) where it is solved as a band matrix (``_camera_band``), held
+    # as an (6F, band + 1) array B with B[j, i - j] = S[i, j] (i >= j): B.T is LAPACK's lower band storage;
+    # None: dense (6F, 6F)
+    band: int | None = None
+    # the pose system's blocks (rows, columns) that can be non-zero (``_pose_blocks``)
+    pose_blocks: tuple = ()
 
 
 def _greedy_cuts(first: np.ndarray, last: np.ndarray, views: np.ndarray) -> list[int]:
@@ -435,12 +447,56 @@ def _unique_pairs(obs_point: np.ndarray, obs_pose: np.ndarray, n_points: int, n_
     return not np.any(pair[1:] == pair[:-1])
 
 
+CAMERA_SOLVERS = ("auto", "dense", "banded")
+
+
+def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int, tie_cols: np.ndarray,
+                 camera_solver: str) -> tuple[int | None, np.ndarray | None]:
+    """(the camera system's lower bandwidth in entries, the order of the free poses that gives it: None where
+    theirs) where the camera system is to be solved as a band matrix, else (None, None). Its block pattern: the
+    free poses that see a common landmark, and the tied ones. "auto": banded for more than BAND_MIN_FREE_POSES free
+    poses where the bandwidth, in the poses' own order (a map's keyframes in time) or after a reverse
+    Cuthill-McKee order where that is narrower, is at most 1 / BAND_MAX_SHARE of the width; "banded": always
+    (in the narrower order); "dense": never."""
+    if camera_solver not in CAMERA_SOLVERS:
+        raise ValueError(f"camera_solver '{camera_solver}': use one of {', '.join(CAMERA_SOLVERS)}")
+    if camera_solver == "dense" or not n_free or (camera_solver == "auto" and n_free <= BAND_MIN_FREE_POSES):
+        return None, None
+    seen = obs_col >= 0
+    first = np.full(n_points, n_free, np.int64)
+    np.minimum.at(first, obs_point[seen], obs_col[seen])
+    last = np.full(n_points, -1, np.int64)
+    np.maximum.at(last, obs_point[seen], obs_col[seen])
+    spans = np.concatenate([(last - first)[last >= 0], np.abs(tie_cols[:, 0] - tie_cols[:, 1])])
+    width = int(spans.max(initial=0))
+    order = None
+    if (width + 1) * BAND_MAX_SHARE > n_free:  # too wide in this order: a reverse Cuthill-McKee order's?
+        import scipy.sparse
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        incidence = scipy.sparse.csr_matrix((np.ones(int(seen.sum())), (obs_point[seen], obs_col[seen])),
+                                            shape=(n_points, n_free))
+        graph = (incidence.T @ incidence).tocoo()
+        rows, cols = np.concatenate([graph.row, tie_cols[:, 0]]), np.concatenate([graph.col, tie_cols[:, 1]])
+        pattern = scipy.sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_free, n_free))
+        rcm = reverse_cuthill_mckee(pattern + pattern.T, symmetric_mode=True)
+        position = np.empty(n_free, np.int64)
+        position[rcm] = np.arange(n_free)
+        rcm_width = int(np.abs(position[rows] - position[cols]).max(initial=0))
+        if rcm_width < width:
+            width, order = rcm_width, rcm
+    if camera_solver == "auto" and (width + 1) * BAND_MAX_SHARE > n_free:
+        return None, None
+    return 6 * width + 5, order
+
+
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
-            gpu_reductions: bool | None = None, workspace=None) -> _Layout:
+            gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto") -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
     ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``); its device
-    arrays cut from ``workspace``'s buffers where given (``schur_kernels.SchurWorkspace``)."""
+    arrays cut from ``workspace``'s buffers where given (``schur_kernels.SchurWorkspace``); its camera system
+    dense or banded as ``camera_solver`` asks (``_camera_band``)."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -448,6 +504,13 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
     col[free] = np.arange(len(free))
     obs_point = np.asarray(p.obs_point, np.int64)
     obs_col = col[p.obs_pose]
+    tie_cols = col[np.asarray(p.tie_pairs, np.int64).reshape(-1, 2)]
+    band, order = _camera_band(obs_point, obs_col, n_points, len(free), tie_cols[(tie_cols >= 0).all(axis=1)],
+                               camera_solver)
+    if order is not None:  # (the free poses' columns in the narrower order)
+        free = free[order]
+        col[free] = np.arange(len(free))
+        obs_col = col[p.obs_pose]
     # (the observations are pose-major: each pose's run found by a search, not a count)
     pose_starts = np.searchsorted(p.obs_pose, np.arange(n_poses + 1))
     on_device = device_schur and device != "numpy"
@@ -462,7 +525,8 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
         kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
-                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs, workspace=workspace)
+                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs, workspace=workspace,
+                                     band=band)
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -472,10 +536,12 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         entries += size
     if chunks:
         batches.append((first, len(chunks)))
-    return _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
-                   whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)),
-                   np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
-                   np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels)
+    lay = _Layout(free, col, obs_point, obs_col, pose_starts, n_points, chunks, batches, unique_pairs, prior_idx,
+                  whitening(np.asarray(p.prior_covs)[prior_idx]), whitening(np.asarray(p.tie_covs)),
+                  np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
+                  np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels, band)
+    lay.pose_blocks = _pose_blocks(lay, np.asarray(p.tie_pairs, np.int64).reshape(-1, 2))
+    return lay
 
 
 def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
@@ -658,10 +724,13 @@ def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: 
     the device works; ``started``: ``_start_linearize_on_device``'s, where it started already."""
     errors, terms = started or _start_linearize_on_device(p, lay, poses, sigma, loss, k, lam, errors)
     n_free = len(lay.free)
-    Hcc = np.zeros((6 * n_free, 6 * n_free))
     blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize()
-    diagonal = np.arange(n_free)
-    Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
+    if lay.band is None:
+        Hcc = np.zeros((6 * n_free, 6 * n_free))
+        diagonal = np.arange(n_free)
+        Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
+    else:
+        Hcc = _band_of_diagonal_blocks(lay.band, blocks)
     return _with_pose_factors(lay, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq, errors, terms)
 
 
@@ -689,15 +758,21 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
             np.multiply(sJp[0, a], Jc[0, b], out=W[a, b])
             W[a, b] += sJp[1, a] * Jc[1, b]
     n_free = len(lay.free)
-    Hcc = np.zeros((6 * n_free, 6 * n_free))
+    blocks = np.zeros((n_free, 6, 6))
     gc = np.zeros(6 * n_free)
     if n_free:
         W[:, :, lay.obs_col < 0] = 0.0
         Jw = np.sqrt(s) * Jc  # whitened Jacobian rows; each pose's observations are one run
         for c, i in enumerate(lay.free.tolist()):
             run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
-            Hcc[6 * c:6 * c + 6, 6 * c:6 * c + 6] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
+            blocks[c] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
             gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
+    if lay.band is None:
+        Hcc = np.zeros((6 * n_free, 6 * n_free))
+        diagonal = np.arange(n_free)
+        Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
+    else:
+        Hcc = _band_of_diagonal_blocks(lay.band, blocks)
     return _with_pose_factors(lay, Hcc, gc, Hpp, gp, W, error0, errors, _pose_normal_terms(lay, errors))
 
 
@@ -705,15 +780,123 @@ def _with_pose_factors(lay: _Layout, Hcc, gc, Hpp, gp, W, error0: float, errors:
     """The linearisation with the priors' and ties' terms (``_pose_errors``, ``_pose_normal_terms``) added to
     the pose blocks."""
     n_free = len(lay.free)
-    H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
     g2 = gc.reshape(n_free, 6)
     for f in errors:
         error0 += f[-1]
-    for cols, g, blocks in terms:
-        np.add.at(g2, cols, g)
-        for index, H in blocks:
-            np.add.at(H4, index, H)
+    if lay.band is None:
+        H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
+        for cols, g, blocks in terms:
+            np.add.at(g2, cols, g)
+            for index, H in blocks:
+                np.add.at(H4, index, H)
+    else:
+        for cols, g, blocks in terms:
+            np.add.at(g2, cols, g)
+            for index, H in blocks:
+                flat, lower = _band_entries(lay.band, index[0], index[2])
+                np.add.at(Hcc.ravel(), flat[lower], H[lower])
     return _Linear(Hcc, gc, Hpp, gp, W, error0)
+
+
+# --- the camera system as a band matrix (``_Layout.band``) -----------------------------------------------------
+def _band_entries(band: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the entries of the 6 x 6 blocks (rows[n], cols[n]) of the camera system lie in its band array
+    (flat indices, (n, 6, 6)), and which of them are in its lower triangle (the band array holds those alone)."""
+    i = 6 * np.asarray(rows, np.int64)[:, None, None] + np.arange(6)[None, :, None]
+    j = 6 * np.asarray(cols, np.int64)[:, None, None] + np.arange(6)[None, None, :]
+    lower = i >= j
+    return np.where(lower, j * (band + 1) + (i - j), 0), lower
+
+
+def _band_of_diagonal_blocks(band: int, blocks: np.ndarray) -> np.ndarray:
+    """The band array (6F, band + 1) of the block diagonal ``blocks`` (F, 6, 6)."""
+    B = np.zeros((6 * len(blocks), band + 1))
+    diagonal = np.arange(len(blocks))
+    flat, lower = _band_entries(band, diagonal, diagonal)
+    B.ravel()[flat[lower]] = blocks[lower]
+    return B
+
+
+def _subtract_gram_band(B: np.ndarray, band: int, idx, Z: np.ndarray) -> None:
+    """B -= the lower band of Z^T Z on rows/columns ``idx`` (a slice, or increasing indices) of the camera system
+    held as a band array (``_Layout.band``). The rows and columns j..j+w of a band array are a (w x w) matrix of
+    leading dimension ``band`` in Fortran's view (entry (i, j) at i + band j), so a block of at most ``band`` wide
+    is one BLAS dsyrk in place; a wider one (entries beyond the band are zero: no landmark couples those poses)
+    goes through a dense Gram matrix."""
+    rows, width = Z.shape
+    if not rows or not width:
+        return
+    if isinstance(idx, slice) and width <= band:
+        assert B.flags.c_contiguous and Z.flags.c_contiguous and B.shape[1] == band + 1
+        c = ctypes.c_int
+        _dsyrk()(b"L", b"N", ctypes.byref(c(width)), ctypes.byref(c(rows)), ctypes.byref(ctypes.c_double(-1.0)),
+                 Z.ctypes.data, ctypes.byref(c(width)), ctypes.byref(ctypes.c_double(1.0)),
+                 B.ctypes.data + 8 * idx.start * (band + 1), ctypes.byref(c(band)))
+        return
+    at = np.arange(idx.start, idx.stop) if isinstance(idx, slice) else np.asarray(idx)
+    G = scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
+    p, q = np.tril_indices(width)
+    i, j = at[p], at[q]
+    near = i - j <= band
+    B.ravel()[j[near] * (band + 1) + (i - j)[near]] -= G[p[near], q[near]]
+
+
+def _wide_dense(lay: _Layout) -> bool:
+    """A dense camera system past BAND_MIN_FREE_POSES (a final pass, never a local window): its damped system is
+    made from the pose system's blocks that can be non-zero (``_pose_blocks``) alone, not by whole-matrix passes
+    (an identity as wide, its sum, a copy: each tens of MB at a few thousand wide)."""
+    return lay.band is None and len(lay.free) > BAND_MIN_FREE_POSES
+
+
+def _pose_blocks(lay: _Layout, tie_pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (row, column) blocks of the pose system where it can be non-zero: the free poses' diagonal blocks
+    (their observations and priors) and the blocks of the ties between two free poses."""
+    ca, cb = lay.col[tie_pairs[:, 0]], lay.col[tie_pairs[:, 1]]
+    both = (ca >= 0) & (cb >= 0)
+    diagonal = np.arange(len(lay.free))
+    return (np.concatenate([diagonal, ca[both], cb[both]]), np.concatenate([diagonal, cb[both], ca[both]]))
+
+
+def _damped_blocks(lay: _Layout, lin: _Linear, lam: float) -> tuple[tuple, np.ndarray]:
+    """The damped pose system's possibly non-zero blocks: (their index into a (F, 6, F, 6) view, (k, 6, 6)
+    values); lambda added on the diagonal blocks' diagonals (H + lambda I there, as the whole sum makes them)."""
+    n_free = len(lay.free)
+    rows, cols = lay.pose_blocks
+    index = (rows, slice(None), cols, slice(None))
+    D = lin.Hcc.reshape(n_free, 6, n_free, 6)[index]
+    D[rows == cols] += lam * np.eye(6)
+    return index, D
+
+
+def _damped(lay: _Layout, lin: _Linear, lam: float) -> np.ndarray:
+    """The pose system damped by lambda: its band array (the diagonal is its first column), or dense (a wide one
+    from its possibly non-zero blocks alone, the same values: ``_wide_dense``)."""
+    if lay.band is not None:
+        S = lin.Hcc.copy()
+        S[:, 0] += lam
+        return S
+    n6 = lin.Hcc.shape[0]
+    if not _wide_dense(lay):
+        return lin.Hcc + lam * np.eye(n6)
+    S = np.zeros((n6, n6))
+    index, D = _damped_blocks(lay, lin, lam)
+    S.reshape(len(lay.free), 6, len(lay.free), 6)[index] = D
+    return S
+
+
+def _damped_minus(lay: _Layout, lin: _Linear, lam: float, M: np.ndarray) -> np.ndarray:
+    """The damped pose system minus ``M`` (the landmarks' eliminated blocks, the same shape: dense or a band
+    array): (H + lambda I) - M. A wide dense one is made in ``M`` itself (taken): -M, then (H + lambda I) - M on
+    the pose system's possibly non-zero blocks; the same values (a - b is a + (-b)), zeros' signs aside."""
+    if not _wide_dense(lay):
+        S = _damped(lay, lin, lam)
+        S -= M
+        return S
+    np.negative(M, out=M)
+    index, D = _damped_blocks(lay, lin, lam)
+    M4 = M.reshape(len(lay.free), 6, len(lay.free), 6)
+    M4[index] = D + M4[index]
+    return M
 
 
 # --- one damped step ------------------------------------------------------------------------------------------------
@@ -769,7 +952,9 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
         return None
     Lg = _forward(L, lin.gp[:, :, None])[:, :, 0]  # L^-1 gp
     n6 = lin.Hcc.shape[0]
-    S = lin.Hcc + lam * np.eye(n6)  # its lower triangle is what the factorisation reads
+    band = lay.band
+    # (its lower triangle is what the factorisation reads)
+    S = _damped(lay, lin, lam)
     rhs = -lin.gc.copy()
     on_device = lay.kernels is not None and lay.unique_pairs
     if on_device:
@@ -795,14 +980,16 @@ def _solve_damped(lay: _Layout, lin: _Linear, lam: float, timing: dict):
                 else:
                     np.add.at(Wd.ravel(), ch.dest, W[:, :, ch.obs])
                 Z = _forward(tuple(v[ch.points] for v in L), Wd).reshape(3 * n_c, -1)  # L^-1 W: S -= Z^T Z
-            if isinstance(ch.idx, slice):
+            if band is not None:
+                _subtract_gram_band(S, band, ch.idx, Z)
+            elif isinstance(ch.idx, slice):
                 _subtract_gram(S, ch.idx, Z)
             else:
                 S[np.ix_(ch.idx, ch.idx)] -= scipy.linalg.blas.dsyrk(1.0, Z.T, trans=0, lower=1)
             rhs[ch.idx] += Z.T @ Lg[ch.points].ravel()
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
-    dc = _solve_camera_system(S, rhs)
+    dc = _solve_camera_system(S, rhs) if band is None else _solve_band_system(S, rhs)
     if dc is None:
         timing["solve_s"] += time.perf_counter() - t1
         return None
@@ -835,6 +1022,20 @@ def _solve_camera_system(S: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
     return dc if np.all(np.isfinite(dc)) else None
 
 
+def _solve_band_system(B: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """``_solve_camera_system`` of a camera system held as a band array (``_Layout.band``; overwritten): LAPACK's
+    banded Cholesky (pbtrf, pbtrs) on its transpose, LAPACK's lower band storage as it lies."""
+    if not len(rhs):
+        return np.zeros(0)
+    factor, info = scipy.linalg.lapack.dpbtrf(B.T, lower=1, overwrite_ab=1)
+    if info > 0:
+        return None
+    dc, info_solve = scipy.linalg.lapack.dpbtrs(factor, rhs, lower=1)
+    if info < 0 or info_solve < 0:
+        raise ValueError(f"LAPACK pbtrf/pbtrs: illegal argument {min(info, info_solve)}")
+    return dc if np.all(np.isfinite(dc)) else None
+
+
 def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -> np.ndarray | None:
     """The damped camera system's solution (F, 6) with the landmarks eliminated on the kernels' device (a
     handful of launches, the camera system (6F x 6F) and a flag read back in one copy, the host solving it);
@@ -845,13 +1046,11 @@ def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -
         timing["schur_s"] += time.perf_counter() - t0
         return None
     M, r = eliminated
-    n6 = 6 * len(lay.free)
-    S = lin.Hcc + lam * np.eye(n6)
-    S -= M  # (its lower triangle: what the factorisation reads)
+    S = _damped_minus(lay, lin, lam, M)  # (its lower triangle: what the factorisation reads; a band array's all)
     rhs = r - lin.gc
     t1 = time.perf_counter()
     timing["schur_s"] += t1 - t0
-    dc = _solve_camera_system(S, rhs)
+    dc = _solve_camera_system(S, rhs) if lay.band is None else _solve_band_system(S, rhs)
     timing["solve_s"] += time.perf_counter() - t1
     return None if dc is None else dc.reshape(-1, 6)
 
@@ -1091,13 +1290,18 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None,
-           workspace=None):
+           workspace=None, camera_solver: str = "auto"):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions, workspace)
+    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions, workspace, camera_solver)
     return p, perm, lay, time.perf_counter() - t0
+
+
+def _camera_stats(lay: _Layout) -> dict:
+    """How the camera system was held and solved: "dense", or "banded" with its lower bandwidth (entries)."""
+    return {"camera_solver": "dense" if lay.band is None else "banded", "camera_band": lay.band}
 
 
 def _device_ops(lay: _Layout) -> dict:
@@ -1107,15 +1311,18 @@ def _device_ops(lay: _Layout) -> dict:
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
                 max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1,
-                device_schur: bool | None = None) -> BAResult:
+                device_schur: bool | None = None, camera_solver: str = "auto") -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
     ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp);
     ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``);
     ``device_schur``: eliminate the landmarks on the kernels' device (one launch summing every landmark's block
     into the camera system by atomics, which only a GPU does fast) instead of chunk by chunk through host BLAS;
-    None: on CUDA devices only."""
+    None: on CUDA devices only; ``camera_solver``: the camera system held and factorised "dense", "banded" (LAPACK's
+    banded Cholesky, the free poses in a reverse Cuthill-McKee order where that narrows the band) or "auto"
+    (banded for a problem of more than BAND_MIN_FREE_POSES free poses whose band is narrow: ``_camera_band``;
+    the same answers to round-off)."""
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, camera_solver=camera_solver)
     timing = _new_timing()
     state = _new_state(p, lay)
     with _blas_threads(blas_threads):
@@ -1124,7 +1331,23 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
     residuals = _unsorted(np.sqrt(r[:, 0] ** 2 + r[:, 1] ** 2), perm)
     return BAResult(state.poses, state.points(), residuals, e0, e1, its, time.perf_counter() - t0,
                     {"timing": {**timing, "setup_s": setup_s}, "iteration_timing": per_it, "solves": solves,
-                     "device_ops": _device_ops(lay)})
+                     "device_ops": _device_ops(lay), **_camera_stats(lay)})
+
+
+def final_ba_profile(problem: BAProblem, result: BAResult) -> dict:
+    """A final pass's size and where its time went, for a run's report: free poses, landmarks, observations, the
+    longest track, the camera system's solver, per stage LM iterations, damped systems solved and seconds
+    (linearise, Schur complement, solve, error), and the seconds outside LM."""
+    stats = result.stats
+    views = np.bincount(np.asarray(problem.obs_point), minlength=len(problem.points))
+    return {"free_poses": int(len(problem.poses) - np.count_nonzero(problem.fixed)),
+            "landmarks": int(len(problem.points)), "observations": int(len(problem.obs_point)),
+            "track_views_mean_max": [float(views.mean()) if len(views) else 0.0, int(views.max(initial=0))],
+            "solve_s": result.seconds, "camera_solver": stats.get("camera_solver"),
+            "camera_band": stats.get("camera_band"),
+            "stages": [{"loss": st.get("loss"), "iterations": st.get("iterations"), "solves": st.get("solves"),
+                        "timing": st.get("timing", {})} for st in stats.get("stages", [])],
+            "timing": stats.get("timing", {})}
 
 
 def _norms(r: np.ndarray) -> np.ndarray:
@@ -1156,13 +1379,14 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: boo
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None,
-                       gpu_reductions: bool | None = None, workspace=None) -> BAResult:
+                       gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto") -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
-    uploads, downloads and allocations ({} on numpy). ``device``, ``blas_threads`` and ``device_schur`` as
+    uploads, downloads and allocations ({} on numpy); ``camera_solver``, ``camera_band``: how the camera system
+    was held and solved. ``device``, ``blas_threads``, ``device_schur`` and ``camera_solver`` as
     ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
     (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
     values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
@@ -1171,15 +1395,18 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     recorded launches) the solve uses instead of its own, kept by a caller that solves window after window (the
     BA worker); the same answers. Ignored on numpy."""
     if workspace is None or device == "numpy":
-        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None)
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None,
+                                   camera_solver)
     with workspace.claim():
-        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, workspace)
+        return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, workspace,
+                                   camera_solver)
 
 
 def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str, blas_threads: int,
-                        device_schur: bool | None, gpu_reductions: bool | None, workspace) -> BAResult:
+                        device_schur: bool | None, gpu_reductions: bool | None, workspace,
+                        camera_solver: str) -> BAResult:
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace, camera_solver)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0
@@ -1209,4 +1436,4 @@ def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: st
                     time.perf_counter() - t0,
                     {"stages": stages, "sigma_px": sigma_final, "inlier_threshold_px": threshold,
                      "inlier_obs": residuals <= threshold, "timing": {**timing, "setup_s": setup_s, "scale_s": scale_s},
-                     "device_ops": _device_ops(lay)})
+                     "device_ops": _device_ops(lay), **_camera_stats(lay)})

@@ -432,6 +432,50 @@ def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.in
             _add_block(M, n6, ca, ca, za, zb, True)
 
 
+@wp.func
+def _add_band_block(M: wp.array(dtype=wp.float64), band: int, row: int, col: int, za: mat36d, zb: mat36d,
+                    both: bool):
+    """``_add_block`` into the camera system held as a band array (``schur._Layout.band``): entry (i, j), i >= j,
+    at j (band + 1) + i - j; the entries above the diagonal (a diagonal block's upper half) are left out."""
+    for a in range(6):
+        for b in range(6):
+            i = 6 * row + a
+            j = 6 * col + b
+            if i >= j:
+                v = za[0, a] * zb[0, b] + za[1, a] * zb[1, b] + za[2, a] * zb[2, b]
+                if both:
+                    v += zb[0, a] * za[0, b] + zb[1, a] * za[1, b] + zb[2, a] * za[2, b]
+                wp.atomic_add(M, j * (band + 1) + i - j, v)
+
+
+@wp.kernel
+def _schur_blocks_band(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.int32),
+                       obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                       W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), band: int,
+                       M: wp.array(dtype=wp.float64), r: wp.array(dtype=wp.float64)):
+    """``_schur_blocks`` into a band array (``_add_band_block``): the same sums in the same order per entry."""
+    n = wp.tid()
+    o = pm_obs[n]
+    j = obs_point[o]
+    l = L[j]
+    za = _whiten(l, W[o])
+    ca = obs_col[o]
+    lg = Lg[j]
+    for b in range(6):
+        wp.atomic_add(r, 6 * ca + b, za[0, b] * lg[0] + za[1, b] * lg[1] + za[2, b] * lg[2])
+    _add_band_block(M, band, ca, ca, za, za, False)
+    for m in range(n + 1, pm_end[n]):
+        ob = pm_obs[m]
+        zb = _whiten(l, W[ob])
+        cb = obs_col[ob]
+        if ca > cb:
+            _add_band_block(M, band, ca, cb, za, zb, False)
+        elif ca < cb:
+            _add_band_block(M, band, cb, ca, zb, za, False)
+        else:
+            _add_band_block(M, band, ca, ca, za, zb, True)
+
+
 @wp.kernel
 def _window_table(obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32), n_free: int,
                   table: wp.array(dtype=wp.int32)):
@@ -652,9 +696,11 @@ class ObservationKernels:
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
                  gpu_reductions: bool | None = None, unique_pairs: bool = False,
-                 workspace: SchurWorkspace | None = None) -> None:
+                 workspace: SchurWorkspace | None = None, band: int | None = None) -> None:
         """``workspace``: the buffers to cut the arrays from (kept across solves by their owner); None: allocated
-        for this solve."""
+        for this solve. ``band``: the camera system's lower bandwidth where the landmarks eliminated here go into
+        a band array (6F, band + 1) (``schur._Layout.band``); None: a dense (6F, 6F) one."""
+        self.band = band
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
         self._workspace = workspace
@@ -686,7 +732,7 @@ class ObservationKernels:
         indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
         # the landmarks eliminated here by pose pairs (``_schur_window``) or by observations (``_schur_blocks``)
         self.window = (self.schur_on_device and self.gpu_reductions and bool(unique_pairs)
-                       and 0 < n_free <= WINDOW_POSES)
+                       and 0 < n_free <= WINDOW_POSES and band is None)
         if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
             by_free = np.asarray(obs_col) >= 0
@@ -710,7 +756,8 @@ class ObservationKernels:
         # step's sum of W dc per landmark and its sums (d.gp, d.d, the trial's reprojection error).
         n6, n_system = 6 * n_free, 42 * n_free + 1
         n_table = N * n_free if self.window else 0
-        n_eliminated = n6 * n6 + n6 + 1 if self.schur_on_device else 0
+        n_camera = n6 * n6 if band is None else n6 * (band + 1)  # (the camera system: dense or a band array)
+        n_eliminated = n_camera + n6 + 1 if self.schur_on_device else 0
         # (T0, dc, T1 in that order: a step's tangents and its trial poses, into either state's, are one range)
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
                  "T0": (len(p.poses), wp.mat44d), "dc": (max(n_free, 1), vec6d), "T1": (len(p.poses), wp.mat44d),
@@ -743,12 +790,12 @@ class ObservationKernels:
         self.Wdc = self._view(self.step_sums, 0, N, wp.vec3d)
         self.sums = self._view(self.step_sums, 3 * N, 3, wp.float64)
         if self.schur_on_device:
-            # M (6F x 6F), r (6F), the count of landmark blocks not positive definite
+            # M (6F x 6F, or its band array), r (6F), the count of landmark blocks not positive definite
             start = 12 * N + n_system
             self.eliminated = self._view(work, start, n_eliminated, wp.float64)
-            self.M = self._view(work, start, n6 * n6, wp.float64)
-            self.r = self._view(work, start + n6 * n6, n6, wp.float64)
-            self.failed = self._view(work, start + n6 * n6 + n6, 1, wp.float64)
+            self.M = self._view(work, start, n_camera, wp.float64)
+            self.r = self._view(work, start + n_camera, n6, wp.float64)
+            self.failed = self._view(work, start + n_camera + n6, 1, wp.float64)
             self.system = self._view(work, 12 * N, n_system + n_eliminated, wp.float64)
         # recorded launches (``_launch``), a workspace's kept from solve to solve
         self._commands = {} if workspace is None else workspace.launches(device)
@@ -1121,17 +1168,23 @@ class ObservationKernels:
             self._launch(_schur_window, 6 * (self.n_free * (self.n_free + 1) // 2) * n_runs,
                          [self.table, self.Z, self.Lg, self.n_free, self.n_points, GPU_POINTS_PER_THREAD],
                          [self.M, self.r])
+        elif self.band is not None:
+            self._launch(_schur_blocks_band, self.n_pm,
+                         [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
+                          self.band], [self.M, self.r])
         else:
             self._launch(_schur_blocks, self.n_pm,
                          [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
                           6 * self.n_free], [self.M, self.r])
 
     def _camera_system(self, flat: np.ndarray):
-        """(M, r) copied from a read-back ``eliminated``; None where a landmark block failed."""
+        """(M, r) copied from a read-back ``eliminated`` (M dense (6F, 6F) or a band array (6F, band + 1)); None
+        where a landmark block failed."""
         n6 = 6 * self.n_free
-        if flat[n6 * n6 + n6]:
+        width = n6 if self.band is None else self.band + 1
+        if flat[n6 * width + n6]:
             return None
-        return flat[:n6 * n6].reshape(n6, n6).copy(), flat[n6 * n6:n6 * n6 + n6].copy()
+        return flat[:n6 * width].reshape(n6, width).copy(), flat[n6 * width:n6 * width + n6].copy()
 
     def schur_complement(self, lam: float):
         """The landmarks eliminated at damping ``lam``, on the device: (M (6F, 6F): the sum of W^T V^-1 W in its

@@ -104,6 +104,8 @@ class LiveMetrics:
                      # the map's end after capture stops: all of it, and its global BA alone
                      "final_ba_s": result.stats.get("final_ba_wall_s"),
                      "final_global_ba_s": result.stats.get("final_ba_s"),
+                     # where that global BA's time went: the problem, the solver's stages and timing
+                     "final_global_ba": result.stats.get("final_ba"),
                      # the mapper process's own time, by kind of work (the usual bottleneck)
                      "mapper_stages_ms": result.stats.get("mapper_stages_ms", {}),
                      # the worker's windows: solved, and failed (a failure is logged; its window is not applied)

@@ -1,0 +1,149 @@
+"""The live run's final global BA, reproduced apart from the solver (as GTSAM's examples generate theirs): the
+active map at the end of a 2-minute 1080p60 run (issue 23). A scope surveys one operative field, a keyframe every
+``step_m`` or so; every landmark is one track, seen by a run of consecutive keyframes: most by a handful, a few
+percent by many up to every keyframe (features that stay in view while the scope moves around them, as in the
+skull demo's final map), which fill the camera system; without those it is banded in keyframe order. The oldest
+keyframes that still see active landmarks are fixed (retired). The map starts where the local windows left it:
+poses and points near the truth, not at the robot priors. ``python -m lapreco_hil.bench.ba_live --device cuda``
+times the final pass alone."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
+from lapreco_hil.mapping.bundle_adjustment import BAProblem
+from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
+from lapreco_hil.mapping.synthetic import SyntheticBA
+
+FINAL_SCHEDULE = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStage("tukey", TUKEY_C, 15)))
+
+
+def make_live_final_problem(rng: np.random.Generator, n_free: int = 400, n_fixed: int = 8,
+                            new_points_per_view: int = 52, min_track: int = 3, mean_track: float = 8.0,
+                            max_track: int = 80, long_share: float = 0.04, long_min: int = 40,
+                            step_m: float = 0.002, pixel_noise: float = 0.5,
+                            rot_sigma: float = 0.003, trans_sigma: float = 0.0004, drift_rot_rad: float = 0.001,
+                            drift_trans_m: float = 0.0002, warm_point_m: float = 0.00002,
+                            jump: float = 0.05) -> SyntheticBA:
+    """The live run's active map at its end: ``n_fixed`` retired keyframes then ``n_free`` active ones, about
+    ``step_m`` apart along a scope's survey of one operative field (a Lissajous path over +-25 x +-15 mm, 10 cm
+    above tissue with relief; 1080p camera); ``new_points_per_view`` landmarks start at each keyframe, each seen by
+    a run of consecutive keyframes: most by ``min_track`` - 1 + geometric(1 / (``mean_track`` - ``min_track`` + 1))
+    (at most ``max_track``), ``long_share`` of them by ``long_min`` up to every keyframe (log-uniform: features
+    that stay in view while the scope surveys around them), cut at the map's end; each landmark where every view
+    of its run sees it; robot priors drawn from their covariance; the start where the local windows left it: the
+    map drifted from the truth as a whole, slowly along the run (up to ``drift_*``), each landmark with the drift
+    of its middle view and ``warm_point_m`` of noise; ``jump`` of the tracks of 4 views or more jumping 6-25 px
+    half-way (their later views corrupted). ``long_share=0`` gives a map whose camera system is banded."""
+    K = np.array([[1400.0, 0, 960], [0, 1400.0, 540], [0, 0, 1]])
+    n_views = n_fixed + n_free
+    phase = np.arange(n_views) * (step_m / 0.002)
+    eyes = np.column_stack([0.025 * np.sin(2 * np.pi * phase / 97), 0.015 * np.sin(2 * np.pi * phase / 61 + 0.7),
+                            0.003 * np.cos(phase * 0.03)])
+    true = np.array([look_at(e, e + np.array([0.0, 0.0, 0.1]), np.array([0, -1.0, 0])) for e in eyes])
+    priors = np.array([T @ make_T(Rotation.from_rotvec(rng.normal(0, rot_sigma, 3)).as_matrix(),
+                                  rng.normal(0, trans_sigma, 3)) for T in true])
+    first = np.repeat(np.arange(n_views - 1), new_points_per_view)
+    length = np.minimum(min_track - 1 + rng.geometric(1.0 / (mean_track - min_track + 1.0), len(first)), max_track)
+    long = rng.random(len(first)) < long_share
+    length[long] = np.exp(rng.uniform(np.log(long_min), np.log(n_views), int(long.sum()))).astype(np.int64)
+    length = np.minimum(length, n_views - first)
+    # the retired keyframes keep only the tracks that reach the active ones (the rest were archived with them)
+    keep = first + length > n_fixed
+    first, length = first[keep], length[keep]
+    n_points = len(first)
+    # each landmark where all its views see it: in the overlap of their footprints (10% in from the edges)
+    run_starts = np.cumsum(length) - length
+    views_of = first[np.repeat(np.arange(n_points), length)] + (np.arange(length.sum())
+                                                                 - np.repeat(run_starts, length))
+    lo = np.minimum.reduceat(eyes[views_of, :2], run_starts)
+    hi = np.maximum.reduceat(eyes[views_of, :2], run_starts)
+    half = 0.9 * 0.1 * np.array([K[0, 2], K[1, 2]]) / K[0, 0]
+    xy = rng.uniform(hi - half, lo + half)
+    pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
+    obs_point = np.repeat(np.arange(n_points), length)
+    within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)
+    obs_pose = first[obs_point] + within
+    T_cw = np.linalg.inv(true)[obs_pose]
+    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
+    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
+    jumped_track = rng.random(n_points) < jump
+    bad = jumped_track[obs_point] & (within >= length[obs_point] // 2) & (length[obs_point] >= 4)
+    uv[bad] += rng.uniform(6, 25, (int(bad.sum()), 2)) * rng.choice([-1, 1], (int(bad.sum()), 2))
+    cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
+    # the local windows' answer: the map drifted from the truth, slowly along the run, each landmark with the
+    # drift of its middle view (a locally consistent map)
+    walks = np.cumsum(np.cumsum(rng.normal(0, 1.0, (2, n_views, 3)), axis=1), axis=1)
+    walks -= walks.mean(axis=1, keepdims=True)
+    walks /= np.maximum(1e-12, np.abs(walks).max(axis=(1, 2), keepdims=True))
+    drift = np.array([make_T(Rotation.from_rotvec(drift_rot_rad * r).as_matrix(), drift_trans_m * t)
+                      for r, t in zip(walks[0], walks[1])])
+    fixed = np.arange(n_views) < n_fixed
+    drift[fixed] = np.eye(4)  # (a retired keyframe keeps the pose it was archived with)
+    warm = drift @ true
+    D = drift[first + length // 2]
+    warm_pts = np.einsum("nij,nj->ni", D[:, :3, :3], pts) + D[:, :3, 3] + rng.normal(0, warm_point_m, pts.shape)
+    problem = BAProblem(K, np.arange(n_views), warm, fixed, priors, np.repeat(cov[None], n_views, 0),
+                        np.arange(n_points), warm_pts, obs_pose, obs_point, uv)
+    return SyntheticBA(problem, true, pts, bad, jumped_track)
+
+
+def pose_rms_mm(poses: np.ndarray, truth: np.ndarray) -> float:
+    return float(1e3 * np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(poses, truth)])))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Time the live run's final pass (its camera system as chosen by default, then dense) and print the figures
+    as JSON."""
+    from lapreco_hil.mapping.schur import final_pass_threads, solve_robust_schur
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cpu", help="Warp device of the solver's kernels (cpu, cuda) or numpy")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=0, help="BLAS threads (0: the mapper's final pass's)")
+    parser.add_argument("--camera-solver", action="append", choices=("auto", "dense", "banded"),
+                        help="repeatable; default: auto, then dense")
+    parser.add_argument("--long-share", type=float, default=0.04,
+                        help="share of long-lived tracks (0: a map whose camera system is banded)")
+    parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    syn = make_live_final_problem(np.random.default_rng(args.seed), long_share=args.long_share)
+    p = syn.problem
+    threads = args.threads or final_pass_threads()
+    solve_robust_schur(p, RobustSchedule((RobustStage("cauchy", CAUCHY_K, 1),)), device=args.device)  # (loads)
+    views = np.bincount(p.obs_point)
+    out = {"problem": {"keyframes": len(p.poses), "free_keyframes": int((~p.fixed).sum()), "points": len(p.points),
+                       "observations": len(p.obs_uv), "long_share": args.long_share,
+                       "track_views_mean_max": [float(views.mean()), int(views.max())],
+                       "start_pose_rms_mm": pose_rms_mm(p.poses, syn.true_poses),
+                       "prior_pose_rms_mm": pose_rms_mm(p.prior_poses, syn.true_poses)},
+           "device": args.device, "blas_threads": threads, "runs": {}}
+    labels = None
+    for camera_solver in args.camera_solver or ["auto", "dense"]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = solve_robust_schur(p, FINAL_SCHEDULE, device=args.device, blas_threads=threads,
+                               camera_solver=camera_solver)
+        run = {"s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+               "camera_solver": r.stats["camera_solver"], "camera_band": r.stats["camera_band"],
+               "iterations_solves": [(st["iterations"], st["solves"]) for st in r.stats["stages"]],
+               "pose_rms_mm": pose_rms_mm(r.poses, syn.true_poses), "inlier_obs": int(r.stats["inlier_obs"].sum()),
+               "outlier_obs_labelled_inlier": int((r.stats["inlier_obs"] & syn.outlier_obs).sum()),
+               "timing": r.stats["timing"]}
+        if labels is None:
+            labels = r.stats["inlier_obs"]
+        run["labels_differing_from_the_first"] = int((r.stats["inlier_obs"] != labels).sum())
+        out["runs"][camera_solver] = run
+    print(json.dumps(out, indent=1))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
