@@ -284,8 +284,9 @@ class FusionConfig:
 @dataclass(frozen=True)
 class SurfaceConfig:
     # "dense": multi-view stereo fused in a TSDF volume, meshed; "alpha": the seed's alpha shape on the sparse map;
-    # "auto": dense where it keeps up, i.e. offline (replay, sequential demo), alpha in the live runtime (there
-    # the dense stage competes with tracking for the device: docs/dense.md, "Live")
+    # "auto": dense where it keeps up: offline (replay, sequential demo) and live on a CUDA device (the dense
+    # stage in a process of its own); alpha live on the CPU, where it takes the cores tracking needs
+    # (docs/dense.md, "Live")
     mode: str = "auto"
     alpha_factor: float = ranged(4.0, gt=0.0)  # alpha = factor x median nearest-neighbour distance
     render_width: int = ranged(1024, ge=16)

@@ -343,9 +343,11 @@ def test_the_surface_mode_is_checked_and_a_missing_stereo_is_one_warning(monkeyp
         dense_surface_for(camera, config_from_dict({"surface": {"mode": "mesh"}}), "cpu")
     alpha = config_from_dict({"surface": {"mode": "alpha"}})
     assert dense_surface_for(camera, alpha, "cpu") == (None, None)
-    # the default, "auto": dense offline, the alpha shape in the live runtime
+    # the default, "auto": dense offline and live on a CUDA device, the alpha shape in the live runtime on the CPU
     assert isinstance(dense_surface_for(camera, PipelineConfig(), "cpu")[0], dense_surface.DenseSurface)
     assert dense_surface_for(camera, PipelineConfig(), "cpu", live=True) == (None, None)
+    assert dense_surface.surface_mode(PipelineConfig(), live=True, device="cuda:0") == "dense"
+    assert dense_surface.surface_mode(alpha, live=True, device="cuda:0") == "alpha"
     monkeypatch.setitem(sys.modules, "lapreco_hil.dense.depth", None)  # as if depth.py were not there
     with caplog.at_level(logging.WARNING, logger="lapreco_hil.dense.surface"):
         dense, note = dense_surface_for(camera, config_from_dict({"surface": {"mode": "dense"}}), "cpu")

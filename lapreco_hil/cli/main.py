@@ -14,8 +14,8 @@ from lapreco_hil.cli.args import (ArgumentParser, finite, integer, non_negative,
 _positive_int = positive_int  # the calibration parsers take it as an argument
 SURFACE_CHOICES = ("auto", "dense", "alpha")
 SURFACE_HELP = ("the surface: dense (multi-view stereo fused in a TSDF: mesh.ply and dense.ply), alpha (the sparse "
-                "points' alpha shape) or auto (dense offline, alpha live) (default: the config's [surface] mode, "
-                "auto)")
+                "points' alpha shape) or auto (dense offline and live on CUDA, alpha live on the CPU) (default: the "
+                "config's [surface] mode, auto)")
 
 
 def build_parser() -> ArgumentParser:
@@ -221,7 +221,8 @@ def build_parser() -> ArgumentParser:
     bench_k.add_argument("--scene", default="skull")
     bench_k.add_argument("--tracker", default="auto", help="warp | opencv | auto")
     bench_k.add_argument("--surface", choices=("auto", "dense", "alpha"), default="auto",
-                         help="the surface (default auto: alpha live); dense soaks the live dense stage too")
+                         help="the surface (default auto: dense on CUDA, alpha on the CPU); dense soaks the live dense "
+                         "stage too")
     bench_k.add_argument("--sample-s", type=positive, default=10.0, help="seconds between samples")
     bench_k.add_argument("--json", default=None, help="also write the figures (and every sample) to this JSON file; "
                          "samples also go to JSON.samples.jsonl as they are taken")

@@ -416,21 +416,23 @@ def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier
     return out
 
 
-def surface_mode(config: PipelineConfig, live: bool = False) -> str:
-    """The surface a run makes: "dense" or "alpha" (``[surface] mode = "auto"``: dense offline, alpha live)."""
+def surface_mode(config: PipelineConfig, live: bool = False, device: str = "cpu") -> str:
+    """The surface a run makes: "dense" or "alpha" (``[surface] mode = "auto"``: dense offline and live on a CUDA
+    device, where the dense stage's own process keeps up beside tracking; alpha live on the CPU, where it cannot:
+    docs/dense.md, "Live")."""
     mode = config.surface.mode
     if mode not in SURFACE_MODES:
         raise ConfigError(f"[surface] mode = '{mode}': use auto, dense or alpha")
     if mode == "auto":
-        return "alpha" if live else "dense"
+        return "alpha" if live and not str(device).startswith("cuda") else "dense"
     return mode
 
 
-def dense_functions_for(config: PipelineConfig, live: bool = False) -> tuple[tuple[DepthFn, SourcesFn] | None,
-                                                                             str | None]:
+def dense_functions_for(config: PipelineConfig, live: bool = False,
+                        device: str = "cpu") -> tuple[tuple[DepthFn, SourcesFn] | None, str | None]:
     """The run's (depth function, sources function) when its surface is dense (``surface_mode``; None for alpha),
     or (None, why) with one warning when multi-view stereo is not there: the run then makes the alpha shape."""
-    if surface_mode(config, live) == "alpha":
+    if surface_mode(config, live, device) == "alpha":
         return None, None
     depth_fn, sources_fn, why = stereo_functions()
     if depth_fn is None:
@@ -443,7 +445,7 @@ def dense_functions_for(config: PipelineConfig, live: bool = False) -> tuple[tup
 def dense_surface_for(camera: CameraModel, config: PipelineConfig, device: str, rig: Rig | None = None,
                       live: bool = False) -> tuple[DenseSurface | None, str | None]:
     """The run's DenseSurface when its surface is dense (``dense_functions_for``), else (None, why or None)."""
-    functions, note = dense_functions_for(config, live)
+    functions, note = dense_functions_for(config, live, device)
     if functions is None:
         return None, note
     return DenseSurface(camera, config, device, rig, *functions), None

@@ -83,7 +83,7 @@ class LiveRun:
         if camera is not None:
             from lapreco_hil.dense.surface import dense_functions_for
 
-            functions, self.surface_note = dense_functions_for(config, live=True)
+            functions, self.surface_note = dense_functions_for(config, live=True, device=device)
             if functions is not None:
                 view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
                 spec = DenseSpec(camera, config, device, stereo, *functions,
