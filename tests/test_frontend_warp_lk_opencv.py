@@ -44,29 +44,25 @@ def warp_pyramid(wp, image_u8: np.ndarray, levels: int):
     return pyr, gx, gy, as_int
 
 
-def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
-    """The coarse levels' 31 px windows reach past the border of a 60 x 34 level from most of the frame. Warp
-    once reflected its gradient levels there as it reflects the images, but a mirrored image's gradient changes
-    sign, so G and b took wrong-signed terms: 15 % of the tracks OpenCV kept went hundreds of px astray (OpenCV
-    pads its derivative levels with zeros), and Sobel in place of OpenCV's Scharr put 2 % more over 0.1 px off."""
+def dot_grid_moved_80px(cfg: TrackerConfig):
+    """The Viking dot grid and its copy moved 80 px: the 8-bit tracker images at the OpenCV baseline's levels,
+    its corners, the sequence (its truth) and the levels above full resolution."""
     from lapreco_hil.frontend.opencv import OpenCVFrontEnd
-    from lapreco_hil.frontend.warp import lk
-    from lapreco_hil.frontend.warp.frontend import LK_EPS, LK_ITERATIONS, LK_MIN_EIG
 
-    cfg = TrackerConfig()
     frame = tracking.load_real_frames(names=("viking-dotgrid",))[0]
     seq = tracking.make_sequence(frame, 80.0, 2)
     baseline = OpenCVFrontEnd(seq.camera, cfg)
     levels = baseline.levels  # above full resolution: 5 on this 1920 x 1080 frame, the top two with 31 px
-    assert levels > cfg.coarse_from_level
     prev, cur = (tracker_image(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY), cfg, levels)[0] for im in seq.images)
     pts = cv2.goodFeaturesToTrack(prev, 400, cfg.quality_level, cfg.min_distance_px,
                                   blockSize=cfg.block_size).reshape(-1, 2).astype(np.float32)
+    return baseline, seq, levels, prev, cur, pts
 
-    baseline._prev = prev
-    cv_pts, cv_status, cv_err = baseline._track(cur, pts.reshape(-1, 1, 2))
-    cv_pts = cv_pts.reshape(-1, 2)
-    cv_kept = (cv_status.ravel() == 1) & (cv_err.ravel() < cfg.max_lk_error)
+
+def warp_lk(wp, cfg: TrackerConfig, prev, cur, levels: int, pts, coarse_eps=None):
+    """Warp's LK kernel from ``prev`` into ``cur`` with the front-end's settings: (positions, kept)."""
+    from lapreco_hil.frontend.warp import lk
+    from lapreco_hil.frontend.warp.frontend import LK_EPS, LK_ITERATIONS, LK_MIN_EIG
 
     n = len(pts)
     P, GX, GY, lv = warp_pyramid(wp, prev, levels + 1)
@@ -79,8 +75,24 @@ def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
                 LK_MIN_EIG * HIGHPASS_GAIN**2, cfg.max_lk_error, wp.array(pts, dtype=wp.vec2, device=DEVICE),
                 wp.array([n], dtype=wp.int32, device=DEVICE), wp.zeros(n, dtype=wp.vec2, device=DEVICE),
                 wp.zeros(1, dtype=wp.int32, device=DEVICE), out, status, error, DEVICE,
-                coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level)
-    warp_pts, warp_kept = out.numpy(), status.numpy() == 1
+                coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=coarse_eps)
+    return out.numpy(), status.numpy() == 1
+
+
+def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
+    """The coarse levels' 31 px windows reach past the border of a 60 x 34 level from most of the frame. Warp
+    once reflected its gradient levels there as it reflects the images, but a mirrored image's gradient changes
+    sign, so G and b took wrong-signed terms: 15 % of the tracks OpenCV kept went hundreds of px astray (OpenCV
+    pads its derivative levels with zeros), and Sobel in place of OpenCV's Scharr put 2 % more over 0.1 px off."""
+    cfg = TrackerConfig()
+    baseline, seq, levels, prev, cur, pts = dot_grid_moved_80px(cfg)
+    assert levels > cfg.coarse_from_level
+    n = len(pts)
+    baseline._prev = prev
+    cv_pts, cv_status, cv_err = baseline._track(cur, pts.reshape(-1, 1, 2))
+    cv_pts = cv_pts.reshape(-1, 2)
+    cv_kept = (cv_status.ravel() == 1) & (cv_err.ravel() < cfg.max_lk_error)
+    warp_pts, warp_kept = warp_lk(wp, cfg, prev, cur, levels, pts)
 
     truth = seq.truth(1, seq.to_reference(0, pts))
     assert cv_kept.sum() > 0.85 * n
@@ -139,31 +151,14 @@ def test_the_coarse_levels_looser_step_tolerance_ends_where_the_tight_one_does(w
     pixels (a twentieth, not OpenCV's hundredth): the finest level settles the answer, so on the dot grid moved
     80 px (the coarse levels' hardest case here) the tracks end where they end with the hundredth everywhere. One
     step per coarse level (a tolerance no step meets) does not: the tolerance is what decides."""
-    from lapreco_hil.frontend.opencv import OpenCVFrontEnd
-    from lapreco_hil.frontend.warp import lk
-    from lapreco_hil.frontend.warp.frontend import LK_COARSE_EPS, LK_EPS, LK_ITERATIONS, LK_MIN_EIG
+    from lapreco_hil.frontend.warp.frontend import LK_COARSE_EPS, LK_EPS
 
     cfg = TrackerConfig()
-    frame = tracking.load_real_frames(names=("viking-dotgrid",))[0]
-    seq = tracking.make_sequence(frame, 80.0, 2)
-    levels = OpenCVFrontEnd(seq.camera, cfg).levels
-    prev, cur = (tracker_image(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY), cfg, levels)[0] for im in seq.images)
-    pts = cv2.goodFeaturesToTrack(prev, 400, cfg.quality_level, cfg.min_distance_px,
-                                  blockSize=cfg.block_size).reshape(-1, 2).astype(np.float32)
+    _, seq, levels, prev, cur, pts = dot_grid_moved_80px(cfg)
     n = len(pts)
-    P, GX, GY, lv = warp_pyramid(wp, prev, levels + 1)
-    C, _, _, _ = warp_pyramid(wp, cur, levels + 1)
 
     def track(coarse_eps):
-        out = wp.zeros(n, dtype=wp.vec2, device=DEVICE)
-        status = wp.zeros(n, dtype=wp.int32, device=DEVICE)
-        error = wp.zeros(n, dtype=float, device=DEVICE)
-        lk.lk_track(P, GX, GY, C, *lv, levels + 1, cfg.window_px, LK_ITERATIONS, LK_EPS,
-                    LK_MIN_EIG * HIGHPASS_GAIN**2, cfg.max_lk_error, wp.array(pts, dtype=wp.vec2, device=DEVICE),
-                    wp.array([n], dtype=wp.int32, device=DEVICE), wp.zeros(n, dtype=wp.vec2, device=DEVICE),
-                    wp.zeros(1, dtype=wp.int32, device=DEVICE), out, status, error, DEVICE,
-                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=coarse_eps)
-        return out.numpy(), status.numpy() == 1
+        return warp_lk(wp, cfg, prev, cur, levels, pts, coarse_eps)
 
     tight_pts, tight_kept = track(LK_EPS)
     pts_, kept = track(LK_COARSE_EPS)

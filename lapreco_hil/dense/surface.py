@@ -317,13 +317,7 @@ class DenseSurface:
         t0 = time.perf_counter()
         mesh = self.volume.extract_mesh()
         self.timings["meshing_s"] += time.perf_counter() - t0
-        if mesh.n_points:
-            points = np.asarray(mesh.points, float)
-            normals = np.asarray(mesh.point_data["Normals"], float)
-            colours = np.asarray(mesh.point_data["RGB"], np.uint8)
-        else:
-            points, normals, colours = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-        return DenseResult(mesh, points, normals, colours, self.report(mesh))
+        return dense_result(mesh, self.report(mesh))
 
     def report(self, mesh: pv.PolyData | None = None) -> dict:
         """report.json's ``dense``: points, triangles, keyframes fused, memory, timings."""
@@ -414,6 +408,17 @@ def depth_ranges(keyframes, landmark_ids: np.ndarray, points: np.ndarray, inlier
         T = kf.T_world_camera
         out[kf.id] = depth_span(((X - T[:3, 3]) @ T[:3, :3])[:, 2], min_points)
     return out
+
+
+def dense_result(mesh, stats: dict) -> DenseResult:
+    """A DenseResult of a TSDF mesh: its vertices as the dense points, with their normals and colours."""
+    if mesh.n_points:
+        points = np.asarray(mesh.points, float)
+        normals = np.asarray(mesh.point_data["Normals"], float)
+        colours = np.asarray(mesh.point_data["RGB"], np.uint8)
+    else:
+        points, normals, colours = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return DenseResult(mesh, points, normals, colours, stats)
 
 
 def surface_mode(config: PipelineConfig, live: bool = False, device: str = "cpu") -> str:

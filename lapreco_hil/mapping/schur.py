@@ -723,14 +723,8 @@ def _linearize_on_device(p: BAProblem, lay: _Layout, poses, sigma: float, loss: 
     with it where given (``ObservationKernels.launch_linearize``). The host makes the pose factors' terms while
     the device works; ``started``: ``_start_linearize_on_device``'s, where it started already."""
     errors, terms = started or _start_linearize_on_device(p, lay, poses, sigma, loss, k, lam, errors)
-    n_free = len(lay.free)
     blocks, grads, weighted_sq, Hpp, gp = lay.kernels.read_linearize()
-    if lay.band is None:
-        Hcc = np.zeros((6 * n_free, 6 * n_free))
-        diagonal = np.arange(n_free)
-        Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
-    else:
-        Hcc = _band_of_diagonal_blocks(lay.band, blocks)
+    Hcc = _camera_system_of_diagonal_blocks(lay, blocks)
     return _with_pose_factors(lay, Hcc, grads.ravel(), Hpp, gp, None, 0.5 * weighted_sq, errors, terms)
 
 
@@ -767,12 +761,7 @@ def _linearize(p: BAProblem, lay: _Layout, poses, points, sigma: float, loss: st
             run = slice(lay.pose_starts[i], lay.pose_starts[i + 1])
             blocks[c] = Jw[0, :, run] @ Jw[0, :, run].T + Jw[1, :, run] @ Jw[1, :, run].T
             gc[6 * c:6 * c + 6] = Jc[0, :, run] @ su[run] + Jc[1, :, run] @ sv[run]
-    if lay.band is None:
-        Hcc = np.zeros((6 * n_free, 6 * n_free))
-        diagonal = np.arange(n_free)
-        Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
-    else:
-        Hcc = _band_of_diagonal_blocks(lay.band, blocks)
+    Hcc = _camera_system_of_diagonal_blocks(lay, blocks)
     return _with_pose_factors(lay, Hcc, gc, Hpp, gp, W, error0, errors, _pose_normal_terms(lay, errors))
 
 
@@ -806,6 +795,17 @@ def _band_entries(band: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.nda
     j = 6 * np.asarray(cols, np.int64)[:, None, None] + np.arange(6)[None, None, :]
     lower = i >= j
     return np.where(lower, j * (band + 1) + (i - j), 0), lower
+
+
+def _camera_system_of_diagonal_blocks(lay, blocks: np.ndarray) -> np.ndarray:
+    """The camera system's start, its free poses' 6x6 diagonal blocks: dense, or in the layout's band storage."""
+    if lay.band is not None:
+        return _band_of_diagonal_blocks(lay.band, blocks)
+    n_free = len(blocks)
+    Hcc = np.zeros((6 * n_free, 6 * n_free))
+    diagonal = np.arange(n_free)
+    Hcc.reshape(n_free, 6, n_free, 6)[diagonal, :, diagonal, :] = blocks
+    return Hcc
 
 
 def _band_of_diagonal_blocks(band: int, blocks: np.ndarray) -> np.ndarray:

@@ -420,18 +420,11 @@ class DenseProcess:
     def finish(self, result):
         """The run's dense surface from its final map (every kept keyframe fused at its final pose): a
         DenseResult. Waits for the dense process as long as it lives; DenseProcessError if it dies."""
-        from lapreco_hil.dense.surface import DenseResult, final_poses_and_ranges
+        from lapreco_hil.dense.surface import dense_result, final_poses_and_ranges
 
         poses, ranges = final_poses_and_ranges(result)
         with self._lock:
             self.commands.put(FinalBuild(poses, ranges))
         while (built := self._read(0.5)) is None:
             pass
-        mesh = mesh_from_arrays(built.mesh)
-        if mesh.n_points:
-            points = np.asarray(mesh.points, float)
-            normals = np.asarray(mesh.point_data["Normals"], float)
-            colours = np.asarray(mesh.point_data["RGB"], np.uint8)
-        else:
-            points, normals, colours = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-        return DenseResult(mesh, points, normals, colours, built.stats)
+        return dense_result(mesh_from_arrays(built.mesh), built.stats)
