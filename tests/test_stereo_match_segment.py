@@ -49,10 +49,16 @@ def matches_on_rings(radii):
 def test_a_match_locked_onto_the_field_of_view_edge_at_no_disparity_is_dropped():
     found, err = matches_on_rings((190, 195))  # windows of 21 px (more on LK's coarse levels) hold the edge
     assert np.sum(found & (err > 1.0)) <= 2, np.sort(err[found])  # (before the check: 23, all 25-33 px off)
-    # inside, away from the edge, the matches stand and are right (most tracks on this blurred noise have a
-    # second place along the line as good as the best, and are left out by the sweep, with or without the check)
+
+
+def test_a_match_the_sweep_placed_is_refined_on_the_fine_levels_only():
+    """The sweep puts a match within a pixel of its pyramid level; LK from there on every level of the tracker's
+    pyramid let the coarse levels' wide windows pull it off (here most failed the forward-backward check: 92 of
+    400 found, against 376 refined on the sweep's level and finer; on the simulated liver 3369 right sweeps, 11%
+    of the partners, were lost so, mostly near the field-of-view edge)."""
     found, err = matches_on_rings((120,))
-    assert found.sum() >= 60 and np.all(err[found] < 0.5), (found.sum(), np.sort(err[found])[-5:])
+    assert found.sum() >= 300 and np.all(err[found] < 1.0) and np.median(err[found]) < 0.1, \
+        (found.sum(), np.median(err[found]), np.sort(err[found])[-5:])
 
 
 def test_on_segment_judges_the_position_along_the_line_between_the_range_ends():

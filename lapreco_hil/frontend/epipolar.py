@@ -525,6 +525,9 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
         return out, found
     p = uv[found].astype(np.float32).reshape(-1, 1, 2)
     guess = res.uv[found].astype(np.float32).reshape(-1, 1, 2)
+    # the sweep placed each match within a pixel of its level: LK refines it on that level and finer only (on
+    # coarser levels the window holds what lies around the track, as the field of view's edge, and goes there)
+    lk = dict(lk, maxLevel=min(int(lk.get("maxLevel", SWEEP_LEVEL)), SWEEP_LEVEL))
     fwd, st, _ = cv2.calcOpticalFlowPyrLK(this_u8, other_u8, p, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                                           **lk)
     h, w = other_u8.shape[:2]
