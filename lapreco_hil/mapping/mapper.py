@@ -51,8 +51,9 @@ TRIANGULATION_PIECE = 250
 # before the first bundle adjustment, a new point's reprojection error may exceed the pixel gate by this many
 # of its views' prior standard deviations (in pixels)
 PRIOR_GATE_SIGMAS = 3.0
-# with a stereo rig, a point seen by both eyes at this many instants is an inlier: each instant's left-right
-# match is a depth of its own, and the second instant is the second look that catches a mismatch
+# with a stereo rig, a point seen by both eyes at this many instants is an inlier, and no point is one without:
+# each instant's left-right match is a depth of its own, and the second instant is the second look that catches
+# a mismatch
 STEREO_INLIER_INSTANTS = 2
 
 
@@ -471,8 +472,9 @@ class Mapper:
         (every one of those observations an inlier) is an inlier too: two left-right depths and the temporal
         pair must agree; and no point is an inlier without that (or both eyes at every instant, in a map of fewer
         instants): one eye's views agree as well on a feature only that eye sees so (where an occluding contour
-        crosses the tissue behind it, the two eyes see that crossing at different places). Given the ``points`` and each observation's camera centre, two inlier instants whose
-        rays meet at least ``two_view_parallax_deg`` apart also make an inlier."""
+        crosses the tissue behind it, the two eyes see that crossing at different places). Given the ``points``
+        and each observation's camera centre, two inlier instants whose rays meet at least
+        ``two_view_parallax_deg`` apart also make an inlier."""
         cfg = self.config
         counts = np.bincount(obs_point[good], minlength=n_points)
         totals = np.bincount(obs_point, minlength=n_points)
