@@ -494,7 +494,9 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     drift check registers a temporal track: the fit moves the match along its epipolar line where it passes the
     drift check's bounds (``max_residual``: its residual bound, the tracker's ``drift_max_residual``), LK's match
     stands where it does not, and a fit that disagrees with LK by more than FORWARD_BACKWARD_PX, passed or not,
-    drops the match (``register_along``). Tracker images of both views (8-bit for LK, float
+    drops the match (``register_along``). A match must end on the part of its line that was searched
+    (``on_segment``, within FORWARD_BACKWARD_PX: the whole range, or a re-searched track's own one). Tracker
+    images of both views (8-bit for LK, float
     for the sweep and the registration). ``search_m``: each track's own (near, far), (N, 2)
     (``stereo_depth.search_ranges``: around the depth the map gives it), where a track whose sweep over
     ``depth_range_m`` was unclear is searched again; None: no second search. -> (uv in the other view, found).
@@ -509,18 +511,23 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
     own = None if search_m is None else np.asarray(search_m, np.float64).reshape(-1, 2)
     again = np.zeros(0, np.int64) if own is None else \
         np.flatnonzero(~res.found & np.any(own != np.asarray(depth_range_m, np.float64), axis=1))
+    searched = np.tile(np.asarray(depth_range_m, np.float64), (n, 1))  # the range each match was found over
     if len(again):
         # unclear over the whole range (a second place along the line scores nearly as well): searched again
         # over the track's own range, where one of them may stand clear
         near = sweep(this_float, other_float, uv[again], K_this, K_other, T_other_this, own[again])
         res = SweepResult(res.uv.copy(), res.found.copy(), res.score.copy())
         res.uv[again], res.found[again], res.score[again] = near.uv, near.found, near.score
+        searched[again] = own[again]
     found = res.found.copy()
     out = np.full((n, 2), np.nan)
     if not found.any():
         return out, found
     p = uv[found].astype(np.float32).reshape(-1, 1, 2)
     guess = res.uv[found].astype(np.float32).reshape(-1, 1, 2)
+    # the sweep placed each match within a pixel of its level: LK refines it on that level and finer only (on
+    # coarser levels the window holds what lies around the track, as the field of view's edge, and goes there)
+    lk = dict(lk, maxLevel=min(int(lk.get("maxLevel", SWEEP_LEVEL)), SWEEP_LEVEL))
     fwd, st, _ = cv2.calcOpticalFlowPyrLK(this_u8, other_u8, p, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                                           **lk)
     h, w = other_u8.shape[:2]
@@ -537,9 +544,29 @@ def match_across(this_u8: np.ndarray, this_float: np.ndarray, other_u8: np.ndarr
             - project(uv[idx], np.full(len(idx), float(near)), K_this, K_other, T_other_this)
         out[idx], agree = register_along(this_float, other_float, uv[idx], out[idx], line, lk["winSize"][0],
                                          max_residual)
+        # LK and the fit may leave the part of the line that was searched: a match the sweep never scored (a
+        # window that holds the field of view's static edge locks onto it at no disparity; a re-searched match
+        # that leaves its prior's range had only the prior to go by, and the prior does not hold there)
+        agree &= on_segment(uv[idx], out[idx], K_this, K_other, T_other_this, searched[idx], FORWARD_BACKWARD_PX)
         found[idx[~agree]] = False
         out[idx[~agree]] = np.nan
     return out, found
+
+
+def on_segment(uv: np.ndarray, matched: np.ndarray, K_this: np.ndarray, K_other: np.ndarray,
+               T_other_this: np.ndarray, ranges: np.ndarray, tolerance_px: float) -> np.ndarray:
+    """Whether each ``matched`` (the other view's position of this view's ``uv``) lies along its epipolar line
+    between the projections of its depth range ``ranges`` (N, 2: near, far), within ``tolerance_px`` of either
+    end (only the position along the line is judged)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    ranges = np.asarray(ranges, np.float64).reshape(-1, 2)
+    near = project(uv, ranges[:, 0], K_this, K_other, T_other_this)
+    line = project(uv, ranges[:, 1], K_this, K_other, T_other_this) - near
+    length = np.linalg.norm(line, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = np.sum((np.asarray(matched, np.float64) - near) * line, axis=1) / length
+    along = np.where(length > 0, along, 0.0)
+    return (along >= -tolerance_px) & (along <= length + tolerance_px)
 
 
 def register_along(this_float: np.ndarray, other_float: np.ndarray, uv: np.ndarray, matched: np.ndarray,

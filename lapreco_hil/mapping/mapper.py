@@ -51,8 +51,9 @@ TRIANGULATION_PIECE = 250
 # before the first bundle adjustment, a new point's reprojection error may exceed the pixel gate by this many
 # of its views' prior standard deviations (in pixels)
 PRIOR_GATE_SIGMAS = 3.0
-# with a stereo rig, a point seen by both eyes at this many instants is an inlier: each instant's left-right
-# match is a depth of its own, and the second instant is the second look that catches a mismatch
+# with a stereo rig, a point seen by both eyes at this many instants is an inlier, and no point is one without:
+# each instant's left-right match is a depth of its own, and the second instant is the second look that catches
+# a mismatch
 STEREO_INLIER_INSTANTS = 2
 
 
@@ -469,8 +470,11 @@ class Mapper:
         seen at one instant only has the rig's 5 mm baseline and no second look to catch a mismatch. Given each
         observation's instant (``obs_instant``), a point seen by both eyes at STEREO_INLIER_INSTANTS instants
         (every one of those observations an inlier) is an inlier too: two left-right depths and the temporal
-        pair must agree. Given the ``points`` and each observation's camera centre, two inlier instants whose
-        rays meet at least ``two_view_parallax_deg`` apart also make an inlier."""
+        pair must agree; and no point is an inlier without that (or both eyes at every instant, in a map of fewer
+        instants): one eye's views agree as well on a feature only that eye sees so (where an occluding contour
+        crosses the tissue behind it, the two eyes see that crossing at different places). Given the ``points``
+        and each observation's camera centre, two inlier instants whose rays meet at least
+        ``two_view_parallax_deg`` apart also make an inlier."""
         cfg = self.config
         counts = np.bincount(obs_point[good], minlength=n_points)
         totals = np.bincount(obs_point, minlength=n_points)
@@ -483,10 +487,15 @@ class Mapper:
             angle = widest_ray_angle_deg(points, obs_point[instants], obs_centres[instants], n_points)
             wide = (np.bincount(obs_point[instants], minlength=n_points) >= 2) & (angle >= cfg.two_view_parallax_deg)
         stereo = np.zeros(n_points, bool)
+        confirmed = np.ones(n_points, bool)
         if self.rig is not None and reference_obs is not None and obs_instant is not None:
-            stereo = self._stereo_instants(obs_point, good, reference_obs, obs_instant, n_points) \
-                >= STEREO_INLIER_INSTANTS
-        ok = (enough | wide | stereo) & (counts >= cfg.min_inlier_fraction * totals)
+            both = self._stereo_instants(obs_point, good, reference_obs, obs_instant, n_points)
+            stereo = both >= STEREO_INLIER_INSTANTS
+            # both eyes look at nearly the same field: a point the other eye does not confirm at as many instants
+            # (every instant, in a map of fewer) is a feature one eye alone sees so, as on an occluding contour
+            confirmed = both >= min(STEREO_INLIER_INSTANTS, int(n_reference_views if n_reference_views is not None
+                                                                else STEREO_INLIER_INSTANTS))
+        ok = (enough | wide | stereo) & (counts >= cfg.min_inlier_fraction * totals) & confirmed
         if self.rig is not None and reference_obs is not None:
             in_reference = np.bincount(obs_point[good & reference_obs], minlength=n_points)
             ok &= (in_reference >= min(cfg.min_inlier_observations, int(n_reference_views))) | wide | stereo
