@@ -372,3 +372,32 @@ def test_a_stereo_match_is_registered_affinely_across_the_views_foreshortening()
     # unbiased: the mean of the matches within a pixel (a rare gross mismatch, 1 of 142 here, is no bias)
     right = np.abs(along) < 1.0
     assert right.mean() > 0.98 and abs(np.mean(along[right])) < 0.02, (right.mean(), np.mean(along[right]))
+
+
+@pytest.mark.parametrize("reduced_levels", [False, True])
+def test_the_warm_up_runs_every_kind_of_frame_a_live_run_meets(warp_cpu, reduced_levels):
+    """A live run warms the Warp front-end up before capture starts; a frame of a kind it had not met (a motion,
+    the larger track budget of fast motion, fewer LK levels) was launched, then captured, mid-run, while frames
+    queued behind it. After the warm-up, frames slow and fast (the budget's fast_motion_px is 25 px) meet no new
+    kind; on CUDA each kind is a captured graph already."""
+    left, _, K, _, _ = hamlyn()
+    left = cv2.resize(left, (720, 576), interpolation=cv2.INTER_CUBIC)
+    K = np.diag([2.0, 2.0, 1.0]) @ K
+    grey = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY)
+    fe = make_frontend("warp", camera(K, left), TrackerConfig(redetect_below=0.001,
+                                                              reduced_predicted_levels=reduced_levels), DEVICE)
+    fe.warm_up()
+    warmed = set(fe._runs)
+    assert any(kind[1] for kind in warmed)  # (frames with a motion among them)
+    steps = [plane_motion(K, 0.08, px, np.radians(1.0)) for px in (5.0, 60.0, 8.0, 70.0)]
+    H_total = np.eye(3)
+    fe.process(Frame(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 100, 100))
+    for k, (T, H) in enumerate(steps, start=101):
+        H_total = H @ H_total
+        fe.process(Frame(cv2.cvtColor(warp_frame(grey, H_total), cv2.COLOR_GRAY2BGR), k, k),
+                   FrameMotion(T, depth_range_m=(0.03, 0.3)))
+    met = set(fe._runs)
+    assert any(kind[3] > fe.config.max_features for kind in met)  # (fast frames met the larger budget)
+    assert met <= warmed, met - warmed
+    if fe.device.is_cuda:
+        assert met <= set(fe._graphs)

@@ -437,14 +437,42 @@ class WarpFrontEnd:
             wp.copy(dst, src)
 
     def warm_up(self) -> None:
-        """Compile every kernel (those only frames with a motion launch as well) and capture the graphs of frames
-        without a motion on black frames (no corners, so no tracks are left behind), so a live run's first frames
-        do not wait tens of seconds for them. The graphs of frames with a motion are captured as their kinds
-        first come (a frame's launches, then its capture, a few milliseconds each)."""
+        """Compile every kernel and capture the graph of every kind of frame on black frames (no corners, so no
+        tracks are left behind): without a motion, and with one for each track budget (and each of LK's level
+        counts where the prediction may reduce them). A live run's first frames then wait for no compile, and
+        no frame mid-run for a capture: the first frame of fast motion (the larger budget) once paid for its
+        kind's eager launches and capture while frames queued behind it."""
         preload_kernels("lapreco_hil.frontend.warp", self.device)  # the motion path's kernels too
         black = np.zeros((self.height, self.width, 3), np.uint8)
+        seq = 0
         for k in range(4):  # both buffer parities, eager then captured
-            self.process(Frame(black, k, k))
+            self.process(Frame(black, seq, seq))
+            seq += 1
+        budgets = sorted({self.config.max_features, track_capacity(self.config)})
+        lk_levels = range(1, self.levels + 1) if self.config.reduced_predicted_levels else [self.levels]
+        still = FrameMotion(np.eye(4))
+        for budget in budgets:
+            for levels in lk_levels:
+                for k in range(4):
+                    with device_lock(self.device):
+                        self._warm_motion_frame(Frame(black, seq, seq), still, budget, levels)
+                    seq += 1
+
+    def _warm_motion_frame(self, frame: Frame, motion: FrameMotion, budget: int, lk_levels: int) -> None:
+        """One frame of the kind (a motion, ``budget`` tracks, ``lk_levels`` LK levels) whatever its motion
+        would choose: launched, or captured on the kind's second use (``_process_frame``)."""
+        self._marks = {}
+        self._cur = cur = 1 - self._cur
+        self._to_staging(frame.image)
+        try:
+            self._set_motion(motion, np.zeros(0))
+            self._budget, self._lk_levels = budget, lk_levels
+            self._process_frame(frame, time.perf_counter(), cur)
+        finally:
+            self._use_guess.fill_(0)
+            self._motion = None
+            self._lk_levels = self.levels
+            self._budget = self.config.max_features
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         with device_lock(self.device):
