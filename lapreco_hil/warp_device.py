@@ -74,6 +74,7 @@ def preload_kernels(package: str, device) -> float:
     compile — seconds on a machine whose kernel cache is cold — while capture goes on and drops frames."""
     import importlib
     import pkgutil
+    import sys
     import time
 
     wp = init_warp()
@@ -83,6 +84,13 @@ def preload_kernels(package: str, device) -> float:
     for info in pkgutil.walk_packages(getattr(root, "__path__", []), package + "."):
         importlib.import_module(info.name)
     wp.load_module(root, device=str(device), recursive=True)
+    # kernels made by a factory (module="unique": LK's, the Schur sums') each have a module of their own, which
+    # the package's load leaves out
+    for name, mod in list(sys.modules.items()):
+        if mod is not None and (name == package or name.startswith(package + ".")):
+            for kernel in [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]:
+                if kernel.module.name != kernel.func.__module__:
+                    wp.load_module(kernel.module, device=str(device))
     seconds = time.perf_counter() - t0
     log.info("warp: %s loaded on %s in %.2f s", package, device, seconds)
     return seconds

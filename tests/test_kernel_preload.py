@@ -29,6 +29,22 @@ def test_preload_loads_every_frontend_kernel_module_on_the_device():
     assert not unloaded, f"not loaded on {device}: {unloaded}"
 
 
+def test_preload_loads_the_kernels_a_factory_made_too():
+    """LK's kernel and the Schur solver's camera-system sums are made by factories, each in a module of its own
+    (module="unique") that loading the package leaves out: the BA worker's first final-style elimination, or a
+    front-end without a warm-up, would compile them mid-run."""
+    from lapreco_hil.frontend.warp import lk
+    from lapreco_hil.mapping import schur_kernels
+    from lapreco_hil.warp_device import preload_kernels, resolve_device
+
+    device = resolve_device("cpu")
+    preload_kernels("lapreco_hil.mapping.schur_kernels", device)
+    preload_kernels("lapreco_hil.frontend.warp", device)
+    for kernel in (schur_kernels._schur_blocks, schur_kernels._schur_blocks_band, lk._lk_track):
+        assert kernel.module.name != kernel.func.__module__  # (a module of its own)
+        assert kernel.module.execs, f"{kernel.key} not loaded on {device}"
+
+
 def test_marked_drops_report_when_they_happened():
     m = LiveMetrics()
     m.mark("dropped_capture")

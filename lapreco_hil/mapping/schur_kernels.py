@@ -401,37 +401,6 @@ def _landmark_factors(Hpp: wp.array(dtype=wp.mat33d), gp: wp.array(dtype=wp.vec3
     Lg[j] = wp.vec3d(y0, y1, (g[2] - l31 * y0 - l32 * y1) / l33)
 
 
-@wp.kernel
-def _schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.int32),
-                  obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
-                  W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), n6: int,
-                  M: wp.array(dtype=wp.float64), r: wp.array(dtype=wp.float64)):
-    """The landmarks' eliminated blocks summed into the camera system, one thread per observation by a free
-    pose (``pm_obs``: grouped by landmark; ``pm_end``: the end of its landmark's group): with z = L^-1 W,
-    M += z_a^T z_b for this observation a and each later one b of its landmark, in M's lower block triangle
-    (diagonal blocks whole), and r += z_a^T L^-1 gp."""
-    n = wp.tid()
-    o = pm_obs[n]
-    j = obs_point[o]
-    l = L[j]
-    za = _whiten(l, W[o])
-    ca = obs_col[o]
-    lg = Lg[j]
-    for b in range(6):
-        wp.atomic_add(r, 6 * ca + b, za[0, b] * lg[0] + za[1, b] * lg[1] + za[2, b] * lg[2])
-    _add_block(M, n6, ca, ca, za, za, False)
-    for m in range(n + 1, pm_end[n]):
-        ob = pm_obs[m]
-        zb = _whiten(l, W[ob])
-        cb = obs_col[ob]
-        if ca > cb:
-            _add_block(M, n6, ca, cb, za, zb, False)
-        elif ca < cb:
-            _add_block(M, n6, cb, ca, zb, za, False)
-        else:
-            _add_block(M, n6, ca, ca, za, zb, True)
-
-
 @wp.func
 def _add_band_block(M: wp.array(dtype=wp.float64), band: int, row: int, col: int, za: mat36d, zb: mat36d,
                     both: bool):
@@ -448,32 +417,46 @@ def _add_band_block(M: wp.array(dtype=wp.float64), band: int, row: int, col: int
                 wp.atomic_add(M, j * (band + 1) + i - j, v)
 
 
-@wp.kernel
-def _schur_blocks_band(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.int32),
-                       obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
-                       W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), band: int,
-                       M: wp.array(dtype=wp.float64), r: wp.array(dtype=wp.float64)):
-    """``_schur_blocks`` into a band array (``_add_band_block``): the same sums in the same order per entry."""
-    n = wp.tid()
-    o = pm_obs[n]
-    j = obs_point[o]
-    l = L[j]
-    za = _whiten(l, W[o])
-    ca = obs_col[o]
-    lg = Lg[j]
-    for b in range(6):
-        wp.atomic_add(r, 6 * ca + b, za[0, b] * lg[0] + za[1, b] * lg[1] + za[2, b] * lg[2])
-    _add_band_block(M, band, ca, ca, za, za, False)
-    for m in range(n + 1, pm_end[n]):
-        ob = pm_obs[m]
-        zb = _whiten(l, W[ob])
-        cb = obs_col[ob]
-        if ca > cb:
-            _add_band_block(M, band, ca, cb, za, zb, False)
-        elif ca < cb:
-            _add_band_block(M, band, cb, ca, zb, za, False)
-        else:
-            _add_band_block(M, band, ca, ca, za, zb, True)
+def _make_schur_blocks(add_block, doc: str):
+    """The kernel that sums the landmarks' eliminated blocks into the camera system through ``add_block``
+    (``_add_block``: a dense array, its stride 6 x free poses; ``_add_band_block``: a band array, its bandwidth),
+    one thread per observation by a free pose (``pm_obs``: grouped by landmark; ``pm_end``: the end of its
+    landmark's group): with z = L^-1 W, M += z_a^T z_b for this observation a and each later one b of its
+    landmark, in M's lower block triangle (diagonal blocks whole), and r += z_a^T L^-1 gp."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def schur_blocks(pm_obs: wp.array(dtype=wp.int32), pm_end: wp.array(dtype=wp.int32),
+                     obs_point: wp.array(dtype=wp.int32), obs_col: wp.array(dtype=wp.int32),
+                     W: wp.array(dtype=mat36d), L: wp.array(dtype=vec6d), Lg: wp.array(dtype=wp.vec3d), stride: int,
+                     M: wp.array(dtype=wp.float64), r: wp.array(dtype=wp.float64)):
+        n = wp.tid()
+        o = pm_obs[n]
+        j = obs_point[o]
+        l = L[j]
+        za = _whiten(l, W[o])
+        ca = obs_col[o]
+        lg = Lg[j]
+        for b in range(6):
+            wp.atomic_add(r, 6 * ca + b, za[0, b] * lg[0] + za[1, b] * lg[1] + za[2, b] * lg[2])
+        add_block(M, stride, ca, ca, za, za, False)
+        for m in range(n + 1, pm_end[n]):
+            ob = pm_obs[m]
+            zb = _whiten(l, W[ob])
+            cb = obs_col[ob]
+            if ca > cb:
+                add_block(M, stride, ca, cb, za, zb, False)
+            elif ca < cb:
+                add_block(M, stride, cb, ca, zb, za, False)
+            else:
+                add_block(M, stride, ca, ca, za, zb, True)
+
+    schur_blocks.__doc__ = doc
+    return schur_blocks
+
+
+_schur_blocks = _make_schur_blocks(_add_block, "The camera system's sums into a dense array (stride 6 x free poses).")
+_schur_blocks_band = _make_schur_blocks(_add_band_block, "The same sums in the same order per entry into a band "
+                                        "array (``schur._Layout.band``; stride: the bandwidth).")
 
 
 @wp.kernel
