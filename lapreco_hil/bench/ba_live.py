@@ -18,7 +18,7 @@ import numpy as np
 from lapreco_hil.geometry import Rotation, look_at, make_T, pose_error
 from lapreco_hil.mapping.bundle_adjustment import BAProblem
 from lapreco_hil.mapping.robust import CAUCHY_K, TUKEY_C, RobustSchedule, RobustStage
-from lapreco_hil.mapping.synthetic import SyntheticBA
+from lapreco_hil.mapping.synthetic import SyntheticBA, observe_runs
 
 FINAL_SCHEDULE = RobustSchedule((RobustStage("cauchy", CAUCHY_K, 15), RobustStage("tukey", TUKEY_C, 15)))
 
@@ -66,15 +66,8 @@ def make_live_final_problem(rng: np.random.Generator, n_free: int = 400, n_fixed
     half = 0.9 * 0.1 * np.array([K[0, 2], K[1, 2]]) / K[0, 0]
     xy = rng.uniform(hi - half, lo + half)
     pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
-    obs_point = np.repeat(np.arange(n_points), length)
-    within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)
-    obs_pose = first[obs_point] + within
-    T_cw = np.linalg.inv(true)[obs_pose]
-    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
-    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
-    jumped_track = rng.random(n_points) < jump
-    bad = jumped_track[obs_point] & (within >= length[obs_point] // 2) & (length[obs_point] >= 4)
-    uv[bad] += rng.uniform(6, 25, (int(bad.sum()), 2)) * rng.choice([-1, 1], (int(bad.sum()), 2))
+    obs_pose, obs_point, uv, bad, jumped_track = observe_runs(rng, K, true, pts, first, length, pixel_noise, jump,
+                                                              min_jump_views=4)
     cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
     # the local windows' answer: the map drifted from the truth, slowly along the run, each landmark with the
     # drift of its middle view (a locally consistent map)

@@ -70,6 +70,23 @@ def make_problem(rng: np.random.Generator, n_views: int = 10, n_points: int = 60
     return SyntheticBA(problem, poses, pts, bad_obs.ravel(), kind != 0)
 
 
+def observe_runs(rng: np.random.Generator, K: np.ndarray, true: np.ndarray, pts: np.ndarray, first: np.ndarray,
+                 length: np.ndarray, pixel_noise: float, jump: float, min_jump_views: int = 0):
+    """Each landmark ``pts[i]`` seen by the run of keyframes ``first[i]`` .. ``first[i] + length[i] - 1`` (poses
+    ``true``, world from camera): (obs_pose, obs_point, uv with ``pixel_noise``, bad, jumped_track), where
+    ``jump`` of the tracks of ``min_jump_views`` views or more jump 6-25 px half-way (their later views bad)."""
+    obs_point = np.repeat(np.arange(len(pts)), length)
+    within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)
+    obs_pose = first[obs_point] + within
+    T_cw = np.linalg.inv(true)[obs_pose]
+    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
+    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
+    jumped_track = rng.random(len(pts)) < jump
+    bad = jumped_track[obs_point] & (within >= length[obs_point] // 2) & (length[obs_point] >= min_jump_views)
+    uv[bad] += rng.uniform(6, 25, (int(bad.sum()), 2)) * rng.choice([-1, 1], (int(bad.sum()), 2))
+    return obs_pose, obs_point, uv, bad, jumped_track
+
+
 def make_sweep_problem(rng: np.random.Generator, n_views: int = 400, n_points: int = 5000,
                        min_track: int = 20, max_track: int = 300, step_m: float = 0.0002,
                        pixel_noise: float = 0.5, rot_sigma: float = 0.003, trans_sigma: float = 0.0004,
@@ -94,15 +111,7 @@ def make_sweep_problem(rng: np.random.Generator, n_views: int = 400, n_points: i
     spread = np.maximum(0.002, 0.05 - half_travel)[:, None]
     xy = mid[:, :2] + rng.uniform(-1.0, 1.0, (n_points, 2)) * spread * np.array([1.0, 0.6])
     pts = np.column_stack([xy, 0.1 + 0.01 * np.sin(xy[:, 0] * 70) * np.cos(xy[:, 1] * 55)])
-    obs_point = np.repeat(np.arange(n_points), length)
-    within = np.arange(len(obs_point)) - np.repeat(np.cumsum(length) - length, length)
-    obs_pose = first[obs_point] + within
-    T_cw = np.linalg.inv(true)[obs_pose]
-    Xc = np.einsum("oij,oj->oi", T_cw[:, :3, :3], pts[obs_point]) + T_cw[:, :3, 3]
-    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] + rng.normal(0, pixel_noise, (len(Xc), 2))
-    jumped_track = rng.random(n_points) < jump
-    bad = jumped_track[obs_point] & (within >= length[obs_point] // 2)
-    uv[bad] += rng.uniform(6, 25, (int(bad.sum()), 2)) * rng.choice([-1, 1], (int(bad.sum()), 2))
+    obs_pose, obs_point, uv, bad, jumped_track = observe_runs(rng, K, true, pts, first, length, pixel_noise, jump)
     cov = np.diag([rot_sigma**2] * 3 + [trans_sigma**2] * 3)
     problem = BAProblem(K, np.arange(n_views), priors.copy(), np.arange(n_views) < fixed_views, priors,
                         np.repeat(cov[None], n_views, 0), np.arange(n_points),

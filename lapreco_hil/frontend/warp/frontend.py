@@ -469,10 +469,14 @@ class WarpFrontEnd:
             self._budget, self._lk_levels = budget, lk_levels
             self._process_frame(frame, time.perf_counter(), cur)
         finally:
-            self._use_guess.fill_(0)
-            self._motion = None
-            self._lk_levels = self.levels
-            self._budget = self.config.max_features
+            self._clear_motion()
+
+    def _clear_motion(self) -> None:
+        """Back to a frame without a motion: LK from the tracks' last positions, all levels, the usual budget."""
+        self._use_guess.fill_(0)
+        self._motion = None
+        self._lk_levels = self.levels
+        self._budget = self.config.max_features
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         with device_lock(self.device):
@@ -517,10 +521,7 @@ class WarpFrontEnd:
             return self._process_frame(frame, t0, cur)
         finally:
             if self._motion is not None:
-                self._use_guess.fill_(0)
-                self._motion = None
-                self._lk_levels = self.levels
-                self._budget = self.config.max_features
+                self._clear_motion()
 
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
