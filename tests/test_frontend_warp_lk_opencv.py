@@ -59,24 +59,26 @@ def dot_grid_moved_80px(cfg: TrackerConfig):
     return baseline, seq, levels, prev, cur, pts
 
 
-def warp_lk(wp, cfg: TrackerConfig, prev, cur, levels: int, pts, coarse_eps=None):
-    """Warp's LK kernel from ``prev`` into ``cur`` with the front-end's settings: (positions, kept)."""
+def warp_lk(wp, cfg: TrackerConfig, prev, cur, levels: int, pts, coarse_eps=None, only=None):
+    """Warp's LK kernel from ``prev`` into ``cur`` with the front-end's settings: (positions, kept); ``only``: the
+    slots to track (bool per point; the others' outputs stay NaN / status -1)."""
     from lapreco_hil.frontend.warp import lk
     from lapreco_hil.frontend.warp.frontend import LK_EPS, LK_ITERATIONS, LK_MIN_EIG
 
     n = len(pts)
     P, GX, GY, lv = warp_pyramid(wp, prev, levels + 1)
     C, _, _, _ = warp_pyramid(wp, cur, levels + 1)
-    out = wp.zeros(n, dtype=wp.vec2, device=DEVICE)
-    status = wp.zeros(n, dtype=wp.int32, device=DEVICE)
+    out = wp.array(np.full((n, 2), np.nan, np.float32), dtype=wp.vec2, device=DEVICE)
+    status = wp.array(np.full(n, -1, np.int32), dtype=wp.int32, device=DEVICE)
     error = wp.zeros(n, dtype=float, device=DEVICE)
+    only = None if only is None else wp.array(np.asarray(only, np.int32), dtype=wp.int32, device=DEVICE)
     # the image is in 8-bit units here, the front-end's in log units: its eigenvalue threshold scaled to match
     lk.lk_track(P, GX, GY, C, *lv, levels + 1, cfg.window_px, LK_ITERATIONS, LK_EPS,
                 LK_MIN_EIG * HIGHPASS_GAIN**2, cfg.max_lk_error, wp.array(pts, dtype=wp.vec2, device=DEVICE),
                 wp.array([n], dtype=wp.int32, device=DEVICE), wp.zeros(n, dtype=wp.vec2, device=DEVICE),
                 wp.zeros(1, dtype=wp.int32, device=DEVICE), out, status, error, DEVICE,
-                coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=coarse_eps)
-    return out.numpy(), status.numpy() == 1
+                coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=coarse_eps, only=only)
+    return out.numpy(), status.numpy() == 1, status.numpy()
 
 
 def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
@@ -92,7 +94,7 @@ def test_warp_lk_keeps_and_places_the_tracks_opencv_lk_does_on_the_dot_grid(wp):
     cv_pts, cv_status, cv_err = baseline._track(cur, pts.reshape(-1, 1, 2))
     cv_pts = cv_pts.reshape(-1, 2)
     cv_kept = (cv_status.ravel() == 1) & (cv_err.ravel() < cfg.max_lk_error)
-    warp_pts, warp_kept = warp_lk(wp, cfg, prev, cur, levels, pts)
+    warp_pts, warp_kept, _ = warp_lk(wp, cfg, prev, cur, levels, pts)
 
     truth = seq.truth(1, seq.to_reference(0, pts))
     assert cv_kept.sum() > 0.85 * n
@@ -158,7 +160,7 @@ def test_the_coarse_levels_looser_step_tolerance_ends_where_the_tight_one_does(w
     n = len(pts)
 
     def track(coarse_eps):
-        return warp_lk(wp, cfg, prev, cur, levels, pts, coarse_eps)
+        return warp_lk(wp, cfg, prev, cur, levels, pts, coarse_eps)[:2]
 
     tight_pts, tight_kept = track(LK_EPS)
     pts_, kept = track(LK_COARSE_EPS)
@@ -176,3 +178,18 @@ def test_the_coarse_levels_looser_step_tolerance_ends_where_the_tight_one_does(w
     # one step per coarse level: tracks lost or moved
     moved = np.linalg.norm(one_pts - tight_pts, axis=1) > 0.5
     assert ((one_kept != tight_kept) | (moved & one_kept & tight_kept)).sum() >= 0.05 * n
+
+
+def test_lk_tracks_only_the_slots_asked_for(wp):
+    """The forward-backward check reads LK back only for swept tracks, so the back pass is launched with ``only``:
+    the slots asked for are tracked as in a full launch, the others are not touched (their outputs as they were)."""
+    cfg = TrackerConfig()
+    _, _, levels, prev, cur, pts = dot_grid_moved_80px(cfg)
+    pts = pts[:64]
+    wanted = np.arange(len(pts)) % 3 == 0
+    all_pts, all_kept, _ = warp_lk(wp, cfg, prev, cur, levels, pts)
+    some_pts, _, some_status = warp_lk(wp, cfg, prev, cur, levels, pts, only=wanted)
+    assert all_kept[wanted].sum() > 10
+    np.testing.assert_array_equal(some_status[wanted] == 1, all_kept[wanted])
+    np.testing.assert_allclose(some_pts[wanted], all_pts[wanted], atol=1e-5)
+    assert np.all(some_status[~wanted] == -1) and np.all(np.isnan(some_pts[~wanted]))

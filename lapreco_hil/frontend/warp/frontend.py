@@ -148,6 +148,8 @@ class WarpFrontEnd:
             self._back_status = wp.zeros(n, dtype=wp.int32)
             self._back_error = wp.zeros(n, dtype=float)
             self._searched = wp.zeros(n, dtype=wp.int32)
+            self._back_needed = wp.zeros(n, dtype=wp.int32)  # the slots LK tracks back (swept ones)
+            self._every_slot = wp.empty(0, dtype=wp.int32)
             self._at_lk = wp.zeros(n, dtype=wp.vec2)
             self._one = wp.ones(1, dtype=wp.int32)
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
@@ -282,15 +284,18 @@ class WarpFrontEnd:
                     self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev],
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
-                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=LK_COARSE_EPS)
+                    coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=LK_COARSE_EPS,
+                    only=self._every_slot)
         tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
         if self._motion is not None:
-            # LK back into the previous image from where the swept tracks landed
+            # LK back into the previous image from where the swept tracks landed (only they are checked: the
+            # tracks started at a depth skip it, most of a live run's)
+            predict.swept_and_tracked(self._depth, self._status, self._count[prev], self._back_needed, self.device)
             lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
                         self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                         cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
                         self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device,
-                        coarse_eps=LK_COARSE_EPS)
+                        coarse_eps=LK_COARSE_EPS, only=self._back_needed)
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
                                      self._count[prev], self._status, self._searched, self.device)
             wp.copy(self._at_lk, self._lk_pts)

@@ -111,7 +111,7 @@ def _make_lk_track(cache: int):
                   iterations: int, eps: float, coarse_eps: float, min_eig: float,
                   max_error: float, pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
                   guess: wp.array(dtype=wp.vec2), use_guess: wp.array(dtype=wp.int32),
-                  out_pts: wp.array(dtype=wp.vec2),
+                  only: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
                   status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
         """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
         Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
@@ -124,6 +124,9 @@ def _make_lk_track(cache: int):
         f, lane = wp.tid()
         if f >= count[0]:
             return  # the launch covers every slot; the live count is on the device (the whole block leaves)
+        if only.shape[0] > 0:
+            if only[f] == 0:
+                return  # a slot whose answer nobody reads (its outputs are left as they were)
         nl = wp.block_dim()
         p0 = pts[f]
         # the guess carried down the pyramid (current level units): from where the camera motion predicts the
@@ -274,18 +277,21 @@ def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array
              hs: wp.array, levels: int, win: int, iterations: int, eps: float, min_eig: float, max_error: float,
              pts: wp.array, count: wp.array, guess: wp.array, use_guess: wp.array, out_pts: wp.array,
              status: wp.array, error: wp.array, device, coarse_win: int | None = None,
-             coarse_from: int | None = None, coarse_eps: float | None = None) -> None:
+             coarse_from: int | None = None, coarse_eps: float | None = None, only: wp.array | None = None) -> None:
     """Track ``pts`` (the first ``count[0]`` of them; every slot is launched) from the ``prev`` pyramid into
     ``cur``, from ``guess`` where ``use_guess[0]`` is 1 (NaN: lost), else from where they were: ``out_pts``,
     ``status`` (1: tracked) and ``error`` (the window's mean absolute difference). The window is ``win`` px,
     ``coarse_win`` on the levels from ``coarse_from`` up (None: ``win`` throughout). LK stops on a level when a
     step is shorter than ``eps`` px, on the levels above full resolution ``coarse_eps`` px of that level (None:
     ``eps``): a coarse level only has to start the next one inside its reach, and the finest level's steps
-    settle the answer (docs/benchmarks.md, session 16)."""
+    settle the answer (docs/benchmarks.md, session 16). ``only`` (int32 per slot): track just the slots where it is
+    non-zero, leaving the others' outputs as they were (None: every slot)."""
+    if only is None:
+        only = wp.empty(0, dtype=wp.int32, device=device)
     coarse_win = win if coarse_win is None else coarse_win
     coarse_from = levels if coarse_from is None else coarse_from
     coarse_eps = eps if coarse_eps is None else coarse_eps
     wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
         prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, coarse_win, coarse_from, iterations, eps, coarse_eps,
         min_eig, max_error, pts, count,
-        guess, use_guess, out_pts, status, error], block_dim=LK_LANES, device=device)
+        guess, use_guess, only, out_pts, status, error], block_dim=LK_LANES, device=device)

@@ -142,6 +142,14 @@ def _forward_backward(depth: wp.array(dtype=float), prev_pts: wp.array(dtype=wp.
         searched[f] = 1
 
 
+@wp.kernel
+def _swept_and_tracked(depth: wp.array(dtype=float), status: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                       out: wp.array(dtype=wp.int32)):
+    """1 for the tracks the forward-backward check reads (swept: no depth; tracked by LK), else 0."""
+    f = wp.tid()
+    out[f] = wp.where(f < count[0] and depth[f] <= 0.0 and status[f] != 0, 1, 0)
+
+
 # --- host wrappers: a device and preallocated outputs --------------------------------------------------------
 def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_status: wp.array, count: wp.array,
                      status: wp.array, searched: wp.array, device) -> None:
@@ -149,6 +157,11 @@ def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_s
     wp.launch(_forward_backward, dim=depth.shape[0], inputs=[depth, prev_pts, back, back_status, count,
                                                               float(epipolar.FORWARD_BACKWARD_PX), status, searched],
               device=device)
+
+def swept_and_tracked(depth: wp.array, status: wp.array, count: wp.array, out: wp.array, device) -> None:
+    """``out`` <- 1 for the slots ``forward_backward`` will judge (LK back runs for those only), else 0."""
+    wp.launch(_swept_and_tracked, dim=depth.shape[0], inputs=[depth, status, count, out], device=device)
+
 
 def motion_params(T_cur_prev, depth_range_m) -> tuple[np.ndarray, np.ndarray]:
     """A frame's motion as ``predict_starts`` reads it from the device: (T_cur_prev as one float32 4x4, the
