@@ -24,4 +24,6 @@ def test_the_live_path_pass_gives_each_frame_its_true_motion_and_depths(warp_cpu
     result = bench.run("cpu", [(160, 120)], [100], frames=4, warmup=1)
     live = result["rows"][0]["warp"]["with_motion"]
     assert live["total_ms"] > 0 and live["tracks_median"] > 0
-    assert "+motion" in bench.format_table(result)
+    locked = result["rows"][0]["warp"]["page_locked"]  # the frames staged as the live capture thread does
+    assert locked["total_ms"] > 0 and locked["with_motion_ms"] > 0
+    assert "+motion" in bench.format_table(result) and "locked" in bench.format_table(result)

@@ -4,7 +4,9 @@ Each stage is timed per frame with the device synchronised at its end (the front
 results back at stage boundaries), median over the frames after a warm-up. OpenCV uses all CPU threads.
 
 The Warp front-end is also timed on the live path: every frame with the camera's motion, as a live run's pose
-source and map give it (the true relative pose, each track's depth from the renderer where it has one).
+source and map give it (the true relative pose, each track's depth from the renderer where it has one); and with
+its frames in page-locked memory, as a live run's capture thread stages them (``PageLockedFrames``: the copy is
+the capture thread's, beside tracking, so it is not in the front-end's time).
 """
 
 from __future__ import annotations
@@ -58,12 +60,14 @@ def _live_motion(truth: list, scene_depth_m: tuple[float, float]):
     return motion
 
 
-def _pass(frontend, frames, warmup: int, motion=None):
+def _pass(frontend, frames, warmup: int, motion=None, page_locked=None):
     stages: dict[str, list[float]] = {}
     totals, tracks = [], []
     obs = None
     for k, frame in enumerate(frames):
         frame_motion = motion(obs, k) if motion is not None else None
+        if page_locked is not None:
+            frame = page_locked.stage(frame)  # (the capture thread's work in a live run)
         t0 = time.perf_counter()
         obs = frontend.process(frame, frame_motion)
         dt = time.perf_counter() - t0
@@ -76,10 +80,11 @@ def _pass(frontend, frames, warmup: int, motion=None):
     return totals, tracks, {name: float(np.median(v)) * 1e3 for name, v in stages.items()}
 
 
-def _run(make, frames, warmup: int, motion=None) -> dict:
+def _run(make, frames, warmup: int, motion=None, page_locked=None) -> dict:
     """Totals from a steady-state pass; per-stage times from a second pass that synchronises at stage ends
     (where the front-end can: the Warp one has a ``profile`` switch, OpenCV's stages are synchronous). With
-    ``motion`` (the Warp front-end), a third pass gives every frame its motion: the live path's totals."""
+    ``motion`` (the Warp front-end), a third pass gives every frame its motion: the live path's totals. With
+    ``page_locked`` (a pool), both totals again with the frames staged in page-locked memory."""
     frontend = make()
     totals, tracks, stages = _pass(frontend, frames, warmup)
     if hasattr(frontend, "profile"):
@@ -93,6 +98,13 @@ def _run(make, frames, warmup: int, motion=None) -> dict:
         row["with_motion"] = {"total_ms": float(np.median(live)) * 1e3,
                               "total_p95_ms": float(np.percentile(live, 95)) * 1e3,
                               "tracks_median": float(np.median(live_tracks))}
+    if page_locked is not None:
+        staged, _, _ = _pass(make(), frames, warmup, page_locked=page_locked)
+        row["page_locked"] = {"total_ms": float(np.median(staged)) * 1e3,
+                              "total_p95_ms": float(np.percentile(staged, 95)) * 1e3}
+        if motion is not None:
+            staged, _, _ = _pass(make(), frames, warmup, motion, page_locked)
+            row["page_locked"]["with_motion_ms"] = float(np.median(staged)) * 1e3
     return row
 
 
@@ -100,6 +112,7 @@ def run(device: str, resolutions: list[tuple[int, int]], features: list[int], fr
         warmup: int = 8, scene: str = "skull") -> dict:
     from lapreco_hil.frontend.opencv import OpenCVFrontEnd
     from lapreco_hil.frontend.warp import WarpFrontEnd
+    from lapreco_hil.frontend.warp.page_locked import PageLockedFrames
 
     cv2.setNumThreads(os.cpu_count() or 1)
     rows = []
@@ -110,7 +123,8 @@ def run(device: str, resolutions: list[tuple[int, int]], features: list[int], fr
             min_distance = float(np.clip(0.5 * np.sqrt(width * height / n), 3.0, 10.0))
             cfg = TrackerConfig(max_features=n, min_distance_px=min_distance, quality_level=0.001)
             warp_row = _run(lambda: WarpFrontEnd(camera, cfg, device), seq, warmup,
-                            motion=_live_motion(truth, SCENE_DEPTH_M))
+                            motion=_live_motion(truth, SCENE_DEPTH_M),
+                            page_locked=PageLockedFrames((height, width, 3), 4, device))
             cv_row = _run(lambda: OpenCVFrontEnd(camera, cfg), seq, warmup)
             rows.append({
                 "resolution": f"{width}x{height}", "features": n, "min_distance_px": min_distance,
@@ -127,16 +141,21 @@ def format_table(result: dict) -> str:
     lines = [f"front-end on {result['device']} ({result['frames']} frames, {result['warmup']} warm-up, medians; "
              f"OpenCV on {result['cpu_threads']} threads)",
              f"{'resolution':>10s} {'N':>5s} | {'warp total':>10s} {'upload':>7s} {'prepare':>8s} {'lk':>7s} "
-             f"{'drift':>7s} {'detect':>7s} {'tracks':>6s} {'+motion':>8s} | {'cv total':>9s} {'cv lk':>7s} "
+             f"{'drift':>7s} {'detect':>7s} {'tracks':>6s} {'+motion':>8s} {'locked':>7s} {'+motion':>8s} | "
+             f"{'cv total':>9s} {'cv lk':>7s} "
              f"{'cv drift':>8s} | {'x total':>7s} {'x LK':>6s}"]
     for r in result["rows"]:
         w, c = r["warp"], r["opencv"]
         ws, cs = w["stages_ms"], c["stages_ms"]
         live = w.get("with_motion", {}).get("total_ms", float("nan"))
+        locked = w.get("page_locked", {})
         lines.append(f"{r['resolution']:>10s} {r['features']:>5d} | {w['total_ms']:10.2f} {ws.get('upload', 0):7.2f} "
                      f"{ws.get('prepare', 0):8.2f} {ws.get('lk', 0):7.2f} {ws.get('drift_check', 0):7.2f} "
-                     f"{ws.get('detect', 0):7.2f} {w['tracks_median']:6.0f} {live:8.2f} | {c['total_ms']:9.2f} "
+                     f"{ws.get('detect', 0):7.2f} {w['tracks_median']:6.0f} {live:8.2f} "
+                     f"{locked.get('total_ms', float('nan')):7.2f} {locked.get('with_motion_ms', float('nan')):8.2f} | "
+                     f"{c['total_ms']:9.2f} "
                      f"{cs.get('track', 0):7.2f} {cs.get('drift_check', 0):8.2f} | {r['ratio_total']:7.1f} "
                      f"{r['ratio_lk']:6.1f}")
-    lines.append("+motion: the Warp front-end's total with every frame's motion given, as in a live run")
+    lines.append("+motion: the Warp front-end's total with every frame's motion given, as in a live run; locked: "
+                 "the frames in page-locked memory, as the live run's capture thread stages them on CUDA")
     return "\n".join(lines)

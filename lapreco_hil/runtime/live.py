@@ -49,6 +49,9 @@ FEW_FRAMES = 3  # a run that maps fewer frames than this says why
 # frames the tracking stage keeps for the dense surface until the mapper names its keyframes (it answers within a
 # few frames; at 1080p this is about 200 MB)
 RECENT_FRAMES = 32
+# page-locked frame buffers beyond those the capture queue and the recent frames can hold at once (the frame
+# being tracked, one being staged)
+PAGE_LOCKED_SPARE = 4
 
 
 class StageError(LaprecoError):
@@ -95,8 +98,14 @@ class LiveRun:
                                          keyframe_poses=self.dense is not None)
         self.supervisor = Supervisor(self.processes, self.links, self.metrics, on_stage_error=on_stage_error)
         recording = recorder is not None
+        page_locked = None
+        if tracker == "warp" and str(device).startswith("cuda") and camera is not None:
+            from lapreco_hil.frontend.warp.page_locked import PageLockedFrames
+
+            held = rt.capture_queue + (RECENT_FRAMES if self.recent is not None else 0) + PAGE_LOCKED_SPARE
+            page_locked = PageLockedFrames((camera.height, camera.width, 3), held, device)
         self.capture = Capture(grabber, self.links, self.metrics, capture_queue=rt.capture_queue,
-                               record_queue=rt.record_queue, recording=recording)
+                               record_queue=rt.record_queue, recording=recording, page_locked=page_locked)
         coverage = ViewCoverage(camera, partial_below=rt.partial_view_below) if camera is not None else None
         self.offset_watch = (TimeOffsetWatch(camera.K, poses.time_offset_ns)
                              if camera is not None and hasattr(poses, "time_offset_ns") else None)

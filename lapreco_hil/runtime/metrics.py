@@ -76,7 +76,11 @@ class LiveMetrics:
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0),
                        "mapper_skipped": c.get("mapper_skipped", 0), "tracking_errors": c.get("tracking_errors", 0),
                        "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0),
-                       "dropped_capture_span_s": spans.get("dropped_capture")},
+                       "dropped_capture_span_s": spans.get("dropped_capture"),
+                       # frames the capture thread put in page-locked memory for the Warp front-end on CUDA, and
+                       # those it could not (every buffer still held: a recorder's backlog)
+                       "page_locked": c.get("frames_page_locked", 0),
+                       "not_page_locked": c.get("frames_not_page_locked", 0)},
             # the pose source's samples refused (the keys keep their first name: a tracker's refusals are here too)
             "pose_source": getattr(poses, "source", "robot"),
             "robot_samples_rejected": poses.rejected,  # (a given-pose source refuses nothing)

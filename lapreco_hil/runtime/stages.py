@@ -100,8 +100,11 @@ class RecentFrames:
 
 class Capture:
     def __init__(self, grabber, links: StageLinks, metrics: LiveMetrics, *, capture_queue: int, record_queue: int,
-                 recording: bool) -> None:
+                 recording: bool, page_locked=None) -> None:
         self.grabber, self.links, self.metrics = grabber, links, metrics
+        # a PageLockedFrames pool (the Warp front-end on CUDA): each frame is copied into page-locked memory here,
+        # beside the tracking of the one before, so the tracking thread uploads it by one DMA
+        self.page_locked = page_locked
         self.capture_queue, self.record_queue, self.recording = capture_queue, record_queue, recording
         self.bad_time_wall = 0.0  # when a frame was last refused for its time stamp
 
@@ -129,6 +132,10 @@ class Capture:
             if last_seq is not None and frame.seq > last_seq + 1:
                 m.add("dropped_source", frame.seq - last_seq - 1)  # gone before we could read them
             last_seq = frame.seq
+            if self.page_locked is not None:
+                staged = self.page_locked.stage(frame)
+                m.add("frames_page_locked" if staged is not frame else "frames_not_page_locked")
+                frame = staged
             with links.cond:
                 if len(links.capture_q) >= self.capture_queue:
                     links.capture_q.popleft()

@@ -30,6 +30,7 @@ from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_level
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
+from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,8 @@ class WarpFrontEnd:
             self._ws = wp.array(np.array(ws, np.int32), dtype=int)
             self._hs = wp.array(np.array(hs, np.int32), dtype=int)
             self._frame = wp.zeros((H, W), dtype=wp.uint8)  # the distorted frame's grey levels
+            # a page-locked frame comes up whole, then is converted here (allocated where it can come: CUDA)
+            self._frame_bgr = wp.zeros((H, W, 3), dtype=wp.uint8) if self.device.is_cuda else None
             self._log = wp.zeros((H, W), dtype=float)
             self._lit = wp.zeros((H, W), dtype=float)  # the shading level (blurred log), full resolution
             self._low_log, self._low_tmp, self._low_lit = (wp.zeros(hw * hh, dtype=float) for _ in range(3))
@@ -190,6 +193,7 @@ class WarpFrontEnd:
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self._done = wp.Event(self.device) if self.device.is_cuda else None
         self.use_graphs = True
+        self.frames_page_locked = 0  # frames that came up by the page-locked path (``page_locked``)
         # the corner response and selection run beside tracking, at high priority: theirs is a chain of short
         # launches, which should not queue behind the blocks of LK and the drift check
         self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
@@ -223,6 +227,15 @@ class WarpFrontEnd:
         if image.shape != (self.height, self.width, 3) or image.dtype != np.uint8:
             raise ValueError(f"frame is {image.shape} {image.dtype}; the front-end was built for "
                              f"{self.height}x{self.width}x3 uint8")
+        source = page_locked_source(image)
+        if source is not None:
+            # a frame the capture thread put in page-locked memory: one DMA, the grey levels made here
+            if self._frame_bgr is None:
+                self._frame_bgr = wp.zeros(source.shape, dtype=wp.uint8, device=self.device)
+            wp.copy(self._frame_bgr, source)
+            bgr_to_grey(self._frame_bgr, self._frame, self.device)
+            self.frames_page_locked += 1
+            return
         W, H = self.width, self.height
         bands = UPLOAD_BANDS if W * H >= UPLOAD_BANDS_FROM_PX else 1
         for b in range(bands):
