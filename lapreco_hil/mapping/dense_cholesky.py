@@ -67,12 +67,15 @@ def _check_tile(tile: int) -> int:
 
 
 @functools.cache
-def _kernels(tile: int, block_dim: int) -> SimpleNamespace:
+def _kernels(tile: int, block_dim: int, mathdx: bool | None = None) -> SimpleNamespace:
     """The tile kernels of a tile's side, compiled for ``block_dim`` threads per block (each in a module of its own:
-    ``warp_device.preload_kernels`` loads them with the module's block size)."""
+    ``warp_device.preload_kernels`` loads them with the module's block size); ``mathdx``: their tile operations by
+    libmathdx (cuSolverDx, cuBLASDx) on a GPU or by Warp's own code (None: Warp's configuration)."""
     T = tile
     f64 = wp.float64
     options = {"enable_backward": False, "block_dim": block_dim}
+    if mathdx is not None:
+        options.update({"enable_mathdx_gemm": bool(mathdx), "enable_mathdx_solver": bool(mathdx)})
 
     @wp.kernel(module="unique", module_options=options)
     def factor_diagonal(A: wp.array2d(dtype=wp.float64), k: int, info: wp.array(dtype=wp.int32)):
@@ -121,22 +124,22 @@ def _kernels(tile: int, block_dim: int) -> SimpleNamespace:
         wp.tile_store(A, a, offset=(i * T, j * T))
 
     @wp.kernel(module="unique", module_options=options)
-    def solve_backward(A: wp.array2d(dtype=wp.float64), k: int, n_tiles: int):
-        """x_k = L_kk^-T y_k into the solution's row (block 0), and y_j -= L_kj^T x_k for j < k (block j): every
-        block solves x_k itself, and none writes y_k."""
+    def solve_backward(A: wp.array2d(dtype=wp.float64), y: wp.array2d(dtype=wp.float64),
+                       x: wp.array2d(dtype=wp.float64), k: int):
+        """x_k = L_kk^-T y_k (block 0 stores it), and y_j -= L_kj^T x_k for j < k (block j): every block solves
+        x_k itself, and none writes y_k. ``y``, ``x``: the storage's right-hand side's and solution's rows seen as
+        columns (padded, 1)."""
         block, _lane = wp.tid()
-        rhs = n_tiles * T
         l_kk = wp.tile_load(A, shape=(T, T), offset=(k * T, k * T), storage="shared")
-        y_k = wp.tile_load(A, shape=(1, T), offset=(rhs, k * T), storage="shared")
-        x_k = wp.tile_upper_solve(wp.tile_transpose(l_kk), wp.tile_transpose(y_k))
+        y_k = wp.tile_load(y, shape=(T, 1), offset=(k * T, 0), storage="shared")
+        x_k = wp.tile_upper_solve(wp.tile_transpose(l_kk), y_k)
         if block == 0:
-            wp.tile_store(A, wp.tile_transpose(x_k), offset=(rhs + 1, k * T))
+            wp.tile_store(x, x_k, offset=(k * T, 0))
         if block < k:
             l_kj = wp.tile_load(A, shape=(T, T), offset=(k * T, block * T), storage="shared")
-            y_j = wp.tile_load(A, shape=(1, T), offset=(rhs, block * T), storage="shared")
-            y_jt = wp.tile_transpose(y_j)
-            wp.tile_matmul(wp.tile_transpose(l_kj), x_k, y_jt, alpha=f64(-1.0))
-            wp.tile_store(A, wp.tile_transpose(y_jt), offset=(rhs, block * T))
+            y_j = wp.tile_load(y, shape=(T, 1), offset=(block * T, 0), storage="shared")
+            wp.tile_matmul(wp.tile_transpose(l_kj), x_k, y_j, alpha=f64(-1.0))
+            wp.tile_store(y, y_j, offset=(block * T, 0))
 
     return SimpleNamespace(factor_diagonal=factor_diagonal, solve_panel=solve_panel, update_trailing=update_trailing,
                            solve_backward=solve_backward)
@@ -147,14 +150,14 @@ def block_dim_of(device) -> int:
     return 1 if wp.get_device(device).is_cpu else CUDA_BLOCK_DIM
 
 
-def kernels_of(tile: int, device) -> SimpleNamespace:
+def kernels_of(tile: int, device, mathdx: bool | None = None) -> SimpleNamespace:
     """The tile kernels for ``device`` (compiled at their first launch or by ``load``)."""
-    return _kernels(_check_tile(tile), block_dim_of(device))
+    return _kernels(_check_tile(tile), block_dim_of(device), mathdx)
 
 
-def load(tile: int, device) -> None:
+def load(tile: int, device, mathdx: bool | None = None) -> None:
     """Compile and load the kernels of ``tile`` on ``device`` now (a run's start), not at the first solve."""
-    for kernel in vars(kernels_of(tile, device)).values():
+    for kernel in vars(kernels_of(tile, device, mathdx)).values():
         wp.load_module(kernel.module, device=str(device), block_dim=block_dim_of(device))
 
 
@@ -163,14 +166,16 @@ class DeviceCholesky:
     ``device``, enqueued on its stream by ``launch``: the factor overwrites the storage's lower triangle, the
     solution is its row ``padded + 1`` (``solution``), and ``info`` (int32, zeroed by ``launch``) counts the
     pivots that were not positive. ``graph``: record the launches once per storage as a CUDA graph and replay
-    it (None: on CUDA devices)."""
+    it (None: on CUDA devices; on Warp's CPU device, Warp's recorded graph); ``mathdx`` as ``_kernels``'."""
 
-    def __init__(self, n: int, device, tile: int = TILE, graph: bool | None = None) -> None:
+    def __init__(self, n: int, device, tile: int = TILE, graph: bool | None = None,
+                 mathdx: bool | None = None) -> None:
         self.n, self.tile, self.device = int(n), _check_tile(tile), wp.get_device(device)
         self.padded = padded_width(n, tile)
         self.n_tiles = self.padded // tile
         self.block_dim = block_dim_of(self.device)
-        self.kernels = _kernels(self.tile, self.block_dim)
+        self.mathdx = mathdx
+        self.kernels = _kernels(self.tile, self.block_dim, mathdx)
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self._graphs: dict = {}  # (storage's address, info's address) -> recorded graph
         self._commands: dict | None = None  # (storage's, info's address) -> recorded launches (no graph)
@@ -180,6 +185,11 @@ class DeviceCholesky:
         """The solution's row of ``storage``, its first ``n`` entries (a view)."""
         return wp.array(ptr=storage.ptr + 8 * (self.padded + 1) * self.padded, shape=(max(self.n, 1),),
                         dtype=wp.float64, device=storage.device)
+
+    def _column(self, storage, row: int):
+        """A row of ``storage`` seen as a (padded, 1) column (a view)."""
+        return wp.array(ptr=storage.ptr + 8 * row * self.padded, shape=(self.padded, 1), dtype=wp.float64,
+                        device=storage.device)
 
     def _check(self, storage, info) -> None:
         if tuple(storage.shape) != storage_shape(self.n, self.tile) or storage.dtype != wp.float64:
@@ -202,8 +212,9 @@ class DeviceCholesky:
             add(kn.solve_panel, m + 1, [storage, k])  # (the right-hand side's row among them)
             if m:
                 add(kn.update_trailing, m * (m + 1) // 2 + m, [storage, k, m])
+        y, x = self._column(storage, self.padded), self._column(storage, self.padded + 1)
         for k in range(nt - 1, -1, -1):
-            add(kn.solve_backward, max(k, 1), [storage, k, nt])
+            add(kn.solve_backward, max(k, 1), [storage, y, x, k])
         return commands
 
     def launch(self, storage, info) -> None:
@@ -230,7 +241,7 @@ class DeviceCholesky:
 
     def _capture(self, storage, info):
         """The launches recorded as a CUDA graph (None where capture fails: they are then launched one by one)."""
-        load(self.tile, self.device)  # (a capture cannot compile)
+        load(self.tile, self.device, self.mathdx)  # (a capture cannot compile)
         try:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 for command in self._record(storage, info):

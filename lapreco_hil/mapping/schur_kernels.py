@@ -1270,7 +1270,7 @@ class ObservationKernels:
             if self._eliminated_at is None or self._eliminated_at[0] != lam:
                 self._eliminate(lam)
             self._eliminated_at = None  # (the factorisation overwrites it)
-            rows, padded = self.storage_shape
+            padded = self.storage_shape[1]
             self._launch(_negated_camera_system, (padded + 1) * padded, [self.storage, n6, self.r, self.camera_inputs],
                          [])
             self._launch(_add_pose_blocks, 36 * self.n_blocks,
