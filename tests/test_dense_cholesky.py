@@ -182,3 +182,24 @@ def test_where_the_camera_system_is_solved_on_the_device():
     with pytest.raises(ValueError, match="dense-device"):
         schur.solve_robust_schur(live_map().problem, FINAL_SCHEDULE, device=DEVICE, device_schur=False,
                                  camera_solver="dense-device")
+
+
+def test_a_map_that_no_order_makes_narrow_skips_the_reverse_cuthill_mckee_order():
+    """The landmarks seen by most keyframes bound the bandwidth from below in every order (``_clique_bound``):
+    "auto" decides dense from them at once, as the reverse Cuthill-McKee order's width decides; a map of short
+    tracks keeps its band."""
+    syn = make_live_final_problem(np.random.default_rng(0), n_free=80, n_fixed=2, new_points_per_view=8,
+                                  long_share=0.05)
+    lay = schur._layout(schur.pose_major(syn.problem)[0], camera_solver="dense")
+    seen = lay.obs_col >= 0
+    bound = schur._clique_bound(lay.obs_point[seen], lay.obs_col[seen], lay.n_points)
+    views = np.bincount(lay.obs_point[seen])
+    assert bound == views.max() and bound * schur.BAND_MAX_SHARE > len(lay.free)
+    no_ties = np.zeros((0, 2), np.int64)
+    band, order = schur._camera_band(lay.obs_point, lay.obs_col, lay.n_points, len(lay.free), no_ties, "banded")
+    assert (band - 5) // 6 + 1 >= bound  # (the narrowest order found is no narrower than the bound)
+    assert schur._camera_band(lay.obs_point, lay.obs_col, lay.n_points, len(lay.free), no_ties, "auto") == (None,
+                                                                                                          None)
+    short = make_live_final_problem(np.random.default_rng(0), n_free=80, n_fixed=2, new_points_per_view=8,
+                                    long_share=0.0, max_track=12)
+    assert schur._layout(schur.pose_major(short.problem)[0]).band is not None

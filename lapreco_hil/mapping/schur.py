@@ -483,6 +483,8 @@ def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_fr
     spans = np.concatenate([(last - first)[last >= 0], np.abs(tie_cols[:, 0] - tie_cols[:, 1])])
     width = int(spans.max(initial=0))
     order = None
+    if camera_solver == "auto" and _clique_bound(obs_point[seen], obs_col[seen], n_points) * BAND_MAX_SHARE > n_free:
+        return None, None  # (no order is narrow enough: the same answer as the reverse Cuthill-McKee order's)
     if (width + 1) * BAND_MAX_SHARE > n_free:  # too wide in this order: a reverse Cuthill-McKee order's?
         import scipy.sparse
         from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -510,6 +512,21 @@ def _device_blocks(n_free: int, tie_cols: np.ndarray) -> np.ndarray:
     rows = np.concatenate([np.arange(n_free), ties.max(axis=1)]).astype(np.int64)
     cols = np.concatenate([np.arange(n_free), ties.min(axis=1)]).astype(np.int64)
     return np.unique(rows * n_free + cols)
+
+
+def _clique_bound(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, candidates: int = 8) -> int:
+    """A lower bound on the camera system's bandwidth + 1 (in poses) in every order of its poses: the poses that
+    see one landmark are all coupled, so the first and the last of them in any order are as many apart; counted
+    exactly (distinct poses) for the ``candidates`` landmarks of the most observations. A long-lived track of a
+    live map (seen by most keyframes) shows at once that no order makes its system narrow, without the product
+    of the incidence matrix that a reverse Cuthill-McKee order needs (a few hundred ms at 700 000 observations)."""
+    if not len(obs_point):
+        return 0
+    views = np.bincount(obs_point, minlength=n_points)
+    top = np.argpartition(views, -min(candidates, n_points))[-candidates:]
+    among = np.isin(obs_point, top)
+    keys = np.unique(obs_point[among].astype(np.int64) * (int(obs_col.max()) + 1) + obs_col[among])
+    return int(np.bincount(keys // (int(obs_col.max()) + 1)).max(initial=0))
 
 
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
