@@ -761,7 +761,7 @@ class ObservationKernels:
         indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
         # the landmarks eliminated here by pose pairs (``_schur_window``) or by observations (``_schur_blocks``)
         self.window = (self.schur_on_device and self.gpu_reductions and bool(unique_pairs)
-                       and 0 < n_free <= WINDOW_POSES and band is None)
+                       and 0 < n_free <= WINDOW_POSES and band is None and camera_tile is None)
         if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
             by_free = np.asarray(obs_col) >= 0
