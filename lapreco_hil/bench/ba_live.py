@@ -187,13 +187,26 @@ def main(argv: list[str] | None = None) -> int:
     p = syn.problem
     threads = args.threads or final_pass_threads()
     solve_robust_schur(p, RobustSchedule((RobustStage("cauchy", CAUCHY_K, 1),)), device=args.device)  # (loads)
+    load_s = {}
+    if args.device != "numpy":  # (the device factorisation's kernels of every tile asked for, compiled now)
+        from lapreco_hil.mapping import dense_cholesky
+        from lapreco_hil.warp_device import resolve_device
+
+        for tile in args.camera_tile or [DEVICE_TILE]:
+            t0 = time.perf_counter()
+            try:
+                dense_cholesky.load(tile, resolve_device(args.device))
+                load_s[tile] = time.perf_counter() - t0
+            except Exception as e:  # (its rows report it too)
+                load_s[tile] = f"{type(e).__name__}: {e}"
     views = np.bincount(p.obs_point)
     out = {"problem": {"keyframes": len(p.poses), "free_keyframes": int((~p.fixed).sum()), "points": len(p.points),
                        "observations": len(p.obs_uv), "long_share": args.long_share,
                        "track_views_mean_max": [float(views.mean()), int(views.max())],
                        "start_pose_rms_mm": pose_rms_mm(p.poses, syn.true_poses),
                        "prior_pose_rms_mm": pose_rms_mm(p.prior_poses, syn.true_poses)},
-           "device": args.device, "blas_threads": threads, "mathdx": not args.no_mathdx, "runs": {}}
+           "device": args.device, "blas_threads": threads, "mathdx": not args.no_mathdx,
+           "dense_cholesky_load_s": load_s, "runs": {}}
     if args.factorisation:
         out["factorisation"] = factorisation_bench(args.device, args.factorisation, args.camera_tile or [DEVICE_TILE],
                                                    threads)

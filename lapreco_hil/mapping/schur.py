@@ -22,11 +22,15 @@ pass over a few hundred keyframes a few thousand. It is assembled point-chunk by
 landmark blocks eliminated into the rows of the poses that see it by one BLAS rank-k update in place, so memory
 stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
 that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
-instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
+instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation: the host's LAPACK,
+or, for a final pass's wide dense system on a GPU, a blocked one on the device where the system was made
+(``dense_cholesky``; ``camera_solver``), so that only the step comes back; a long map's narrow band by LAPACK's
+banded one.
 
 On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
 keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
-the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
+the pose system (with the camera system, where the landmarks are eliminated there and it is not solved there too)
+and a trial's few scalars.
 Each read-back waits for the device: the host launches, does its pose-factor work, then reads. On a GPU the
 kernels reduce a GPU's way and the robust scales' medians are found there (``ObservationKernels``).
 """
