@@ -523,14 +523,15 @@ def _clique_bound(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, can
     see one landmark are all coupled, so the first and the last of them in any order are as many apart; counted
     exactly (distinct poses) for the ``candidates`` landmarks of the most observations. A long-lived track of a
     live map (seen by most keyframes) shows at once that no order makes its system narrow, without the product
-    of the incidence matrix that a reverse Cuthill-McKee order needs (a few hundred ms at 700 000 observations)."""
+    of the incidence matrix that a reverse Cuthill-McKee order needs (docs/benchmarks.md, session 17)."""
     if not len(obs_point):
         return 0
     views = np.bincount(obs_point, minlength=n_points)
     top = np.argpartition(views, -min(candidates, n_points))[-candidates:]
     among = np.isin(obs_point, top)
-    keys = np.unique(obs_point[among].astype(np.int64) * (int(obs_col.max()) + 1) + obs_col[among])
-    return int(np.bincount(keys // (int(obs_col.max()) + 1)).max(initial=0))
+    stride = int(obs_col.max()) + 1
+    keys = np.unique(obs_point[among].astype(np.int64) * stride + obs_col[among])  # (distinct landmark-pose pairs)
+    return int(np.bincount(keys // stride).max(initial=0))
 
 
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
@@ -1486,10 +1487,11 @@ def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str
     uploads, downloads and allocations ({} on numpy); ``camera_solver``, ``camera_band``, ``camera_tile``: how the
     camera system was held and solved (on the device, "dense-device", ``schur_s`` is the host's launching of the
     elimination and the factorisation, ``solve_s`` its wait for the step). ``device``, ``blas_threads``,
-    ``device_schur``, ``camera_solver`` and ``camera_tile`` as ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
-    (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
-    values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
-    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
+    ``device_schur``, ``camera_solver`` and ``camera_tile`` as ``solve_schur``'s; ``gpu_reductions``: the kernels'
+    sums and the robust scales' medians taken a GPU's ways (``ObservationKernels``: the scales by sorts there, one
+    scalar read back instead of the residuals; the same values, the sums to round-off); opt-in (None: off) until
+    re-measured live on a GPU: in session 14's live run with it a window's pose-pair table overran into the next
+    buffer (fixed in session 15; docs/benchmarks.md).
     ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (a GPU's page-locked mirrors, the
     recorded launches) the solve uses instead of its own, kept by a caller that solves window after window (the
     BA worker); the same answers. Ignored on numpy."""

@@ -5,11 +5,12 @@ elimination into the camera system (atomics: a GPU's way), and the back-substitu
 CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
 they run on the GPU. Float64 throughout, as GTSAM computes.
 
-``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
-and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
+``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device and
+launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
 factorisation, except where that is done here too (``camera_tile``: the damped system formed in the storage of
-``dense_cholesky``, factorised and solved there, the step alone read back). The sums can reduce a GPU's way (``gpu_reductions``, opt-in: fewer atomics, a window's elimination
-by pose pairs, the robust scale by sorts); by default one observation's terms at a time.
+``dense_cholesky``, factorised and solved there, the step alone read back). The sums can reduce a GPU's way
+(``gpu_reductions``, opt-in: fewer atomics, a window's elimination by pose pairs, the robust scale by sorts); by default
+one observation's terms at a time.
 """
 
 from __future__ import annotations
