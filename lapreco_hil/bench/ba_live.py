@@ -168,8 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--camera-tile", type=int, action="append",
                         help=f"repeatable: the device factorisation's tile side(s) (16, 32, 64; default {DEVICE_TILE})")
     parser.add_argument("--factorisation", type=int, default=0, metavar="N",
-                        help="also time the factorisation alone of an N-wide system (2400: the live map's), host "
-                             "against device")
+                        help="time the factorisation alone of an N-wide system (2400: the live map's), host against "
+                             "device; the final pass too where --camera-solver is given")
     parser.add_argument("--no-mathdx", action="store_true",
                         help="the solver's tile kernels without libmathdx (Warp's own code): the whole process")
     parser.add_argument("--long-share", type=float, default=0.04,
@@ -211,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         out["factorisation"] = factorisation_bench(args.device, args.factorisation, args.camera_tile or [DEVICE_TILE],
                                                    threads)
     first = None
-    rows = [(c, t) for c in args.camera_solver or ["auto", "dense"]
+    # (the factorisation alone, asked for with no camera solver: no final pass)
+    rows = [(c, t) for c in args.camera_solver or ([] if args.factorisation else ["auto", "dense"])
             for t in (args.camera_tile or [DEVICE_TILE] if c in ("auto", "dense-device") else [DEVICE_TILE])]
     for camera_solver, tile in rows:
         name = camera_solver if len(args.camera_tile or []) <= 1 or camera_solver not in ("auto", "dense-device") \
