@@ -22,11 +22,15 @@ pass over a few hundred keyframes a few thousand. It is assembled point-chunk by
 landmark blocks eliminated into the rows of the poses that see it by one BLAS rank-k update in place, so memory
 stays bounded however many landmarks there are; a long map's chunks follow its landmarks' spans of poses, so
 that the work stays near the sum of (track length)^2 (``_chunks``). On a GPU the landmarks are eliminated there
-instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation.
+instead, by atomics (``device_schur``). The system is solved by a dense Cholesky factorisation: the host's LAPACK,
+or, for a final pass's wide dense system on a GPU, a blocked one on the device where the system was made
+(``dense_cholesky``; ``camera_solver``), so that only the step comes back; a long map's narrow band by LAPACK's
+banded one.
 
 On a Warp device the solver's state stays there from the solve's start to its end (``_DeviceState``): the host
 keeps the LM logic, the poses (a few), the pose factors and the camera system, and per LM iteration reads back
-the pose system (with the camera system, where the landmarks are eliminated there) and a trial's few scalars.
+the pose system (with the camera system, where the landmarks are eliminated there and it is not solved there too)
+and a trial's few scalars.
 Each read-back waits for the device: the host launches, does its pose-factor work, then reads. On a GPU the
 kernels reduce a GPU's way and the robust scales' medians are found there (``ObservationKernels``).
 """
@@ -81,6 +85,12 @@ BATCH_ENTRIES = 8_000_000
 # time, and the band's n b^2 work is then a small share of the dense factorisation's n^3 / 3
 BAND_MIN_FREE_POSES = 64
 BAND_MAX_SHARE = 3
+# a dense camera system of more than this many free poses (a final pass, never a local window) is factorised and
+# solved on a CUDA device where its landmarks are eliminated there (``dense_cholesky``: a blocked Cholesky of tile
+# kernels, tiles of DEVICE_TILE), instead of read back (46 MB at 2400 wide) and factorised by the host's LAPACK;
+# camera_solver "dense-device" asks for it on any Warp device (Warp's CPU device: the tests)
+DEVICE_DENSE_MIN_FREE_POSES = 64
+DEVICE_TILE = 32
 # terms of the series of SE(3)'s right Jacobian (exact to 1e-13 for rotations up to 1 rad)
 _JR_TERMS = 16
 
@@ -358,6 +368,12 @@ class _Layout:
     band: int | None = None
     # the pose system's blocks (rows, columns) that can be non-zero (``_pose_blocks``)
     pose_blocks: tuple = ()
+    # the tile's side where the dense camera system is factorised on the kernels' device (``DEVICE_DENSE_MIN_FREE_
+    # POSES``); the pose system is then held as its lower blocks that can be non-zero alone, (k, 6, 6) in the order
+    # of their keys row F + column (``device_block_keys``), the free poses' diagonal blocks at ``device_diagonal``
+    camera_tile: int | None = None
+    device_block_keys: np.ndarray | None = None
+    device_diagonal: np.ndarray | None = None
 
 
 def _greedy_cuts(first: np.ndarray, last: np.ndarray, views: np.ndarray) -> list[int]:
@@ -447,7 +463,7 @@ def _unique_pairs(obs_point: np.ndarray, obs_pose: np.ndarray, n_points: int, n_
     return not np.any(pair[1:] == pair[:-1])
 
 
-CAMERA_SOLVERS = ("auto", "dense", "banded")
+CAMERA_SOLVERS = ("auto", "dense", "banded", "dense-device")
 
 
 def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_free: int, tie_cols: np.ndarray,
@@ -460,7 +476,8 @@ def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_fr
     (in the narrower order); "dense": never."""
     if camera_solver not in CAMERA_SOLVERS:
         raise ValueError(f"camera_solver '{camera_solver}': use one of {', '.join(CAMERA_SOLVERS)}")
-    if camera_solver == "dense" or not n_free or (camera_solver == "auto" and n_free <= BAND_MIN_FREE_POSES):
+    if (camera_solver in ("dense", "dense-device") or not n_free
+            or (camera_solver == "auto" and n_free <= BAND_MIN_FREE_POSES)):
         return None, None
     seen = obs_col >= 0
     first = np.full(n_points, n_free, np.int64)
@@ -470,6 +487,8 @@ def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_fr
     spans = np.concatenate([(last - first)[last >= 0], np.abs(tie_cols[:, 0] - tie_cols[:, 1])])
     width = int(spans.max(initial=0))
     order = None
+    if camera_solver == "auto" and _clique_bound(obs_point[seen], obs_col[seen], n_points) * BAND_MAX_SHARE > n_free:
+        return None, None  # (no order is narrow enough: the same answer as the reverse Cuthill-McKee order's)
     if (width + 1) * BAND_MAX_SHARE > n_free:  # too wide in this order: a reverse Cuthill-McKee order's?
         import scipy.sparse
         from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -490,13 +509,40 @@ def _camera_band(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, n_fr
     return 6 * width + 5, order
 
 
+def _device_blocks(n_free: int, tie_cols: np.ndarray) -> np.ndarray:
+    """The keys (row F + column, increasing) of the pose system's lower blocks that can be non-zero: the free
+    poses' diagonal blocks and the lower one of each pair of tied free poses, each once."""
+    ties = tie_cols[(tie_cols >= 0).all(axis=1)].reshape(-1, 2)
+    rows = np.concatenate([np.arange(n_free), ties.max(axis=1)]).astype(np.int64)
+    cols = np.concatenate([np.arange(n_free), ties.min(axis=1)]).astype(np.int64)
+    return np.unique(rows * n_free + cols)
+
+
+def _clique_bound(obs_point: np.ndarray, obs_col: np.ndarray, n_points: int, candidates: int = 8) -> int:
+    """A lower bound on the camera system's bandwidth + 1 (in poses) in every order of its poses: the poses that
+    see one landmark are all coupled, so the first and the last of them in any order are as many apart; counted
+    exactly (distinct poses) for the ``candidates`` landmarks of the most observations. A long-lived track of a
+    live map (seen by most keyframes) shows at once that no order makes its system narrow, without the product
+    of the incidence matrix that a reverse Cuthill-McKee order needs (docs/benchmarks.md, session 17)."""
+    if not len(obs_point):
+        return 0
+    views = np.bincount(obs_point, minlength=n_points)
+    top = np.argpartition(views, -min(candidates, n_points))[-candidates:]
+    among = np.isin(obs_point, top)
+    stride = int(obs_col.max()) + 1
+    keys = np.unique(obs_point[among].astype(np.int64) * stride + obs_col[among])  # (distinct landmark-pose pairs)
+    return int(np.bincount(keys // stride).max(initial=0))
+
+
 def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
-            gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto") -> _Layout:
+            gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto",
+            camera_tile: int = DEVICE_TILE) -> _Layout:
     """The structure of a pose-major problem (``pose_major``), its observations on Warp ``device`` unless
     that is "numpy"; with ``device_schur`` the landmarks are eliminated there too (``_solve_damped``), with
     ``gpu_reductions`` its sums and medians taken a GPU's ways (opt-in; ``ObservationKernels``); its device
     arrays cut from ``workspace``'s buffers where given (``schur_kernels.SchurWorkspace``); its camera system
-    dense or banded as ``camera_solver`` asks (``_camera_band``)."""
+    dense or banded as ``camera_solver`` asks (``_camera_band``), and dense ones factorised on the device in tiles
+    of ``camera_tile`` where ``_dense_on_device`` says."""
     n_poses, n_points = len(p.poses), len(p.points)
     fixed = np.asarray(p.fixed, bool)
     free = np.flatnonzero(~fixed)
@@ -511,6 +557,9 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
         free = free[order]
         col[free] = np.arange(len(free))
         obs_col = col[p.obs_pose]
+    dense_on_device = _dense_on_device(device, device_schur, band, len(free), camera_solver)
+    block_keys = (_device_blocks(len(free), col[np.asarray(p.tie_pairs, np.int64).reshape(-1, 2)])
+                  if dense_on_device else None)
     # (the observations are pose-major: each pose's run found by a search, not a count)
     pose_starts = np.searchsorted(p.obs_pose, np.arange(n_poses + 1))
     on_device = device_schur and device != "numpy"
@@ -524,9 +573,11 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
     if device != "numpy":
         from lapreco_hil.mapping.schur_kernels import ObservationKernels
 
-        kernels = ObservationKernels(p, obs_col, len(free), device, schur_on_device=device_schur,
-                                     gpu_reductions=gpu_reductions, unique_pairs=unique_pairs, workspace=workspace,
-                                     band=band)
+        kernels = ObservationKernels(
+            p, obs_col, len(free), device, schur_on_device=device_schur, gpu_reductions=gpu_reductions,
+            unique_pairs=unique_pairs, workspace=workspace, band=band,
+            camera_tile=camera_tile if dense_on_device else None,
+            camera_blocks=None if block_keys is None else (block_keys // len(free), block_keys % len(free)))
     batches, first, entries = [], 0, 0
     for i, ch in enumerate(chunks):
         size = 18 * len(ch.points) * ch.n_cols
@@ -541,7 +592,23 @@ def _layout(p: BAProblem, device: str = "numpy", device_schur: bool = False,
                   np.linalg.inv(np.asarray(p.prior_poses)[prior_idx]) if len(prior_idx) else np.zeros((0, 4, 4)),
                   np.linalg.inv(p.tie_T) if len(p.tie_pairs) else np.zeros((0, 4, 4)), kernels, band)
     lay.pose_blocks = _pose_blocks(lay, np.asarray(p.tie_pairs, np.int64).reshape(-1, 2))
+    if dense_on_device:
+        diagonal = np.arange(len(free))
+        lay.camera_tile, lay.device_block_keys = camera_tile, block_keys
+        lay.device_diagonal = np.searchsorted(block_keys, diagonal * len(free) + diagonal)
     return lay
+
+
+def _dense_on_device(device: str, device_schur: bool, band: int | None, n_free: int, camera_solver: str) -> bool:
+    """Whether the dense camera system is factorised on the kernels' device: asked ("dense-device"), or by "auto"
+    on a CUDA device that eliminates the landmarks there, past DEVICE_DENSE_MIN_FREE_POSES free poses."""
+    if camera_solver == "dense-device":
+        if device == "numpy" or not device_schur:
+            raise ValueError("camera_solver 'dense-device' needs the landmarks eliminated on a Warp device: use "
+                             "device cpu or cuda with device_schur on")
+        return n_free > 0
+    return (camera_solver == "auto" and band is None and device_schur and device.startswith("cuda")
+            and n_free > DEVICE_DENSE_MIN_FREE_POSES)
 
 
 def _to_points(lay: _Layout, values: np.ndarray) -> np.ndarray:
@@ -772,7 +839,15 @@ def _with_pose_factors(lay: _Layout, Hcc, gc, Hpp, gp, W, error0: float, errors:
     g2 = gc.reshape(n_free, 6)
     for f in errors:
         error0 += f[-1]
-    if lay.band is None:
+    if lay.camera_tile is not None:  # (the lower blocks alone: the factorisation reads the lower triangle)
+        for cols, g, blocks in terms:
+            np.add.at(g2, cols, g)
+            for index, H in blocks:
+                rows, columns = index[0], index[2]
+                lower = rows >= columns
+                at = np.searchsorted(lay.device_block_keys, rows[lower] * n_free + columns[lower])
+                np.add.at(Hcc, at, H[lower])
+    elif lay.band is None:
         H4 = Hcc.reshape(n_free, 6, n_free, 6)  # a view: (pose, row, pose, column)
         for cols, g, blocks in terms:
             np.add.at(g2, cols, g)
@@ -798,9 +873,14 @@ def _band_entries(band: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.nda
 
 
 def _camera_system_of_diagonal_blocks(lay, blocks: np.ndarray) -> np.ndarray:
-    """The camera system's start, its free poses' 6x6 diagonal blocks: dense, or in the layout's band storage."""
+    """The camera system's start, its free poses' 6x6 diagonal blocks: dense, in the layout's band storage, or
+    as the lower blocks that can be non-zero (``_Layout.camera_tile``)."""
     if lay.band is not None:
         return _band_of_diagonal_blocks(lay.band, blocks)
+    if lay.camera_tile is not None:
+        H = np.zeros((len(lay.device_block_keys), 6, 6))
+        H[lay.device_diagonal] = blocks
+        return H
     n_free = len(blocks)
     Hcc = np.zeros((6 * n_free, 6 * n_free))
     diagonal = np.arange(n_free)
@@ -1041,6 +1121,13 @@ def _eliminate_on_device(lay: _Layout, lin: _Linear, lam: float, timing: dict) -
     handful of launches, the camera system (6F x 6F) and a flag read back in one copy, the host solving it);
     None where it is not positive definite."""
     t0 = time.perf_counter()
+    if lay.camera_tile is not None:  # (solved there: the host's seconds launching, then waiting)
+        lay.kernels.launch_camera_solve(lam, lin.Hcc, lin.gc)
+        t1 = time.perf_counter()
+        timing["schur_s"] += t1 - t0
+        dc = lay.kernels.read_camera_solve()
+        timing["solve_s"] += time.perf_counter() - t1
+        return None if dc is None else dc.reshape(-1, 6)
     eliminated = lay.kernels.schur_complement(lam)
     if eliminated is None:
         timing["schur_s"] += time.perf_counter() - t0
@@ -1273,10 +1360,12 @@ def _check_device(device: str) -> str:
     return resolve_device(device)
 
 
-def _device_schur(device: str, asked: bool | None) -> bool:
+def _device_schur(device: str, asked: bool | None, camera_solver: str = "auto") -> bool:
     if device == "numpy":
         return False
-    return device.startswith("cuda") if asked is None else bool(asked)
+    if asked is None:  # (the camera system solved on the device needs the landmarks eliminated there)
+        return device.startswith("cuda") or camera_solver == "dense-device"
+    return bool(asked)
 
 
 def _new_timing() -> dict:
@@ -1290,18 +1379,21 @@ def _unsorted(values: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 def _setup(problem: BAProblem, device: str, device_schur: bool | None, gpu_reductions: bool | None = None,
-           workspace=None, camera_solver: str = "auto"):
+           workspace=None, camera_solver: str = "auto", camera_tile: int = DEVICE_TILE):
     """(the pose-major problem, its permutation, its layout, the seconds it took)."""
     device = _check_device(device)
     t0 = time.perf_counter()
     p, perm = pose_major(problem)
-    lay = _layout(p, device, _device_schur(device, device_schur), gpu_reductions, workspace, camera_solver)
+    lay = _layout(p, device, _device_schur(device, device_schur, camera_solver), gpu_reductions, workspace,
+                  camera_solver, camera_tile)
     return p, perm, lay, time.perf_counter() - t0
 
 
 def _camera_stats(lay: _Layout) -> dict:
-    """How the camera system was held and solved: "dense", or "banded" with its lower bandwidth (entries)."""
-    return {"camera_solver": "dense" if lay.band is None else "banded", "camera_band": lay.band}
+    """How the camera system was held and solved: "dense" (the host's LAPACK), "dense-device" (the kernels'
+    device, ``camera_tile``: its tiles' side), or "banded" with its lower bandwidth (entries)."""
+    solver = "banded" if lay.band is not None else "dense" if lay.camera_tile is None else "dense-device"
+    return {"camera_solver": solver, "camera_band": lay.band, "camera_tile": lay.camera_tile}
 
 
 def _device_ops(lay: _Layout) -> dict:
@@ -1311,7 +1403,8 @@ def _device_ops(lay: _Layout) -> dict:
 
 def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None = "cauchy", k: float = 2.0,
                 max_iterations: int = 15, device: str = "cpu", blas_threads: int = 1,
-                device_schur: bool | None = None, camera_solver: str = "auto") -> BAResult:
+                device_schur: bool | None = None, camera_solver: str = "auto",
+                camera_tile: int = DEVICE_TILE) -> BAResult:
     """``bundle_adjustment.solve`` (one LM run, fixed pixel sigma and m-estimator) on the reduced camera system.
     ``device``: the Warp device of the per-observation kernels (cpu, cuda, cuda:N), or "numpy" (no Warp);
     ``blas_threads``: the BLAS threads of the camera system's products and factorisation (``_blas_threads``);
@@ -1320,9 +1413,13 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
     None: on CUDA devices only; ``camera_solver``: the camera system held and factorised "dense", "banded" (LAPACK's
     banded Cholesky, the free poses in a reverse Cuthill-McKee order where that narrows the band) or "auto"
     (banded for a problem of more than BAND_MIN_FREE_POSES free poses whose band is narrow: ``_camera_band``;
-    the same answers to round-off)."""
+    else dense, factorised on a CUDA device that eliminates the landmarks, past DEVICE_DENSE_MIN_FREE_POSES free
+    poses, by the host's LAPACK otherwise) or "dense-device" (dense, factorised on the kernels' Warp device by a
+    blocked Cholesky of tiles of ``camera_tile``: ``dense_cholesky``; the landmarks eliminated there); the same
+    answers to round-off."""
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, camera_solver=camera_solver)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, camera_solver=camera_solver,
+                                   camera_tile=camera_tile)
     timing = _new_timing()
     state = _new_state(p, lay)
     with _blas_threads(blas_threads):
@@ -1336,7 +1433,8 @@ def solve_schur(problem: BAProblem, pixel_sigma: float = 1.0, loss: str | None =
 
 def final_ba_profile(problem: BAProblem, result: BAResult) -> dict:
     """A final pass's size and where its time went, for a run's report: free poses, landmarks, observations, the
-    longest track, the camera system's solver, per stage LM iterations, damped systems solved and seconds
+    longest track, the camera system's solver ("dense", "dense-device" with its tile's side, "banded" with its
+    bandwidth), per stage LM iterations, damped systems solved and seconds
     (linearise, Schur complement, solve, error), and the seconds outside LM."""
     stats = result.stats
     views = np.bincount(np.asarray(problem.obs_point), minlength=len(problem.points))
@@ -1344,7 +1442,7 @@ def final_ba_profile(problem: BAProblem, result: BAResult) -> dict:
             "landmarks": int(len(problem.points)), "observations": int(len(problem.obs_point)),
             "track_views_mean_max": [float(views.mean()) if len(views) else 0.0, int(views.max(initial=0))],
             "solve_s": result.seconds, "camera_solver": stats.get("camera_solver"),
-            "camera_band": stats.get("camera_band"),
+            "camera_band": stats.get("camera_band"), "camera_tile": stats.get("camera_tile"),
             "stages": [{"loss": st.get("loss"), "iterations": st.get("iterations"), "solves": st.get("solves"),
                         "timing": st.get("timing", {})} for st in stats.get("stages", [])],
             "timing": stats.get("timing", {})}
@@ -1379,34 +1477,38 @@ def _robust_scale(p: BAProblem, state, schedule: RobustSchedule, with_norms: boo
 
 def solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str = "cpu",
                        blas_threads: int = 1, device_schur: bool | None = None,
-                       gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto") -> BAResult:
+                       gpu_reductions: bool | None = None, workspace=None, camera_solver: str = "auto",
+                       camera_tile: int = DEVICE_TILE) -> BAResult:
     """``bundle_adjustment.solve_robust`` on the reduced camera system: the same stages (the redundancy-corrected
     MAD scale re-estimated before each, GTSAM's Cauchy and Tukey), the same inlier threshold and ``stats`` keys,
     plus ``timing``: seconds spent linearising, forming the Schur complement, solving, evaluating the error, and
     outside LM on the problem's layout (``setup_s``) and the robust scales (``scale_s``); per stage
     ``iteration_timing`` and ``solves`` (the damped systems solved); ``device_ops``: the kernels' launches,
-    uploads, downloads and allocations ({} on numpy); ``camera_solver``, ``camera_band``: how the camera system
-    was held and solved. ``device``, ``blas_threads``, ``device_schur`` and ``camera_solver`` as
-    ``solve_schur``'s; ``gpu_reductions``: the kernels' sums and the robust scales' medians taken a GPU's ways
-    (``ObservationKernels``: the scales by sorts there, one scalar read back instead of the residuals; the same
-    values, the sums to round-off); opt-in (None: off) until re-measured live on a GPU: in session 14's live run
-    with it a window's pose-pair table overran into the next buffer (fixed in session 15; docs/benchmarks.md).
+    uploads, downloads and allocations ({} on numpy); ``camera_solver``, ``camera_band``, ``camera_tile``: how the
+    camera system was held and solved (on the device, "dense-device", ``schur_s`` is the host's launching of the
+    elimination and the factorisation, ``solve_s`` its wait for the step). ``device``, ``blas_threads``,
+    ``device_schur``, ``camera_solver`` and ``camera_tile`` as ``solve_schur``'s; ``gpu_reductions``: the kernels'
+    sums and the robust scales' medians taken a GPU's ways (``ObservationKernels``: the scales by sorts there, one
+    scalar read back instead of the residuals; the same values, the sums to round-off); opt-in (None: off) until
+    re-measured live on a GPU: in session 14's live run with it a window's pose-pair table overran into the next
+    buffer (fixed in session 15; docs/benchmarks.md).
     ``workspace``: a ``schur_kernels.SchurWorkspace`` whose device buffers (a GPU's page-locked mirrors, the
     recorded launches) the solve uses instead of its own, kept by a caller that solves window after window (the
     BA worker); the same answers. Ignored on numpy."""
     if workspace is None or device == "numpy":
         return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, None,
-                                   camera_solver)
+                                   camera_solver, camera_tile)
     with workspace.claim():
         return _solve_robust_schur(problem, schedule, device, blas_threads, device_schur, gpu_reductions, workspace,
-                                   camera_solver)
+                                   camera_solver, camera_tile)
 
 
 def _solve_robust_schur(problem: BAProblem, schedule: RobustSchedule, device: str, blas_threads: int,
                         device_schur: bool | None, gpu_reductions: bool | None, workspace,
-                        camera_solver: str) -> BAResult:
+                        camera_solver: str, camera_tile: int) -> BAResult:
     t0 = time.perf_counter()
-    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace, camera_solver)
+    p, perm, lay, setup_s = _setup(problem, device, device_schur, gpu_reductions, workspace, camera_solver,
+                                   camera_tile)
     state = _new_state(p, lay)
     stages, iterations = [], 0
     initial_error = final_error = scale_s = 0.0

@@ -5,10 +5,12 @@ elimination into the camera system (atomics: a GPU's way), and the back-substitu
 CPU device they are compiled C++ (single-threaded), a few times faster than the same passes in numpy; on CUDA
 they run on the GPU. Float64 throughout, as GTSAM computes.
 
-``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device
-and launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
-factorisation. The sums can reduce a GPU's way (``gpu_reductions``, opt-in: fewer atomics, a window's elimination
-by pose pairs, the robust scale by sorts); by default one observation's terms at a time.
+``ObservationKernels`` holds a problem's fixed arrays and the solver's state (current and trial) on the device and
+launches the kernels; the host (``schur.py``) keeps the LM logic, the dense camera system and its Cholesky
+factorisation, except where that is done here too (``camera_tile``: the damped system formed in the storage of
+``dense_cholesky``, factorised and solved there, the step alone read back). The sums can reduce a GPU's way
+(``gpu_reductions``, opt-in: fewer atomics, a window's elimination by pose pairs, the robust scale by sorts); by default
+one observation's terms at a time.
 """
 
 from __future__ import annotations
@@ -584,6 +586,45 @@ def _move_points_gathered(pm_obs: wp.array(dtype=wp.int32), pm_starts: wp.array(
     wp.atomic_add(sums, 1, wp.dot(d, d))
 
 
+@wp.kernel
+def _negated_camera_system(S: wp.array2d(dtype=wp.float64), n6: int, r: wp.array(dtype=wp.float64),
+                           inputs: wp.array(dtype=wp.float64)):
+    """The damped camera system's start in the dense Cholesky's storage (``dense_cholesky``), a thread per entry
+    of its padded rows and its right-hand side's row: -M in the lower triangle (the landmarks' eliminated sum,
+    made there), the identity on the padding, the right-hand side r - gc (``inputs``: lambda, gc, ...)."""
+    t = wp.tid()
+    padded = S.shape[1]
+    i = t // padded
+    j = t - i * padded
+    if i < n6:
+        if j <= i:
+            S[i, j] = -S[i, j]
+    elif i < padded:
+        if i == j:
+            S[i, j] = wp.float64(1.0)
+    elif j < n6:
+        S[i, j] = r[j] - inputs[1 + j]
+
+
+@wp.kernel
+def _add_pose_blocks(S: wp.array2d(dtype=wp.float64), n6: int, rows: wp.array(dtype=wp.int32),
+                     cols: wp.array(dtype=wp.int32), inputs: wp.array(dtype=wp.float64)):
+    """(H + lambda I) + (-M) on the pose system's lower blocks that can be non-zero (``rows``, ``cols``: each
+    once), a thread per entry, their lower triangle: H's blocks follow lambda and gc in ``inputs``. The host's sum
+    (``schur._damped_minus``), in its order: the same values."""
+    t = wp.tid()
+    b = t // 36
+    e = t - 36 * b
+    a = e // 6
+    i = 6 * rows[b] + a
+    j = 6 * cols[b] + e - 6 * a
+    if i >= j:
+        h = inputs[1 + n6 + t]
+        if i == j:
+            h = h + inputs[0]
+        S[i, j] = h + S[i, j]
+
+
 # with a GPU's reductions, a thread of ``_linearize`` and ``_error`` sums this many consecutive observations, and
 # one of ``_schur_window`` this many landmarks' blocks of one pose pair, before their atomics
 GPU_OBS_PER_THREAD = 16
@@ -679,11 +720,18 @@ class ObservationKernels:
 
     def __init__(self, p, obs_col: np.ndarray, n_free: int, device: str, schur_on_device: bool = False,
                  gpu_reductions: bool | None = None, unique_pairs: bool = False,
-                 workspace: SchurWorkspace | None = None, band: int | None = None) -> None:
+                 workspace: SchurWorkspace | None = None, band: int | None = None,
+                 camera_tile: int | None = None, camera_blocks: tuple | None = None) -> None:
         """``workspace``: the buffers to cut the arrays from (kept across solves by their owner); None: allocated
         for this solve. ``band``: the camera system's lower bandwidth where the landmarks eliminated here go into
-        a band array (6F, band + 1) (``schur._Layout.band``); None: a dense (6F, 6F) one."""
+        a band array (6F, band + 1) (``schur._Layout.band``); None: a dense (6F, 6F) one. ``camera_tile``: the
+        dense camera system factorised and solved here too, by ``dense_cholesky`` in tiles of this side
+        (``launch_camera_solve``; the landmarks eliminated here), its pose system's lower blocks that can be
+        non-zero ``camera_blocks`` (rows, columns: each block once); None: read back for the host."""
         self.band = band
+        if camera_tile is not None and (band is not None or not schur_on_device):
+            raise ValueError("the camera system is solved on the device only dense, its landmarks eliminated there")
+        self.camera_tile = camera_tile
         self.device = device
         self._cuda = wp.get_device(device) if wp.get_device(device).is_cuda else None
         self._workspace = workspace
@@ -715,7 +763,7 @@ class ObservationKernels:
         indices = {"obs_pose": p.obs_pose, "obs_point": p.obs_point, "obs_col": obs_col}
         # the landmarks eliminated here by pose pairs (``_schur_window``) or by observations (``_schur_blocks``)
         self.window = (self.schur_on_device and self.gpu_reductions and bool(unique_pairs)
-                       and 0 < n_free <= WINDOW_POSES and band is None)
+                       and 0 < n_free <= WINDOW_POSES and band is None and camera_tile is None)
         if self.schur_on_device and not self.window:
             obs_point = np.asarray(p.obs_point)
             by_free = np.asarray(obs_col) >= 0
@@ -730,6 +778,9 @@ class ObservationKernels:
             indices["pm_end"] = starts[1:][points]
             indices["pm_starts"] = starts
             self.n_pm = len(pm)
+        if camera_tile is not None:
+            indices["block_rows"], indices["block_cols"] = camera_blocks
+            self.n_blocks = len(camera_blocks[0])
         for name, view in self._upload_arena(indices).items():
             setattr(self, name, view)
         # every other buffer: parts of one allocation. ``work``: what a linearisation sums into (``linear``, one
@@ -741,6 +792,16 @@ class ObservationKernels:
         n_table = N * n_free if self.window else 0
         n_camera = n6 * n6 if band is None else n6 * (band + 1)  # (the camera system: dense or a band array)
         n_eliminated = n_camera + n6 + 1 if self.schur_on_device else 0
+        if camera_tile is not None:
+            # r and the flag first (read back with the pose system), then the dense Cholesky's storage: M made in
+            # its padded rows, factorised there, the solution in its last tile row (``dense_cholesky``)
+            from lapreco_hil.mapping import dense_cholesky
+
+            self.cholesky = dense_cholesky.DeviceCholesky(n6, device, camera_tile)
+            self.storage_shape = dense_cholesky.storage_shape(n6, camera_tile)
+            start = 12 * N + n_system
+            storage_at = -(-(start + n6 + 1) // _ALIGN_WORDS) * _ALIGN_WORDS - start
+            n_eliminated = storage_at + self.storage_shape[0] * self.storage_shape[1]
         # (T0, dc, T1 in that order: a step's tangents and its trial poses, into either state's, are one range)
         parts = {"W": (O, mat36d), "work": (12 * N + n_system + n_eliminated, wp.float64),
                  "T0": (len(p.poses), wp.mat44d), "dc": (max(n_free, 1), vec6d), "T1": (len(p.poses), wp.mat44d),
@@ -748,6 +809,9 @@ class ObservationKernels:
                  "L": (N, vec6d), "Lg": (N, wp.vec3d), "residual": (O, wp.vec2d), "uv": (O, wp.vec2d)}
         if self.window:
             parts.update({"table": (n_table, wp.int32), "Z": (6 * O, wp.vec3d)})
+        if camera_tile is not None:
+            # lambda, gc and the pose system's blocks (``launch_camera_solve``: one upload), the pivots that failed
+            parts.update({"camera_inputs": (1 + n6 + 36 * self.n_blocks, wp.float64), "camera_info": (1, wp.int32)})
         if self.gpu_reductions:
             # the residual components, then their deviations, sorted (a radix sort's keys and values take twice
             # their count); the count of finite ones and the median
@@ -772,7 +836,20 @@ class ObservationKernels:
         self.pose_system = self._view(work, 12 * N, n_system, wp.float64)
         self.Wdc = self._view(self.step_sums, 0, N, wp.vec3d)
         self.sums = self._view(self.step_sums, 3 * N, 3, wp.float64)
-        if self.schur_on_device:
+        if camera_tile is not None:
+            # r (6F), the count of landmark blocks not positive definite, then the storage (M in its padded rows)
+            start = 12 * N + n_system
+            self.eliminated = self._view(work, start, n_eliminated, wp.float64)
+            self.r = self._view(work, start, n6, wp.float64)
+            self.failed = self._view(work, start + n6, 1, wp.float64)
+            self.system = self._view(work, 12 * N, n_system + n6 + 1, wp.float64)
+            rows, padded = self.storage_shape
+            self.storage = wp.array(ptr=work.ptr + 8 * (start + storage_at), shape=(rows, padded), dtype=wp.float64,
+                                    device=work.device)
+            self.M = self._view(work, start + storage_at, padded * padded, wp.float64)
+            self.camera_solution = self.cholesky.solution(self.storage)
+            self.camera_inputs, self.camera_info = arena["camera_inputs"], arena["camera_info"]
+        elif self.schur_on_device:
             # M (6F x 6F, or its band array), r (6F), the count of landmark blocks not positive definite
             start = 12 * N + n_system
             self.eliminated = self._view(work, start, n_eliminated, wp.float64)
@@ -1039,7 +1116,9 @@ class ObservationKernels:
         weighted_sq = float(system[42 * F])
         Hpp = flat[:9 * N].reshape(N, 3, 3).copy() if landmarks else None
         gp = flat[9 * N:12 * N].reshape(N, 3).copy() if landmarks else None
-        self._eliminated_at = None if lam is None else (lam, self._camera_system(system[42 * F + 1:]))
+        # (the camera system solved here stays here: only that it was eliminated, and at which damping)
+        self._eliminated_at = (None if lam is None else (lam, None) if self.camera_tile is not None
+                               else (lam, self._camera_system(system[42 * F + 1:])))
         return blocks, grads, weighted_sq, Hpp, gp
 
     def W_host(self) -> np.ndarray:
@@ -1155,10 +1234,11 @@ class ObservationKernels:
             self._launch(_schur_blocks_band, self.n_pm,
                          [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
                           self.band], [self.M, self.r])
-        else:
+        else:  # (a dense array's rows: the camera system's, or the dense Cholesky's padded ones)
+            stride = 6 * self.n_free if self.camera_tile is None else self.storage_shape[1]
             self._launch(_schur_blocks, self.n_pm,
                          [self.pm_obs, self.pm_end, self.obs_point, self.obs_col, self.W, self.L, self.Lg,
-                          6 * self.n_free], [self.M, self.r])
+                          stride], [self.M, self.r])
 
     def _camera_system(self, flat: np.ndarray):
         """(M, r) copied from a read-back ``eliminated`` (M dense (6F, 6F) or a band array (6F, band + 1)); None
@@ -1180,6 +1260,36 @@ class ObservationKernels:
         with device_lock(self.device):
             self._eliminate(lam)
             return self._camera_system(self._download(self.eliminated)[0])
+
+    def launch_camera_solve(self, lam: float, blocks: np.ndarray, gc: np.ndarray) -> None:
+        """Start the damped camera system's solution here (``camera_tile``): the landmarks eliminated at damping
+        ``lam`` (unless the last linearisation did, at this damping), the system (H + lambda I) - M formed from
+        the pose system's lower blocks ``blocks`` (``camera_blocks``' (k, 6, 6)) and the right-hand side r - gc,
+        factorised and solved by the dense Cholesky (``read_camera_solve``). One upload (lambda, gc, the blocks)."""
+        self._upload(self.camera_inputs, np.concatenate([[lam], gc, np.asarray(blocks, np.float64).reshape(-1)]))
+        n6 = 6 * self.n_free
+        with device_lock(self.device):
+            if self._eliminated_at is None or self._eliminated_at[0] != lam:
+                self._eliminate(lam)
+            self._eliminated_at = None  # (the factorisation overwrites it)
+            padded = self.storage_shape[1]
+            self._launch(_negated_camera_system, (padded + 1) * padded, [self.storage, n6, self.r, self.camera_inputs],
+                         [])
+            self._launch(_add_pose_blocks, 36 * self.n_blocks,
+                         [self.storage, n6, self.block_rows, self.block_cols, self.camera_inputs], [])
+            self.cholesky.launch(self.storage, self.camera_info)
+            self.ops["launches"] += self.cholesky.launches + 1  # (info's memset too)
+
+    def read_camera_solve(self) -> np.ndarray | None:
+        """The step (6F,) that ``launch_camera_solve`` started (a copy), or None where the damped system is not
+        positive definite: a landmark's block or a pivot of the camera system's factorisation (<= 0 or NaN, as
+        LAPACK's potrf fails), or a step that is not finite. One wait: the step and two flags read back."""
+        with device_lock(self.device):
+            x, info, failed = self._download(self.camera_solution, self.camera_info, self.failed)
+        if failed[0] or info[0]:
+            return None
+        x = x[:6 * self.n_free].copy()
+        return x if np.all(np.isfinite(x)) else None
 
     def read_step(self):
         """(d.gp, d.d, the trial's reprojection error) of the step ``launch_back_substitute`` or

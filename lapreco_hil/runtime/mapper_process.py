@@ -122,6 +122,10 @@ def ba_worker_main(schedule, jobs_q, results_q, parent_pid: int, mapper_config, 
         from lapreco_hil.warp_device import preload_kernels, resolve_device
 
         preload_kernels("lapreco_hil.mapping.schur_kernels", resolve_device(mapper_config.ba_device))
+        if resolve_device(mapper_config.ba_device).startswith("cuda"):  # (the final pass's camera system's)
+            from lapreco_hil.mapping import dense_cholesky, schur
+
+            dense_cholesky.load(schur.DEVICE_TILE, resolve_device(mapper_config.ba_device))
         # this process's windows' device buffers (and a GPU's page-locked mirrors), kept from one to the next
         from lapreco_hil.mapping.schur_kernels import SchurWorkspace
 
