@@ -2,9 +2,9 @@
 when it is known), Shi-Tomasi with a minimum distance to live tracks and the scope's field-of-view mask. It is
 the seed paper's CPU baseline.
 
-With a stereo rig (``match_view`` called), a new track the drift check refuses at its first step is judged again
-on the tracker image smoothed by ``TrackerConfig.rescue_smoothing_px`` against its first patch taken there, and
-once kept it stays registered there (``_drift_check``)."""
+With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
+step is judged again on the tracker image smoothed by ``TrackerConfig.rescue_smoothing_px`` against its first
+patch taken there, and once kept it stays registered there (``_drift_check``)."""
 
 from __future__ import annotations
 
@@ -89,6 +89,7 @@ class OpenCVFrontEnd:
         searched = np.zeros(len(self._pts), bool)
         levels = self.levels
         before = self._pts  # each track's position in the previous frame (the rescue's forward-backward check)
+        fast = False  # the tracks moved at least fast_motion_px (median LK step): the rescue's frames
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
@@ -108,6 +109,8 @@ class OpenCVFrontEnd:
                 keep &= ~searched | epipolar.tracks_back(gray, self._prev, nxt, self._pts, back)
             n_lk = int(keep.sum())
             before = self._pts[keep]
+            steps = np.linalg.norm(nxt[keep] - before, axis=1)
+            fast = len(steps) > 0 and float(np.median(steps)) >= cfg.fast_motion_px
             self._filter(keep, nxt)
             searched = searched[keep]
         t2 = time.perf_counter()
@@ -116,7 +119,7 @@ class OpenCVFrontEnd:
                     if self.drift is not None and cfg.rescue_smoothing_px > 0 else None)
         if self.drift is not None and len(self._pts):
             back = epipolar.lk_params(cfg.window_px, levels)
-            positions, keep = self._drift_check(registered, smoothed, searched,
+            positions, keep = self._drift_check(registered, smoothed, searched, self._rig and fast,
                                                 lambda uv, rows: epipolar.tracks_back(gray, self._prev, uv,
                                                                                       before[rows], back))
             anew = searched & ~keep
@@ -211,19 +214,21 @@ class OpenCVFrontEnd:
         return nxt, st & st_coarse, err
 
     def _drift_check(self, registered: np.ndarray, smoothed: np.ndarray | None, searched: np.ndarray,
-                     tracks_back) -> tuple[np.ndarray, np.ndarray]:
+                     rescue: bool, tracks_back) -> tuple[np.ndarray, np.ndarray]:
         """Each track's registered position (float32) and whether the drift check keeps it. A track registers
         on ``registered`` against its first patch, or, once rescued, on ``smoothed`` against its first patch
-        there. With a rig, a new track refused at its first step (not one searched along its epipolar line:
-        those start a new reference) is rescued when the smoothed check keeps it and LK from its registered
-        position lands back where it was (``tracks_back(uv, rows)``: bool per row). Why: Shi-Tomasi picks a
-        low-contrast corner partly where the sensor noise made one; that noise is in the first patch and not in
-        the next frame, so the residual refuses tracks LK put right. Only with a rig: its point is an inlier
-        only when both eyes agree on its depth at two instants (``mapper.STEREO_INLIER_INSTANTS``); a mono
-        point has no other judge, and the points of the tracks it adds were less accurate in mono
-        (docs/results.md, session 17)."""
+        there. With ``rescue`` (a rig, and a frame whose tracks moved at least ``fast_motion_px``), a new track
+        refused at its first step (not one searched along its epipolar line: those start a new reference) is
+        rescued when the smoothed check keeps it and LK from its registered position lands back where it was
+        (``tracks_back(uv, rows)``: bool per row). Why: Shi-Tomasi picks a low-contrast corner partly where the
+        sensor noise made one; that noise is in the first patch and not in the next frame, so the residual
+        refuses tracks LK put right. Only at fast motion: there the texture leaves the view within a few frames
+        and a refused track is a lost point, while at slow motion a corner found again nearby next frame
+        replaces it. Only with a rig: its point is an inlier only when both eyes agree on its depth at two
+        instants (``mapper.STEREO_INLIER_INSTANTS``); a mono point has no other judge, and the points of the
+        tracks it adds were less accurate in mono (docs/results.md, session 17)."""
         n = len(self._pts)
-        if smoothed is None or not (self._rig or self._smoothed.any()):
+        if smoothed is None or not (rescue or self._smoothed.any()):
             reg = self.drift.register(registered, *gradients(registered), self._ref, self._A,
                                       self._pts.astype(np.float64))
             self._A = reg.A
@@ -236,7 +241,7 @@ class OpenCVFrontEnd:
                                       self._pts[plain].astype(np.float64))
             positions[plain], self._A[plain] = reg.positions, reg.A
             keep[plain] = reg.keep & self._inside(reg.positions)
-        again = self._smoothed | (self._rig & (self._age == 0) & ~keep & ~searched)
+        again = self._smoothed | (rescue & (self._age == 0) & ~keep & ~searched)
         if again.any():
             # a rescued track's shape is its own; a new one starts from the identity (its plain fit was refused)
             A0 = np.where(self._smoothed[again][:, None, None], self._A[again], np.eye(2)[None])
