@@ -43,8 +43,8 @@ class OpenCVFrontEnd:
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._A = np.zeros((0, 2, 2))
-        # the rescue's state, per track: its first patch on the smoothed image, drift checks passed, and whether it
-        # is registered on the smoothed image; _rig: match_view was called (the front-end serves a stereo rig)
+        # the rescue's state, per track: its first patch on the smoothed image (kept only with a rig), drift checks
+        # passed, and whether it is registered on the smoothed image; _rig: match_view was called (a stereo rig)
         self._ref_smooth = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._age = np.zeros(0, np.int32)
         self._smoothed = np.zeros(0, bool)
@@ -115,8 +115,7 @@ class OpenCVFrontEnd:
             searched = searched[keep]
         t2 = time.perf_counter()
         registered = drift_image(intensity, cfg.drift_smoothing_px) if self.drift is not None else intensity
-        smoothed = (drift_image(intensity, cfg.rescue_smoothing_px)
-                    if self.drift is not None and cfg.rescue_smoothing_px > 0 else None)
+        smoothed = drift_image(intensity, cfg.rescue_smoothing_px) if self._rescues() else None
         if self.drift is not None and len(self._pts):
             back = epipolar.lk_params(cfg.window_px, levels)
             positions, keep = self._drift_check(registered, smoothed, searched, self._rig and fast,
@@ -174,7 +173,13 @@ class OpenCVFrontEnd:
         seq, t_ns = self._last
         empty = Observations(seq, t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8),
                              camera=camera_index)
-        self._rig = True
+        if not self._rig:
+            self._rig = True
+            if self._rescues() and self._prev_float is not None:
+                # the live tracks' first patches on the smoothed image: only those found in this frame can be
+                # rescued (at their first step), and their first patches are this frame's
+                self._ref_smooth = self.drift.reference_patches(
+                    drift_image(self._prev_float, self.config.rescue_smoothing_px), self._pts)
         if self._prev is None or len(self._pts) == 0:
             return empty
         color = undistort_view(image, camera, self._views)
@@ -212,6 +217,10 @@ class OpenCVFrontEnd:
         nxt, st, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, (coarse * scale).astype(np.float32),
                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **dict(self._lk, maxLevel=k - 1))
         return nxt, st & st_coarse, err
+
+    def _rescues(self) -> bool:
+        """Whether new tracks may be rescued (``_drift_check``): a rig, the drift check, a smoothing."""
+        return self._rig and self.drift is not None and self.config.rescue_smoothing_px > 0
 
     def _drift_check(self, registered: np.ndarray, smoothed: np.ndarray | None, searched: np.ndarray,
                      rescue: bool, tracks_back) -> tuple[np.ndarray, np.ndarray]:
@@ -262,7 +271,7 @@ class OpenCVFrontEnd:
         if self.drift is not None:
             self._ref, self._A = self._ref[keep], self._A[keep]
             self._age, self._smoothed = self._age[keep], self._smoothed[keep]
-            if len(self._ref_smooth):
+            if len(self._ref_smooth) == len(keep):
                 self._ref_smooth = self._ref_smooth[keep]
 
 
