@@ -1,6 +1,10 @@
 """The OpenCV front-end: undistort (remap), pyramidal Lucas-Kanade (started where the camera motion predicts,
 when it is known), Shi-Tomasi with a minimum distance to live tracks and the scope's field-of-view mask. It is
-the seed paper's CPU baseline."""
+the seed paper's CPU baseline.
+
+With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
+step is judged again on the tracker image smoothed by ``TrackerConfig.rescue_smoothing_px`` against its first
+patch taken there, and once kept it stays registered there (``_drift_check``)."""
 
 from __future__ import annotations
 
@@ -39,6 +43,12 @@ class OpenCVFrontEnd:
                       if config.drift_check else None)
         self._ref = np.zeros((0, config.drift_patch_px**2), np.float32)
         self._A = np.zeros((0, 2, 2))
+        # the rescue's state, per track: its first patch on the smoothed image (kept only with a rig), drift checks
+        # passed, and whether it is registered on the smoothed image; _rig: match_view was called (a stereo rig)
+        self._ref_smooth = np.zeros((0, config.drift_patch_px**2), np.float32)
+        self._age = np.zeros(0, np.int32)
+        self._smoothed = np.zeros(0, bool)
+        self._rig = False
         self.levels = pyramid_levels(config, camera.width, camera.height)
         self._lk = epipolar.lk_params(config.window_px, self.levels)
 
@@ -78,6 +88,8 @@ class OpenCVFrontEnd:
         n_lk = 0
         searched = np.zeros(len(self._pts), bool)
         levels = self.levels
+        before = self._pts  # each track's position in the previous frame (the rescue's forward-backward check)
+        fast = False  # the tracks moved at least fast_motion_px (median LK step): the rescue's frames
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
@@ -96,16 +108,19 @@ class OpenCVFrontEnd:
                 back = epipolar.lk_params(cfg.window_px, levels)
                 keep &= ~searched | epipolar.tracks_back(gray, self._prev, nxt, self._pts, back)
             n_lk = int(keep.sum())
+            before = self._pts[keep]
+            steps = np.linalg.norm(nxt[keep] - before, axis=1)
+            fast = len(steps) > 0 and float(np.median(steps)) >= cfg.fast_motion_px
             self._filter(keep, nxt)
             searched = searched[keep]
         t2 = time.perf_counter()
         registered = drift_image(intensity, cfg.drift_smoothing_px) if self.drift is not None else intensity
+        smoothed = drift_image(intensity, cfg.rescue_smoothing_px) if self._rescues() else None
         if self.drift is not None and len(self._pts):
-            gx, gy = gradients(registered)
-            reg = self.drift.register(registered, gx, gy, self._ref, self._A, self._pts.astype(np.float64))
-            self._A = reg.A
-            positions = reg.positions.astype(np.float32)
-            keep = reg.keep & self._inside(reg.positions)
+            back = epipolar.lk_params(cfg.window_px, levels)
+            positions, keep = self._drift_check(registered, smoothed, searched, self._rig and fast,
+                                                lambda uv, rows: epipolar.tracks_back(gray, self._prev, uv,
+                                                                                      before[rows], back))
             anew = searched & ~keep
             if anew.any():
                 # across a wide baseline the first patch's affine model may no longer hold (perspective, the
@@ -115,7 +130,9 @@ class OpenCVFrontEnd:
                 keep[anew] = self._inside(self._pts[anew])
                 self._ref[anew] = self.drift.reference_patches(registered, self._pts[anew])
                 self._A[anew] = np.eye(2)
+                self._smoothed[anew] = False
             self._filter(keep, positions)
+            self._age += 1
         t_drift = time.perf_counter()
         n_new = 0
         if len(self._pts) < cfg.redetect_below * budget:
@@ -135,6 +152,11 @@ class OpenCVFrontEnd:
                 if self.drift is not None:
                     self._ref = np.vstack([self._ref, self.drift.reference_patches(registered, corners)])
                     self._A = np.concatenate([self._A, np.repeat(np.eye(2)[None], n_new, 0)])
+                    self._age = np.concatenate([self._age, np.zeros(n_new, np.int32)])
+                    self._smoothed = np.concatenate([self._smoothed, np.zeros(n_new, bool)])
+                    if smoothed is not None:
+                        self._ref_smooth = np.vstack([self._ref_smooth,
+                                                      self.drift.reference_patches(smoothed, corners)])
         t3 = time.perf_counter()
         self._prev, self._prev_float = gray, intensity
         self._last = (frame.seq, frame.t_ns)
@@ -151,6 +173,13 @@ class OpenCVFrontEnd:
         seq, t_ns = self._last
         empty = Observations(seq, t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8),
                              camera=camera_index)
+        if not self._rig:
+            self._rig = True
+            if self._rescues() and self._prev_float is not None:
+                # the live tracks' first patches on the smoothed image: only those found in this frame can be
+                # rescued (at their first step), and their first patches are this frame's
+                self._ref_smooth = self.drift.reference_patches(
+                    drift_image(self._prev_float, self.config.rescue_smoothing_px), self._pts)
         if self._prev is None or len(self._pts) == 0:
             return empty
         color = undistort_view(image, camera, self._views)
@@ -189,10 +218,61 @@ class OpenCVFrontEnd:
                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **dict(self._lk, maxLevel=k - 1))
         return nxt, st & st_coarse, err
 
+    def _rescues(self) -> bool:
+        """Whether new tracks may be rescued (``_drift_check``): a rig, the drift check, a smoothing."""
+        return self._rig and self.drift is not None and self.config.rescue_smoothing_px > 0
+
+    def _drift_check(self, registered: np.ndarray, smoothed: np.ndarray | None, searched: np.ndarray,
+                     rescue: bool, tracks_back) -> tuple[np.ndarray, np.ndarray]:
+        """Each track's registered position (float32) and whether the drift check keeps it. A track registers
+        on ``registered`` against its first patch, or, once rescued, on ``smoothed`` against its first patch
+        there. With ``rescue`` (a rig, and a frame whose tracks moved at least ``fast_motion_px``), a new track
+        refused at its first step (not one searched along its epipolar line: those start a new reference) is
+        rescued when the smoothed check keeps it and LK from its registered position lands back where it was
+        (``tracks_back(uv, rows)``: bool per row). Why: Shi-Tomasi picks a low-contrast corner partly where the
+        sensor noise made one; that noise is in the first patch and not in the next frame, so the residual
+        refuses tracks LK put right. Only at fast motion: there the texture leaves the view within a few frames
+        and a refused track is a lost point, while at slow motion a corner found again nearby next frame
+        replaces it. Only with a rig: its point is an inlier only when both eyes agree on its depth at two
+        instants (``mapper.STEREO_INLIER_INSTANTS``); a mono point has no other judge, and the points of the
+        tracks it adds were less accurate in mono (docs/results.md, session 17)."""
+        n = len(self._pts)
+        if smoothed is None or not (rescue or self._smoothed.any()):
+            reg = self.drift.register(registered, *gradients(registered), self._ref, self._A,
+                                      self._pts.astype(np.float64))
+            self._A = reg.A
+            return reg.positions.astype(np.float32), reg.keep & self._inside(reg.positions)
+        positions = self._pts.copy()
+        keep = np.zeros(n, bool)
+        plain = ~self._smoothed
+        if plain.any():
+            reg = self.drift.register(registered, *gradients(registered), self._ref[plain], self._A[plain],
+                                      self._pts[plain].astype(np.float64))
+            positions[plain], self._A[plain] = reg.positions, reg.A
+            keep[plain] = reg.keep & self._inside(reg.positions)
+        again = self._smoothed | (rescue & (self._age == 0) & ~keep & ~searched)
+        if again.any():
+            # a rescued track's shape is its own; a new one starts from the identity (its plain fit was refused)
+            A0 = np.where(self._smoothed[again][:, None, None], self._A[again], np.eye(2)[None])
+            reg = self.drift.register(smoothed, *gradients(smoothed), self._ref_smooth[again], A0,
+                                      self._pts[again].astype(np.float64))
+            positions[again], self._A[again] = reg.positions, reg.A
+            kept = reg.keep & self._inside(reg.positions)
+            new = kept & ~self._smoothed[again]
+            rows = np.flatnonzero(again)[new]
+            if len(rows):
+                kept[new] = tracks_back(positions[rows], rows)
+            keep[again] = kept
+            self._smoothed[again] = True
+        return positions, keep
+
     def _filter(self, keep: np.ndarray, positions: np.ndarray) -> None:
         self._pts, self._ids = positions[keep], self._ids[keep]
         if self.drift is not None:
             self._ref, self._A = self._ref[keep], self._A[keep]
+            self._age, self._smoothed = self._age[keep], self._smoothed[keep]
+            if len(self._ref_smooth) == len(keep):
+                self._ref_smooth = self._ref_smooth[keep]
 
 
 def colors_at(color: np.ndarray, pts: np.ndarray) -> np.ndarray:
