@@ -4,7 +4,6 @@ next frame, and the residual test, relative to the patch's contrast, refuses tra
 
 import os
 
-import cv2
 import numpy as np
 import pytest
 
@@ -13,21 +12,15 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.frontend import drift, make_frontend
 from lapreco_hil.types import Frame
 
+import textures
+
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 W, H = 640, 480
 SHIFT = np.array([3.3, -2.1])
 
 
 def low_contrast_frame(shift, noise_seed, contrast=6.0, noise=3.0):
-    """Smooth random texture of ``contrast`` grey levels (std) moved by ``shift`` px, with its own sensor noise."""
-    rng = np.random.default_rng(1)
-    texture = cv2.GaussianBlur(rng.normal(0, 1, (H + 40, W + 40)).astype(np.float32), (0, 0), 2.0)
-    texture /= texture.std()
-    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
-    moved = cv2.warpAffine(texture, M, (W + 40, H + 40), flags=cv2.INTER_CUBIC,
-                           borderMode=cv2.BORDER_REFLECT)[20:-20, 20:-20]
-    grey = 120 + contrast * moved + np.random.default_rng(noise_seed).normal(0, noise, (H, W))
-    return cv2.cvtColor(np.clip(grey, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+    return textures.low_contrast_frame(shift, noise_seed, W, H, 20, contrast, noise)
 
 
 def first_step(tracker, smoothing_px):

@@ -5,13 +5,14 @@ are left as they were."""
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.frontend import make_frontend
 from lapreco_hil.types import Frame
+
+import textures
 
 W, H = 640, 480
 CAMERA = CameraModel(W, H, 400.0, 400.0, W / 2, H / 2)
@@ -24,15 +25,7 @@ T_RIGHT_LEFT = np.array([[1, 0, 0, -0.005], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0
 
 
 def low_contrast_frame(shift, noise_seed, contrast=6.0, noise=3.0):
-    """Smooth random texture of ``contrast`` grey levels (std) moved by ``shift`` px, with its own sensor noise."""
-    rng = np.random.default_rng(1)
-    texture = cv2.GaussianBlur(rng.normal(0, 1, (H + 60, W + 60)).astype(np.float32), (0, 0), 2.0)
-    texture /= texture.std()
-    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
-    moved = cv2.warpAffine(texture, M, (W + 60, H + 60), flags=cv2.INTER_CUBIC,
-                           borderMode=cv2.BORDER_REFLECT)[30:-30, 30:-30]
-    grey = 120 + contrast * moved + np.random.default_rng(noise_seed).normal(0, noise, (H, W))
-    return cv2.cvtColor(np.clip(grey, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+    return textures.low_contrast_frame(shift, noise_seed, W, H, 30, contrast, noise)
 
 
 def run(config, rig, frames=3):
