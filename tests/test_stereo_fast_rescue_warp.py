@@ -31,7 +31,11 @@ def run(config, rig, frames=3, step=STEP, motion=False, known_depths=True):
     translation parallel to the textured plane that moves it by ``step`` px), with every track's depth where
     ``known_depths``; else each is searched along its epipolar line (over a depth range wide enough that no
     line is short enough to be settled at its far end instead: ``epipolar.SHORT_LINE_PX``)."""
-    fe = make_frontend("warp", CAMERA, config, DEVICE)
+    return run_on(make_frontend("warp", CAMERA, config, DEVICE), frames, step, motion, known_depths, rig)
+
+
+def run_on(fe, frames=3, step=STEP, motion=False, known_depths=True, rig=True):
+    """``run`` with a given front-end."""
     step = np.asarray(step, float)
     T_cur_prev = np.eye(4)
     T_cur_prev[:2, 3] = step * DEPTH_M / CAMERA.K[0, 0]
@@ -129,3 +133,24 @@ def test_on_a_real_in_vivo_frame_at_fast_motion_a_rig_keeps_more_tracks_and_no_m
         mono, rig = scores
         assert len(rig) > len(mono), (speed, len(rig), len(mono))
         assert (rig > 1).sum() <= (mono > 1).sum(), (speed, (rig > 1).sum(), (mono > 1).sum())
+
+
+@pytest.mark.skipif(not DEVICE.startswith("cuda"), reason="CUDA graphs: run with LAPRECO_TEST_DEVICE=cuda:0")
+def test_a_rigs_frames_replay_as_graphs_what_they_launch_one_by_one():
+    """A rig's frames are kinds of their own (the rescue's launches): captured as CUDA graphs, their tracks are
+    the launches' to the bit, with and without a motion (new corners take their slots, and so their ids, in the
+    order their threads get there: the tracks are compared as sets)."""
+    def tracks(obs):
+        return obs.uv[np.lexsort(obs.uv.T[::-1])]
+
+    for motion in (False, True):
+        runs = []
+        for graphs in (True, False):
+            fe = make_frontend("warp", CAMERA, FAST, DEVICE)
+            fe.use_graphs = graphs
+            runs.append((fe, run_on(fe, frames=7, step=FAST_STEP if motion else STEP, motion=motion)))
+        (with_graphs, replayed), (_, launched) = runs
+        for a, b in zip(replayed, launched):
+            assert np.array_equal(tracks(a), tracks(b))
+        rig_kinds = [kind for kind, n in with_graphs._runs.items() if kind[-1] and n >= 3]
+        assert rig_kinds and all(kind in with_graphs._graphs for kind in rig_kinds), with_graphs._runs
