@@ -708,11 +708,12 @@ class WarpFrontEnd:
     def _start_rig(self) -> None:
         """The front-end serves a rig from now on: its frames may rescue new tracks. The live tracks' first
         patches on the smoothed image are this frame's (only those found in it can be rescued, at their first
-        step), and those found in it are new."""
-        self._rig = True
-        if not self._rescue_on:
-            return
+        step), and those found in it are new. (Under the device's lock: a frame in progress on another thread
+        sees the rig from its start or not at all.)"""
         with device_lock(self.device):
+            self._rig = True
+            if not self._rescue_on:
+                return
             cur = self._cur
             self._rescue_image_kernels()
             drift_check.rescue_start(self._rescue_img, self.width, self.height, self._pts[cur], self._count[cur],
