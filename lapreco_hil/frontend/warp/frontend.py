@@ -7,7 +7,7 @@ come back: colours are read on the host from the frame in hand, at each track's 
 
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
 its motion goes up to the device first, so it too is a graph replay (one graph per kind of frame: buffer parity,
-with or without a motion, LK's levels, the track budget). ``match_view`` brings this frame's tracker image
+with or without a motion, LK's levels, the track budget, serving a rig). ``match_view`` brings this frame's tracker image
 back once and matches on the host (``frontend.epipolar``).
 
 With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
@@ -218,8 +218,9 @@ class WarpFrontEnd:
         self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
-        # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget); the
-        # launches of each kind run once eagerly (modules loaded, scratch allocated) before it is captured
+        # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget, the
+        # rescue's launches: a rig's frames); the launches of each kind run once eagerly (modules loaded, scratch
+        # allocated) before it is captured
         self._graphs: dict[tuple, object] = {}
         self._runs: dict[tuple, int] = {}
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
