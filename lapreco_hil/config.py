@@ -102,9 +102,9 @@ class TrackerConfig:
     # the drift check registers on the tracker image smoothed by a Gaussian of this sigma (px; 0: unsmoothed): at
     # 0.8, more tracks kept on low-contrast texture at fast motion, but less accurate points (docs/results.md, s15)
     drift_smoothing_px: float = ranged(0.0, ge=0.0)
-    # with a stereo rig (OpenCV front-end), a new track the drift check refuses at its first step is judged again
+    # with a stereo rig (both front-ends), a new track the drift check refuses at its first step is judged again
     # on the tracker image smoothed by this sigma (px; 0: never) and stays registered there once kept: more tracks
-    # live to be confirmed by both eyes at fast motion (frontend/opencv; docs/results.md, session 17)
+    # live to be confirmed by both eyes at fast motion (frontend/opencv, frontend/warp; docs/results.md, s17)
     rescue_smoothing_px: float = ranged(0.8, ge=0.0)
     # a stereo match unclear over the map's whole depth range is searched again near the depth the map gives its
     # track (frontend/stereo_depth): more matches on smooth tissue, a few gross ones more (docs/results.md, s15)

@@ -104,16 +104,19 @@ def _make_drift_check(per_lane: int):
                      pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
                      count: wp.array(dtype=wp.int32), iterations: int, max_residual: float,
                      max_stretch: float, max_correction: float, keep: wp.array(dtype=wp.int32),
-                     residual_out: wp.array(dtype=float)):
+                     residual_out: wp.array(dtype=float), only: wp.array(dtype=wp.int32)):
         """Fit alpha I(x) + beta ~ J(A x + b) to each track's first patch I by Gauss-Newton (8 parameters), from the
         tracker's position b; the fitted b is the drift-free position and replaces b in ``pts``. Dropped: large
         normalised residual, too much stretch or a flip of A, a correction larger than max_correction, an absurd
-        gain."""
+        gain. ``only`` (non-empty): just the slots where it is non-zero (the others' outputs left as they were)."""
         f, lane = wp.tid()
         if f >= count[0]:
             if lane == 0:
                 keep[f] = 0  # slots past the live tracks are not kept (the compaction scans every slot)
             return
+        if only.shape[0] > 0:
+            if only[f] == 0:
+                return  # the same slot for every lane: the whole block leaves
         nl = wp.block_dim()
         n = PATCH * PATCH
         b = pts[f]
@@ -266,9 +269,186 @@ def reanchor(img: wp.array, w: int, h: int, searched: wp.array, at_lk: wp.array,
 def drift_check(img: wp.array, gx: wp.array, gy: wp.array, w: int, h: int, patches: wp.array, A: wp.array,
                 pts: wp.array, status: wp.array, mask: wp.array, count: wp.array, iterations: int,
                 max_residual: float, max_stretch: float, max_correction: float, keep: wp.array,
-                residual_out: wp.array, device) -> None:
+                residual_out: wp.array, device, only: wp.array | None = None) -> None:
     """Register each live track's first patch (every slot is launched): ``pts`` and ``A`` updated in place,
-    ``keep`` (1: kept) and ``residual_out`` (the normalised residual)."""
+    ``keep`` (1: kept) and ``residual_out`` (the normalised residual). ``only`` (int32 per slot): register just
+    the slots where it is non-zero, leaving the others' outputs as they were (None or empty: every slot)."""
+    if only is None:
+        only = wp.empty(0, dtype=wp.int32, device=device)
     wp.launch_tiled(_drift_check, dim=[pts.shape[0]], inputs=[
         img, gx, gy, w, h, patches, A, pts, status, mask, count, iterations, max_residual, max_stretch,
-        max_correction, keep, residual_out], block_dim=DRIFT_LANES, device=device)
+        max_correction, keep, residual_out, only], block_dim=DRIFT_LANES, device=device)
+
+
+# --- the rescue of new tracks with a stereo rig at fast motion (``WarpFrontEnd``; frontend/opencv's _drift_check)
+# Each track's rescue state, per slot (double-buffered and compacted with the other per-track arrays): before its
+# first step, registered on the drift image since, or registered on the rescue-smoothed image (once rescued).
+TRACK_NEW = 0
+TRACK_PLAIN = 1
+TRACK_SMOOTHED = 2
+
+
+@wp.kernel
+def _sample_rescue_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
+                           count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
+                           patches: wp.array2d(dtype=float), state: wp.array(dtype=wp.int32)):
+    """The first patch on the rescue-smoothed image of each new track (slots count .. count + taken[0] - 1)."""
+    t, k = wp.tid()
+    if t >= taken[0]:
+        return
+    s = count[0] + t
+    q = pts[s] + _patch_offset(k)
+    patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
+    if k == 0:
+        state[s] = TRACK_NEW
+
+
+@wp.kernel
+def _rescue_start(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
+                  count: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32),
+                  patches: wp.array2d(dtype=float), state: wp.array(dtype=wp.int32)):
+    """When the front-end first serves a rig: every live track's first patch on the rescue-smoothed image of
+    this frame; the tracks found in this frame (the last ``n_new[0]`` slots) are new, the others plain."""
+    t, k = wp.tid()
+    c = count[0]
+    if t >= c:
+        return
+    q = pts[t] + _patch_offset(k)
+    patches[t, k] = bilinear(img, 0, w, h, q[0], q[1])
+    if k == 0:
+        state[t] = wp.where(t >= c - n_new[0], TRACK_NEW, TRACK_PLAIN)
+
+
+@wp.kernel
+def _plain_slots(state: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), plain: wp.array(dtype=wp.int32)):
+    """1 for the live tracks registered on the drift image (all but the rescued ones)."""
+    f = wp.tid()
+    plain[f] = wp.where(f < count[0] and state[f] != TRACK_SMOOTHED, 1, 0)
+
+
+@wp.kernel
+def _count_fast(lk_pts: wp.array(dtype=wp.vec2), prev_pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32),
+                mask: wp.array2d(dtype=wp.uint8), count: wp.array(dtype=wp.int32), min_px: float,
+                counts: wp.array(dtype=wp.int32)):
+    """counts <- (tracks LK followed into the view that moved at least min_px, tracks LK followed into the view)."""
+    f = wp.tid()
+    if f < count[0] and status[f] == 1 and in_view(mask, lk_pts[f]):
+        wp.atomic_add(counts, 1, 1)
+        if wp.length(lk_pts[f] - prev_pts[f]) >= min_px:
+            wp.atomic_add(counts, 0, 1)
+
+
+@wp.kernel
+def _rescue_candidates(state: wp.array(dtype=wp.int32), keep: wp.array(dtype=wp.int32),
+                       searched: wp.array(dtype=wp.int32), use_searched: int, counts: wp.array(dtype=wp.int32),
+                       count: wp.array(dtype=wp.int32), at_lk: wp.array(dtype=wp.vec2), pts: wp.array(dtype=wp.vec2),
+                       A: wp.array(dtype=wp.mat22), again: wp.array(dtype=wp.int32)):
+    """The slots registered on the rescue-smoothed image: the rescued tracks, and, on a frame of fast motion (the
+    median LK step at least fast_motion_px, read as more than half of the tracked moving that far), the new
+    tracks the drift check refused that were not found along their epipolar line. Those start again from LK's
+    position with an identity warp."""
+    f = wp.tid()
+    again[f] = 0
+    if f >= count[0]:
+        return
+    s = state[f]
+    swept = int(0)
+    if use_searched != 0:
+        swept = searched[f]
+    fast = 2 * counts[0] > counts[1]
+    if s == TRACK_SMOOTHED or (fast and s == TRACK_NEW and keep[f] == 0 and swept == 0):
+        again[f] = 1
+        if s != TRACK_SMOOTHED:
+            pts[f] = at_lk[f]
+            A[f] = wp.identity(n=2, dtype=float)
+
+
+@wp.kernel
+def _rescue_back_needed(state: wp.array(dtype=wp.int32), again: wp.array(dtype=wp.int32),
+                        keep: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """1 for the new tracks the smoothed check kept: LK from there must track back (``rescue_verdict``)."""
+    f = wp.tid()
+    out[f] = wp.where(again[f] != 0 and state[f] == TRACK_NEW and keep[f] != 0, 1, 0)
+
+
+@wp.kernel
+def _rescue_verdict(back_needed: wp.array(dtype=wp.int32), back: wp.array(dtype=wp.vec2),
+                    back_status: wp.array(dtype=wp.int32), prev_pts: wp.array(dtype=wp.vec2),
+                    again: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), max_px: float,
+                    keep: wp.array(dtype=wp.int32), state: wp.array(dtype=wp.int32)):
+    """A rescued new track stays only if LK back lands within ``max_px`` of where it was; the tracks judged on
+    the smoothed image stay registered there, the other new ones have had their first step."""
+    f = wp.tid()
+    if f >= count[0]:
+        return
+    if back_needed[f] != 0:
+        if back_status[f] == 0 or wp.length(back[f] - prev_pts[f]) >= max_px:
+            keep[f] = 0
+    if again[f] != 0:
+        state[f] = TRACK_SMOOTHED
+    elif state[f] == TRACK_NEW:
+        state[f] = TRACK_PLAIN
+
+
+@wp.kernel
+def _reanchored_plain(searched: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                      state: wp.array(dtype=wp.int32)):
+    """A track anchored anew (``reanchor``) registers on the drift image again."""
+    f = wp.tid()
+    if f < count[0] and searched[f] != 0:
+        state[f] = TRACK_PLAIN
+
+
+def sample_rescue_patches(img: wp.array, w: int, h: int, pts: wp.array, count: wp.array, taken: wp.array,
+                          patches: wp.array, state: wp.array, device) -> None:
+    """The new tracks' first patches on the rescue-smoothed ``img`` and their state (new)."""
+    wp.launch(_sample_rescue_patches, dim=(pts.shape[0], PATCH * PATCH),
+              inputs=[img, w, h, pts, count, taken, patches, state], device=device)
+
+
+def rescue_start(img: wp.array, w: int, h: int, pts: wp.array, count: wp.array, n_new: wp.array,
+                 patches: wp.array, state: wp.array, device) -> None:
+    """Every live track's first patch on the rescue-smoothed ``img`` and its state (``_rescue_start``)."""
+    wp.launch(_rescue_start, dim=(pts.shape[0], PATCH * PATCH),
+              inputs=[img, w, h, pts, count, n_new, patches, state], device=device)
+
+
+def plain_slots(state: wp.array, count: wp.array, plain: wp.array, device) -> None:
+    """``plain`` <- 1 for the live tracks not registered on the rescue-smoothed image."""
+    wp.launch(_plain_slots, dim=state.shape[0], inputs=[state, count, plain], device=device)
+
+
+def count_fast(lk_pts: wp.array, prev_pts: wp.array, status: wp.array, mask: wp.array, count: wp.array,
+               min_px: float, counts: wp.array, device) -> None:
+    """``counts`` <- (tracked that moved at least ``min_px``, tracked) after LK and its checks."""
+    counts.zero_()
+    wp.launch(_count_fast, dim=lk_pts.shape[0], inputs=[lk_pts, prev_pts, status, mask, count, float(min_px),
+                                                         counts], device=device)
+
+
+def rescue_candidates(state: wp.array, keep: wp.array, searched: wp.array | None, counts: wp.array,
+                      count: wp.array, at_lk: wp.array, pts: wp.array, A: wp.array, again: wp.array, device) -> None:
+    """``again`` <- the slots the smoothed drift check registers (``_rescue_candidates``); ``searched``: the
+    tracks found along their epipolar line this frame (None: a frame without a motion, none)."""
+    use = 0 if searched is None else 1
+    searched = keep if searched is None else searched  # (not read)
+    wp.launch(_rescue_candidates, dim=state.shape[0],
+              inputs=[state, keep, searched, use, counts, count, at_lk, pts, A, again], device=device)
+
+
+def rescue_back_needed(state: wp.array, again: wp.array, keep: wp.array, out: wp.array, device) -> None:
+    """``out`` <- 1 for the new tracks the smoothed check kept (LK back checks them)."""
+    wp.launch(_rescue_back_needed, dim=state.shape[0], inputs=[state, again, keep, out], device=device)
+
+
+def rescue_verdict(back_needed: wp.array, back: wp.array, back_status: wp.array, prev_pts: wp.array,
+                   again: wp.array, count: wp.array, max_px: float, keep: wp.array, state: wp.array,
+                   device) -> None:
+    """The forward-backward verdict on the rescued new tracks, and every live track's next state."""
+    wp.launch(_rescue_verdict, dim=state.shape[0], inputs=[back_needed, back, back_status, prev_pts, again, count,
+                                                            float(max_px), keep, state], device=device)
+
+
+def reanchored_plain(searched: wp.array, count: wp.array, state: wp.array, device) -> None:
+    """The tracks ``reanchor`` anchored anew register on the drift image again."""
+    wp.launch(_reanchored_plain, dim=state.shape[0], inputs=[searched, count, state], device=device)

@@ -7,8 +7,12 @@ come back: colours are read on the host from the frame in hand, at each track's 
 
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
 its motion goes up to the device first, so it too is a graph replay (one graph per kind of frame: buffer parity,
-with or without a motion, LK's levels, the track budget). ``match_view`` brings this frame's tracker image
+with or without a motion, LK's levels, the track budget, serving a rig). ``match_view`` brings this frame's tracker image
 back once and matches on the host (``frontend.epipolar``).
+
+With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
+step is judged again on the tracker image smoothed by ``TrackerConfig.rescue_smoothing_px``, as the OpenCV
+front-end does (``_rescue_kernels``); a rig's frames are kinds of their own, so a mono run launches nothing more.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from lapreco_hil.frontend import epipolar, stereo_depth, track_capacity
 from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
                                         to_u8, tracker_image)
 from lapreco_hil.frontend.drift import drift_smoothing_weights
+from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
@@ -113,6 +118,20 @@ class WarpFrontEnd:
             smoothed = W * H if self._drift_weights.shape[0] > 1 else 1
             self._drift_img, self._drift_gx, self._drift_gy, self._drift_tmp = (wp.zeros(smoothed, dtype=float)
                                                                                 for _ in range(4))
+            # the rescue (a rig's): level 0 smoothed by rescue_smoothing_px, its gradients, the blur's scratch; per
+            # track, its first patch there and its state (drift_check.TRACK_*); which slots each drift check
+            # registers, and the frame's (moved at least fast_motion_px, tracked) counts
+            self._rescue_on = config.drift_check and config.rescue_smoothing_px > 0
+            self._rig = False  # match_view was called
+            self._rescue_weights = wp.array(drift_smoothing_weights(config.rescue_smoothing_px), dtype=float)
+            rescue_px, slots = (W * H, n) if self._rescue_on else (1, 1)
+            self._rescue_img, self._rescue_gx, self._rescue_gy, self._rescue_tmp = (
+                wp.zeros(rescue_px, dtype=float) for _ in range(4))
+            self._ref_smooth = [wp.zeros((slots, drift_check.PATCH * drift_check.PATCH), dtype=float)
+                                for _ in range(2)]
+            self._rescue_state = [wp.zeros(slots, dtype=wp.int32) for _ in range(2)]
+            self._plain, self._again = wp.zeros(slots, dtype=wp.int32), wp.zeros(slots, dtype=wp.int32)
+            self._fast_counts = wp.zeros(2, dtype=wp.int32)
             self._gx = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._gy = [wp.zeros(total, dtype=float) for _ in range(2)]
             self._eig = wp.zeros((H, W), dtype=float)
@@ -199,8 +218,9 @@ class WarpFrontEnd:
         self._side_stream = wp.Stream(self.device, priority=-1) if self.device.is_cuda else None
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
-        # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget); the
-        # launches of each kind run once eagerly (modules loaded, scratch allocated) before it is captured
+        # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget, the
+        # rescue's launches: a rig's frames); the launches of each kind run once eagerly (modules loaded, scratch
+        # allocated) before it is captured
         self._graphs: dict[tuple, object] = {}
         self._runs: dict[tuple, int] = {}
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
@@ -278,6 +298,21 @@ class WarpFrontEnd:
             pyramid.blur_1d(self._drift_tmp, self.width, self.height, self._drift_weights, 0, 1, self._drift_img, dev)
             pyramid.sobel_levels(self._drift_img, self._offs, self._ws, self._hs, 1, self._drift_gx, self._drift_gy,
                                  dev)
+        if self._rescuing():
+            self._rescue_image_kernels()
+
+    def _rescuing(self) -> bool:
+        """Whether this frame may rescue new tracks (``_rescue_kernels``): a rig, the drift check, a smoothing."""
+        return self._rig and self._rescue_on
+
+    def _rescue_image_kernels(self) -> None:
+        """Level 0 of the current frame smoothed by ``rescue_smoothing_px`` (``drift.drift_image``) and its
+        gradients: the image a rescued track registers on."""
+        dev, W, H = self.device, self.width, self.height
+        pyramid.blur_1d(self._pyr[self._cur], W, H, self._rescue_weights, 1, 0, self._rescue_tmp, dev)
+        pyramid.blur_1d(self._rescue_tmp, W, H, self._rescue_weights, 0, 1, self._rescue_img, dev)
+        pyramid.sobel_levels(self._rescue_img, self._offs, self._ws, self._hs, 1, self._rescue_gx, self._rescue_gy,
+                             dev)
 
     def _drift_images(self) -> tuple:
         """(image, gx, gy) the drift check registers on in the current frame: level 0 smoothed
@@ -312,6 +347,12 @@ class WarpFrontEnd:
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
                                      self._count[prev], self._status, self._searched, self.device)
             wp.copy(self._at_lk, self._lk_pts)
+        if self._rescuing():
+            # whether the frame is one of fast motion (the rescue's), from LK's steps after its checks
+            drift_check.count_fast(self._lk_pts, self._pts[prev], self._status, self._mask, self._count[prev],
+                                   cfg.fast_motion_px, self._fast_counts, self.device)
+            if self._motion is None:
+                wp.copy(self._at_lk, self._lk_pts)  # where a new track's rescue starts
         self._sync_for_profile("lk")
 
     def _predict_kernels(self, motion: FrameMotion) -> None:
@@ -331,25 +372,63 @@ class WarpFrontEnd:
         cfg = self.config
         prev, cur = 1 - self._cur, self._cur
         dev = self.device
+        rescuing = self._rescuing()
         if cfg.drift_check:
             img, gx, gy = self._drift_images()
+            if rescuing:
+                drift_check.plain_slots(self._rescue_state[prev], self._count[prev], self._plain, dev)
             drift_check.drift_check(
                 img, gx, gy, self.width, self.height, self._patches[prev],
                 self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
-                cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev)
+                cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev,
+                only=self._plain if rescuing else self._every_slot)
+            if rescuing:
+                self._rescue_kernels()
             if self._motion is not None:
                 drift_check.reanchor(img, self.width, self.height, self._searched, self._at_lk,
                                      self._count[prev], self._mask, self._lk_pts, self._patches[prev], self._A[prev],
                                      self._keep, dev)
+                if rescuing:
+                    drift_check.reanchored_plain(self._searched, self._count[prev], self._rescue_state[prev], dev)
         else:
             tracks.lk_keep(self._lk_pts, self._status, self._mask, self._count[prev], self._keep, dev)
         tracks.compact_tracks(
             self._keep, self._slot, self._lk_pts, self._pts[prev], self._A[prev], self._patches[prev], self._ids[prev],
             self._pts[cur], self._steps[cur], self._A[cur], self._patches[cur], self._ids[cur], dev)
+        if rescuing:
+            tracks.compact_rescue(self._keep, self._slot, self._rescue_state[prev], self._ref_smooth[prev],
+                                  self._rescue_state[cur], self._ref_smooth[cur], dev)
         redetect_below = int(np.ceil(cfg.redetect_below * self._budget))
         tracks.count_kept(self._keep, self._slot, self._count[cur], redetect_below, self._detect_flag, self._n_new,
                           dev)
         self._sync_for_profile("track")
+
+    def _rescue_kernels(self) -> None:
+        """After the drift check of the plain tracks (all but the rescued ones): the rescued tracks, and on a
+        frame of fast motion the new tracks it refused (not those found along their epipolar line: those are
+        anchored anew), registered on the rescue-smoothed image against their first patch there; a new one kept
+        there must also track back (LK from its registered position into the previous image) within
+        FORWARD_BACKWARD_PX of where it was. Why, and why only with a rig at fast motion: see the OpenCV
+        front-end's ``_drift_check``."""
+        cfg = self.config
+        prev, cur = 1 - self._cur, self._cur
+        dev = self.device
+        state = self._rescue_state[prev]
+        drift_check.rescue_candidates(state, self._keep, self._searched if self._motion is not None else None,
+                                      self._fast_counts, self._count[prev], self._at_lk, self._lk_pts,
+                                      self._A[prev], self._again, dev)
+        drift_check.drift_check(
+            self._rescue_img, self._rescue_gx, self._rescue_gy, self.width, self.height, self._ref_smooth[prev],
+            self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
+            cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev, only=self._again)
+        drift_check.rescue_back_needed(state, self._again, self._keep, self._back_needed, dev)
+        lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
+                    self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
+                    self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, dev,
+                    coarse_eps=LK_COARSE_EPS, only=self._back_needed)
+        drift_check.rescue_verdict(self._back_needed, self._back_pts, self._back_status, self._pts[prev],
+                                   self._again, self._count[prev], FORWARD_BACKWARD_PX, self._keep, state, dev)
 
     def _sync_for_profile(self, name: str) -> None:
         """Per-stage times need the device synchronised at stage ends; the steady state does without."""
@@ -408,6 +487,9 @@ class WarpFrontEnd:
                              self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
         drift_check.sample_patches(self._drift_images()[0], self.width, self.height, self._pts[cur], count,
                                    self._taken, self._patches[cur], self._A[cur], self._steps[cur], dev)
+        if self._rescuing():
+            drift_check.sample_rescue_patches(self._rescue_img, self.width, self.height, self._pts[cur], count,
+                                              self._taken, self._ref_smooth[cur], self._rescue_state[cur], dev)
         tracks.commit_new_tracks(self._taken, count, self._n_new, self._next_id, dev)
 
     # --- the frame ----------------------------------------------------------------------------------------------
@@ -459,22 +541,30 @@ class WarpFrontEnd:
         tracks are left behind): without a motion, and with one for each track budget (and each of LK's level
         counts where the prediction may reduce them). A live run's first frames then wait for no compile, and
         no frame mid-run for a capture: the first frame of fast motion (the larger budget) once paid for its
-        kind's eager launches and capture while frames queued behind it."""
+        kind's eager launches and capture while frames queued behind it. With the rescue on CUDA, a rig's kinds
+        too (a stereo run's frames from its first ``match_view`` on)."""
         preload_kernels("lapreco_hil.frontend.warp", self.device)  # the motion path's kernels too
         black = np.zeros((self.height, self.width, 3), np.uint8)
-        seq = 0
-        for k in range(4):  # both buffer parities, eager then captured
-            self.process(Frame(black, seq, seq))
-            seq += 1
         budgets = sorted({self.config.max_features, track_capacity(self.config)})
         lk_levels = range(1, self.levels + 1) if self.config.reduced_predicted_levels else [self.levels]
         still = FrameMotion(np.eye(4))
-        for budget in budgets:
-            for levels in lk_levels:
-                for k in range(4):
-                    with device_lock(self.device):
-                        self._warm_motion_frame(Frame(black, seq, seq), still, budget, levels)
+        rig = self._rig
+        seq = 0
+        try:
+            for serving_rig in ([False, True] if self._rescue_on and self.device.is_cuda and self.use_graphs
+                                else [rig]):
+                self._rig = serving_rig
+                for k in range(4):  # both buffer parities, eager then captured
+                    self.process(Frame(black, seq, seq))
                     seq += 1
+                for budget in budgets:
+                    for levels in lk_levels:
+                        for k in range(4):
+                            with device_lock(self.device):
+                                self._warm_motion_frame(Frame(black, seq, seq), still, budget, levels)
+                            seq += 1
+        finally:
+            self._rig = rig
 
     def _warm_motion_frame(self, frame: Frame, motion: FrameMotion, budget: int, lk_levels: int) -> None:
         """One frame of the kind (a motion, ``budget`` tracks, ``lk_levels`` LK levels) whatever its motion
@@ -544,7 +634,7 @@ class WarpFrontEnd:
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
-        kind = (cur, self._motion is not None, self._lk_levels, self._budget)
+        kind = (cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing())
         graphs = self.device.is_cuda and self.use_graphs and not self.profile
         if graphs and self._runs.get(kind, 0) >= 1 and kind not in self._graphs:
             try:
@@ -594,6 +684,8 @@ class WarpFrontEnd:
         frame's tracker image comes back from the device once, then the epipolar sweep, LK and the
         forward-backward check of ``epipolar.match_across`` run on the host."""
         seq, t_ns, ids, uv = self._last
+        if not self._rig:
+            self._start_rig()
         if len(ids) == 0:
             return Observations(seq, t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.uint8),
                                 camera=camera_index)
@@ -613,3 +705,17 @@ class WarpFrontEnd:
                                                 self.config.drift_max_residual, search)
         return Observations(seq, t_ns, ids[found].copy(), found_uv[found], colors_at(color, found_uv[found]),
                             camera=camera_index)
+
+    def _start_rig(self) -> None:
+        """The front-end serves a rig from now on: its frames may rescue new tracks. The live tracks' first
+        patches on the smoothed image are this frame's (only those found in it can be rescued, at their first
+        step), and those found in it are new. (Under the device's lock: a frame in progress on another thread
+        sees the rig from its start or not at all.)"""
+        with device_lock(self.device):
+            self._rig = True
+            if not self._rescue_on:
+                return
+            cur = self._cur
+            self._rescue_image_kernels()
+            drift_check.rescue_start(self._rescue_img, self.width, self.height, self._pts[cur], self._count[cur],
+                                     self._n_new, self._ref_smooth[cur], self._rescue_state[cur], self.device)

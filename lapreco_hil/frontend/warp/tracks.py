@@ -46,6 +46,21 @@ def _scatter_tracks(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int3
 
 
 @wp.kernel
+def _scatter_rescue(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
+                    src_state: wp.array(dtype=wp.int32), src_patches: wp.array2d(dtype=float),
+                    dst_state: wp.array(dtype=wp.int32), dst_patches: wp.array2d(dtype=float)):
+    """The rescue's per-track state (``drift_check.TRACK_*``, first patch on the smoothed image) compacted as
+    ``_scatter_tracks`` compacts the others."""
+    t, k = wp.tid()
+    if keep[t] == 0:
+        return
+    s = slot[t]
+    dst_patches[s, k] = src_patches[t, k]
+    if k == 0:
+        dst_state[s] = src_state[t]
+
+
+@wp.kernel
 def _count_kept(keep: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
                 redetect_below: int, detect: wp.array(dtype=wp.int32), n_new: wp.array(dtype=wp.int32)):
     """After the compaction: the live count, whether to look for new corners, and no new tracks yet."""
@@ -119,6 +134,13 @@ def compact_tracks(keep: wp.array, slot: wp.array, src_pts: wp.array, before: wp
     wp.launch(_scatter_tracks, dim=(keep.shape[0], src_patches.shape[1]), inputs=[
         keep, slot, src_pts, before, src_A, src_patches, src_ids, dst_pts, dst_steps, dst_A, dst_patches, dst_ids],
         device=device)
+
+
+def compact_rescue(keep: wp.array, slot: wp.array, src_state: wp.array, src_patches: wp.array,
+                   dst_state: wp.array, dst_patches: wp.array, device) -> None:
+    """After ``compact_tracks`` (its ``slot``): the kept tracks' rescue state moved as their other arrays were."""
+    wp.launch(_scatter_rescue, dim=(keep.shape[0], src_patches.shape[1]),
+              inputs=[keep, slot, src_state, src_patches, dst_state, dst_patches], device=device)
 
 
 def count_kept(keep: wp.array, slot: wp.array, count: wp.array, redetect_below: int, detect: wp.array,
