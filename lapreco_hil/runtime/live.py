@@ -80,6 +80,7 @@ class LiveRun:
         use_worker = rt.ba_worker == "on" or (rt.ba_worker == "auto" and (os.cpu_count() or 1) >= 4)
         rig = getattr(grabber, "rig", None)  # the ring's slots hold each of the rig's cameras' observations of a frame
         stereo = rig if rig is not None and rig.is_stereo else None
+        self._stereo = stereo is not None  # (the front-end's warm-up then captures a rig's frames too)
         # the dense surface ([surface] mode = "dense"): keyframe images kept until the mapper names them, fused in
         # a process of its own; None with the alpha shape (or, with a note, where multi-view stereo cannot run)
         self.dense, self.recent, self.dense_result, self.surface_note = None, None, None, None
@@ -163,7 +164,7 @@ class LiveRun:
             # seconds of a live source are not lost to it
             self.tracking.frontend = self._make_frontend()
             if hasattr(self.tracking.frontend, "warm_up"):
-                self.tracking.frontend.warm_up()
+                self.tracking.frontend.warm_up(rig=self._stereo)
         try:
             return self._run(seconds)
         finally:

@@ -536,23 +536,23 @@ class WarpFrontEnd:
         for dst, src in zip(out, self._packed):
             wp.copy(dst, src)
 
-    def warm_up(self) -> None:
+    def warm_up(self, rig: bool = False) -> None:
         """Compile every kernel and capture the graph of every kind of frame on black frames (no corners, so no
         tracks are left behind): without a motion, and with one for each track budget (and each of LK's level
         counts where the prediction may reduce them). A live run's first frames then wait for no compile, and
         no frame mid-run for a capture: the first frame of fast motion (the larger budget) once paid for its
-        kind's eager launches and capture while frames queued behind it. With the rescue on CUDA, a rig's kinds
-        too (a stereo run's frames from its first ``match_view`` on)."""
+        kind's eager launches and capture while frames queued behind it. With ``rig`` (a stereo run: its frames
+        are a rig's from its first ``match_view`` on) and the rescue on CUDA, a rig's kinds too."""
         preload_kernels("lapreco_hil.frontend.warp", self.device)  # the motion path's kernels too
         black = np.zeros((self.height, self.width, 3), np.uint8)
         budgets = sorted({self.config.max_features, track_capacity(self.config)})
         lk_levels = range(1, self.levels + 1) if self.config.reduced_predicted_levels else [self.levels]
         still = FrameMotion(np.eye(4))
-        rig = self._rig
+        serving = self._rig
         seq = 0
         try:
-            for serving_rig in ([False, True] if self._rescue_on and self.device.is_cuda and self.use_graphs
-                                else [rig]):
+            for serving_rig in ([False, True] if rig and self._rescue_on and self.device.is_cuda and self.use_graphs
+                                else [self._rig]):
                 self._rig = serving_rig
                 for k in range(4):  # both buffer parities, eager then captured
                     self.process(Frame(black, seq, seq))
@@ -564,7 +564,7 @@ class WarpFrontEnd:
                                 self._warm_motion_frame(Frame(black, seq, seq), still, budget, levels)
                             seq += 1
         finally:
-            self._rig = rig
+            self._rig = serving
 
     def _warm_motion_frame(self, frame: Frame, motion: FrameMotion, budget: int, lk_levels: int) -> None:
         """One frame of the kind (a motion, ``budget`` tracks, ``lk_levels`` LK levels) whatever its motion
