@@ -221,6 +221,11 @@ class DepthConfig:
     geometric_max_px: float = ranged(1.0, gt=0.0)  # forward-backward through a source's depth map: reprojection
     geometric_max_rel: float = ranged(0.01, gt=0.0)  # ... and relative depth difference
     geometric_min_views: int = ranged(1, ge=1)  # source depth maps that must agree (capped at those given)
+    # the dense surface's final build (offline, and the keyframes a live run leaves to it) makes every map first,
+    # then keeps of each the depths that ``consistency_min_views`` of the maps of its ``consistency_views`` nearest
+    # keyframes (its sources first) confirm forward-backward (0: no such check; docs/dense.md, "Session 17")
+    consistency_views: int = ranged(8, ge=0)
+    consistency_min_views: int = ranged(1, ge=1)
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too
