@@ -63,14 +63,14 @@ def _build(consistency_views: int) -> np.ndarray:
 
 
 def test_the_final_build_fuses_only_depths_that_other_keyframes_confirm(warp_cpu):
-    """Without the check every wrong patch becomes a piece of surface 10 mm in front of the plane; with it (each
-    map against its 4 neighbours' maps, one must agree) none does, and the plane stays (measured: 18.7% of the
-    points on the patches without the check, none with it; 90% as many points on the plane: the first view's
-    left edge is seen by no other)."""
-    checked = _build(consistency_views=8)
+    """Without the check every wrong patch becomes a piece of surface 10 mm in front of the plane; with it (the
+    defaults: each map against its neighbours' maps, two must agree) none does, and the plane stays (measured:
+    18.7% of the points on the patches without the check, none with it; 78% as many points on the plane: the
+    ends of the row of cameras see strips that fewer than two other keyframes see)."""
+    checked = _build(consistency_views=PipelineConfig().depth.consistency_views)
     unchecked = _build(consistency_views=0)
     on_patch = [np.mean(np.abs(p[:, 2] - WRONG_Z_M) < 0.002) for p in (checked, unchecked)]
     on_plane = [np.count_nonzero(np.abs(p[:, 2] - PLANE_Z_M) < 0.001) for p in (checked, unchecked)]
     assert on_patch[1] > 0.03
     assert on_patch[0] == 0.0
-    assert on_plane[0] > 0.85 * on_plane[1]
+    assert on_plane[0] > 0.7 * on_plane[1]
