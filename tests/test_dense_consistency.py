@@ -74,3 +74,35 @@ def test_the_final_build_fuses_only_depths_that_other_keyframes_confirm(warp_cpu
     assert on_patch[1] > 0.03
     assert on_patch[0] == 0.0
     assert on_plane[0] > 0.7 * on_plane[1]
+
+
+def _patch_x_m(kf_id: int) -> tuple[float, float]:
+    """The world x range of keyframe ``kf_id``'s wrong patch (its columns at WRONG_Z_M in front of the camera)."""
+    x0 = 10 + 25 * kf_id
+    to_x = WRONG_Z_M / CAMERA.fx
+    return 0.003 * kf_id + (x0 - CAMERA.cx) * to_x, 0.003 * kf_id + (x0 + 25 - CAMERA.cx) * to_x
+
+
+def test_keyframes_left_to_the_final_build_are_checked_against_the_maps_fused_before(warp_cpu):
+    """A live run fuses keyframes one at a time (no check: their neighbours' maps are not made yet) and leaves the
+    rest to its final build: those are checked against the maps fused before (kept PNG-encoded, decoded for it)
+    and against each other."""
+    from lapreco_hil.dense.surface import DenseSurface, nearest_views
+
+    dense = DenseSurface(CAMERA, PipelineConfig(), DEVICE, depth_fn=PlaneWithWrongPatches(), sources_fn=nearest_views)
+    rng = np.random.default_rng(0)
+    poses = {i: make_T(np.eye(3), [0.003 * i, 0.0, 0.0]) for i in range(5)}
+    for i, T in poses.items():
+        dense.add_view(i, rng.integers(0, 255, (CAMERA.height, CAMERA.width, 3), np.uint8), T)
+    dense.set_depth_ranges({i: (0.02, 0.06) for i in poses})
+    assert dense.fuse_pending({0, 1, 2}) == 3  # as the live stage does
+    points = dense.build_at(poses, {i: (0.02, 0.06) for i in poses}).points
+    assert dense.fused == 5
+    on_patch = np.abs(points[:, 2] - WRONG_Z_M) < 0.002
+    for kf_id in range(5):
+        lo, hi = _patch_x_m(kf_id)
+        inside = on_patch & (points[:, 0] > lo + 0.0005) & (points[:, 0] < hi - 0.0005)
+        if kf_id < 3:
+            assert np.count_nonzero(inside) > 50  # fused live, unchecked
+        else:
+            assert np.count_nonzero(inside) == 0  # checked by the final build

@@ -339,10 +339,11 @@ class DenseSurface:
             made[kf_id] = as_kept
             chosen[kf_id] = [s.kf_id for s in sources]
         done = 0
+        stored: OrderedDict[int, DepthMap] = OrderedDict()  # kept maps of fused neighbours, decoded (a few)
         for kf_id, as_kept in made.items():
             v = self.views[kf_id]
             t0 = time.perf_counter()
-            maps = [m for m in (self._map_of(n, made) for n in self._neighbours(kf_id, chosen[kf_id], made))
+            maps = [m for m in (self._map_of(n, made, stored) for n in self._neighbours(kf_id, chosen[kf_id], made))
                     if m is not None]
             checked = check(as_kept, maps, cfg, self.device, cfg.consistency_min_views) if maps else as_kept
             t1 = time.perf_counter()
@@ -365,16 +366,23 @@ class DenseSurface:
         others.sort(key=lambda v: np.linalg.norm(v.T_world_camera[:3, 3] - c))
         return (sources + [v.kf_id for v in others])[:n]
 
-    def _map_of(self, kf_id: int, made: dict) -> DepthMap | None:
-        """A keyframe's map as made in this batch (its pose the one it was made at), or as kept once fused."""
+    def _map_of(self, kf_id: int, made: dict, stored: OrderedDict) -> DepthMap | None:
+        """A keyframe's map as made in this batch (its pose the one it was made at), or as kept once fused (PNG
+        decoded, the last 2 x ``consistency_views`` of them kept in ``stored``)."""
         if kf_id in made:
             return made[kf_id]
+        if kf_id in stored:
+            stored.move_to_end(kf_id)
+            return stored[kf_id]
         v = self.views.get(kf_id)
         if v is None or v.T_fused is None:
             return None
-        stored = self._stored_map(v)
-        stored.T_world_camera = v.T_world_camera.copy()  # (re-fused at its current pose by now)
-        return stored
+        depth = self._stored_map(v)
+        depth.T_world_camera = v.T_world_camera.copy()  # (re-fused at its current pose by now)
+        stored[kf_id] = depth
+        while len(stored) > 2 * self.config.depth.consistency_views:
+            stored.popitem(last=False)
+        return depth
 
     def build(self, m) -> DenseResult:
         """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
