@@ -190,8 +190,9 @@ class DepthConfig:
     """Multi-view stereo per keyframe (lapreco_hil.dense.depth)."""
 
     # "sweep": the plane sweep's fronto-parallel windows, coarse to fine; "patchmatch": its coarse depth refined
-    # per pixel with slanted windows (a plane per pixel, red-black PatchMatch at half resolution)
-    method: str = "sweep"
+    # per pixel with slanted windows (a plane per pixel, red-black PatchMatch at half resolution; the default since
+    # session 17: more coverage on the simulated scenes, docs/dense.md)
+    method: str = "patchmatch"
     source_views: int = ranged(4, ge=1)  # neighbouring keyframes (and the stereo partner) each depth map uses
     # the sweep's range where the keyframe's sparse landmarks give none (metres along the optical axis)
     default_near_m: float = ranged(0.02, gt=0.0)
@@ -225,6 +226,11 @@ class DepthConfig:
     geometric_max_px: float = ranged(1.0, gt=0.0)  # forward-backward through a source's depth map: reprojection
     geometric_max_rel: float = ranged(0.01, gt=0.0)  # ... and relative depth difference
     geometric_min_views: int = ranged(1, ge=1)  # source depth maps that must agree (capped at those given)
+    # the dense surface's final build (offline, and the keyframes a live run leaves to it) makes every map first,
+    # then keeps of each the depths that ``consistency_min_views`` of the maps of its ``consistency_views`` nearest
+    # keyframes (its sources first) confirm forward-backward (0: no such check; docs/dense.md, "Session 17")
+    consistency_views: int = ranged(8, ge=0)
+    consistency_min_views: int = ranged(2, ge=1)
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too

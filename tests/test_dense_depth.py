@@ -17,6 +17,7 @@ from lapreco_hil.dense.types import KeyframeView
 from lapreco_hil.errors import ConfigError, ReconstructionError
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
+SWEEP = DepthConfig(method="sweep")  # the plane sweep (the pipeline's default is "patchmatch" since session 17)
 SIZE = (256, 192)
 HAMLYN = Path(__file__).parent / "data" / "hamlyn-phantom-stereo"
 
@@ -33,7 +34,7 @@ def sheet(warp_cpu):
 def sheet_maps(sheet):
     from lapreco_hil.dense.depth import compute_depths
 
-    return compute_depths(sheet[0], DepthConfig(), DEVICE)
+    return compute_depths(sheet[0], SWEEP, DEVICE)
 
 
 def _errors_mm(depth_map, truth):
@@ -64,7 +65,7 @@ def test_the_geometric_check_drops_depths_the_sources_contradict(sheet, warp_cpu
     from lapreco_hil.dense.types import DepthMap
 
     views, truths = sheet
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     depth_map = estimator.compute(views[0], views[1:])
     true_maps = [DepthMap(v.kf_id, truths[v.kf_id], np.ones_like(truths[v.kf_id]), v.K, v.T_world_camera)
                  for v in views[1:]]
@@ -94,7 +95,7 @@ def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_
     views, truths = sheet
     maps, volumes = {}, {}
     for sweep in ("sliding", "windowed"):
-        estimator = DepthEstimator(DepthConfig(window_radius_px=radius), DEVICE, sweep=sweep)
+        estimator = DepthEstimator(DepthConfig(method="sweep", window_radius_px=radius), DEVICE, sweep=sweep)
         maps[sweep] = estimator.compute(views[0], views[1:])
         planes = maps[sweep].stats["planes"]
         volumes[sweep] = (estimator.coarse.zncc.numpy()[:, :planes].copy(), estimator.fine.zncc.numpy().copy())
@@ -115,7 +116,7 @@ def test_the_sliding_and_the_windowed_sweep_give_the_same_depth_map(sheet, warp_
     # a parabola through nearly equal scores moves the most, by a fraction of a plane (at 75 mm)
     assert diff.max() < 0.5e-3 and np.mean(diff < 0.01e-3) > same_depth_share and np.median(diff) < 1e-6
     with pytest.raises(ConfigError, match="sweep 'tiles'"):
-        DepthEstimator(DepthConfig(), DEVICE, sweep="tiles")
+        DepthEstimator(SWEEP, DEVICE, sweep="tiles")
 
 
 def _select_plane_reference(zncc, k, min_scored):
@@ -175,7 +176,7 @@ def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, war
     from lapreco_hil.dense.depth import FUNNEL, DepthEstimator
 
     views, _ = sheet
-    estimator = DepthEstimator(dataclasses.replace(DepthConfig(), cached_views=5), DEVICE)
+    estimator = DepthEstimator(dataclasses.replace(SWEEP, cached_views=5), DEVICE)
     first = estimator.compute(views[0], views[1:])
     assert first.stats["prepared"] == [0, 1, 2, 3, 4]
     again = estimator.compute(views[0], views[1:])
@@ -193,7 +194,7 @@ def test_a_keyframe_is_prepared_once_and_again_when_its_image_changes(sheet, war
     shifted = dataclasses.replace(views[2], colour=np.roll(views[2].colour, 3, axis=1))
     changed = estimator.compute(views[0], [views[1], shifted, views[3], views[4]])
     assert changed.stats["prepared"] == [2]
-    fresh = DepthEstimator(DepthConfig(), DEVICE).compute(views[0], [views[1], shifted, views[3], views[4]])
+    fresh = DepthEstimator(SWEEP, DEVICE).compute(views[0], [views[1], shifted, views[3], views[4]])
     assert np.array_equal(changed.depth_m, fresh.depth_m)
     assert not np.array_equal(changed.depth_m, first.depth_m)
 
@@ -217,7 +218,7 @@ def test_a_depth_map_handed_out_is_never_overwritten(sheet, warp_cpu):
     from lapreco_hil.dense.depth import HOST_BUFFERS, DepthEstimator
 
     views, _ = sheet
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     held = []
     for i in range(HOST_BUFFERS + 2):
         ref = views[i % len(views)]
@@ -241,7 +242,7 @@ def test_a_map_waits_for_the_device_once_and_counts_what_it_asks(sheet, warp_cpu
 
     views, _ = sheet
     h, w = views[0].colour.shape[:2]
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     first = estimator.compute(views[0], views[1:])
     ops = first.stats["device_ops"]
     assert set(ops) == set(DEVICE_OPS) and ops["allocations"] > 10 and not first.stats["profiled"]
@@ -279,7 +280,7 @@ def test_a_mask_is_uploaded_again_only_for_another_mask(sheet, warp_cpu):
     from lapreco_hil.dense.depth import DepthEstimator
 
     views, _ = sheet
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     estimator.compute(views[0], views[1:])
     cut = views[0].mask.copy()
     cut[:, :60] = False
@@ -288,7 +289,7 @@ def test_a_mask_is_uploaded_again_only_for_another_mask(sheet, warp_cpu):
         estimator.forget(0)
         depth_map = estimator.compute(ref, views[1:])
         assert depth_map.stats["device_ops"]["uploads"] == uploads, mask is cut
-        fresh = DepthEstimator(DepthConfig(), DEVICE).compute(ref, views[1:])
+        fresh = DepthEstimator(SWEEP, DEVICE).compute(ref, views[1:])
         assert np.array_equal(depth_map.depth_m, fresh.depth_m) and depth_map.stats["funnel"] == fresh.stats["funnel"]
         if mask is cut:
             assert not depth_map.valid[:, :60].any() and depth_map.valid[:, 60:].any()
@@ -303,7 +304,7 @@ def test_an_estimators_maps_are_a_fresh_estimators_whatever_came_before(sheet, w
 
     views, truths = sheet
     near = float(np.percentile(truths[0][truths[0] > 0], 50))
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     planes = set()
     for ref_i, depth_range in ((0, None), (0, (0.05, 0.12)), (2, None), (0, (near, 0.2)), (2, (0.03, 0.3))):
         ref = views[ref_i]
@@ -311,7 +312,7 @@ def test_an_estimators_maps_are_a_fresh_estimators_whatever_came_before(sheet, w
             ref = dataclasses.replace(ref, depth_range_m=depth_range)
         sources = [v for v in views if v.kf_id != ref.kf_id][:3]
         kept = estimator.compute(ref, sources)
-        fresh = DepthEstimator(DepthConfig(), DEVICE).compute(ref, sources)
+        fresh = DepthEstimator(SWEEP, DEVICE).compute(ref, sources)
         assert np.array_equal(kept.depth_m, fresh.depth_m) and np.array_equal(kept.confidence, fresh.confidence)
         assert kept.stats["funnel"] == fresh.stats["funnel"] and kept.stats["planes"] == fresh.stats["planes"]
         planes.add(kept.stats["planes"])
@@ -358,7 +359,7 @@ def test_no_depth_outside_the_mask_nor_on_a_saturated_highlight(sheet, warp_cpu)
     highlight = highlight_mask(colour, device=DEVICE)
     assert highlight[blob > 0].all() and np.count_nonzero(highlight) < 3 * np.count_nonzero(blob)
     assert not highlight_mask(ref.colour, device=DEVICE).any()  # the tissue's own colours are not highlights
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     depth_map = estimator.compute(dataclasses.replace(ref, colour=colour, mask=mask), views[1:])
     assert not depth_map.valid[~mask].any()
     assert not depth_map.valid[highlight].any()
@@ -378,7 +379,7 @@ def test_depth_outside_the_landmarks_range_is_dropped(sheet, warp_cpu):
     views, truths = sheet
     near = float(np.percentile(truths[0][truths[0] > 0], 50))
     # a sweep from the middle of the surface's depths outwards: the nearer half lies outside it
-    depth_map = compute_depth(dataclasses.replace(views[0], depth_range_m=(near, 0.2)), views[1:], DepthConfig(),
+    depth_map = compute_depth(dataclasses.replace(views[0], depth_range_m=(near, 0.2)), views[1:], SWEEP,
                               DEVICE)
     nearer = (truths[0] > 0) & (truths[0] < near * 0.97)
     assert np.count_nonzero(depth_map.valid[nearer]) <= 0.02 * np.count_nonzero(nearer)
@@ -394,11 +395,11 @@ def test_bad_input_is_a_clear_error(sheet, warp_cpu):
     views, _ = sheet
     small = dataclasses.replace(views[1], colour=views[1].colour[:100, :100])
     with pytest.raises(ReconstructionError, match="one size"):
-        compute_depth(views[0], [small], DepthConfig(), DEVICE)
+        compute_depth(views[0], [small], SWEEP, DEVICE)
     with pytest.raises(ReconstructionError, match="at least one source"):
-        compute_depth(views[0], [], DepthConfig(), DEVICE)
+        compute_depth(views[0], [], SWEEP, DEVICE)
     with pytest.raises(ConfigError, match=r"\[depth\] min_planes"):
-        compute_depth(views[0], views[1:], DepthConfig(min_planes=20, max_planes=10), DEVICE)
+        compute_depth(views[0], views[1:], DepthConfig(method="sweep", min_planes=20, max_planes=10), DEVICE)
 
 
 def _view(kf_id, eye_mm, target=(0.0, 0.0, 0.1), reference=None, size=(64, 48)):
@@ -449,7 +450,7 @@ def test_a_moving_instrument_gets_no_depth(instrument_scenes):
 
     kept = {}
     for kind, (views, truths, tools) in instrument_scenes.items():
-        maps = compute_depths(views, DepthConfig(), DEVICE)
+        maps = compute_depths(views, SWEEP, DEVICE)
         kept[kind] = sum(np.count_nonzero(maps[v.kf_id].valid & tools[v.kf_id]) for v in views if v.kf_id in maps)
         kept[kind + "_pixels"] = sum(np.count_nonzero(t) for t in tools)
         if kind == "moving":
@@ -470,7 +471,7 @@ def test_a_view_pair_with_a_moving_instrument_keeps_no_depth_on_it(instrument_sc
     from lapreco_hil.dense.depth import DepthEstimator
 
     views, truths, tools = instrument_scenes["moving"]
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     on_tool = 0
     for other in views[1:]:
         map_a, map_b = estimator.compute(views[0], [other]), estimator.compute(other, [views[0]])
@@ -542,7 +543,7 @@ def test_the_hamlyn_phantom_pair_gets_a_dense_consistent_depth_map(warp_cpu):
     depth_range = (float(np.percentile(X[2], 1)) * 0.9, float(np.percentile(X[2], 99)) * 1.1)
     view_l = KeyframeView(0, left[:, :, ::-1].copy(), K, np.eye(4), None, depth_range)
     view_r = KeyframeView(1, right[:, :, ::-1].copy(), K, np.linalg.inv(T_right_left), None, depth_range)
-    config = dataclasses.replace(DepthConfig(), window_radius_px=5, geometric_max_rel=0.03)
+    config = dataclasses.replace(SWEEP, window_radius_px=5, geometric_max_rel=0.03)
     estimator = DepthEstimator(config, DEVICE)
     map_l = estimator.compute(view_l, [view_r])
     map_r = estimator.compute(view_r, [view_l])
@@ -581,7 +582,7 @@ def test_the_kernels_compile_for_cuda(sm90_ptx):
 def test_the_bench_times_each_step_with_the_sources_cached_and_all_prepared(warp_cpu):
     from lapreco_hil.bench.dense import bench_depth, format_table
 
-    result = bench_depth(DEVICE, (128, 96), 2, 1, scene="sheet")
+    result = bench_depth(DEVICE, (128, 96), 2, 1, scene="sheet", method="sweep")
     steps = {"setup_ms", "prepare_ms", "coarse_sweep_ms", "fine_sweep_ms", "checks_ms", "download_ms"}
     # the map as a mapper runs it (one wait: each step's host time), and the stepped profile
     assert set(result["steps_ms"]) == steps and set(result["cold_steps_ms"]) == steps
@@ -606,7 +607,7 @@ def test_a_dense_surface_keeps_one_estimator_so_each_keyframe_is_prepared_once(s
     views, _ = sheet
     depth_fn, _, why = stereo_functions()
     assert why is None
-    config = DepthConfig()
+    config = SWEEP
     assert depth_fn(views[0], views[1:3], config, DEVICE).stats["prepared"] == [0, 1, 2]
     assert depth_fn(views[1], [views[0], views[2]], config, DEVICE).stats["prepared"] == []
     assert depth_fn(views[1], [views[0]], dataclasses.replace(config, window_radius_px=2),
@@ -625,7 +626,7 @@ def test_a_map_left_on_the_device_fuses_into_the_same_volume_as_the_downloaded_o
     from lapreco_hil.dense.surface import KEPT_STEPS
 
     views, _ = sheet
-    estimator = DepthEstimator(DepthConfig(), DEVICE)
+    estimator = DepthEstimator(SWEEP, DEVICE)
     host_map = estimator.compute(views[0], views[1:])
     device_map = estimator.compute(views[0], views[1:], on_device=True)
     assert isinstance(device_map.depth_m, wp.array) and isinstance(device_map.confidence, wp.array)

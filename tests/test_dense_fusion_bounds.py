@@ -17,6 +17,7 @@ from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.evaluation.accuracy import surface_distances
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
+SWEEP = DepthConfig(method="sweep")  # the plane sweep (the pipeline's default is "patchmatch" since session 17)
 SIZE = (256, 192)
 
 
@@ -59,7 +60,7 @@ def fused_with_instrument(warp_cpu):
 
     views, tool, tissue, rendered = liver_keyframes("moving")
     out = {"tool": tool, "tissue": tissue}
-    for name, maps in (("stereo", compute_depths(views, DepthConfig(), DEVICE).values()), ("rendered", rendered)):
+    for name, maps in (("stereo", compute_depths(views, SWEEP, DEVICE).values()), ("rendered", rendered)):
         volume = TsdfVolume(FusionConfig(), DEVICE)
         for depth_map in maps:
             volume.integrate(depth_map, views[depth_map.kf_id].colour)

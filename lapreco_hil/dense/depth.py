@@ -738,23 +738,25 @@ class DepthEstimator:
         the check ``FUNNEL[k + 1]`` (0: outside the mask, 1: a highlight, ...); len(FUNNEL) - 1: kept."""
         return self.code.numpy().copy()
 
-    def check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
-        """``depth_map`` with only the depths that at least ``geometric_min_views`` of ``source_maps`` (the sources'
-        own depth maps, as computed, before their own checks) confirm forward-backward; the funnel gains
-        ``geometry_agrees``."""
+    def check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap],
+                       min_views: int | None = None) -> DepthMap:
+        """``depth_map`` with only the depths that at least ``min_views`` (``geometric_min_views`` by default;
+        capped at the maps given) of ``source_maps`` (other keyframes' own depth maps: its sources', or any
+        neighbour's) confirm forward-backward; the funnel gains ``geometry_agrees``."""
         if not source_maps:
             return depth_map
         with device_lock(self.device):
-            return self._check_geometry(depth_map, source_maps)
+            return self._check_geometry(depth_map, source_maps, min_views)
 
-    def _check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap]) -> DepthMap:
+    def _check_geometry(self, depth_map: DepthMap, source_maps: list[DepthMap],
+                        min_views: int | None = None) -> DepthMap:
         h, w = depth_map.depth_m.shape
         self.ops = dict.fromkeys(DEVICE_OPS, 0)
         self._ensure_checks(h, w)
         t0 = time.perf_counter()
         self._assign(self.depth, depth_map.depth_m)
         self._assign(self.confidence, depth_map.confidence)
-        self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps)
+        self._geometric(depth_map.kf_id, depth_map.K, depth_map.T_world_camera, source_maps, min_views)
         (depth, confidence), _ = self._download()
         stats = dict(depth_map.stats or {})
         stats["funnel"] = dict(stats.get("funnel", {}), geometry_agrees=int(np.count_nonzero(depth > 0)))
@@ -764,8 +766,9 @@ class DepthEstimator:
         stats["geometry_device_ops"] = dict(self.ops)
         return DepthMap(depth_map.kf_id, depth, confidence, depth_map.K, depth_map.T_world_camera, stats)
 
-    def _geometric(self, kf_id: int, K_ref, T_world_ref, maps: list[DepthMap]) -> None:
-        """Keep the depths on the device that at least ``geometric_min_views`` of the given depth maps confirm."""
+    def _geometric(self, kf_id: int, K_ref, T_world_ref, maps: list[DepthMap], min_views: int | None = None) -> None:
+        """Keep the depths on the device that at least ``min_views`` (``geometric_min_views``) of the given depth
+        maps confirm."""
         wp = self.wp
         cfg = self.config
         h, w = self.depth.shape
@@ -783,7 +786,8 @@ class DepthEstimator:
                           wp.mat33(*T_src_ref[:3, :3].ravel()), wp.vec3(*T_src_ref[:3, 3]), wp.mat33(*K_src.ravel()),
                           wp.mat33(*np.linalg.inv(K_src).ravel()), self.src_depth, cfg.geometric_max_px,
                           cfg.geometric_max_rel, self.agree])
-        self._launch(k.apply_agreement, (h, w), [self.agree, min(cfg.geometric_min_views, len(maps)), self.depth,
+        need = cfg.geometric_min_views if min_views is None else min_views
+        self._launch(k.apply_agreement, (h, w), [self.agree, min(need, len(maps)), self.depth,
                                                  self.confidence, self.code])
 
 
@@ -816,6 +820,12 @@ class KeptEstimator:
         estimator = self._kept(config, device)
         depth_map = estimator.compute(ref, sources, on_device=True)
         return depth_map, estimator.view_colour(ref.kf_id)
+
+    def check_geometry(self, depth_map: DepthMap, maps: list[DepthMap], config: DepthConfig, device: str,
+                       min_views: int) -> DepthMap:
+        """``DepthEstimator.check_geometry`` on the kept estimator: the depths of ``depth_map`` that at least
+        ``min_views`` of the other keyframes' ``maps`` confirm."""
+        return self._kept(config, device).check_geometry(depth_map, maps, min_views)
 
     def _kept(self, config: DepthConfig, device: str) -> DepthEstimator:
         if self._key != (config, str(device)):

@@ -46,6 +46,9 @@ DEPTH_UNIT_M = 1e-5  # a kept depth map's step: 10 um, up to 0.65 m
 KEPT_STEPS = (DEPTH_UNIT_M, 255)  # a kept map: depth in DEPTH_UNIT_M steps (uint16), confidence in 1/255 (uint8)
 CANDIDATE_FACTOR = 3  # decoded keyframe images cached: 3 x n views (and a few more)
 CANDIDATE_POSES = 64  # the sources are chosen among the views this many nearest the reference (poses only)
+# the final build's consistency check makes this many maps before fusing them (kept quantised: 3 bytes a pixel,
+# 400 MB at 1080p), so that neighbours check each other
+CONSISTENCY_CHUNK = 64
 
 
 def stereo_functions() -> tuple[DepthFn | None, SourcesFn | None, str | None]:
@@ -274,11 +277,19 @@ class DenseSurface:
             return depth, (ref.colour if colour is None else colour)
         return self.depth_fn(ref, sources, self.config.depth, self.device), ref.colour
 
-    def fuse_pending(self, kf_ids=None) -> int:
+    def fuse_pending(self, kf_ids=None, consistent: bool = False) -> int:
         """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
-        poses. Returns how many were fused."""
+        poses. ``consistent`` (the final build): every map is made first, then each is fused with only the depths
+        its neighbours' maps confirm (``_fuse_consistent``), where the depth function can check them and
+        ``[depth] consistency_views`` asks for it. Returns how many were fused."""
         todo = [v.kf_id for v in self.views.values()
                 if v.reference is None and v.T_fused is None and (kf_ids is None or v.kf_id in kf_ids)]
+        check = getattr(self.depth_fn, "check_geometry", None)
+        if consistent and check is not None and self.config.depth.consistency_views > 0:
+            done = sum(self._fuse_consistent(todo[i:i + CONSISTENCY_CHUNK], check)
+                       for i in range(0, len(todo), CONSISTENCY_CHUNK))
+            self.fused += done
+            return done
         done = 0
         for kf_id in todo:
             ref = self.keyframe_view(kf_id)
@@ -300,6 +311,79 @@ class DenseSurface:
         self.fused += done
         return done
 
+    def _fuse_consistent(self, todo: list[int], check) -> int:
+        """Multi-view geometric consistency: the maps of ``todo`` made first (kept quantised as they will be fused,
+        3 bytes a pixel), then each fused with only the depths that ``[depth] consistency_min_views`` of its
+        ``consistency_views`` nearest keyframes' maps (its sources first; a map of this batch, or one fused
+        before) confirm forward-backward. Wrong depths rarely agree across views; right ones do."""
+        cfg = self.config.depth
+        made: dict[int, DepthMap] = {}  # kf_id -> its map as it will be kept
+        chosen: dict[int, list[int]] = {}
+        for kf_id in todo:
+            ref = self.keyframe_view(kf_id)
+            sources = self._sources(ref)
+            if not sources:
+                self.without_sources.add(kf_id)
+                continue
+            self.without_sources.discard(kf_id)
+            t0 = time.perf_counter()
+            depth = self.depth_fn(ref, sources, cfg, self.device)
+            self.timings["depth_s"] += time.perf_counter() - t0
+            if depth is None or not _has_depth(depth):
+                self.depth_failures += 1
+                continue
+            d16, c8 = _quantised(depth)  # (the estimator's host buffer is let go: it is reused for the next map)
+            as_kept = DepthMap(kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                               c8.astype(np.float32) / np.float32(255.0), np.array(depth.K, float),
+                               np.array(depth.T_world_camera, float), depth.stats)
+            made[kf_id] = as_kept
+            chosen[kf_id] = [s.kf_id for s in sources]
+        done = 0
+        stored: OrderedDict[int, DepthMap] = OrderedDict()  # kept maps of fused neighbours, decoded (a few)
+        for kf_id, as_kept in made.items():
+            v = self.views[kf_id]
+            t0 = time.perf_counter()
+            maps = [m for m in (self._map_of(n, made, stored) for n in self._neighbours(kf_id, chosen[kf_id], made))
+                    if m is not None]
+            checked = check(as_kept, maps, cfg, self.device, cfg.consistency_min_views) if maps else as_kept
+            t1 = time.perf_counter()
+            self.timings["depth_s"] += t1 - t0
+            if not _has_depth(checked):
+                self.depth_failures += 1
+                continue
+            self._fuse_and_keep(v, checked, self._colour(kf_id))
+            self.timings["integration_s"] += time.perf_counter() - t1
+            done += 1
+        return done
+
+    def _neighbours(self, kf_id: int, sources: list[int], made: dict) -> list[int]:
+        """The keyframes whose maps check ``kf_id``'s: its sources, then the nearest others with a map (made in
+        this batch or fused), up to ``[depth] consistency_views``."""
+        n = self.config.depth.consistency_views
+        c = self.views[kf_id].T_world_camera[:3, 3]
+        others = [v for v in self.views.values() if v.kf_id != kf_id and v.kf_id not in sources
+                  and (v.kf_id in made or v.T_fused is not None)]
+        others.sort(key=lambda v: np.linalg.norm(v.T_world_camera[:3, 3] - c))
+        return (sources + [v.kf_id for v in others])[:n]
+
+    def _map_of(self, kf_id: int, made: dict, stored: OrderedDict) -> DepthMap | None:
+        """A keyframe's map as made in this batch (its pose the one it was made at), or as kept once fused (PNG
+        decoded, the last 2 x ``consistency_views`` of them kept in ``stored``)."""
+        if kf_id in made:
+            return made[kf_id]
+        if kf_id in stored:
+            stored.move_to_end(kf_id)
+            return stored[kf_id]
+        v = self.views.get(kf_id)
+        if v is None or v.T_fused is None:
+            return None
+        depth = self._stored_map(v)
+        depth.T_world_camera = v.T_world_camera.copy()  # (re-fused at its current pose by now)
+        stored[kf_id] = depth
+        while len(stored) > 2 * self.config.depth.consistency_views:
+            stored.popitem(last=False)
+        return depth
+
     def build(self, m) -> DenseResult:
         """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
         with the depth range its landmarks span; the mesh and points."""
@@ -310,7 +394,7 @@ class DenseSurface:
         live run's dense process is sent."""
         self.refused_final += self.update_poses({k: T for k, T in poses.items() if k in self.views}, settled=True)
         self.set_depth_ranges(ranges)
-        self.fuse_pending()
+        self.fuse_pending(consistent=True)
         return self.extract()
 
     def extract(self) -> DenseResult:
@@ -367,6 +451,17 @@ def reach(K: np.ndarray, d16: np.ndarray) -> float:
     h, w = d16.shape
     corners = np.linalg.solve(K, np.array([[0.0, w - 1.0, 0.0, w - 1.0], [0.0, 0.0, h - 1.0, h - 1.0], [1.0] * 4]))
     return far * float(np.linalg.norm(corners, axis=0).max())
+
+
+def _quantised(depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
+    """A host map as the volume quantises it to keep it (``KEPT_STEPS``, tsdf's ``prepare_map``): depth in
+    DEPTH_UNIT_M steps (uint16, 0 where none or beyond its range), confidence in 1/255 (0 where no depth)."""
+    d = np.nan_to_num(np.asarray(depth.depth_m, np.float64), nan=0.0)
+    q = np.where(d > 0, np.floor(d / DEPTH_UNIT_M + 0.5), 0.0)
+    d16 = np.where(q < 65536, q, 0).astype(np.uint16)
+    c = np.nan_to_num(np.asarray(depth.confidence, np.float64), nan=0.0)
+    c8 = np.where((d16 > 0) & (c > 0), np.floor(np.minimum(c, 1.0) * 255.0 + 0.5), 0).astype(np.uint8)
+    return d16, c8
 
 
 def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:

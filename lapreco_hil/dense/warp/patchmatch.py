@@ -261,18 +261,26 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
     cp = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid)
     best = c0
     scores = s0
+    # a parabola through the best of the three and its two neighbours: where a side scored best, one more score a
+    # step beyond it (else the depth would move by a whole step, up to half a step off)
+    lo = cm
+    hi = cp
     if cm > c0 and cm >= cp:
         rho = rho - refine_rho
         best = cm
+        hi = c0
+        lo = _score(grey, src, slots, A, b, n_src, k, x, y, rho - refine_rho, gx, gy, r, step, min_std, min_valid)
         scores = _view_scores(grey, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
     elif cp > c0:
         rho = rho + refine_rho
         best = cp
+        lo = c0
+        hi = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid)
         scores = _view_scores(grey, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
-    elif cm > NO_SCORE + 0.5 and cp > NO_SCORE + 0.5:
-        den = cm - 2.0 * c0 + cp
+    if lo > NO_SCORE + 0.5 and hi > NO_SCORE + 0.5:
+        den = lo - 2.0 * best + hi
         if den < -1.0e-6:
-            rho = rho + refine_rho * wp.clamp(0.5 * (cm - cp) / den, -0.5, 0.5)
+            rho = rho + refine_rho * wp.clamp(0.5 * (lo - hi) / den, -0.5, 0.5)
     if best < min_zncc:
         code[y, x] = wp.uint8(CODE_NO_MATCH)
         return
