@@ -286,3 +286,23 @@ def test_a_run_whose_robot_readings_are_all_refused_says_why(tmp_path, warp_cpu)
     assert "20 frames in, 20 without a pose" in message, message
     assert "beyond limits" in message and "= 3 beyond its limits" in message, message
     assert "lapreco devices --probe URL" in message and "\n" not in message
+
+
+def test_the_live_dense_stage_makes_its_maps_by_the_live_method(fast_session, tmp_path):
+    """A live run's dense stage uses ``[depth] live_method`` (the sweep, measured live on the H100), whatever
+    ``[depth] method`` an offline build uses (PatchMatch by default)."""
+    from dataclasses import replace
+
+    from lapreco_hil.pose_sources import RobotPoseSource
+    from lapreco_hil.runtime.live import LiveRun
+
+    config = PipelineConfig()
+    config = replace(config, surface=replace(config.surface, mode="dense"))
+    assert (config.depth.method, config.depth.live_method) == ("patchmatch", "sweep")
+    robot, grabber = _devices(fast_session, pace="afap")
+    with robot, grabber:
+        live = LiveRun(grabber, RobotPoseSource(robot, robot.description, config.prior), grabber.camera, config,
+                       tracker="opencv", device="cpu", out_dir=tmp_path)
+        assert live.dense is not None
+        assert live.dense.spec.config.depth.method == "sweep"
+        assert live.dense.spec.config.depth.consistency_views == config.depth.consistency_views

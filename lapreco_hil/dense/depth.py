@@ -218,8 +218,9 @@ class DepthEstimator:
         if config.default_near_m >= config.default_far_m:
             raise ConfigError(f"[depth] default_near_m {config.default_near_m} must be less than "
                               f"default_far_m {config.default_far_m}")
-        if config.method not in METHODS:
-            raise ConfigError(f"[depth] method {config.method!r} is none of {', '.join(METHODS)}")
+        for name in ("method", "live_method"):
+            if getattr(config, name) not in METHODS:
+                raise ConfigError(f"[depth] {name} {getattr(config, name)!r} is none of {', '.join(METHODS)}")
         if config.patchmatch_far_px % 2 == 0:
             raise ConfigError(f"[depth] patchmatch_far_px {config.patchmatch_far_px} must be odd (a neighbour "
                               "of the other colour of the checkerboard)")

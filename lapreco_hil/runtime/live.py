@@ -23,6 +23,7 @@ together and turns the outcome into a result or a clear error."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -90,7 +91,9 @@ class LiveRun:
             functions, self.surface_note = dense_functions_for(config, live=True, device=device)
             if functions is not None:
                 view = rt.view_period_s > 0 and out_dir is not None  # the live view is the mesh's one reader
-                spec = DenseSpec(camera, config, device, stereo, *functions,
+                # the live stage's depth maps by [depth] live_method (the final build of an offline run: method)
+                live_depth = dataclasses.replace(config.depth, method=config.depth.live_method)
+                spec = DenseSpec(camera, dataclasses.replace(config, depth=live_depth), device, stereo, *functions,
                                  period_s=rt.surface_period_s if view else None, busy_share=rt.dense_busy_share)
                 self.dense = DenseProcess(spec, self.links, self.metrics)
                 self.recent = RecentFrames(RECENT_FRAMES)
