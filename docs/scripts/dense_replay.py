@@ -3,7 +3,8 @@ cached by settings and code), then fused and evaluated per consistency filter: f
 of the maps of the VIEWS nearest keyframes, its sources first, must agree). usage: dense_replay.py SCENE
 [key=value ...] [filters=none,2:8]. Prints coverage and accuracy per filter. The final build's hole filling
 (``consistency_fill_*`` settings) applies to the cached maps before the check (the maps are not made again).
-``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map."""
+``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map; ``rounds=2``: the checked maps filled
+and checked again (against each other's)."""
 # Session 17 (docs/dense.md, "Session 17: coverage"): the depth + fusion stage of the sequential demo re-run on saved
 # keyframes. Files live in $DENSE_REPLAY_DIR (default /tmp/dense-replay). Not part of the package.
 import dataclasses
@@ -25,13 +26,15 @@ import lapreco_hil.dense.warp.plane_sweep as sweep_module
 WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
-sets, fsets, filters, nb, fill_sources = {}, {}, ["none", "2:8"], 0, True
+sets, fsets, filters, nb, fill_sources, rounds = {}, {}, ["none", "2:8"], 0, True, 1
 for a in sys.argv[2:]:
     k, v = a.split("=")
     if k == "filters":
         filters = [x for x in v.split(",")]; continue
     if k == "nb":
         nb = int(v); continue
+    if k == "rounds":
+        rounds = int(v); continue
     if k == "fillsrc":
         fill_sources = bool(int(v)); continue
     target = fsets if k.startswith("f.") else sets
@@ -63,26 +66,40 @@ filled = {i: fill_holes(m, dcfg.consistency_fill_px, dcfg.consistency_fill_rel, 
 t2 = time.time()
 surface = pv.read(f"{WORK}/{scene}-truth.vtp")
 _, poses, K, size, mask = rec["truth"]
+def fill(m):
+    return fill_holes(m, dcfg.consistency_fill_px, dcfg.consistency_fill_rel, dcfg.consistency_fill_lines,
+                      dcfg.consistency_fill_weight)
+
+
+def checked(filt, nb, own, others):
+    """Each map of ``own`` checked against ``others``' maps of its neighbours (its sources first, then the nearest)."""
+    out = {}
+    est.config = dataclasses.replace(dcfg, geometric_min_views=filt)
+    for ref_id, src_ids in rec["jobs"]:
+        ids = [s for s in src_ids if s in others]
+        if nb > len(ids):
+            c = rec["views"][ref_id].T_world_camera[:3, 3]
+            near = sorted((np.linalg.norm(rec["views"][o].T_world_camera[:3, 3] - c), o) for o in others
+                          if o != ref_id and o not in ids)
+            ids += [o for _, o in near[:nb - len(ids)]]
+        out[ref_id] = est.check_geometry(own[ref_id], [others[s] for s in ids])
+    return out
+
+
 for spec in filters:
     filt, nb = (spec.split(":") + ["0"])[:2] if spec != "none" else ("none", "0")
     filt = int(filt) if filt != "none" else filt
     nb = int(nb)
+    if filt == "none":
+        final = raw
+    else:
+        final = checked(filt, nb, filled, filled if fill_sources else raw)
+        for _ in range(rounds - 1):  # the checked maps' holes filled from confirmed depths, checked again
+            refilled = {i: fill(m) for i, m in final.items()}
+            final = checked(filt, nb, refilled, refilled)
     vol = TsdfVolume(fcfg, "cpu")
     for ref_id, src_ids in rec["jobs"]:
-        dm = filled[ref_id]
-        maps = filled if fill_sources else raw
-        if filt != "none":
-            est.config = dataclasses.replace(dcfg, geometric_min_views=filt)
-            ids = [s for s in src_ids if s in maps]
-            if nb > len(ids):
-                c = rec["views"][ref_id].T_world_camera[:3, 3]
-                others = sorted((np.linalg.norm(rec["views"][o].T_world_camera[:3, 3] - c), o) for o in maps
-                                if o != ref_id and o not in ids)
-                ids += [o for _, o in others[:nb - len(ids)]]
-            dm = est.check_geometry(dm, [maps[s] for s in ids])
-        else:
-            dm = raw[ref_id]
-        vol.integrate(dm, rec["views"][ref_id].colour, quantise=KEPT_STEPS)
+        vol.integrate(final[ref_id], rec["views"][ref_id].colour, quantise=KEPT_STEPS)
     pts, nrm, col = vol.extract_points()
     d = surface_report(surface, poses, K, size, dense=pts, mask=mask)["dense"]
     from lapreco_hil.evaluation.accuracy import surface_distances
