@@ -125,3 +125,10 @@ def test_a_filled_depth_that_other_keyframes_contradict_is_not_fused(warp_cpu):
     points = _build(pit=True, fill_px=24)
     assert _inside_patch(points, PLANE_Z_M) == 0
     assert _inside_patch(points, PIT_Z_M) > 20
+
+
+def test_the_fill_kernel_compiles_for_cuda(sm90_ptx):
+    """CI has no GPU: the filling's kernel still compiles for an H100 (sm_90)."""
+    from lapreco_hil.dense.warp import fill
+
+    assert "fill_holes" in sm90_ptx(fill)
