@@ -233,7 +233,15 @@ class DepthConfig:
     # then keeps of each the depths that ``consistency_min_views`` of the maps of its ``consistency_views`` nearest
     # keyframes (its sources first) confirm forward-backward (0: no such check; docs/dense.md, "Session 17")
     consistency_views: int = ranged(8, ge=0)
-    consistency_min_views: int = ranged(2, ge=1)
+    consistency_min_views: int = ranged(3, ge=1)
+    # ... after filling each map's holes of up to ``consistency_fill_px`` pixels (0: none) where at least
+    # ``consistency_fill_lines`` of its row, column and diagonals bridge them between depths within
+    # ``consistency_fill_rel`` (inverse depth), at ``consistency_fill_weight`` of their confidence; the check vets
+    # the filled depths like any other (lapreco_hil.dense.fill; docs/dense.md, "Session 17, second pass")
+    consistency_fill_px: int = ranged(48, ge=0)
+    consistency_fill_rel: float = ranged(0.04, gt=0.0)
+    consistency_fill_lines: int = ranged(1, ge=1, le=4)
+    consistency_fill_weight: float = ranged(0.5, gt=0.0, le=1.0)
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too

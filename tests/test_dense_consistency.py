@@ -64,16 +64,16 @@ def _build(consistency_views: int) -> np.ndarray:
 
 def test_the_final_build_fuses_only_depths_that_other_keyframes_confirm(warp_cpu):
     """Without the check every wrong patch becomes a piece of surface 10 mm in front of the plane; with it (the
-    defaults: each map against its neighbours' maps, two must agree) none does, and the plane stays (measured:
-    18.7% of the points on the patches without the check, none with it; 78% as many points on the plane: the
-    ends of the row of cameras see strips that fewer than two other keyframes see)."""
+    defaults: each map against its neighbours' maps, three must agree) none does, and the plane stays (measured:
+    18.7% of the points on the patches without the check, none with it; 67% as many points on the plane (78%
+    when two must agree): the ends of the row of five cameras see strips that fewer other keyframes see)."""
     checked = _build(consistency_views=PipelineConfig().depth.consistency_views)
     unchecked = _build(consistency_views=0)
     on_patch = [np.mean(np.abs(p[:, 2] - WRONG_Z_M) < 0.002) for p in (checked, unchecked)]
     on_plane = [np.count_nonzero(np.abs(p[:, 2] - PLANE_Z_M) < 0.001) for p in (checked, unchecked)]
     assert on_patch[1] > 0.03
     assert on_patch[0] == 0.0
-    assert on_plane[0] > 0.7 * on_plane[1]
+    assert on_plane[0] > 0.6 * on_plane[1]
 
 
 def _patch_x_m(kf_id: int) -> tuple[float, float]:

@@ -1,7 +1,10 @@
 """Every captured keyframe's depth map made once ([depth] settings as key=value, [fusion] ones as f.key=value;
 cached by settings and code), then fused and evaluated per consistency filter: filters=none,MIN:VIEWS,... (MIN
 of the maps of the VIEWS nearest keyframes, its sources first, must agree). usage: dense_replay.py SCENE
-[key=value ...] [filters=none,2:8]. Prints coverage and accuracy per filter."""
+[key=value ...] [filters=none,2:8]. Prints coverage and accuracy per filter. The final build's hole filling
+(``consistency_fill_*`` settings) applies to the cached maps before the check (the maps are not made again).
+``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map; ``rounds=2``: the checked maps filled
+and checked again (against each other's)."""
 # Session 17 (docs/dense.md, "Session 17: coverage"): the depth + fusion stage of the sequential demo re-run on saved
 # keyframes. Files live in $DENSE_REPLAY_DIR (default /tmp/dense-replay). Not part of the package.
 import dataclasses
@@ -23,13 +26,17 @@ import lapreco_hil.dense.warp.plane_sweep as sweep_module
 WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
-sets, fsets, filters, nb = {}, {}, ["none", "2:8"], 0
+sets, fsets, filters, nb, fill_sources, rounds = {}, {}, ["none", "2:8"], 0, True, 1
 for a in sys.argv[2:]:
     k, v = a.split("=")
     if k == "filters":
         filters = [x for x in v.split(",")]; continue
     if k == "nb":
         nb = int(v); continue
+    if k == "rounds":
+        rounds = int(v); continue
+    if k == "fillsrc":
+        fill_sources = bool(int(v)); continue
     target = fsets if k.startswith("f.") else sets
     k = k[2:] if k.startswith("f.") else k
     try: v = json.loads(v)
@@ -42,7 +49,7 @@ fcfg = dataclasses.replace(fcfg, **fsets)
 est = DepthEstimator(dcfg, "cpu", host_buffers=0)
 t0 = time.time()
 import hashlib
-key = hashlib.md5(repr((scene, sorted(sets.items()), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read())).encode()).hexdigest()[:10]
+key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith("consistency_fill")), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read())).encode()).hexdigest()[:10]
 cache = f"{WORK}/maps-{key}.pkl"
 if os.path.exists(cache):
     maps = pickle.load(open(cache, "rb"))
@@ -52,29 +59,51 @@ else:
         maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids])
     pickle.dump(maps, open(cache, "wb"))
 t1 = time.time()
+from lapreco_hil.dense.fill import fill_holes
+raw = maps
+filled = {i: fill_holes(m, dcfg.consistency_fill_px, dcfg.consistency_fill_rel, dcfg.consistency_fill_lines,
+                        dcfg.consistency_fill_weight) for i, m in maps.items()}
+t2 = time.time()
 surface = pv.read(f"{WORK}/{scene}-truth.vtp")
 _, poses, K, size, mask = rec["truth"]
+def fill(m):
+    return fill_holes(m, dcfg.consistency_fill_px, dcfg.consistency_fill_rel, dcfg.consistency_fill_lines,
+                      dcfg.consistency_fill_weight)
+
+
+def checked(filt, nb, own, others):
+    """Each map of ``own`` checked against ``others``' maps of its neighbours (its sources first, then the nearest)."""
+    out = {}
+    est.config = dataclasses.replace(dcfg, geometric_min_views=filt)
+    for ref_id, src_ids in rec["jobs"]:
+        ids = [s for s in src_ids if s in others]
+        if nb > len(ids):
+            c = rec["views"][ref_id].T_world_camera[:3, 3]
+            near = sorted((np.linalg.norm(rec["views"][o].T_world_camera[:3, 3] - c), o) for o in others
+                          if o != ref_id and o not in ids)
+            ids += [o for _, o in near[:nb - len(ids)]]
+        out[ref_id] = est.check_geometry(own[ref_id], [others[s] for s in ids])
+    return out
+
+
 for spec in filters:
     filt, nb = (spec.split(":") + ["0"])[:2] if spec != "none" else ("none", "0")
     filt = int(filt) if filt != "none" else filt
     nb = int(nb)
+    if filt == "none":
+        final = raw
+    else:
+        final = checked(filt, nb, filled, filled if fill_sources else raw)
+        for _ in range(rounds - 1):  # the checked maps' holes filled from confirmed depths, checked again
+            refilled = {i: fill(m) for i, m in final.items()}
+            final = checked(filt, nb, refilled, refilled)
     vol = TsdfVolume(fcfg, "cpu")
     for ref_id, src_ids in rec["jobs"]:
-        dm = maps[ref_id]
-        if filt != "none":
-            est.config = dataclasses.replace(dcfg, geometric_min_views=filt)
-            ids = [s for s in src_ids if s in maps]
-            if nb > len(ids):
-                c = rec["views"][ref_id].T_world_camera[:3, 3]
-                others = sorted((np.linalg.norm(rec["views"][o].T_world_camera[:3, 3] - c), o) for o in maps
-                                if o != ref_id and o not in ids)
-                ids += [o for _, o in others[:nb - len(ids)]]
-            dm = est.check_geometry(dm, [maps[s] for s in ids])
-        vol.integrate(dm, rec["views"][ref_id].colour, quantise=KEPT_STEPS)
+        vol.integrate(final[ref_id], rec["views"][ref_id].colour, quantise=KEPT_STEPS)
     pts, nrm, col = vol.extract_points()
     d = surface_report(surface, poses, K, size, dense=pts, mask=mask)["dense"]
     from lapreco_hil.evaluation.accuracy import surface_distances
     dd = surface_distances(pts[::3], surface) * 1e3
     extra = f"median {np.median(dd):.3f} p90 {np.percentile(dd, 90):.2f} >1mm {100*np.mean(dd > 1):.1f}% >2mm {100*np.mean(dd > 2):.1f}% rms<2mm {np.sqrt(np.mean(dd[dd<2]**2)):.3f}"
     print(f"{scene} {' '.join(sys.argv[2:])} geo={spec}: {extra} coverage {100*d['coverage']:.1f}% rms {d['rms_mm']:.3f} mm "
-          f">5mm {100*d['beyond_5mm']:.2f}% points {d['points']} depth {t1-t0:.0f}s", flush=True)
+          f">5mm {100*d['beyond_5mm']:.2f}% points {d['points']} depth {t1-t0:.0f}s fill {t2-t1:.1f}s", flush=True)

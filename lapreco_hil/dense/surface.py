@@ -31,6 +31,7 @@ import pyvista as pv
 
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import DepthConfig, PipelineConfig
+from lapreco_hil.dense.fill import fill_holes
 from lapreco_hil.dense.fusion import TsdfVolume
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.errors import ConfigError
@@ -338,6 +339,15 @@ class DenseSurface:
                                np.array(depth.T_world_camera, float), depth.stats)
             made[kf_id] = as_kept
             chosen[kf_id] = [s.kf_id for s in sources]
+        unfilled = made
+        if cfg.consistency_fill_px > 0:
+            # holes filled (a guess each): a filled depth is fused only where other maps confirm it, and it
+            # confirms theirs in turn
+            t0 = time.perf_counter()
+            made = {kf_id: fill_holes(m, cfg.consistency_fill_px, cfg.consistency_fill_rel,
+                                      cfg.consistency_fill_lines, cfg.consistency_fill_weight, self.device)
+                    for kf_id, m in made.items()}
+            self.timings["depth_s"] += time.perf_counter() - t0
         done = 0
         stored: OrderedDict[int, DepthMap] = OrderedDict()  # kept maps of fused neighbours, decoded (a few)
         for kf_id, as_kept in made.items():
@@ -345,6 +355,8 @@ class DenseSurface:
             t0 = time.perf_counter()
             maps = [m for m in (self._map_of(n, made, stored) for n in self._neighbours(kf_id, chosen[kf_id], made))
                     if m is not None]
+            if not maps:  # (a filled depth is never fused unconfirmed)
+                as_kept = unfilled.get(kf_id, as_kept)
             checked = check(as_kept, maps, cfg, self.device, cfg.consistency_min_views) if maps else as_kept
             t1 = time.perf_counter()
             self.timings["depth_s"] += t1 - t0
