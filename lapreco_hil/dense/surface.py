@@ -231,7 +231,7 @@ class DenseSurface:
         self._encoded(v)
         depth = cv2.imdecode(np.frombuffer(v.depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
         conf = cv2.imdecode(np.frombuffer(v.confidence_png, np.uint8), cv2.IMREAD_UNCHANGED)
-        return _dequantised(v, depth, conf)
+        return _dequantised(v.kf_id, depth, conf, v.K, v.T_fused.copy())
 
     @staticmethod
     def _encoded(v: _View) -> None:
@@ -334,9 +334,8 @@ class DenseSurface:
                 self.depth_failures += 1
                 continue
             d16, c8 = _quantised(depth)  # (the estimator's host buffer is let go: it is reused for the next map)
-            as_kept = DepthMap(kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
-                               c8.astype(np.float32) / np.float32(255.0), np.array(depth.K, float),
-                               np.array(depth.T_world_camera, float), depth.stats)
+            as_kept = _dequantised(kf_id, d16, c8, np.array(depth.K, float), np.array(depth.T_world_camera, float),
+                                   depth.stats)
             made[kf_id] = as_kept
             chosen[kf_id] = [s.kf_id for s in sources]
         unfilled = made
@@ -476,9 +475,11 @@ def _quantised(depth: DepthMap) -> tuple[np.ndarray, np.ndarray]:
     return d16, c8
 
 
-def _dequantised(v: _View, d16: np.ndarray, c8: np.ndarray) -> DepthMap:
-    return DepthMap(v.kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
-                    c8.astype(np.float32) / np.float32(255.0), v.K, v.T_fused.copy())
+def _dequantised(kf_id: int, d16: np.ndarray, c8: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray,
+                 stats: dict | None = None) -> DepthMap:
+    """A kept map (``_quantised``) back in metres and [0, 1] confidence."""
+    return DepthMap(kf_id, d16.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                    c8.astype(np.float32) / np.float32(255.0), K, T_world_camera, stats)
 
 
 def _encode_pngs(d16: np.ndarray, c8: np.ndarray) -> tuple[bytes, bytes]:

@@ -294,12 +294,18 @@ class WarpFrontEnd:
             pyramid.pyr_down(pyr, offs[l - 1], ws[l - 1], hs[l - 1], offs[l], ws[l], hs[l], dev)
         pyramid.sobel_levels(pyr, self._offs, self._ws, self._hs, self.levels, gx, gy, dev)
         if self.config.drift_check and self._drift_weights.shape[0] > 1:
-            pyramid.blur_1d(pyr, self.width, self.height, self._drift_weights, 1, 0, self._drift_tmp, dev)
-            pyramid.blur_1d(self._drift_tmp, self.width, self.height, self._drift_weights, 0, 1, self._drift_img, dev)
-            pyramid.sobel_levels(self._drift_img, self._offs, self._ws, self._hs, 1, self._drift_gx, self._drift_gy,
-                                 dev)
+            self._smoothed_level0(self._drift_weights, self._drift_tmp, self._drift_img, self._drift_gx,
+                                  self._drift_gy)
         if self._rescuing():
             self._rescue_image_kernels()
+
+    def _smoothed_level0(self, weights, tmp, img, gx, gy) -> None:
+        """``img`` <- level 0 of the current frame blurred by ``weights`` (``drift.drift_image``), with its
+        gradients ``gx``, ``gy``."""
+        dev, W, H = self.device, self.width, self.height
+        pyramid.blur_1d(self._pyr[self._cur], W, H, weights, 1, 0, tmp, dev)
+        pyramid.blur_1d(tmp, W, H, weights, 0, 1, img, dev)
+        pyramid.sobel_levels(img, self._offs, self._ws, self._hs, 1, gx, gy, dev)
 
     def _rescuing(self) -> bool:
         """Whether this frame may rescue new tracks (``_rescue_kernels``): a rig, the drift check, a smoothing."""
@@ -308,11 +314,8 @@ class WarpFrontEnd:
     def _rescue_image_kernels(self) -> None:
         """Level 0 of the current frame smoothed by ``rescue_smoothing_px`` (``drift.drift_image``) and its
         gradients: the image a rescued track registers on."""
-        dev, W, H = self.device, self.width, self.height
-        pyramid.blur_1d(self._pyr[self._cur], W, H, self._rescue_weights, 1, 0, self._rescue_tmp, dev)
-        pyramid.blur_1d(self._rescue_tmp, W, H, self._rescue_weights, 0, 1, self._rescue_img, dev)
-        pyramid.sobel_levels(self._rescue_img, self._offs, self._ws, self._hs, 1, self._rescue_gx, self._rescue_gy,
-                             dev)
+        self._smoothed_level0(self._rescue_weights, self._rescue_tmp, self._rescue_img, self._rescue_gx,
+                              self._rescue_gy)
 
     def _drift_images(self) -> tuple:
         """(image, gx, gy) the drift check registers on in the current frame: level 0 smoothed
@@ -339,11 +342,7 @@ class WarpFrontEnd:
             # LK back into the previous image from where the swept tracks landed (only they are checked: the
             # tracks started at a depth skip it, most of a live run's)
             predict.swept_and_tracked(self._depth, self._status, self._count[prev], self._back_needed, self.device)
-            lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
-                        self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
-                        cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
-                        self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device,
-                        coarse_eps=LK_COARSE_EPS, only=self._back_needed)
+            self._lk_back()
             predict.forward_backward(self._depth, self._pts[prev], self._back_pts, self._back_status,
                                      self._count[prev], self._status, self._searched, self.device)
             wp.copy(self._at_lk, self._lk_pts)
@@ -354,6 +353,17 @@ class WarpFrontEnd:
             if self._motion is None:
                 wp.copy(self._at_lk, self._lk_pts)  # where a new track's rescue starts
         self._sync_for_profile("lk")
+
+    def _lk_back(self) -> None:
+        """LK from where the tracks landed back into the previous image, from where they were, for the slots
+        ``_back_needed`` flags (the forward-backward checks: the swept tracks', the rescued new ones')."""
+        cfg = self.config
+        prev, cur = 1 - self._cur, self._cur
+        lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
+                    self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
+                    self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, self.device,
+                    coarse_eps=LK_COARSE_EPS, only=self._back_needed)
 
     def _predict_kernels(self, motion: FrameMotion) -> None:
         """Each track's start in this frame from the camera motion (projection at its depth or the epipolar
@@ -411,7 +421,7 @@ class WarpFrontEnd:
         FORWARD_BACKWARD_PX of where it was. Why, and why only with a rig at fast motion: see the OpenCV
         front-end's ``_drift_check``."""
         cfg = self.config
-        prev, cur = 1 - self._cur, self._cur
+        prev = 1 - self._cur
         dev = self.device
         state = self._rescue_state[prev]
         drift_check.rescue_candidates(state, self._keep, self._searched if self._motion is not None else None,
@@ -422,11 +432,7 @@ class WarpFrontEnd:
             self._A[prev], self._lk_pts, self._status, self._mask, self._count[prev], DRIFT_ITERATIONS,
             cfg.drift_max_residual, 1.6, 3.0, self._keep, self._residual, dev, only=self._again)
         drift_check.rescue_back_needed(state, self._again, self._keep, self._back_needed, dev)
-        lk.lk_track(self._pyr[cur], self._gx[cur], self._gy[cur], self._pyr[prev], self._offs, self._ws, self._hs,
-                    self._lk_levels, cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
-                    cfg.max_lk_error / self._lk_error_units, self._lk_pts, self._count[prev],
-                    self._pts[prev], self._one, self._back_pts, self._back_status, self._back_error, dev,
-                    coarse_eps=LK_COARSE_EPS, only=self._back_needed)
+        self._lk_back()
         drift_check.rescue_verdict(self._back_needed, self._back_pts, self._back_status, self._pts[prev],
                                    self._again, self._count[prev], FORWARD_BACKWARD_PX, self._keep, state, dev)
 
