@@ -111,6 +111,9 @@ class TrackerConfig:
     stereo_depth_prior: bool = True
     # start each track where the pose source's motion says it lands (FrameMotion); off: where it was
     predict: bool = True
+    # without a pose prediction, a track off the RANSAC homography of the frame's LK steps by more than this (px),
+    # or lost, is tracked again from where the homography puts it (frontend.consensus; 0: never)
+    consensus_px: float = ranged(3.0, ge=0.0)
     few_views: FewViewsConfig = field(default_factory=FewViewsConfig)
 
     def for_frames(self, frames: int | None) -> "TrackerConfig":

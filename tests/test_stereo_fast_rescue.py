@@ -161,7 +161,9 @@ def test_on_a_real_in_vivo_frame_at_fast_motion_a_rig_keeps_more_tracks_and_no_m
         seq = tracking.make_sequence(frame, speed, 8)
         scores = []
         for rig in (False, True):
-            fe = frontend(tracker, TrackerConfig(), seq.camera)
+            # the rescue alone: the tracks' consensus (no motion here) adds its own, tested in
+            # test_tracking_consensus.py (with it, OpenCV: 1253 / 1260 observations, 34 / 35 beyond 1 px at 40 px)
+            fe = frontend(tracker, TrackerConfig(consensus_px=0.0), seq.camera)
             obs, _ = tracking.track_sequence(ServingARig(fe, seq.camera) if rig else fe, seq)
             scores.append(tracking.score_tracks(obs, seq.H, seq.size).errors)
         mono, rig = scores

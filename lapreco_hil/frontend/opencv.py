@@ -1,5 +1,5 @@
 """The OpenCV front-end: undistort (remap), pyramidal Lucas-Kanade (started where the camera motion predicts,
-when it is known), Shi-Tomasi with a minimum distance to live tracks and the scope's field-of-view mask. It is
+when it is known; without it, the tracks' consensus: ``frontend.consensus``), Shi-Tomasi with a minimum distance to live tracks and the scope's field-of-view mask. It is
 the seed paper's CPU baseline.
 
 With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
@@ -17,7 +17,7 @@ from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
-from lapreco_hil.frontend import epipolar, stereo_depth
+from lapreco_hil.frontend import consensus, epipolar, stereo_depth
 from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
@@ -102,7 +102,11 @@ class OpenCVFrontEnd:
                 levels = lk_levels
                 nxt, status, err = self._track(gray, pts, guess, levels)
             nxt = nxt.reshape(-1, 2)
-            keep = predicted & (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error) & self._inside(nxt)
+            tracked = (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error)
+            if motion is None and cfg.consensus_px > 0:
+                nxt, tracked = consensus.retrack(self._pts, nxt, tracked, cfg.consensus_px,
+                                                 lambda rows, starts: self._track_again(gray, rows, starts))
+            keep = predicted & tracked & self._inside(nxt)
             if searched.any():
                 # a match found along its epipolar line (a wide baseline) must track back to where it was
                 back = epipolar.lk_params(cfg.window_px, levels)
@@ -217,6 +221,13 @@ class OpenCVFrontEnd:
         nxt, st, err = cv2.calcOpticalFlowPyrLK(self._prev, gray, pts, (coarse * scale).astype(np.float32),
                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **dict(self._lk, maxLevel=k - 1))
         return nxt, st & st_coarse, err
+
+    def _track_again(self, gray: np.ndarray, rows: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The consensus's second try (``frontend.consensus``): LK of the tracks ``rows`` from ``starts`` on the
+        finest levels; their positions and whether LK tracked them."""
+        nxt, status, err = self._track(gray, self._pts[rows].reshape(-1, 1, 2), starts.reshape(-1, 1, 2),
+                                       consensus.RETRACK_MAX_LEVEL)
+        return nxt.reshape(-1, 2), (status.ravel() == 1) & (err.ravel() < self.config.max_lk_error)
 
     def _rescues(self) -> bool:
         """Whether new tracks may be rescued (``_drift_check``): a rig, the drift check, a smoothing."""

@@ -34,7 +34,7 @@ from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_level
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
-from lapreco_hil.frontend.warp import corners, drift_check, lk, predict, pyramid, tracks
+from lapreco_hil.frontend.warp import consensus, corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
 
@@ -174,6 +174,8 @@ class WarpFrontEnd:
             self._every_slot = wp.empty(0, dtype=wp.int32)
             self._at_lk = wp.zeros(n, dtype=wp.vec2)
             self._one = wp.ones(1, dtype=wp.int32)
+        self._consensus = consensus.ConsensusBuffers(n, W, H, self.device)
+        with wp.ScopedDevice(self.device):
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
             n_cells = self._grid[1] * self._grid[2]
@@ -337,6 +339,8 @@ class WarpFrontEnd:
                     self._guess, self._use_guess, self._lk_pts, self._status, self._error, self.device,
                     coarse_win=cfg.coarse_window_px, coarse_from=cfg.coarse_from_level, coarse_eps=LK_COARSE_EPS,
                     only=self._every_slot)
+        if self._motion is None and cfg.consensus_px > 0:
+            self._consensus_kernels()
         tracks.count_tracked(self._lk_pts, self._status, self._mask, self._count[prev], self._n_tracked, self.device)
         if self._motion is not None:
             # LK back into the previous image from where the swept tracks landed (only they are checked: the
@@ -353,6 +357,21 @@ class WarpFrontEnd:
             if self._motion is None:
                 wp.copy(self._at_lk, self._lk_pts)  # where a new track's rescue starts
         self._sync_for_profile("lk")
+
+    def _consensus_kernels(self) -> None:
+        """Without a motion: the tracks' RANSAC homography, and the tracks off it or lost tracked again from
+        where it puts them on the two finest levels (LK's blocks of the others return at once), each taking the
+        position that agrees better with it (``frontend.consensus``). (No conditional node: the corner selection
+        on the side stream is not joined yet, and a capture cannot pause for one.)"""
+        cfg, b = self.config, self._consensus
+        prev, cur = 1 - self._cur, self._cur
+        consensus.find_consensus(b, self._pts[prev], self._lk_pts, self._status, self._count[prev], cfg.consensus_px,
+                                 self.device)
+        lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
+                    min(consensus.RETRACK_LEVELS, self._lk_levels), cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
+                    cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev], b.guess, self._one,
+                    b.re_pts, b.re_status, b.re_error, self.device, coarse_eps=LK_COARSE_EPS, only=b.again)
+        consensus.take_closer(b, cfg.consensus_px, self._lk_pts, self._status, self._error, self.device)
 
     def _lk_back(self) -> None:
         """LK from where the tracks landed back into the previous image, from where they were, for the slots
