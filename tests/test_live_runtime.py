@@ -52,6 +52,8 @@ def test_overload_drops_are_counted_latency_bounded_and_the_run_stops_on_request
     assert elapsed < 60  # stopped on request, finished the map, wrote the outputs
     for name in ("points.ply", "mesh.ply", "trajectory.tum", "reconstruction.png", "report.json"):
         assert (tmp_path / "out" / name).is_file()
+    gc_pauses = report["gc_main_process"]  # the run's own collections were seen (young ones happen every run)
+    assert gc_pauses["collections"][0] > 0 and gc_pauses["total_ms"][0] > 0
 
 
 class ExplodingFrontend:
@@ -306,3 +308,26 @@ def test_the_live_dense_stage_makes_its_maps_by_the_live_method(fast_session, tm
         assert live.dense is not None
         assert live.dense.spec.config.depth.method == "sweep"
         assert live.dense.spec.config.depth.consistency_views == config.depth.consistency_views
+
+
+def test_gc_pauses_are_counted_by_generation_and_the_long_ones_kept_with_their_time():
+    import gc
+
+    from lapreco_hil.runtime.metrics import LONG_GC_PAUSE_MS, GcPauses
+
+    now = [0]
+    pauses = GcPauses(started_ns=0, clock=lambda: now[0])
+    pauses.start()
+    pauses.start()  # once only
+    try:
+        pauses._callback("start", {"generation": 2})
+        now[0] += int((LONG_GC_PAUSE_MS + 5) * 1e6)
+        pauses._callback("stop", {"generation": 2})
+        gc.collect(0)  # a real one, through gc.callbacks (the clock stands still: 0 ms)
+    finally:
+        pauses.stop()
+    gc.collect(0)  # no longer counted
+    s = pauses.summary()
+    assert s["collections"] == [1, 0, 1]
+    assert s["max_ms"][2] == LONG_GC_PAUSE_MS + 5
+    assert s["long"] == [(0.0, 2, LONG_GC_PAUSE_MS + 5)]

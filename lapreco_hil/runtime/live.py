@@ -168,9 +168,11 @@ class LiveRun:
             self.tracking.frontend = self._make_frontend()
             if hasattr(self.tracking.frontend, "warm_up"):
                 self.tracking.frontend.warm_up(rig=self._stereo)
+        self.metrics.gc.start()
         try:
             return self._run(seconds)
         finally:
+            self.metrics.gc.stop()
             if self.dense is not None:
                 self.dense.close()
 

@@ -4,10 +4,57 @@ per-stage times, queue depths, and the report's live fields made from them at th
 from __future__ import annotations
 
 import collections
+import gc
 import threading
 import time
 
 import numpy as np
+
+
+LONG_GC_PAUSE_MS = 20.0  # a main-process collection this long is listed with its time (a frame period at 50 fps)
+
+
+class GcPauses:
+    """The main process's garbage collections during a live run (``gc.callbacks``): per generation how many and
+    how long, and when the long ones happened. Capture and tracking run in this process; a full collection
+    walks every object of it while holding the GIL, a stall of every thread (the mapper's process collects
+    only when idle: ``mapper_process.IdleTimeGC``)."""
+
+    def __init__(self, started_ns: int, clock=time.monotonic_ns) -> None:
+        self.started_ns, self.clock = started_ns, clock
+        self.count = [0, 0, 0]
+        self.total_ns = [0, 0, 0]
+        self.max_ns = [0, 0, 0]
+        self.long: list[tuple[float, int, float]] = []  # (s into the run, generation, ms)
+        self._began: dict[int, int] = {}
+
+    def _callback(self, phase: str, info: dict) -> None:
+        now = self.clock()
+        if phase == "start":
+            self._began[threading.get_ident()] = now
+            return
+        began = self._began.pop(threading.get_ident(), None)
+        if began is None:
+            return
+        g, took = min(int(info.get("generation", 2)), 2), now - began
+        self.count[g] += 1
+        self.total_ns[g] += took
+        self.max_ns[g] = max(self.max_ns[g], took)
+        if took >= LONG_GC_PAUSE_MS * 1e6 and len(self.long) < 100:
+            self.long.append((round((began - self.started_ns) * 1e-9, 3), g, round(took * 1e-6, 1)))
+
+    def start(self) -> None:
+        if self._callback not in gc.callbacks:
+            gc.callbacks.append(self._callback)
+
+    def stop(self) -> None:
+        if self._callback in gc.callbacks:
+            gc.callbacks.remove(self._callback)
+
+    def summary(self) -> dict:
+        return {"collections": list(self.count), "total_ms": [round(t * 1e-6, 1) for t in self.total_ns],
+                "max_ms": [round(t * 1e-6, 2) for t in self.max_ns], "long": list(self.long),
+                "long_ms": LONG_GC_PAUSE_MS}
 
 
 class LiveMetrics:
@@ -21,6 +68,7 @@ class LiveMetrics:
         self.last_done_ns = 0
         self.started_ns = time.monotonic_ns()
         self.event_span_ns: dict[str, list[int]] = {}  # an event's first and last time (drops: when, not only how many)
+        self.gc = GcPauses(self.started_ns)  # started and stopped by the run
 
     def add(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -119,6 +167,8 @@ class LiveMetrics:
                      "local_ba_round_trip": result.stats.get("local_ba_round_trip"),
                      # unreachable objects the mapper's idle-time collections found (automatic GC is off there)
                      "mapper_garbage_collected": result.stats.get("garbage_collected")},
+            # the main process's garbage collections (a long one stalls capture and tracking alike)
+            "gc_main_process": self.gc.summary(),
             "health": {"events": health_events[:200], "event_count": health_event_count, "counts": dict(health_counts)},
             # every change of health the run saw (device, state, detail, time), as shown on the console
             "health_events": health_events,
