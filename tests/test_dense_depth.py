@@ -515,10 +515,12 @@ def _sgbm_left_points(left, right, K, T_right_left):
     """OpenCV's StereoSGBM on the rectified pair, its points taken back into the left camera: the pixels (u, v)
     they land on and their depths."""
     h, w = left.shape[:2]
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K, None, K, None, (w, h), T_right_left[:3, :3],
-                                                T_right_left[:3, 3], alpha=0)
+    # (distortion as zeros and the translation as a column: OpenCV 5 refuses None and a flat vector here)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K, np.zeros(5), K, np.zeros(5), (w, h),
+                                                np.ascontiguousarray(T_right_left[:3, :3]),
+                                                T_right_left[:3, 3].reshape(3, 1).copy(), alpha=0)
     rect = [cv2.remap(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY),
-                      *cv2.initUndistortRectifyMap(K, None, R, P, (w, h), cv2.CV_32FC1), cv2.INTER_LINEAR)
+                      *cv2.initUndistortRectifyMap(K, np.zeros(5), R, P, (w, h), cv2.CV_32FC1), cv2.INTER_LINEAR)
             for img, R, P in ((left, R1, P1), (right, R2, P2))]
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=5, P1=8 * 25, P2=32 * 25,
                                  uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1)

@@ -81,6 +81,18 @@ def kept_and_errors(obs0, obs, shift):
     return kept.sum() / len(obs0), np.linalg.norm(obs.uv[kept] - (obs0.uv[pos] + shift), axis=1)
 
 
+def born_at(a0, a, b0, b) -> np.ndarray:
+    """For each track of ``a`` that ``a0`` had: whether a track of ``b`` born where it was in ``a0`` is alive too."""
+    def births(obs0, obs):
+        kept = np.isin(obs.track_ids, obs0.track_ids)
+        return obs0.uv[np.searchsorted(obs0.track_ids, obs.track_ids[kept])]
+
+    mine, theirs = births(a0, a), births(b0, b)
+    if len(theirs) == 0:
+        return np.zeros(len(mine), bool)
+    return np.linalg.norm(mine[:, None, :] - theirs[None, :, :], axis=2).min(axis=1) < 0.01
+
+
 def same(a_frames, b_frames, tracker="opencv") -> bool:
     """The same tracks in every frame: bit for bit, but for the Warp front-end on CUDA, where two front-ends
     given the same frames number their new corners in the order their threads get there, and may pick among
@@ -112,7 +124,8 @@ def test_with_a_rig_new_low_contrast_tracks_refused_at_their_first_step_are_resc
     assert kept_rig > 0.95, kept_rig
     # the rescued ones (kept with the rig, refused without it) are as close to the truth as the others (their
     # p90: 0.46 px in both front-ends on the CPU, 0.52 in the Warp one on an H100)
-    rescued = ~np.isin(rig[1].track_ids, mono[1].track_ids)[np.isin(rig[1].track_ids, rig[0].track_ids)]
+    # (told by where each track was born: on CUDA two front-ends number their corners in different orders)
+    rescued = ~born_at(rig[0], rig[1], mono[0], mono[1])
     assert 0.1 < rescued.mean() < 0.2, rescued.mean()
     p90 = 0.6 if GPU and tracker == "warp" else 0.5
     assert np.median(err_rig[rescued]) <= np.median(err_mono) and np.percentile(err_rig[rescued], 90) < p90, (

@@ -140,20 +140,25 @@ def _score(before: wp.array(dtype=wp.vec2), after: wp.array(dtype=wp.vec2), stat
 
 
 @wp.kernel
-def _best(valid: wp.array(dtype=wp.int32), inliers: wp.array(dtype=wp.int32), tracked: wp.array(dtype=wp.int32),
-          H: wp.array(dtype=wp.mat33), best: wp.array(dtype=wp.mat33), agreed: wp.array(dtype=wp.int32),
-          frame_no: wp.array(dtype=wp.int32)):
-    """The hypothesis most tracks agree with (the first of equals), if enough do; the frame count moves on."""
-    best_h = int(-1)
-    most = int(0)
-    for h in range(HYPOTHESES):
-        if valid[h] == 1 and inliers[h] > most:
-            most = inliers[h]
-            best_h = h
+def _rank(valid: wp.array(dtype=wp.int32), inliers: wp.array(dtype=wp.int32), ranked: wp.array(dtype=wp.int32)):
+    """Each valid hypothesis's key, the largest for the most inliers (the first of equals): one atomic max picks
+    the best (a single thread reading every count would wait on each load in turn)."""
+    h = wp.tid()
+    if valid[h] == 1 and inliers[h] > 0:
+        wp.atomic_max(ranked, 0, inliers[h] * HYPOTHESES + (HYPOTHESES - 1 - h))
+
+
+@wp.kernel
+def _best(ranked: wp.array(dtype=wp.int32), tracked: wp.array(dtype=wp.int32), H: wp.array(dtype=wp.mat33),
+          best: wp.array(dtype=wp.mat33), agreed: wp.array(dtype=wp.int32), frame_no: wp.array(dtype=wp.int32)):
+    """The best hypothesis, if enough tracks agree with it; the frame count moves on."""
+    key = ranked[0]
     agreed[0] = 0
-    if best_h >= 0 and most >= MIN_TRACKS and float(most) >= MIN_INLIER_SHARE * float(tracked[0]):
-        best[0] = H[best_h]
-        agreed[0] = most
+    if key >= 0:
+        most = key // HYPOTHESES
+        if most >= MIN_TRACKS and float(most) >= MIN_INLIER_SHARE * float(tracked[0]):
+            best[0] = H[HYPOTHESES - 1 - key % HYPOTHESES]
+            agreed[0] = most
     frame_no[0] = frame_no[0] + 1
 
 
@@ -208,6 +213,7 @@ class ConsensusBuffers:
             self.inliers = wp.zeros(HYPOTHESES, dtype=wp.int32)
             self.tracked = wp.zeros(1, dtype=wp.int32)
             self.best = wp.zeros(1, dtype=wp.mat33)
+            self.ranked = wp.zeros(1, dtype=wp.int32)  # the best hypothesis's key (_rank; -1: none)
             self.agreed = wp.zeros(1, dtype=wp.int32)  # the best hypothesis's inliers (0: no consensus)
             self.frame_no = wp.zeros(1, dtype=wp.int32)
             self.guess = wp.zeros(slots, dtype=wp.vec2)
@@ -225,11 +231,13 @@ def find_consensus(b: ConsensusBuffers, before: wp.array, after: wp.array, statu
     slots = before.shape[0]
     b.tracked.zero_()
     b.any_again.zero_()
+    b.ranked.fill_(-1)
     wp.launch(_hypotheses, dim=HYPOTHESES, inputs=[before, after, status, count, b.frame_no, b.frame, b.H, b.valid,
                                                    b.inliers], device=device)
     wp.launch(_score, dim=(HYPOTHESES, slots), inputs=[before, after, status, count, b.frame, tolerance_px, b.H,
                                                         b.valid, b.inliers, b.tracked], device=device)
-    wp.launch(_best, dim=1, inputs=[b.valid, b.inliers, b.tracked, b.H, b.best, b.agreed, b.frame_no], device=device)
+    wp.launch(_rank, dim=HYPOTHESES, inputs=[b.valid, b.inliers, b.ranked], device=device)
+    wp.launch(_best, dim=1, inputs=[b.ranked, b.tracked, b.H, b.best, b.agreed, b.frame_no], device=device)
     wp.launch(_starts, dim=slots, inputs=[before, after, status, count, b.frame, tolerance_px, b.best, b.agreed,
                                           b.guess, b.again, b.any_again], device=device)
 
