@@ -63,7 +63,8 @@ def bench_pipeline(device: str = "auto", resolution: tuple[int, int] | None = No
             "stage_ms": report["stage_ms"], "wall_s": report.get("wall_s"), "queue_depth": report.get("queue_depth", {}),
             "live": report.get("live", {}), "inliers": report["inliers"], "surface": report.get("surface"),
             "dense": report.get("dense"), "keyframes": report.get("keyframes"), "landmarks": report.get("landmarks"),
-            "funnel": report.get("funnel"), "time_offset": report.get("time_offset")}
+            "funnel": report.get("funnel"), "time_offset": report.get("time_offset"),
+            "gc_main_process": report.get("gc_main_process")}
 
 
 def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), fps: float = 10.0,
