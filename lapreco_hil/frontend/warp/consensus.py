@@ -165,8 +165,7 @@ def _best(ranked: wp.array(dtype=wp.int32), tracked: wp.array(dtype=wp.int32), H
 @wp.kernel
 def _starts(before: wp.array(dtype=wp.vec2), after: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32),
             count: wp.array(dtype=wp.int32), frame: wp.vec3, tolerance_px: float, best: wp.array(dtype=wp.mat33),
-            agreed: wp.array(dtype=wp.int32), guess: wp.array(dtype=wp.vec2), again: wp.array(dtype=wp.int32),
-            any_again: wp.array(dtype=wp.int32)):
+            agreed: wp.array(dtype=wp.int32), guess: wp.array(dtype=wp.vec2), again: wp.array(dtype=wp.int32)):
     """Where the consensus puts each slot, and whether it is tracked again from there: lost, or off it."""
     t = wp.tid()
     again[t] = 0
@@ -178,7 +177,6 @@ def _starts(before: wp.array(dtype=wp.vec2), after: wp.array(dtype=wp.vec2), sta
     guess[t] = p
     if status[t] != 1 or wp.length(after[t] - p) > tolerance_px:
         again[t] = 1
-        any_again[0] = 1
 
 
 @wp.kernel
@@ -218,7 +216,6 @@ class ConsensusBuffers:
             self.frame_no = wp.zeros(1, dtype=wp.int32)
             self.guess = wp.zeros(slots, dtype=wp.vec2)
             self.again = wp.zeros(slots, dtype=wp.int32)
-            self.any_again = wp.zeros(1, dtype=wp.int32)
             self.re_pts = wp.zeros(slots, dtype=wp.vec2)
             self.re_status = wp.zeros(slots, dtype=wp.int32)
             self.re_error = wp.zeros(slots, dtype=float)
@@ -227,10 +224,9 @@ class ConsensusBuffers:
 def find_consensus(b: ConsensusBuffers, before: wp.array, after: wp.array, status: wp.array, count: wp.array,
                    tolerance_px: float, device) -> None:
     """The best homography of the tracks' steps and each slot's start from it (``b.guess``), and which slots to
-    track again (``b.again``; ``b.any_again`` 1 if any: the tests' view)."""
+    track again (``b.again``)."""
     slots = before.shape[0]
     b.tracked.zero_()
-    b.any_again.zero_()
     b.ranked.fill_(-1)
     wp.launch(_hypotheses, dim=HYPOTHESES, inputs=[before, after, status, count, b.frame_no, b.frame, b.H, b.valid,
                                                    b.inliers], device=device)
@@ -239,7 +235,7 @@ def find_consensus(b: ConsensusBuffers, before: wp.array, after: wp.array, statu
     wp.launch(_rank, dim=HYPOTHESES, inputs=[b.valid, b.inliers, b.ranked], device=device)
     wp.launch(_best, dim=1, inputs=[b.ranked, b.tracked, b.H, b.best, b.agreed, b.frame_no], device=device)
     wp.launch(_starts, dim=slots, inputs=[before, after, status, count, b.frame, tolerance_px, b.best, b.agreed,
-                                          b.guess, b.again, b.any_again], device=device)
+                                          b.guess, b.again], device=device)
 
 
 def take_closer(b: ConsensusBuffers, tolerance_px: float, pts: wp.array, status: wp.array, error: wp.array,

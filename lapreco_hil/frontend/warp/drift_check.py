@@ -78,18 +78,28 @@ def _patch_offset(k: int) -> wp.vec2:
     return wp.vec2(float(k % PATCH - HALF_PATCH), float(k // PATCH - HALF_PATCH))
 
 
+@wp.func
+def _sample_new(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
+                count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), patches: wp.array2d(dtype=float),
+                t: int, k: int) -> int:
+    """Pixel k of new track t's first patch on ``img`` (slots count .. count + taken[0] - 1): its slot, or -1
+    past the new tracks."""
+    if t >= taken[0]:
+        return -1
+    s = count[0] + t
+    q = pts[s] + _patch_offset(k)
+    patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
+    return s
+
+
 @wp.kernel
 def _sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
                     count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
                     patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22), steps: wp.array(dtype=wp.vec2)):
-    """The first patch of each new track (slots count .. count + taken[0] - 1), an identity warp, no step."""
+    """The first patch of each new track, an identity warp, no step."""
     t, k = wp.tid()
-    if t >= taken[0]:
-        return
-    s = count[0] + t
-    q = pts[s] + _patch_offset(k)
-    patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
-    if k == 0:
+    s = _sample_new(img, w, h, pts, count, taken, patches, t, k)
+    if s >= 0 and k == 0:
         A[s] = wp.identity(n=2, dtype=float)
         steps[s] = wp.vec2(0.0, 0.0)
 
@@ -292,14 +302,10 @@ TRACK_SMOOTHED = 2
 def _sample_rescue_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dtype=wp.vec2),
                            count: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
                            patches: wp.array2d(dtype=float), state: wp.array(dtype=wp.int32)):
-    """The first patch on the rescue-smoothed image of each new track (slots count .. count + taken[0] - 1)."""
+    """The first patch on the rescue-smoothed image of each new track."""
     t, k = wp.tid()
-    if t >= taken[0]:
-        return
-    s = count[0] + t
-    q = pts[s] + _patch_offset(k)
-    patches[s, k] = bilinear(img, 0, w, h, q[0], q[1])
-    if k == 0:
+    s = _sample_new(img, w, h, pts, count, taken, patches, t, k)
+    if s >= 0 and k == 0:
         state[s] = TRACK_NEW
 
 
