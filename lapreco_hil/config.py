@@ -203,7 +203,9 @@ class DepthConfig:
     # the sweep's range where the keyframe's sparse landmarks give none (metres along the optical axis)
     default_near_m: float = ranged(0.02, gt=0.0)
     default_far_m: float = ranged(0.30, gt=0.0)
-    window_radius_px: int = ranged(3, ge=1)  # ZNCC window (2r+1)^2 at both levels: 7x7
+    # ZNCC window (2r+1)^2 at both levels: 7x7; a map of fewer sources than best_k scores a larger one at full
+    # resolution, as many samples as best_k windows (dense.depth.window_radius: 11x11 for a two-view pair)
+    window_radius_px: int = ranged(3, ge=1)
     coarse_step_px: float = ranged(1.0, gt=0.0)  # plane spacing of the half-resolution sweep: at most this shift
     min_planes: int = ranged(8, ge=3)  # the half-resolution sweep's planes, whatever the baseline
     max_planes: int = ranged(96, ge=3)  # ... and their cap (a wider spacing beyond it): bounds time and memory

@@ -75,6 +75,18 @@ _ALL_IN_VIEW = object()  # the device's mask holds ones (a view without a mask)
 HOST_BUFFERS = 3
 
 
+def window_radius(config: DepthConfig, n_src: int) -> int:
+    """The ZNCC window's radius for a map of ``n_src`` sources. A plane's score is the mean of its ``best_k`` best
+    sources' windows; with fewer sources than that (a two-view pair: one) the window grows until it holds as many
+    samples as ``best_k`` windows of ``window_radius_px`` do (one view's score is as noisy as its samples are
+    few): 11x11 for one source against two 7x7 (docs/dense.md, "Two views")."""
+    r = config.window_radius_px
+    used = min(config.best_k, n_src)
+    while (2 * r + 1) ** 2 * used < (2 * config.window_radius_px + 1) ** 2 * config.best_k:
+        r += 1
+    return r
+
+
 def _half_K(K: np.ndarray) -> np.ndarray:
     """Intrinsics of the 2x2-mean half-resolution image (pixel centres: x_half = (x + 0.5) / 2 - 0.5); of each
     of a stack of (..., 3, 3) intrinsics."""
@@ -489,18 +501,16 @@ class DepthEstimator:
         self._copy_in(target, host, array.nbytes)
         self._staging[index] = (host, array, self._event())
 
-    def _window_stats(self, level: _Sweep, ref) -> None:
+    def _window_stats(self, level: _Sweep, ref, r: int) -> None:
         h, w = ref.shape
-        r = self.config.window_radius_px
         self._launch(k.window_rows, (h, w), [ref, r, level.rows])
         self._launch(k.window_cols, (h, w), [level.rows, r, self.config.min_texture, self.config.min_valid_fraction,
                                              level.std])
 
     def _sweep(self, level: _Sweep, ref, src, A, b, rho0: float, drho: float, n_planes: int, n_src: int,
-               min_scored: int) -> None:
+               min_scored: int, r: int) -> None:
         cfg = self.config
         h, w = ref.shape
-        r = cfg.window_radius_px
         sample_into = level.zncc if self.sweep == "sliding" else level.samples
         self._launch(k.warp_samples, (n_src, h, w),
                      [ref, src, self.src_slots, A, b, level.base, rho0, drho, n_planes, sample_into])
@@ -596,22 +606,25 @@ class DepthEstimator:
         A_c, A_f, b_c, b_f = self.A_c, self.A_f, self.b_c, self.b_f
         fine, coarse = self.fine, self.coarse
         _, ref_full, ref_half, ref_state = self._slot_arrays[slots[0]]
-        self._window_stats(coarse, ref_half)
-        self._window_stats(fine, ref_full)
+        # the full-resolution window grows for few sources (``window_radius``); the coarse one stays, since a wider
+        # coarse window fattens the foreground further across depth edges
+        r = window_radius(cfg, n_src)
+        self._window_stats(coarse, ref_half, cfg.window_radius_px)
+        self._window_stats(fine, ref_full, r)
         t0 = self._step(times, "setup_ms", t0)
 
         # (the coarse level's base inverse depth stays 0: its planes lie at rho_lo + i drho_c)
         self._sweep(coarse, ref_half, self.half_grey, A_c, b_c, rho_lo, drho_c, n_planes, n_src,
-                    max(3, math.ceil(cfg.min_scored_fraction * n_planes)))
+                    max(3, math.ceil(cfg.min_scored_fraction * n_planes)), cfg.window_radius_px)
         t0 = self._step(times, "coarse_sweep_ms", t0)
 
         if cfg.method == "patchmatch":
             t0 = self._patchmatch(times, t0, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo,
-                                  rho_hi, drho_c, step_px, K_ref, ref.kf_id)
+                                  rho_hi, drho_c, step_px, K_ref, ref.kf_id, r)
         else:
             self._launch(k.upsample_rho, (h, w), [coarse.plane, rho_lo, drho_c, 0.5 * (rho_lo + rho_hi), fine.base])
             self._sweep(fine, ref_full, self.full_grey, A_f, b_f, rho0_f, drho_f, cfg.fine_planes, n_src,
-                        cfg.fine_planes)
+                        cfg.fine_planes, r)
             t0 = self._step(times, "fine_sweep_ms", t0)
 
             self._launch(k.finalise, (h, w),
@@ -639,7 +652,7 @@ class DepthEstimator:
         self._step(times, "download_ms", t0, waited=True)
         times["total_ms"] = round(sum(times.values()), 3)
         stats = {"funnel": funnel, "times_ms": times, "profiled": self.profile, "device_ops": dict(self.ops),
-                 "method": cfg.method, "planes": n_planes, "depth_range_m": (near, far),
+                 "method": cfg.method, "planes": n_planes, "depth_range_m": (near, far), "window_radius_px": r,
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
                  "prepared": prepared, "kept_pixels": list(funnel.values())[-1]}
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
@@ -648,7 +661,7 @@ class DepthEstimator:
 
     def _patchmatch(self, times: dict, t0: float, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
                     rho_lo: float, rho_hi: float, drho_c: float, step_px: float, K_ref: np.ndarray,
-                    kf_id: int) -> float:
+                    kf_id: int, r_full: int) -> float:
         """The coarse sweep's depth refined per pixel with slanted windows (``[depth] method = "patchmatch"``:
         warp/patchmatch.py): initialised from the sweep, red-black propagation and perturbation at half
         resolution, then each plane scored and refined at full resolution into the depth, confidence and funnel
@@ -680,7 +693,7 @@ class DepthEstimator:
                               *half, self.pm_plane, self.pm_score])
         t0 = self._step(times, "patchmatch_ms", t0)
         full = list(common)
-        full[5:7] = [cfg.window_radius_px, 1]
+        full[5:7] = [r_full, 1]
         full[1:3] = [A_f, b_f]
         # a full-resolution pixel's image motion is twice a half-resolution one's for the same inverse depth
         self._launch(pm.finalise_planes, (h, w),
