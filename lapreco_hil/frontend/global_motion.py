@@ -51,13 +51,38 @@ def reduction(width: int, height: int) -> int:
     return factor
 
 
-def alignment_image(gray: np.ndarray, factor: int) -> np.ndarray:
-    """The frame's grey levels (uint8, undistorted) reduced by ``factor`` (block means), as a clamped log
-    high-pass (float32): the gain, the vignetting and the light's slow falloff out, a saturated highlight
-    clamped as on the tracker image."""
-    h, w = gray.shape
-    small = gray if factor == 1 else cv2.resize(gray, (-(-w // factor), -(-h // factor)),
+def reduced(image: np.ndarray, factor: int) -> np.ndarray:
+    """``image`` reduced by ``factor`` (block means)."""
+    h, w = image.shape[:2]
+    return image if factor == 1 else cv2.resize(image, (-(-w // factor), -(-h // factor)),
                                                 interpolation=cv2.INTER_AREA)
+
+
+def reduced_maps(map_x: np.ndarray, map_y: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Undistortion maps (full resolution) for a frame reduced by ``factor``: each reduced pixel's source, in
+    reduced pixels; None where they are the identity (no distortion)."""
+    h, w = map_x.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    if np.abs(map_x - xs).max() < 0.01 and np.abs(map_y - ys).max() < 0.01:
+        return None
+    centre = 0.5 * (factor - 1)
+    mx = (reduced(map_x, factor) - centre) / factor
+    my = (reduced(map_y, factor) - centre) / factor
+    return mx.astype(np.float32), my.astype(np.float32)
+
+
+def reduced_grey(bgr: np.ndarray, factor: int, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """The distorted BGR frame as the reduced, undistorted grey image ``GlobalMotion.estimate_reduced`` takes:
+    reduced first (cheap), then undistorted at the reduced size (``reduced_maps``; the lens's distortion is smooth
+    over a block)."""
+    grey = cv2.cvtColor(reduced(bgr, factor), cv2.COLOR_BGR2GRAY)
+    return grey if maps is None else cv2.remap(grey, maps[0], maps[1], cv2.INTER_LINEAR,
+                                               borderMode=cv2.BORDER_REPLICATE)
+
+
+def alignment_image(small: np.ndarray) -> np.ndarray:
+    """The reduced grey frame (uint8, undistorted) as a clamped log high-pass (float32): the gain, the vignetting
+    and the light's slow falloff out, a saturated highlight clamped as on the tracker image."""
     log = np.log(small.astype(np.float32) + LOG_OFFSET)
     high = log - cv2.GaussianBlur(log, (0, 0), ALIGN_HIGHPASS_SIGMA_PX)
     return np.clip(high, -HIGHPASS_RANGE, HIGHPASS_RANGE)
@@ -115,16 +140,22 @@ class GlobalMotion:
                 H = _scaled(H, 2.0)
         return float(rho), H
 
-    def keep(self, gray: np.ndarray) -> None:
-        """A frame that is not aligned (it came with a pose prediction): only its image, for the next."""
-        self._prev = self._pyramid(alignment_image(gray, self.factor))
+    def keep(self, small: np.ndarray) -> None:
+        """A frame that is not aligned (it came with a pose prediction): only its image (reduced, as
+        ``estimate_reduced`` takes it), for the next."""
+        self._prev = self._pyramid(alignment_image(small))
         self.last = None
 
     def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
+        """``estimate_reduced`` of the undistorted full-resolution grey frame ``gray`` (uint8)."""
+        return self.estimate_reduced(reduced(gray, self.factor), seeds)
+
+    def estimate_reduced(self, small: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
         """The homography (full-resolution pixels, previous frame -> this one) of the undistorted grey frame
-        ``gray`` (uint8), or None (the first frame, or no alignment correlated well enough). ``seeds``: more
-        starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous frame."""
-        cur = self._pyramid(alignment_image(gray, self.factor))
+        reduced by ``factor`` (uint8), or None (the first frame, or no alignment correlated well enough).
+        ``seeds``: more starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous
+        frame."""
+        cur = self._pyramid(alignment_image(small))
         prev, self._prev = self._prev, cur
         if prev is None or prev[0].shape != cur[0].shape:
             self.last = None

@@ -18,7 +18,7 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import consensus, epipolar, stereo_depth
-from lapreco_hil.frontend.global_motion import GlobalMotion
+from lapreco_hil.frontend.global_motion import GlobalMotion, reduced
 from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
@@ -94,7 +94,7 @@ class OpenCVFrontEnd:
             if motion is None:
                 prior = self._global.estimate(gray, () if self._consensus_H is None else (self._consensus_H,))
             else:
-                self._global.keep(gray)
+                self._global.keep(reduced(gray, self._global.factor))
         self._consensus_H = None
         gray, intensity = tracker_image(gray, cfg, self.levels)
         t1 = time.perf_counter()
