@@ -140,10 +140,10 @@ class GlobalMotion:
                 H = _scaled(H, 2.0)
         return float(rho), H
 
-    def keep(self, small: np.ndarray) -> None:
-        """A frame that is not aligned (it came with a pose prediction): only its image (reduced, as
-        ``estimate_reduced`` takes it), for the next."""
-        self._prev = self._pyramid(alignment_image(small))
+    def forget(self) -> None:
+        """A frame that is not aligned (it came with a pose prediction): the next has no previous image (so a
+        frame with a prediction costs nothing here; a run without poses has none on any frame)."""
+        self._prev = None
         self.last = None
 
     def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:

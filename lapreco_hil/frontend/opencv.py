@@ -18,7 +18,7 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import consensus, epipolar, stereo_depth
-from lapreco_hil.frontend.global_motion import GlobalMotion, reduced
+from lapreco_hil.frontend.global_motion import GlobalMotion
 from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
@@ -88,13 +88,13 @@ class OpenCVFrontEnd:
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
         # too dark to carry texture (the cavity beyond the light's reach): no detections there
         lit = cv2.blur(gray, (15, 15)) >= cfg.min_brightness
-        # every frame's image is kept for the next alignment; only a frame without a motion is aligned
+        # only a frame without a motion is aligned (with the last frame, when that had none either)
         prior = None
         if self._global is not None:
             if motion is None:
                 prior = self._global.estimate(gray, () if self._consensus_H is None else (self._consensus_H,))
             else:
-                self._global.keep(reduced(gray, self._global.factor))
+                self._global.forget()
         self._consensus_H = None
         gray, intensity = tracker_image(gray, cfg, self.levels)
         t1 = time.perf_counter()

@@ -707,13 +707,13 @@ class WarpFrontEnd:
         """A frame without a motion: its image motion from the host's dense alignment (``frontend.global_motion``:
         the frame reduced and undistorted on the host, aligned with the last one), sent up through a pinned
         buffer, and LK starts every track from it (``predict.prior_starts``). It costs host time before the
-        graph, no device synchronisation. A frame with a motion only leaves its reduced image for the next."""
+        graph, no device synchronisation. A frame with a motion costs nothing here (the next has no prior)."""
         if self._global is None:
             return
-        small = reduced_grey(image, self._global.factor, self._global_maps)
         if self._motion is not None:
-            self._global.keep(small)
+            self._global.forget()
             return
+        small = reduced_grey(image, self._global.factor, self._global_maps)
         seeds = () if self._consensus_H is None else (self._consensus_H,)
         H = self._global.estimate_reduced(small, seeds)
         if H is None or self._n_tracks == 0:
