@@ -114,6 +114,9 @@ class TrackerConfig:
     # without a pose prediction, a track off the RANSAC homography of the frame's LK steps by more than this (px),
     # or lost, is tracked again from where the homography puts it (frontend.consensus; 0: never)
     consensus_px: float = ranged(3.0, ge=0.0)
+    # without a pose prediction, every track starts LK where the frame's image motion puts it: a homography from a
+    # dense alignment of the whole frame at low resolution (frontend.global_motion; off: where it was)
+    global_motion_prior: bool = True
     few_views: FewViewsConfig = field(default_factory=FewViewsConfig)
 
     def for_frames(self, frames: int | None) -> "TrackerConfig":

@@ -41,7 +41,13 @@ def homography(before: np.ndarray, after: np.ndarray, tracked: np.ndarray, toler
 def retrack(before: np.ndarray, after: np.ndarray, tracked: np.ndarray, tolerance_px: float, track_from):
     """``after`` and ``tracked`` with the consensus applied. ``track_from(rows, starts)`` tracks the rows again
     from ``starts`` ((M, 2) float32) and returns (positions (M, 2), tracked (M,) bool)."""
-    H = homography(before, after, tracked, tolerance_px)
+    return retrack_to(homography(before, after, tracked, tolerance_px), before, after, tracked, tolerance_px,
+                      track_from)
+
+
+def retrack_to(H: np.ndarray | None, before: np.ndarray, after: np.ndarray, tracked: np.ndarray,
+               tolerance_px: float, track_from):
+    """``retrack`` with the consensus homography ``H`` found (None: none, nothing changes)."""
     if H is None:
         return after, tracked
     starts = cv2.perspectiveTransform(before.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)

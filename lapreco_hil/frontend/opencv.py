@@ -18,6 +18,7 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import consensus, epipolar, stereo_depth
+from lapreco_hil.frontend.global_motion import GlobalMotion
 from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
 from lapreco_hil.frontend.image import pyramid_levels, tracker_image
 
@@ -51,6 +52,10 @@ class OpenCVFrontEnd:
         self._rig = False
         self.levels = pyramid_levels(config, camera.width, camera.height)
         self._lk = epipolar.lk_params(config.window_px, self.levels)
+        # frames without a pose prediction: the image motion from a dense alignment (frontend.global_motion),
+        # and the tracks' consensus homography of the last frame (a seed of the next alignment)
+        self._global = GlobalMotion(camera.width, camera.height) if config.global_motion_prior else None
+        self._consensus_H: np.ndarray | None = None
 
     def _inside(self, pts: np.ndarray) -> np.ndarray:
         xi = np.clip(np.round(pts[:, 0]).astype(int), 0, self.camera.width - 1)
@@ -83,6 +88,14 @@ class OpenCVFrontEnd:
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
         # too dark to carry texture (the cavity beyond the light's reach): no detections there
         lit = cv2.blur(gray, (15, 15)) >= cfg.min_brightness
+        # only a frame without a motion is aligned (with the last frame, when that had none either)
+        prior = None
+        if self._global is not None:
+            if motion is None:
+                prior = self._global.estimate(gray, () if self._consensus_H is None else (self._consensus_H,))
+            else:
+                self._global.forget()
+        self._consensus_H = None
         gray, intensity = tracker_image(gray, cfg, self.levels)
         t1 = time.perf_counter()
         n_lk = 0
@@ -93,7 +106,11 @@ class OpenCVFrontEnd:
         if self._prev is not None and len(self._pts):
             pts = self._pts.reshape(-1, 1, 2)
             if motion is None:
-                nxt, status, err = self._track(gray, pts)
+                guess = None
+                if prior is not None:
+                    # every track starts where the frame's image motion puts it (LK on all levels from there)
+                    guess = cv2.perspectiveTransform(pts.astype(np.float64), prior).astype(np.float32)
+                nxt, status, err = self._track(gray, pts, guess)
                 predicted = np.ones(len(pts), bool)
             else:
                 guess, searched = self._predict(motion, depth, intensity)
@@ -104,8 +121,9 @@ class OpenCVFrontEnd:
             nxt = nxt.reshape(-1, 2)
             tracked = (status.ravel() == 1) & (err.ravel() < cfg.max_lk_error)
             if motion is None and cfg.consensus_px > 0:
-                nxt, tracked = consensus.retrack(self._pts, nxt, tracked, cfg.consensus_px,
-                                                 lambda rows, starts: self._track_again(gray, rows, starts))
+                self._consensus_H = consensus.homography(self._pts, nxt, tracked, cfg.consensus_px)
+                nxt, tracked = consensus.retrack_to(self._consensus_H, self._pts, nxt, tracked, cfg.consensus_px,
+                                                    lambda rows, starts: self._track_again(gray, rows, starts))
             keep = predicted & tracked & self._inside(nxt)
             if searched.any():
                 # a match found along its epipolar line (a wide baseline) must track back to where it was

@@ -33,6 +33,7 @@ from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_level
                                         to_u8, tracker_image)
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
+from lapreco_hil.frontend.global_motion import GlobalMotion, reduced_grey, reduced_maps
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import consensus, corners, drift_check, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
@@ -175,6 +176,14 @@ class WarpFrontEnd:
             self._at_lk = wp.zeros(n, dtype=wp.vec2)
             self._one = wp.ones(1, dtype=wp.int32)
         self._consensus = consensus.ConsensusBuffers(n, W, H, self.device)
+        # frames without a pose prediction: the image motion from the host's dense alignment of the frame
+        # (frontend.global_motion), sent up before the frame's graph; _prior: this frame's tracks start from it
+        self._global = GlobalMotion(W, H) if config.global_motion_prior else None
+        self._global_maps = reduced_maps(map_x, map_y, self._global.factor) if self._global is not None else None
+        self._prior = False
+        self._consensus_H: np.ndarray | None = None  # the last frame's consensus (pixels), a seed of the next
+        with wp.ScopedDevice(self.device):
+            self._prior_H = wp.zeros(1, dtype=wp.mat33)
         with wp.ScopedDevice(self.device):
             cell = max(config.min_distance_px, 1.0) / np.sqrt(2.0)
             self._grid = (float(cell), int(np.ceil(W / cell)) + 1, int(np.ceil(H / cell)) + 1)
@@ -206,10 +215,15 @@ class WarpFrontEnd:
             # previous frame's copies are done by then (each frame ends waiting for its results)
             self._motion_up = (wp.zeros(n, dtype=float, pinned=pinned), wp.zeros(1, dtype=wp.mat44, pinned=pinned),
                                wp.zeros(1, dtype=wp.vec2, pinned=pinned))
+            # a frame's image motion goes up from here; the consensus's homography and its inliers come back here
+            self._prior_up = wp.zeros(1, dtype=wp.mat33, pinned=pinned)
+            self._consensus_out = (wp.zeros(1, dtype=wp.mat33, pinned=pinned), wp.zeros(1, dtype=wp.int32, pinned=pinned))
         # numpy views of the pinned buffers, made once (pinned memory does not move)
         self._staging_np = self._staging.numpy()
         self._kept_np, self._all_np = (tuple(a.numpy() for a in out) for out in (self._out_kept, self._out_all))
         self._motion_up_np = tuple(a.numpy() for a in self._motion_up)
+        self._prior_up_np = self._prior_up.numpy()
+        self._consensus_out_np = tuple(a.numpy() for a in self._consensus_out)
         # events the host waits on: the surviving tracks' results are in, the frame's results are in
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self._done = wp.Event(self.device) if self.device.is_cuda else None
@@ -367,6 +381,9 @@ class WarpFrontEnd:
         prev, cur = 1 - self._cur, self._cur
         consensus.find_consensus(b, self._pts[prev], self._lk_pts, self._status, self._count[prev], cfg.consensus_px,
                                  self.device)
+        if self._global is not None:
+            for dst, src in zip(self._consensus_out, (b.best, b.agreed)):
+                wp.copy(dst, src)
         lk.lk_track(self._pyr[prev], self._gx[prev], self._gy[prev], self._pyr[cur], self._offs, self._ws, self._hs,
                     min(consensus.RETRACK_LEVELS, self._lk_levels), cfg.window_px, LK_ITERATIONS, LK_EPS, LK_MIN_EIG,
                     cfg.max_lk_error / self._lk_error_units, self._pts[prev], self._count[prev], b.guess, self._one,
@@ -537,6 +554,9 @@ class WarpFrontEnd:
         self._prepare_kernels()
         if self._motion is not None:
             self._predict_kernels(self._motion)
+        elif self._prior:
+            predict.prior_starts(self._prior_H, self._pts[1 - self._cur], self._count[1 - self._cur], self._guess,
+                                 self.device)
         self._sync_for_profile("prepare")
         if side is not None:
             side.wait_stream(main)
@@ -582,6 +602,10 @@ class WarpFrontEnd:
                 for k in range(4):  # both buffer parities, eager then captured
                     self.process(Frame(black, seq, seq))
                     seq += 1
+                for k in range(4 if self._global is not None else 0):  # without a motion, from the image motion
+                    with device_lock(self.device):
+                        self._warm_prior_frame(Frame(black, seq, seq))
+                    seq += 1
                 for budget in budgets:
                     for levels in lk_levels:
                         for k in range(4):
@@ -590,6 +614,25 @@ class WarpFrontEnd:
                             seq += 1
         finally:
             self._rig = serving
+            if self._global is not None:  # the black frames are no one's previous frame
+                self._global = GlobalMotion(self.width, self.height)
+                self._consensus_H = None
+
+    def _warm_prior_frame(self, frame: Frame) -> None:
+        """One frame of the kind without a motion whose tracks start from the image motion (the identity here):
+        launched, or captured on the kind's second use."""
+        self._marks = {}
+        self._cur = cur = 1 - self._cur
+        self._to_staging(frame.image)
+        self._prior_up_np[0] = np.eye(3, dtype=np.float32)
+        wp.copy(self._prior_H, self._prior_up)
+        self._use_guess.fill_(1)
+        self._prior = True
+        try:
+            self._process_frame(frame, time.perf_counter(), cur)
+        finally:
+            self._prior = False
+            self._use_guess.fill_(0)
 
     def _warm_motion_frame(self, frame: Frame, motion: FrameMotion, budget: int, lk_levels: int) -> None:
         """One frame of the kind (a motion, ``budget`` tracks, ``lk_levels`` LK levels) whatever its motion
@@ -651,15 +694,52 @@ class WarpFrontEnd:
                 depth = epipolar.start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
             # (a small motion: the frame's captured graph replays, as without a motion)
             self._set_motion(motion if depth is not None else None, depth)
+            self._set_prior(frame.image)
             return self._process_frame(frame, t0, cur)
         finally:
             if self._motion is not None:
                 self._clear_motion()
+            if self._prior:
+                self._prior = False
+                self._use_guess.fill_(0)
+
+    def _set_prior(self, image: np.ndarray) -> None:
+        """A frame without a motion: its image motion from the host's dense alignment (``frontend.global_motion``:
+        the frame reduced and undistorted on the host, aligned with the last one), sent up through a pinned
+        buffer, and LK starts every track from it (``predict.prior_starts``). It costs host time before the
+        graph, no device synchronisation. A frame with a motion costs nothing here (the next has no prior)."""
+        if self._global is None:
+            return
+        if self._motion is not None:
+            self._global.forget()
+            return
+        small = reduced_grey(image, self._global.factor, self._global_maps)
+        seeds = () if self._consensus_H is None else (self._consensus_H,)
+        H = self._global.estimate_reduced(small, seeds)
+        if H is None or self._n_tracks == 0:
+            return
+        self._prior_up_np[0] = H / H[2, 2]
+        wp.copy(self._prior_H, self._prior_up)
+        self._use_guess.fill_(1)
+        self._prior = True
+
+    def _read_consensus(self) -> np.ndarray | None:
+        """The homography (pixels) of the frame's tracks' consensus, when the frame found one (a seed of the next
+        frame's alignment)."""
+        if self._global is None or self._motion is not None or self.config.consensus_px <= 0:
+            return None
+        best, agreed = self._consensus_out_np
+        if int(agreed[0]) <= 0:
+            return None
+        cx, cy, s = self._consensus.frame
+        N = np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+        H = np.linalg.inv(N) @ np.asarray(best[0], np.float64) @ N
+        return H / H[2, 2] if np.isfinite(H).all() and abs(H[2, 2]) > 1e-12 else None
 
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
-        kind = (cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing())
+        kind = (cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing(), self._prior)
         graphs = self.device.is_cuda and self.use_graphs and not self.profile
         if graphs and self._runs.get(kind, 0) >= 1 and kind not in self._graphs:
             try:
@@ -688,6 +768,7 @@ class WarpFrontEnd:
             wp.synchronize_device(self.device)
         per_track, counts_ids = self._all_np
         n, n_new, n_tracked = int(counts_ids[0]), int(counts_ids[1]), int(counts_ids[2])
+        self._consensus_H = self._read_consensus()
         self._n_tracks = n
         uv = np.concatenate([kept_uv, per_track[kept:n, :2]])
         ids = np.concatenate([kept_ids, counts_ids[RESULT_HEADER + kept:RESULT_HEADER + n]])

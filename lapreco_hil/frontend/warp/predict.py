@@ -188,3 +188,24 @@ def predict_starts(prev_pyr: wp.array, cur_pyr: wp.array, level_off: int, level_
         scores, cand], device=device)
     wp.launch(_sweep_pick, dim=n, inputs=[scores, cand, count, depth, scale, epipolar.MIN_SCORE, epipolar.MARGIN,
                                            epipolar.SECOND_RADIUS, guess, found], device=device)
+
+
+@wp.kernel
+def _prior_starts(H: wp.array(dtype=wp.mat33), pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32),
+                  guess: wp.array(dtype=wp.vec2)):
+    t = wp.tid()
+    if t >= count[0]:
+        return
+    p = pts[t]
+    q = H[0] * wp.vec3(p[0], p[1], 1.0)
+    if wp.abs(q[2]) < 1.0e-9:
+        guess[t] = p  # (a point the motion sends to infinity starts where it was)
+    else:
+        guess[t] = wp.vec2(q[0] / q[2], q[1] / q[2])
+
+
+def prior_starts(H: wp.array, pts: wp.array, count: wp.array, guess: wp.array, device) -> None:
+    """``guess`` <- where the frame's image motion ``H[0]`` (a homography in pixels, from the host's dense
+    alignment: ``frontend.global_motion``) puts each of the first ``count[0]`` tracks, on a frame without a pose
+    prediction. H is read from the device, so a captured graph replays this launch for any frame's motion."""
+    wp.launch(_prior_starts, dim=pts.shape[0], inputs=[H, pts, count, guess], device=device)

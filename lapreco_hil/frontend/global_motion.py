@@ -1,0 +1,189 @@
+"""A global image-motion prior for frames without a pose prediction: the frame-to-frame homography from a dense,
+coarse-to-fine alignment of the whole image at low resolution, so that every track starts LK where that motion puts
+it instead of where it was.
+
+Why: without a prediction LK starts each track at its old position and its coarse pyramid levels must carry the
+whole motion; on a periodic pattern (a dot grid, a chessboard) the coarse levels blur the pattern away and a track
+takes a neighbouring copy, and beyond the pyramid's reach (a small frame moving fast) tracks are lost. A dense
+alignment uses the whole image (the board's border, the context around it), so a periodic pattern does not fool
+it the way a track's window is fooled. The tracks' consensus (``frontend.consensus``) then mends what is left.
+
+The alignment (OpenCV's ECC, a homography) runs on a log high-pass of the frame reduced to at most
+``ALIGN_MAX_SIDE`` pixels, from several seeds: the identity (coarse to fine over ``ALIGN_LEVELS`` levels), the
+previous frame's image motion (constant velocity; on the finest alignment level only, as it is already close) and
+a translation from phase correlation (coarse to fine). The seed whose alignment correlates best wins; below
+``MIN_CORRELATION``, or with a degenerate homography, there is no prior and LK starts where the tracks were.
+
+Host code (numpy + OpenCV) shared by both front-ends: the Warp front-end runs it on the host's grey frame before
+its graph and sends the homography up (``warp/frontend.py``). docs/frontend-real-frames.md, "A global motion
+prior", has the figures."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
+
+# the alignment image's longer side at most this (a power-of-two reduction of the frame)
+ALIGN_MAX_SIDE = 256
+# pyramid levels of the alignment image, finest included; the coarsest must keep some texture
+ALIGN_LEVELS = 3
+ALIGN_MIN_SIDE = 24
+# the alignment image's high-pass (px of the alignment image): shading and gain out, the texture's context kept
+ALIGN_HIGHPASS_SIGMA_PX = 6.0
+# ECC's iterations per level and its convergence threshold (change of the correlation)
+ECC_ITERATIONS = 40
+ECC_EPS = 1e-4
+# no prior from an alignment that correlates less than this (ECC's correlation coefficient, 1: perfect)
+MIN_CORRELATION = 0.6
+# seeds closer than this (alignment pixels, at the image's corners) are aligned once
+SAME_SEED_PX = 1.0
+# a homography of one frame's scope motion changes the scale by less than this factor
+MAX_SCALE_CHANGE = 2.0
+
+
+def reduction(width: int, height: int) -> int:
+    """The power of two that brings the frame's longer side to at most ALIGN_MAX_SIDE."""
+    factor = 1
+    while max(width, height) / factor > ALIGN_MAX_SIDE:
+        factor *= 2
+    return factor
+
+
+def reduced(image: np.ndarray, factor: int) -> np.ndarray:
+    """``image`` reduced by ``factor`` (block means)."""
+    h, w = image.shape[:2]
+    return image if factor == 1 else cv2.resize(image, (-(-w // factor), -(-h // factor)),
+                                                interpolation=cv2.INTER_AREA)
+
+
+def reduced_maps(map_x: np.ndarray, map_y: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Undistortion maps (full resolution) for a frame reduced by ``factor``: each reduced pixel's source, in
+    reduced pixels; None where they are the identity (no distortion)."""
+    h, w = map_x.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    if np.abs(map_x - xs).max() < 0.01 and np.abs(map_y - ys).max() < 0.01:
+        return None
+    centre = 0.5 * (factor - 1)
+    mx = (reduced(map_x, factor) - centre) / factor
+    my = (reduced(map_y, factor) - centre) / factor
+    return mx.astype(np.float32), my.astype(np.float32)
+
+
+def reduced_grey(bgr: np.ndarray, factor: int, maps: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """The distorted BGR frame as the reduced, undistorted grey image ``GlobalMotion.estimate_reduced`` takes:
+    reduced first (cheap), then undistorted at the reduced size (``reduced_maps``; the lens's distortion is smooth
+    over a block)."""
+    grey = cv2.cvtColor(reduced(bgr, factor), cv2.COLOR_BGR2GRAY)
+    return grey if maps is None else cv2.remap(grey, maps[0], maps[1], cv2.INTER_LINEAR,
+                                               borderMode=cv2.BORDER_REPLICATE)
+
+
+def alignment_image(small: np.ndarray) -> np.ndarray:
+    """The reduced grey frame (uint8, undistorted) as a clamped log high-pass (float32): the gain, the vignetting
+    and the light's slow falloff out, a saturated highlight clamped as on the tracker image."""
+    log = np.log(small.astype(np.float32) + LOG_OFFSET)
+    high = log - cv2.GaussianBlur(log, (0, 0), ALIGN_HIGHPASS_SIGMA_PX)
+    return np.clip(high, -HIGHPASS_RANGE, HIGHPASS_RANGE)
+
+
+def _scaled(H: np.ndarray, scale: float, offset: float = 0.0) -> np.ndarray:
+    """H in the pixels x' = scale * (x - offset) (cv2.pyrDown: scale 1/2, offset 0; a reduction by block means of
+    f pixels: scale 1/f, offset (f - 1) / 2, the block's centre)."""
+    A = np.array([[scale, 0.0, -scale * offset], [0.0, scale, -scale * offset], [0.0, 0.0, 1.0]])
+    return A @ H @ np.linalg.inv(A)
+
+
+def plausible(H: np.ndarray | None) -> bool:
+    """A finite homography that keeps orientation and changes the scale by less than MAX_SCALE_CHANGE."""
+    if H is None or not np.isfinite(H).all() or abs(H[2, 2]) < 1e-12:
+        return False
+    A = H[:2, :2] / H[2, 2]
+    det = float(np.linalg.det(A))
+    return 1.0 / MAX_SCALE_CHANGE**2 < det < MAX_SCALE_CHANGE**2
+
+
+class GlobalMotion:
+    """The image motion between consecutive frames of one camera (``estimate``); it keeps the previous frame's
+    alignment image and motion."""
+
+    def __init__(self, width: int, height: int) -> None:
+        self.factor = reduction(width, height)
+        w, h = -(-width // self.factor), -(-height // self.factor)
+        self.levels = 1
+        while self.levels < ALIGN_LEVELS and min(w, h) >> self.levels >= ALIGN_MIN_SIDE:
+            self.levels += 1
+        self._prev: list[np.ndarray] | None = None
+        self.last: np.ndarray | None = None  # the last frame's motion (full-resolution pixels), when known
+
+    def _pyramid(self, image: np.ndarray) -> list[np.ndarray]:
+        levels = [image]
+        for _ in range(self.levels - 1):
+            levels.append(cv2.pyrDown(levels[-1]))
+        return levels
+
+    def _align(self, cur: list[np.ndarray], H0: np.ndarray, first: int) -> tuple[float, np.ndarray | None]:
+        """ECC from ``H0`` (alignment pixels of the finest level) on the levels ``first`` .. 0; (correlation,
+        homography) or (-1, None) where ECC gave up."""
+        H = _scaled(H0, 0.5**first)
+        rho = -1.0
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ECC_ITERATIONS, ECC_EPS)
+        for level in range(first, -1, -1):
+            try:
+                rho, W = cv2.findTransformECC(self._prev[level], cur[level], H.astype(np.float32),
+                                              cv2.MOTION_HOMOGRAPHY, criteria, None, 5)
+            except cv2.error:  # "iterations do not converge": the correlation fell (no overlap, wrong basin)
+                return -1.0, None
+            H = W.astype(np.float64)
+            if level:
+                H = _scaled(H, 2.0)
+        return float(rho), H
+
+    def forget(self) -> None:
+        """A frame that is not aligned (it came with a pose prediction): the next has no previous image (so a
+        frame with a prediction costs nothing here; a run without poses has none on any frame)."""
+        self._prev = None
+        self.last = None
+
+    def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
+        """``estimate_reduced`` of the undistorted full-resolution grey frame ``gray`` (uint8)."""
+        return self.estimate_reduced(reduced(gray, self.factor), seeds)
+
+    def estimate_reduced(self, small: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
+        """The homography (full-resolution pixels, previous frame -> this one) of the undistorted grey frame
+        reduced by ``factor`` (uint8), or None (the first frame, or no alignment correlated well enough).
+        ``seeds``: more starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous
+        frame."""
+        cur = self._pyramid(alignment_image(small))
+        prev, self._prev = self._prev, cur
+        if prev is None or prev[0].shape != cur[0].shape:
+            self.last = None
+            return None
+        self._prev = prev
+        f = float(self.factor)
+        centre = 0.5 * (f - 1.0)  # of a reduced pixel's block, in full-resolution pixels
+        (dx, dy), _ = cv2.phaseCorrelate(prev[0].astype(np.float64), cur[0].astype(np.float64))
+        shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+        coarsest = self.levels - 1
+        tries = [(np.eye(3), coarsest), (shift, coarsest)]
+        tries += [(_scaled(H, 1.0 / f, centre), 0) for H in (self.last, *seeds) if plausible(H)]
+        best_rho, best = -1.0, None
+        h, w = cur[0].shape
+        corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]).reshape(-1, 1, 2)
+        seen = []
+        for H0, first in tries:
+            # a seed within a pixel of an earlier one (at every corner of the alignment image) would end there too
+            moved = cv2.perspectiveTransform(corners, H0).reshape(-1, 2)
+            if any(np.abs(moved - m).max() < SAME_SEED_PX for m in seen):
+                continue
+            seen.append(moved)
+            rho, H = self._align(cur, H0, first)
+            if H is not None and rho > best_rho and plausible(H):
+                best_rho, best = rho, H
+        self._prev = cur
+        if best is None or best_rho < MIN_CORRELATION:
+            self.last = None
+            return None
+        self.last = _scaled(best, f, -centre / f)
+        return self.last
