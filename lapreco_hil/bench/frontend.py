@@ -11,6 +11,8 @@ the capture thread's, beside tracking, so it is not in the front-end's time).
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 import platform
 import time
@@ -80,11 +82,13 @@ def _pass(frontend, frames, warmup: int, motion=None, page_locked=None):
     return totals, tracks, {name: float(np.median(v)) * 1e3 for name, v in stages.items()}
 
 
-def _run(make, frames, warmup: int, motion=None, page_locked=None) -> dict:
+def _run(make, frames, warmup: int, motion=None, page_locked=None, make_without_prior=None) -> dict:
     """Totals from a steady-state pass; per-stage times from a second pass that synchronises at stage ends
     (where the front-end can: the Warp one has a ``profile`` switch, OpenCV's stages are synchronous). With
     ``motion`` (the Warp front-end), a third pass gives every frame its motion: the live path's totals. With
-    ``page_locked`` (a pool), both totals again with the frames staged in page-locked memory."""
+    ``page_locked`` (a pool), both totals again with the frames staged in page-locked memory. With
+    ``make_without_prior``, the frames without a motion once more without the global motion prior (the host's
+    alignment that a frame without a motion pays for: ``[tracker] global_motion_prior``)."""
     frontend = make()
     totals, tracks, stages = _pass(frontend, frames, warmup)
     if hasattr(frontend, "profile"):
@@ -93,6 +97,9 @@ def _run(make, frames, warmup: int, motion=None, page_locked=None) -> dict:
         _, _, stages = _pass(profiled, frames, warmup)
     row = {"total_ms": float(np.median(totals)) * 1e3, "total_p95_ms": float(np.percentile(totals, 95)) * 1e3,
            "stages_ms": stages, "tracks_median": float(np.median(tracks))}
+    if make_without_prior is not None:
+        bare, _, _ = _pass(make_without_prior(), frames, warmup)
+        row["without_global_prior_ms"] = float(np.median(bare)) * 1e3
     if motion is not None:
         live, live_tracks, _ = _pass(make(), frames, warmup, motion)
         row["with_motion"] = {"total_ms": float(np.median(live)) * 1e3,
@@ -122,10 +129,13 @@ def run(device: str, resolutions: list[tuple[int, int]], features: list[int], fr
             # enough room for n corners inside the field of view
             min_distance = float(np.clip(0.5 * np.sqrt(width * height / n), 3.0, 10.0))
             cfg = TrackerConfig(max_features=n, min_distance_px=min_distance, quality_level=0.001)
+            bare = dataclasses.replace(cfg, global_motion_prior=False)
             warp_row = _run(lambda: WarpFrontEnd(camera, cfg, device), seq, warmup,
                             motion=_live_motion(truth, SCENE_DEPTH_M),
-                            page_locked=PageLockedFrames((height, width, 3), 4, device))
-            cv_row = _run(lambda: OpenCVFrontEnd(camera, cfg), seq, warmup)
+                            page_locked=PageLockedFrames((height, width, 3), 4, device),
+                            make_without_prior=lambda: WarpFrontEnd(camera, bare, device))
+            cv_row = _run(lambda: OpenCVFrontEnd(camera, cfg), seq, warmup,
+                          make_without_prior=lambda: OpenCVFrontEnd(camera, bare))
             rows.append({
                 "resolution": f"{width}x{height}", "features": n, "min_distance_px": min_distance,
                 "warp": warp_row, "opencv": cv_row,
@@ -141,8 +151,8 @@ def format_table(result: dict) -> str:
     lines = [f"front-end on {result['device']} ({result['frames']} frames, {result['warmup']} warm-up, medians; "
              f"OpenCV on {result['cpu_threads']} threads)",
              f"{'resolution':>10s} {'N':>5s} | {'warp total':>10s} {'upload':>7s} {'prepare':>8s} {'lk':>7s} "
-             f"{'drift':>7s} {'detect':>7s} {'tracks':>6s} {'+motion':>8s} {'locked':>7s} {'+motion':>8s} | "
-             f"{'cv total':>9s} {'cv lk':>7s} "
+             f"{'drift':>7s} {'detect':>7s} {'tracks':>6s} {'-prior':>7s} {'+motion':>8s} {'locked':>7s} "
+             f"{'+motion':>8s} | {'cv total':>9s} {'-prior':>7s} {'cv lk':>7s} "
              f"{'cv drift':>8s} | {'x total':>7s} {'x LK':>6s}"]
     for r in result["rows"]:
         w, c = r["warp"], r["opencv"]
@@ -151,11 +161,13 @@ def format_table(result: dict) -> str:
         locked = w.get("page_locked", {})
         lines.append(f"{r['resolution']:>10s} {r['features']:>5d} | {w['total_ms']:10.2f} {ws.get('upload', 0):7.2f} "
                      f"{ws.get('prepare', 0):8.2f} {ws.get('lk', 0):7.2f} {ws.get('drift_check', 0):7.2f} "
-                     f"{ws.get('detect', 0):7.2f} {w['tracks_median']:6.0f} {live:8.2f} "
+                     f"{ws.get('detect', 0):7.2f} {w['tracks_median']:6.0f} "
+                     f"{w.get('without_global_prior_ms', float('nan')):7.2f} {live:8.2f} "
                      f"{locked.get('total_ms', float('nan')):7.2f} {locked.get('with_motion_ms', float('nan')):8.2f} | "
-                     f"{c['total_ms']:9.2f} "
+                     f"{c['total_ms']:9.2f} {c.get('without_global_prior_ms', float('nan')):7.2f} "
                      f"{cs.get('track', 0):7.2f} {cs.get('drift_check', 0):8.2f} | {r['ratio_total']:7.1f} "
                      f"{r['ratio_lk']:6.1f}")
-    lines.append("+motion: the Warp front-end's total with every frame's motion given, as in a live run; locked: "
-                 "the frames in page-locked memory, as the live run's capture thread stages them on CUDA")
+    lines.append("-prior: the frames without a motion, without the global motion prior's host alignment; +motion: "
+                 "the Warp front-end's total with every frame's motion given, as in a live run (no alignment); "
+                 "locked: the frames in page-locked memory, as the live run's capture thread stages them on CUDA")
     return "\n".join(lines)
