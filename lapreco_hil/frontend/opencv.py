@@ -76,6 +76,7 @@ class OpenCVFrontEnd:
         self._stereo_prior = (self._ids, self._pts, motion)  # (arrays replaced, never written in place)
         depth = (epipolar.start_depths(self._pts, self._ids, motion, self.camera.K,
                                        (self.camera.width, self.camera.height)) if motion is not None else None)
+        given = motion is not None
         if depth is None:
             motion = None  # a small motion: tracked as without one
         budget, lk_levels = cfg.max_features, self.levels
@@ -88,10 +89,11 @@ class OpenCVFrontEnd:
         gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
         # too dark to carry texture (the cavity beyond the light's reach): no detections there
         lit = cv2.blur(gray, (15, 15)) >= cfg.min_brightness
-        # only a frame without a motion is aligned (with the last frame, when that had none either)
+        # only a frame without a motion is aligned (with the last frame, when that had none either); a small one
+        # given by the pose source is not: the image barely moved, the tracks start where they were
         prior = None
         if self._global is not None:
-            if motion is None:
+            if not given:
                 prior = self._global.estimate(gray, () if self._consensus_H is None else (self._consensus_H,))
             else:
                 self._global.forget()

@@ -694,7 +694,7 @@ class WarpFrontEnd:
                 depth = epipolar.start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
             # (a small motion: the frame's captured graph replays, as without a motion)
             self._set_motion(motion if depth is not None else None, depth)
-            self._set_prior(frame.image)
+            self._set_prior(frame.image, motion)
             return self._process_frame(frame, t0, cur)
         finally:
             if self._motion is not None:
@@ -703,14 +703,15 @@ class WarpFrontEnd:
                 self._prior = False
                 self._use_guess.fill_(0)
 
-    def _set_prior(self, image: np.ndarray) -> None:
+    def _set_prior(self, image: np.ndarray, motion: FrameMotion | None) -> None:
         """A frame without a motion: its image motion from the host's dense alignment (``frontend.global_motion``:
         the frame reduced and undistorted on the host, aligned with the last one), sent up through a pinned
         buffer, and LK starts every track from it (``predict.prior_starts``). It costs host time before the
-        graph, no device synchronisation. A frame with a motion costs nothing here (the next has no prior)."""
+        graph, no device synchronisation. A frame with a motion costs nothing here (the next has no prior), a
+        small one included (the pose source says the image barely moved: the tracks start where they were)."""
         if self._global is None:
             return
-        if self._motion is not None:
+        if motion is not None:
             self._global.forget()
             return
         small = reduced_grey(image, self._global.factor, self._global_maps)
