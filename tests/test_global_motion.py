@@ -91,15 +91,28 @@ def test_tracks_hold_a_motion_beyond_lk_reach_only_with_the_prior(tracker, warp_
     assert held[True] >= held[False] + 0.3, held
 
 
-def test_frames_with_a_pose_prediction_track_as_without_the_prior():
-    """The prior is for frames without a motion: with one (the simulator, a robot), the tracks are the same."""
+@pytest.mark.parametrize("speed_px", [40.0, 3.0])
+def test_frames_with_a_pose_prediction_track_as_without_the_prior(speed_px, monkeypatch):
+    """The prior is for frames without a motion: with one (the simulator, a robot), the tracks are the same and
+    no frame is aligned; a small motion too (3 px: tracked as without a motion, but the pose source says the image
+    barely moved)."""
     from lapreco_hil.frontend import make_frontend
+    from lapreco_hil.frontend.global_motion import GlobalMotion
 
+    aligned = []
+    estimate = GlobalMotion.estimate_reduced
+
+    def counted(self, *args, **kwargs):
+        aligned.append(1)
+        return estimate(self, *args, **kwargs)
+
+    monkeypatch.setattr(GlobalMotion, "estimate_reduced", counted)
     frame = tb.load_real_frames(None, ("hamlyn-phantom",))[0]
-    seq = tb.make_sequence(frame, 40.0, 4, seed=0)
+    seq = tb.make_sequence(frame, speed_px, 4, seed=0)
     runs = {}
     for on in (False, True):
         frontend = make_frontend("opencv", seq.camera, TrackerConfig(global_motion_prior=on), None)
         runs[on], _ = tb.track_sequence(frontend, seq, "depth")
+    assert len(aligned) == 1  # the first frame only (it has no motion: no previous frame)
     for (ids_off, uv_off), (ids_on, uv_on) in zip(runs[False], runs[True]):
         assert np.array_equal(ids_off, ids_on) and np.array_equal(uv_off, uv_on)
