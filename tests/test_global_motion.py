@@ -54,6 +54,41 @@ def test_the_dense_alignment_finds_a_large_motion_of_a_real_frame():
     assert _median_error(H_est, H, size) < 2.0
 
 
+@pytest.mark.parametrize("name, shift", [("laparoscope-chessboard", (-60.0, 20.0)), ("viking-dotgrid", (0.0, 0.0))])
+def test_the_fourier_mellin_seed_aligns_a_turn_and_zoom_the_other_seeds_miss(name, shift):
+    """A periodic pattern turned by 8 degrees and zoomed by 8 %: ECC from the identity and from a phase-correlation
+    shift gives up (or takes another copy of the pattern); from the Fourier-Mellin similarity it aligns within
+    1 px. (Measured: no prior from the old seeds; 0.14 / 0.09 px median error with the new one.)"""
+    frame = tb.load_real_frames(None, (name,))[0]
+    size = frame.image.shape[1::-1]
+    H = _zoom_and_shift(size, shift, 1.08, 8.0)
+    _, moved = _frames(name, H)
+    errors = {}
+    for on in (False, True):
+        motion = GlobalMotion(*size)
+        motion.fourier_mellin = on
+        motion.estimate(cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY))
+        H_est = motion.estimate(cv2.cvtColor(moved, cv2.COLOR_BGR2GRAY))
+        errors[on] = np.inf if H_est is None else _median_error(H_est, H, size)
+    assert errors[False] > 1.0, errors
+    assert errors[True] < 1.0, errors
+
+
+def test_the_fourier_mellin_similarity_of_a_turned_zoomed_shifted_image():
+    """The seed alone (alignment pixels): the turn, the zoom and the shift of a reduced real frame."""
+    from lapreco_hil.frontend.global_motion import alignment_image, fourier_mellin, logpolar_spectrum, reduced
+
+    grey = cv2.cvtColor(tb.load_real_frames(None, ("liver",))[0].image, cv2.COLOR_BGR2GRAY)
+    small = reduced(grey, 8)
+    h, w = small.shape
+    S = np.vstack([cv2.getRotationMatrix2D((0.5 * (w - 1), 0.5 * (h - 1)), -6.0, 0.94), [0.0, 0.0, 1.0]])
+    S[:2, 2] += (5.0, -3.0)
+    moved = cv2.warpPerspective(small, S, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+    a, b = alignment_image(small), alignment_image(moved)
+    S_est = fourier_mellin(a, b, logpolar_spectrum(a), logpolar_spectrum(b))
+    assert _median_error(S_est, S, (w, h)) < 1.0
+
+
 def test_no_prior_between_unrelated_frames():
     a = tb.load_real_frames(None, ("liver",))[0].image
     b = tb.load_real_frames(None, ("viking-dotgrid",))[0].image

@@ -10,9 +10,12 @@ it the way a track's window is fooled. The tracks' consensus (``frontend.consens
 
 The alignment (OpenCV's ECC, a homography) runs on a log high-pass of the frame reduced to at most
 ``ALIGN_MAX_SIDE`` pixels, from several seeds: the identity (coarse to fine over ``ALIGN_LEVELS`` levels), the
-previous frame's image motion (constant velocity; on the finest alignment level only, as it is already close) and
-a translation from phase correlation (coarse to fine). The seed whose alignment correlates best wins; below
-``MIN_CORRELATION``, or with a degenerate homography, there is no prior and LK starts where the tracks were.
+previous frame's image motion (constant velocity; on the finest alignment level only, as it is already close), a
+translation from phase correlation (coarse to fine) and a similarity from the Fourier-Mellin method (the turn and
+zoom from phase correlation of the log-polar magnitude spectra, then the shift; ECC from level
+``FOURIER_MELLIN_FIRST_LEVEL``): a turn or zoom of a periodic pattern that ECC cannot reach from a shift. The seed
+whose alignment correlates best wins; below ``MIN_CORRELATION``, or with a degenerate homography, there is no prior
+and LK starts where the tracks were.
 
 Host code (numpy + OpenCV) shared by both front-ends: the Warp front-end runs it on the host's grey frame before
 its graph and sends the homography up (``warp/frontend.py``). docs/frontend-real-frames.md, "A global motion
@@ -41,6 +44,14 @@ MIN_CORRELATION = 0.6
 SAME_SEED_PX = 1.0
 # a homography of one frame's scope motion changes the scale by less than this factor
 MAX_SCALE_CHANGE = 2.0
+# the Fourier-Mellin seed: the log-polar magnitude spectrum's samples along the radius and over 360 degrees (the
+# first half is used: a real image's magnitude spectrum repeats every 180 degrees)
+LOGPOLAR_RADII = 128
+LOGPOLAR_ANGLES = 360
+# ECC from the Fourier-Mellin seed starts on this pyramid level (0: the finest): the seed is within a few alignment
+# pixels already, and the coarsest level blurs a fine periodic pattern away (a chessboard zooming out: ECC gives up
+# there even from the true motion)
+FOURIER_MELLIN_FIRST_LEVEL = 1
 
 
 def reduction(width: int, height: int) -> int:
@@ -104,6 +115,40 @@ def plausible(H: np.ndarray | None) -> bool:
     return 1.0 / MAX_SCALE_CHANGE**2 < det < MAX_SCALE_CHANGE**2
 
 
+def logpolar_spectrum(image: np.ndarray) -> np.ndarray:
+    """The log magnitude spectrum of the alignment image (Hann-windowed, zero-padded to a square so that the
+    spectrum's axes have one scale), resampled log-polar about its centre: LOGPOLAR_ANGLES / 2 rows (0-180 degrees)
+    by LOGPOLAR_RADII columns (log radius, 1 to half the square's side). The magnitude spectrum ignores a shift; a
+    turn of the image turns it, a zoom by s scales it by 1/s: in log-polar both are shifts."""
+    h, w = image.shape
+    n = cv2.getOptimalDFTSize(max(h, w))
+    square = np.zeros((n, n), np.float32)
+    square[:h, :w] = image * cv2.createHanningWindow((w, h), cv2.CV_32F)
+    F = cv2.dft(square, flags=cv2.DFT_COMPLEX_OUTPUT)
+    magnitude = np.fft.fftshift(np.log1p(cv2.magnitude(F[..., 0], F[..., 1])))
+    c = 0.5 * n
+    polar = cv2.warpPolar(magnitude, (LOGPOLAR_RADII, LOGPOLAR_ANGLES), (c, c), c,
+                          cv2.INTER_LINEAR | cv2.WARP_POLAR_LOG)
+    return polar[:LOGPOLAR_ANGLES // 2].astype(np.float64)
+
+
+def fourier_mellin(prev: np.ndarray, cur: np.ndarray, prev_polar: np.ndarray,
+                   cur_polar: np.ndarray) -> np.ndarray:
+    """The similarity (alignment pixels, previous -> current) between two alignment images by the Fourier-Mellin
+    method: phase correlation of their ``logpolar_spectrum`` gives the turn and the zoom (about the image's centre),
+    then phase correlation of the previous image with the current one turned and zoomed back gives the shift."""
+    h, w = prev.shape
+    radial = np.tile(np.hanning(LOGPOLAR_RADII)[None, :], (prev_polar.shape[0], 1))
+    (d_radius, d_angle), _ = cv2.phaseCorrelate(prev_polar, cur_polar, radial)
+    angle = -360.0 * d_angle / LOGPOLAR_ANGLES  # degrees, counter-clockwise as cv2.getRotationMatrix2D's
+    n = cv2.getOptimalDFTSize(max(h, w))
+    scale = float(np.exp(-d_radius * np.log(0.5 * n) / LOGPOLAR_RADII))
+    S = np.vstack([cv2.getRotationMatrix2D((0.5 * (w - 1), 0.5 * (h - 1)), angle, scale), [0.0, 0.0, 1.0]])
+    back = cv2.warpPerspective(cur, S, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)  # back(x) = cur(S x)
+    (dx, dy), _ = cv2.phaseCorrelate(prev.astype(np.float64), back.astype(np.float64))
+    return S @ np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+
 class GlobalMotion:
     """The image motion between consecutive frames of one camera (``estimate``); it keeps the previous frame's
     alignment image and motion."""
@@ -115,6 +160,8 @@ class GlobalMotion:
         while self.levels < ALIGN_LEVELS and min(w, h) >> self.levels >= ALIGN_MIN_SIDE:
             self.levels += 1
         self._prev: list[np.ndarray] | None = None
+        self._prev_polar: np.ndarray | None = None  # the previous alignment image's logpolar_spectrum
+        self.fourier_mellin = True  # the rotation-and-zoom seed (off: the seeds before it, for comparisons)
         self.last: np.ndarray | None = None  # the last frame's motion (full-resolution pixels), when known
 
     def _pyramid(self, image: np.ndarray) -> list[np.ndarray]:
@@ -144,6 +191,7 @@ class GlobalMotion:
         """A frame that is not aligned (it came with a pose prediction): the next has no previous image (so a
         frame with a prediction costs nothing here; a run without poses has none on any frame)."""
         self._prev = None
+        self._prev_polar = None
         self.last = None
 
     def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
@@ -156,7 +204,9 @@ class GlobalMotion:
         ``seeds``: more starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous
         frame."""
         cur = self._pyramid(alignment_image(small))
+        cur_polar = logpolar_spectrum(cur[0]) if self.fourier_mellin else None
         prev, self._prev = self._prev, cur
+        prev_polar, self._prev_polar = self._prev_polar, cur_polar
         if prev is None or prev[0].shape != cur[0].shape:
             self.last = None
             return None
@@ -167,6 +217,10 @@ class GlobalMotion:
         shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
         coarsest = self.levels - 1
         tries = [(np.eye(3), coarsest), (shift, coarsest)]
+        if cur_polar is not None and prev_polar is not None:
+            similarity = fourier_mellin(prev[0], cur[0], prev_polar, cur_polar)
+            if plausible(similarity):
+                tries.append((similarity, min(FOURIER_MELLIN_FIRST_LEVEL, coarsest)))
         tries += [(_scaled(H, 1.0 / f, centre), 0) for H in (self.last, *seeds) if plausible(H)]
         best_rho, best = -1.0, None
         h, w = cur[0].shape
