@@ -178,6 +178,8 @@ def _nested_mutation(draw, source: dict):
 
 @FUZZ
 @given(st.sampled_from([VALID, VALID_JOINTS]).flatmap(_nested_mutation))
+# found by a full run (2026-12-07): an infinite distortion coefficient was accepted
+@example({**VALID, "camera": {**VALID["camera"], "dist": [float("inf")]}})
 def test_mutated_session_metadata_is_read_or_refused_clearly(doc):
     meta = _read_or_refuse(doc)
     if meta is not None:  # accepted: a usable session, whatever was changed

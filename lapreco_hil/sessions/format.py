@@ -321,8 +321,9 @@ def _camera(cam: _Fields, fov_of) -> CameraModel:
         raise cam._fail("width", f"and height ({width}x{height}) must be 1..16384")
     K = cam.matrix("K", (3, 3))
     dist = np.array(cam.get("dist", list, []), dtype=object)
-    if len(dist) > N_DIST or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in dist):
-        raise cam._fail("dist", f"must be up to {N_DIST} numbers in OpenCV's order (k1 k2 p1 p2 k3 k4 k5 k6 "
+    if len(dist) > N_DIST or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                                     for v in dist):
+        raise cam._fail("dist", f"must be up to {N_DIST} finite numbers in OpenCV's order (k1 k2 p1 p2 k3 k4 k5 k6 "
                                 f"s1 s2 s3 s4)")
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise cam._fail("K", "must have positive focal lengths")
