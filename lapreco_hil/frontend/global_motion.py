@@ -13,9 +13,10 @@ The alignment (OpenCV's ECC, a homography) runs on a log high-pass of the frame 
 previous frame's image motion (constant velocity; on the finest alignment level only, as it is already close), a
 translation from phase correlation (coarse to fine) and a similarity from the Fourier-Mellin method (the turn and
 zoom from phase correlation of the log-polar magnitude spectra, then the shift; ECC from level
-``FOURIER_MELLIN_FIRST_LEVEL``): a turn or zoom of a periodic pattern that ECC cannot reach from a shift. The seed
-whose alignment correlates best wins; below ``MIN_CORRELATION``, or with a degenerate homography, there is no prior
-and LK starts where the tracks were.
+``FOURIER_MELLIN_FIRST_LEVEL``): a turn or zoom of a periodic pattern that ECC cannot reach from a shift. The seeds
+are tried cheapest first, and the first alignment that correlates at least ``GOOD_CORRELATION`` is taken (a smooth
+scope motion costs one alignment on the finest level); otherwise the seed whose alignment correlates best wins;
+below ``MIN_CORRELATION``, or with a degenerate homography, there is no prior and LK starts where the tracks were.
 
 Host code (numpy + OpenCV) shared by both front-ends: the Warp front-end runs it on the host's grey frame before
 its graph and sends the homography up (``warp/frontend.py``). docs/frontend-real-frames.md, "A global motion
@@ -40,6 +41,9 @@ ECC_ITERATIONS = 40
 ECC_EPS = 1e-4
 # no prior from an alignment that correlates less than this (ECC's correlation coefficient, 1: perfect)
 MIN_CORRELATION = 0.6
+# an alignment that correlates at least this well is taken without trying the seeds after it: a wrong basin (a
+# periodic pattern's neighbouring copy) leaves the border and the context misaligned, far below it
+GOOD_CORRELATION = 0.95
 # seeds closer than this (alignment pixels, at the image's corners) are aligned once
 SAME_SEED_PX = 1.0
 # a homography of one frame's scope motion changes the scale by less than this factor
@@ -160,7 +164,8 @@ class GlobalMotion:
         while self.levels < ALIGN_LEVELS and min(w, h) >> self.levels >= ALIGN_MIN_SIDE:
             self.levels += 1
         self._prev: list[np.ndarray] | None = None
-        self._prev_polar: np.ndarray | None = None  # the previous alignment image's logpolar_spectrum
+        # the previous alignment image's logpolar_spectrum, where its frame needed the Fourier-Mellin seed
+        self._prev_polar: np.ndarray | None = None
         self.fourier_mellin = True  # the rotation-and-zoom seed (off: the seeds before it, for comparisons)
         self.last: np.ndarray | None = None  # the last frame's motion (full-resolution pixels), when known
 
@@ -170,15 +175,17 @@ class GlobalMotion:
             levels.append(cv2.pyrDown(levels[-1]))
         return levels
 
-    def _align(self, cur: list[np.ndarray], H0: np.ndarray, first: int) -> tuple[float, np.ndarray | None]:
-        """ECC from ``H0`` (alignment pixels of the finest level) on the levels ``first`` .. 0; (correlation,
-        homography) or (-1, None) where ECC gave up."""
+    @staticmethod
+    def _align(prev: list[np.ndarray], cur: list[np.ndarray], H0: np.ndarray,
+               first: int) -> tuple[float, np.ndarray | None]:
+        """ECC of ``cur`` to ``prev`` (pyramids) from ``H0`` (alignment pixels of the finest level) on the levels
+        ``first`` .. 0; (correlation, homography) or (-1, None) where ECC gave up."""
         H = _scaled(H0, 0.5**first)
         rho = -1.0
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ECC_ITERATIONS, ECC_EPS)
         for level in range(first, -1, -1):
             try:
-                rho, W = cv2.findTransformECC(self._prev[level], cur[level], H.astype(np.float32),
+                rho, W = cv2.findTransformECC(prev[level], cur[level], H.astype(np.float32),
                                               cv2.MOTION_HOMOGRAPHY, criteria, None, 5)
             except cv2.error:  # "iterations do not converge": the correlation fell (no overlap, wrong basin)
                 return -1.0, None
@@ -204,40 +211,50 @@ class GlobalMotion:
         ``seeds``: more starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous
         frame."""
         cur = self._pyramid(alignment_image(small))
-        cur_polar = logpolar_spectrum(cur[0]) if self.fourier_mellin else None
-        prev, self._prev = self._prev, cur
-        prev_polar, self._prev_polar = self._prev_polar, cur_polar
+        prev, prev_polar = self._prev, self._prev_polar
+        self._prev, self._prev_polar = cur, None
         if prev is None or prev[0].shape != cur[0].shape:
             self.last = None
             return None
-        self._prev = prev
-        f = float(self.factor)
-        centre = 0.5 * (f - 1.0)  # of a reduced pixel's block, in full-resolution pixels
-        (dx, dy), _ = cv2.phaseCorrelate(prev[0].astype(np.float64), cur[0].astype(np.float64))
-        shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
-        coarsest = self.levels - 1
-        tries = [(np.eye(3), coarsest), (shift, coarsest)]
-        if cur_polar is not None and prev_polar is not None:
-            similarity = fourier_mellin(prev[0], cur[0], prev_polar, cur_polar)
-            if plausible(similarity):
-                tries.append((similarity, min(FOURIER_MELLIN_FIRST_LEVEL, coarsest)))
-        tries += [(_scaled(H, 1.0 / f, centre), 0) for H in (self.last, *seeds) if plausible(H)]
         best_rho, best = -1.0, None
         h, w = cur[0].shape
         corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]).reshape(-1, 1, 2)
         seen = []
-        for H0, first in tries:
+        for H0, first in self._seeds(prev, cur, prev_polar, seeds):
             # a seed within a pixel of an earlier one (at every corner of the alignment image) would end there too
             moved = cv2.perspectiveTransform(corners, H0).reshape(-1, 2)
             if any(np.abs(moved - m).max() < SAME_SEED_PX for m in seen):
                 continue
             seen.append(moved)
-            rho, H = self._align(cur, H0, first)
+            rho, H = self._align(prev, cur, H0, first)
             if H is not None and rho > best_rho and plausible(H):
                 best_rho, best = rho, H
-        self._prev = cur
+                if rho >= GOOD_CORRELATION:
+                    break
         if best is None or best_rho < MIN_CORRELATION:
             self.last = None
             return None
-        self.last = _scaled(best, f, -centre / f)
+        f = float(self.factor)
+        self.last = _scaled(best, f, -0.5 * (f - 1.0) / f)
         return self.last
+
+    def _seeds(self, prev: list[np.ndarray], cur: list[np.ndarray], prev_polar: np.ndarray | None,
+               seeds: tuple[np.ndarray, ...]):
+        """The starting motions (alignment pixels) and the level ECC starts each from, cheapest and likeliest
+        first; each computed only when the ones before it did not align well enough (``GOOD_CORRELATION``)."""
+        f = float(self.factor)
+        centre = 0.5 * (f - 1.0)  # of a reduced pixel's block, in full-resolution pixels
+        for H in (self.last, *seeds):
+            if plausible(H):
+                yield _scaled(H, 1.0 / f, centre), 0
+        coarsest = self.levels - 1
+        yield np.eye(3), coarsest
+        (dx, dy), _ = cv2.phaseCorrelate(prev[0].astype(np.float64), cur[0].astype(np.float64))
+        yield np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]), coarsest
+        if self.fourier_mellin:
+            if prev_polar is None:
+                prev_polar = logpolar_spectrum(prev[0])
+            self._prev_polar = logpolar_spectrum(cur[0])
+            similarity = fourier_mellin(prev[0], cur[0], prev_polar, self._prev_polar)
+            if plausible(similarity):
+                yield similarity, min(FOURIER_MELLIN_FIRST_LEVEL, coarsest)
