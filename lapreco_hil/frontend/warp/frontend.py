@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -62,6 +63,16 @@ SHADING_MIN_SIGMA_PX = 3.0
 UPLOAD_BANDS = 4
 UPLOAD_BANDS_FROM_PX = 1_000_000
 
+
+class FrameKind(NamedTuple):
+    """What makes one frame's kernels differ from another's: each kind is a CUDA graph of its own."""
+
+    buffer: int  # the frame buffer's parity
+    motion: bool  # a pose source's motion predicts the tracks
+    lk_levels: int  # LK's pyramid levels (fewer where the prediction is sure)
+    budget: int  # the frame's track budget (larger in fast motion)
+    rig: bool  # a stereo rig's frame (the rescue's kernels follow)
+    prior: bool  # without a motion, the tracks start from the global image motion
 
 class WarpFrontEnd:
     def __init__(self, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> None:
@@ -624,10 +635,7 @@ class WarpFrontEnd:
         self._marks = {}
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
-        self._prior_up_np[0] = np.eye(3, dtype=np.float32)
-        wp.copy(self._prior_H, self._prior_up)
-        self._use_guess.fill_(1)
-        self._prior = True
+        self._use_prior(np.eye(3))
         try:
             self._process_frame(frame, time.perf_counter(), cur)
         finally:
@@ -719,6 +727,11 @@ class WarpFrontEnd:
         H = self._global.estimate_reduced(small, seeds)
         if H is None or self._n_tracks == 0:
             return
+        self._use_prior(H)
+
+    def _use_prior(self, H: np.ndarray) -> None:
+        """This frame's tracks start where the homography H (pixels, previous frame -> this one) puts them: H up
+        through its pinned buffer, LK from the guesses, the prior's kind of frame."""
         self._prior_up_np[0] = H / H[2, 2]
         wp.copy(self._prior_H, self._prior_up)
         self._use_guess.fill_(1)
@@ -740,7 +753,7 @@ class WarpFrontEnd:
     def _process_frame(self, frame: Frame, t0: float, cur: int) -> Observations:
         # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
-        kind = (cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing(), self._prior)
+        kind = FrameKind(cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing(), self._prior)
         graphs = self.device.is_cuda and self.use_graphs and not self.profile
         if graphs and self._runs.get(kind, 0) >= 1 and kind not in self._graphs:
             try:
