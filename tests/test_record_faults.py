@@ -115,3 +115,17 @@ def test_good_readings_are_all_kept_and_no_refusal_is_reported(source_session, t
     assert [e for e in events if e["event"] in ("fault:out_of_limits", "health:faulted")] == []
     assert not [m for m in caplog.messages if "fault:out_of_limits" in m or "none was usable" in m]
     assert len(Session(out).joint_samples) == stats.joint_samples
+
+
+def test_a_grabber_that_delivers_no_frame_ends_the_recording_with_a_clear_error(tmp_path, warp_cpu):
+    """A grabber that gives nothing (here the simulated one asked for 0 frames) must not end in an empty
+    session and exit 0: the error names the grabber and what to check; the robot's readings are kept."""
+    out = tmp_path / "rec"
+    empty = f"sim://skull?width=160&height=120&fps=10&frames=0&device={warp_cpu}"
+    with pytest.raises(DeviceError) as err:
+        _record_through_chain(lambda t_ns: GOOD_Q, empty, out)
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert f"grabber '{empty}' delivered no frame" in msg and f"the session {out} holds 0 frames" in msg
+    assert "lapreco devices --probe sim://" in msg
+    assert json.loads((out / "session.json").read_text())["complete"]  # closed, nothing half-written

@@ -117,7 +117,7 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
         first_t = last_t = None
         try:
             while True:
-                frame = grabber.read(timeout_s=1.0)
+                frame = grabber.read(timeout_s=GRABBER_READ_TIMEOUT_S)
                 if frame is None:
                     break
                 stats.skipped_joint_samples += writer.add_joints(robot.read(timeout_s=0.0))
@@ -159,6 +159,7 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
         log.warning("record: robot %s: faults during the recording: %s; %d readings refused (%d by the driver, "
                     "%d not recorded); last: %s (each one in %s/%s)", robot.url.raw, faults, refused, by_driver,
                     stats.skipped_joint_samples, last or "-", out, EVENTS_FILE)
+    _check_frames(grabber, out, stats, f"{stats.joint_samples} joint readings")
     if stats.frames and not stats.joint_samples:
         raise DeviceError(_no_joints_message(robot.url.raw, out, stats, delivered, refused, last))
     return stats
@@ -166,8 +167,22 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
 
 # driver fault counters that stand for a reading received and refused (not one lost on the link)
 REFUSED_READING_FAULTS = ("out_of_limits",)
+# a grabber that delivers no frame for this long has ended the recording
+GRABBER_READ_TIMEOUT_S = 1.0
 # how long the end of a recording waits for the readings captured just after its last frame
 FINAL_READING_WAIT_S = 0.05
+
+
+def _check_frames(grabber, out: str, stats: RecordStats, poses: str) -> None:
+    """A recording that ended with no frame (the grabber delivered none, or none within a read's timeout) is a
+    DeviceError, not an empty session ended by exit 0; one that Ctrl-C stopped before its first frame is not."""
+    if stats.frames or stats.stopped_by == "interrupted":
+        return
+    faults = "; ".join(f"{k} {v}" for k, v in sorted(dict(grabber.faults).items()) if v) or "no faults counted"
+    raise DeviceError(f"record: grabber '{grabber.url.raw}' delivered no frame (none within "
+                      f"{GRABBER_READ_TIMEOUT_S:g} s of the start or of the last; {faults}); the session {out} holds "
+                      f"0 frames and {poses}; next: check the grabber with 'lapreco devices --probe "
+                      f"{grabber.url.raw}' (cable, format, another program holding it)")
 
 
 def _no_joints_message(url: str, out: str, stats: RecordStats, delivered: int | None, refused: int,
@@ -239,7 +254,7 @@ def record_tracked(grabber, tracker, out: str, setup: TrackerSetup, *, seconds: 
         first_t = last_t = None
         try:
             while True:
-                frame = grabber.read(timeout_s=1.0)
+                frame = grabber.read(timeout_s=GRABBER_READ_TIMEOUT_S)
                 if frame is None:
                     break
                 take(tracker.read(timeout_s=0.0))
@@ -273,6 +288,7 @@ def record_tracked(grabber, tracker, out: str, setup: TrackerSetup, *, seconds: 
     if stats.tracker_faults:
         log.warning("record: tracker %s: faults during the recording: %s (each one in %s/%s)", tracker.url.raw,
                     ", ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())), out, EVENTS_FILE)
+    _check_frames(grabber, out, stats, f"{stats.marker_samples} marker poses")
     if stats.frames and not stats.scope_samples:
         faults = "; ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())) or "no faults counted"
         others = ", ".join(f"{t} {n}" for t, n in sorted(seen_tools.items())) or "none"
