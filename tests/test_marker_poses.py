@@ -419,6 +419,10 @@ def test_run_with_a_marker_maps_the_tracked_scope_live(tmp_path, warp_cpu, monke
                              progress=False, record=str(tmp_path / "rec"))
     assert report["marker"].startswith("ndi://") and report["tracker_tool"] == "handle 0A"
     assert report["frames"]["processed"] >= 8 and report["inliers"] > 20
+    # every frame the source made is accounted for, those before capture began included (but for the last few:
+    # the simulated camera ends at its 80th frame's time, and frames a late reader missed then are not seen)
+    f = report["frames"]
+    assert 75 <= f["passed_before_start"] + f["in"] + f["dropped_source"] <= 80, f
     assert report["accuracy"]["camera_raw_fk"]["position_rms_mm"] < 1.0
     rec = Session(tmp_path / "rec")
     assert rec.meta.pose_source == "marker_poses" and len(rec.markers) >= len(rec)

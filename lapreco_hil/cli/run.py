@@ -15,7 +15,8 @@ def cmd_run(args) -> int:
                  hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool,
                  mcap=args.mcap, surface=args.surface)
     f, lat = report["frames"], report["latency_ms"]
-    print(f"lapreco run: {f['in']} frames in, {f['processed']} mapped, {f['dropped']} dropped; "
+    before = f" ({f['passed_before_start']} passed before capture started)" if f.get("passed_before_start") else ""
+    print(f"lapreco run: {f['in']} frames in{before}, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
           f"p99 {lat.get('p99', float('nan')):.0f} ms; {report['inliers']} inlier points; outputs in {report['out']}")
     from lapreco_hil.cli.main import print_funnel

@@ -257,6 +257,9 @@ class LiveRun:
             parts.append(f"the {source} delivered no reading; check its URL and link, or run "
                          "'lapreco devices --probe URL'")
         else:
+            if m.get("passed_before_start"):
+                parts.append(f"{m.get('passed_before_start')} frames passed before capture started (the source "
+                             "made them while the run was starting)")
             parts.append(f"{m.get('dropped_capture')} dropped at capture, {m.get('bad_timestamps')} with bad time "
                          f"stamps, {m.get('tracking_errors')} tracking errors, {m.get('mapper_skipped')} not handed "
                          "to the mapper")

@@ -122,6 +122,7 @@ class LiveMetrics:
                        "without_pose": c.get("frames_without_pose", 0),
                        "without_pose_by_cause": poses.without_pose.as_dict(),
                        "dropped_source": c.get("dropped_source", 0), "dropped_capture": c.get("dropped_capture", 0),
+                       "passed_before_start": c.get("passed_before_start", 0),
                        "mapper_skipped": c.get("mapper_skipped", 0), "tracking_errors": c.get("tracking_errors", 0),
                        "dropped_record": c.get("dropped_record", 0), "bad_timestamps": c.get("bad_timestamps", 0),
                        "dropped_capture_span_s": spans.get("dropped_capture"),

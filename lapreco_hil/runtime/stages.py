@@ -131,6 +131,10 @@ class Capture:
             last_t = frame.t_ns
             if last_seq is not None and frame.seq > last_seq + 1:
                 m.add("dropped_source", frame.seq - last_seq - 1)  # gone before we could read them
+            elif last_seq is None and frame.seq > 0:
+                # the source numbered these before capture began (a grabber opened while the run started):
+                # not the run's drops, but said, so that "in" is not read as all the source made
+                m.add("passed_before_start", frame.seq)
             last_seq = frame.seq
             if self.page_locked is not None:
                 staged = self.page_locked.stage(frame)
