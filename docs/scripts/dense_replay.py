@@ -27,6 +27,7 @@ WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
 sets, fsets, filters, nb, fill_sources, rounds = {}, {}, ["none", "2:8"], 0, True, 1
+coarse, coarse_weight = 0, 0.5  # coarse=2: holes of each map filled from a map made on views reduced by 2
 for a in sys.argv[2:]:
     k, v = a.split("=")
     if k == "filters":
@@ -35,6 +36,10 @@ for a in sys.argv[2:]:
         nb = int(v); continue
     if k == "rounds":
         rounds = int(v); continue
+    if k == "coarse":
+        coarse = int(v); continue
+    if k == "coarsew":
+        coarse_weight = float(v); continue
     if k == "fillsrc":
         fill_sources = bool(int(v)); continue
     target = fsets if k.startswith("f.") else sets
@@ -58,6 +63,44 @@ else:
     for ref_id, src_ids in rec["jobs"]:
         maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids])
     pickle.dump(maps, open(cache, "wb"))
+if coarse > 1:
+    import cv2
+    from lapreco_hil.dense.types import DepthMap, KeyframeView
+
+    def reduced_view(v, f):
+        K = np.array(v.K, float)
+        K[:2, :] /= f
+        K[0, 2] = (v.K[0, 2] + 0.5) / f - 0.5
+        K[1, 2] = (v.K[1, 2] + 0.5) / f - 0.5
+        w, h = v.size
+        size = (w // f, h // f)
+        colour = cv2.resize(v.colour, size, interpolation=cv2.INTER_AREA)
+        mask = None if v.mask is None else cv2.resize(v.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        return dataclasses.replace(v, colour=colour, K=K, mask=mask)
+
+    ckey = f"{WORK}/coarse{coarse}-{key}.pkl"
+    if os.path.exists(ckey):
+        cmaps = pickle.load(open(ckey, "rb"))
+    else:
+        cest = DepthEstimator(dcfg, "cpu", host_buffers=0)
+        small = {i: reduced_view(v, coarse) for i, v in rec["views"].items()}
+        cmaps = {ref_id: cest.compute(small[ref_id], [small[s] for s in src_ids]) for ref_id, src_ids in rec["jobs"]}
+        pickle.dump(cmaps, open(ckey, "wb"))
+    merged = {}
+    for i, m in maps.items():
+        c = cmaps[i]
+        h, w = m.depth_m.shape
+        # nearest upsampling (a depth is never blended across an edge), at the coarse map's pixel centres
+        ys = np.clip(((np.arange(h) + 0.5) / coarse - 0.5).round().astype(int), 0, c.depth_m.shape[0] - 1)
+        xs = np.clip(((np.arange(w) + 0.5) / coarse - 0.5).round().astype(int), 0, c.depth_m.shape[1] - 1)
+        cd = c.depth_m[np.ix_(ys, xs)]
+        cc = c.confidence[np.ix_(ys, xs)]
+        hole = (m.depth_m <= 0) & (cd > 0)
+        d = np.where(hole, cd, m.depth_m).astype(np.float32)
+        conf = np.where(hole, coarse_weight * cc, m.confidence).astype(np.float32)
+        merged[i] = DepthMap(m.kf_id, d, conf, m.K, m.T_world_camera, m.stats)
+        print(i, "coarse adds", int(hole.sum()), "of", int((m.depth_m > 0).sum()), flush=True) if i == rec["jobs"][0][0] else None
+    maps = merged
 t1 = time.time()
 from lapreco_hil.dense.fill import fill_holes
 raw = maps
