@@ -115,8 +115,6 @@ def test_local_ba_solved_late_by_a_worker_keeps_the_keyframes_right(rng):
     """Live, local BA is solved by a worker while frames go on being mapped: its result arrives some frames
     late, on a map that has grown since. Applied then (keyframes added meanwhile move with it), the
     keyframes stay as right as with BA run inline, and every pose stays a rigid transform."""
-    from lapreco_hil.mapping import bundle_adjustment as ba
-
     _, frames = _scan(rng, n_frames=140)
     cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
                        keyframe_track_ratio=0.0, window_keyframes=6)
@@ -128,7 +126,7 @@ def test_local_ba_solved_late_by_a_worker_keeps_the_keyframes_right(rng):
         for i, (o, prior, _) in enumerate(frames):
             if flight is not None and i >= flight[0]:
                 _, problem, ticket = flight
-                m.apply_local_ba(problem, ba.solve_robust(problem, m.local_schedule), ticket)
+                m.apply_local_ba(problem, m.solve_ba(problem, m.local_schedule), ticket)  # as the worker solves
                 flight, applied = None, applied + 1
             if flight is None and m.local_ba_wanted:
                 job = m.local_ba_job()
@@ -152,8 +150,6 @@ def test_keyframes_are_refined_against_the_map_before_their_points_are_triangula
     predicted prior: points triangulated from it fail the reprojection test (and are all tried again at the
     next keyframe). So a keyframe is resected against the map first, like any frame. Compared with the
     same run without resection, keyframes enter the map closer to the truth."""
-    from lapreco_hil.mapping import bundle_adjustment as ba
-
     _, frames = _scan(rng, n_frames=100)
     cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
                        keyframe_track_ratio=0.0, window_keyframes=6)
@@ -164,7 +160,7 @@ def test_keyframes_are_refined_against_the_map_before_their_points_are_triangula
         flight, errors = None, []
         for i, (o, prior, _) in enumerate(frames):
             if flight is not None and i >= flight[0]:  # the worker's result, 4 frames late
-                m.apply_local_ba(flight[1], ba.solve_robust(flight[1], m.local_schedule), flight[2])
+                m.apply_local_ba(flight[1], m.solve_ba(flight[1], m.local_schedule), flight[2])
                 flight = None
             if flight is None and m.local_ba_wanted:
                 job = m.local_ba_job()
@@ -316,8 +312,6 @@ def test_local_ba_asked_for_before_a_keyframes_points_keeps_the_keyframes_right(
     """``local_ba_before_points``: live, a keyframe's local BA is wanted as soon as it is added (its new points
     are made in idle moments while the worker solves, and join the next window). Solved late by a worker, the
     keyframes stay as right as when the job waits for the points, and every pose stays rigid."""
-    from lapreco_hil.mapping import bundle_adjustment as ba
-
     _, frames = _scan(rng, n_frames=140)
     cfg = MapperConfig(keyframe_translation_m=0.003, keyframe_rotation_rad=1.0, keyframe_parallax_deg=50.0,
                        keyframe_track_ratio=0.0, window_keyframes=6)
@@ -328,7 +322,7 @@ def test_local_ba_asked_for_before_a_keyframes_points_keeps_the_keyframes_right(
         for i, (o, prior, truth) in enumerate(frames):
             if flight is not None and i >= flight[0]:
                 _, problem, ticket = flight
-                m.apply_local_ba(problem, ba.solve_robust(problem, m.local_schedule), ticket)
+                m.apply_local_ba(problem, m.solve_ba(problem, m.local_schedule), ticket)  # as the worker solves
                 flight, applied = None, applied + 1
             wanted = m.local_ba_wanted
             if m.add(o, prior) and not wanted and m.local_ba_wanted:
