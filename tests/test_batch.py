@@ -138,8 +138,10 @@ def test_a_batch_on_two_local_ray_workers_resumes_and_redoes_with_force(sessions
     out = tmp_path / "out"
     monkeypatch.chdir(tmp_path)  # a relative --config must reach the tasks, whose working folder is another
     monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:9")  # only --address picks a cluster; this is ignored
-    # 16 frames count as few views, so the report shows the corner budget of this config
-    (tmp_path / "batch.toml").write_text("[tracker.few_views]\nframes = 16\nmax_features = 1500\n")
+    # 16 frames count as few views, so the report shows the corner budget of this config; the sparse map's
+    # surface (the dense one is tested on its own: here it only cost time)
+    (tmp_path / "batch.toml").write_text("[tracker.few_views]\nframes = 16\nmax_features = 1500\n"
+                                         "[surface]\nmode = \"alpha\"\n")
     argv = ["batch", str(sessions_dir), "--out", str(out), "--workers", "2", "--tracker", "opencv",
             "--device", "auto", "--config", "batch.toml", "--no-progress"]
     assert main(argv) == 1  # the broken session failed; the others ran

@@ -182,7 +182,7 @@ def test_hand_eye_from_a_simulated_board_session(tmp_path, warp_cpu, capsys):
     from lapreco_hil.app.replay import run_replay
 
     r = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False,
-                   hand_eye_file=str(out))
+                   surface="alpha", hand_eye_file=str(out))
     assert r["hand_eye_file"] == str(out) and r["frames"]["processed"] == 150
 
 

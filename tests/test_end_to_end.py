@@ -125,7 +125,7 @@ OTHER_OUTPUTS = ("points.ply", "mesh.ply", "trajectory.tum", "frame_timings.csv"
 
 def _replay_without_picture(session, out, caplog) -> dict:
     with caplog.at_level(logging.WARNING):
-        report = run_replay(str(session), str(out), tracker="opencv", device="cpu", progress=False)
+        report = run_replay(str(session), str(out), tracker="opencv", device="cpu", progress=False, surface="alpha")
     for name in OTHER_OUTPUTS:
         assert (out / name).stat().st_size > 0, name
     assert not (out / "reconstruction.png").exists()

@@ -41,7 +41,7 @@ def source_result(source, tmp_path_factory):
     from lapreco_hil.app.replay import run_replay
 
     out = tmp_path_factory.mktemp("interop") / "source-result"
-    report = run_replay(str(source), str(out), tracker="opencv", device="cpu", progress=False)
+    report = run_replay(str(source), str(out), tracker="opencv", device="cpu", progress=False, surface="alpha")
     assert report["inliers"] > 10
     return out
 
@@ -350,7 +350,8 @@ def test_an_imported_mcap_bag_is_the_session_and_replays_to_the_same_result(sour
     np.testing.assert_array_equal(imp.robot.T_tip_camera, src.robot.T_tip_camera)
     assert imp.robot.tip_frame == src.robot.tip_frame
 
-    report = run_replay(str(out), str(tmp_path / "result"), tracker="opencv", device="cpu", progress=False)
+    report = run_replay(str(out), str(tmp_path / "result"), tracker="opencv", device="cpu", progress=False,
+                        surface="alpha")
     before = json.loads((source_result / "report.json").read_text())
     assert report["inliers"] == before["inliers"] and report["funnel"] == before["funnel"]
     a = np.loadtxt(source_result / "trajectory.tum")

@@ -111,7 +111,8 @@ def test_a_hand_written_marker_session_gives_the_true_poses_and_replays_with_poi
         assert source.has_pose(int(t))
         dt, dr = pose_error(source.prior_at(int(t)).T_world_camera, truth(int(t)))
         assert dt < 1e-6 and dr < 1e-6
-    report = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False)
+    report = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False,
+                        surface="alpha")
     assert report["pose_source"] == "marker_poses" and report["frames"]["processed"] == len(s)
     assert report["marker_samples_refused_by_cause"] == {"out_of_volume": 1, "rms_above_limit": 1}
     assert report["inliers"] > 50 and (tmp_path / "out" / "points.ply").is_file()
@@ -129,7 +130,7 @@ def test_a_calibration_session_replays_only_with_a_hand_eye(skull_session, tmp_p
     assert not (tmp_path / "none").exists()
     write_handeye_yaml(tmp_path / "handeye.yaml", T_MARKER_CAMERA, tip_frame="scope_marker")
     report = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device=warp_cpu, progress=False,
-                        hand_eye_file=str(tmp_path / "handeye.yaml"))
+                        surface="alpha", hand_eye_file=str(tmp_path / "handeye.yaml"))
     assert report["inliers"] > 50 and report["accuracy"]["camera_raw_fk"]["position_rms_mm"] < 0.01
 
 
@@ -252,7 +253,7 @@ def test_record_with_the_ndi_emulator_follows_the_true_camera_and_replays(tmp_pa
     assert s.meta.health["tracker_faults"]["out_of_volume"] >= 1
     write_handeye_yaml(tmp_path / "handeye.yaml", T_MARKER_CAMERA)
     report = run_replay(str(tmp_path / "rec"), str(tmp_path / "out"), tracker="opencv", device=warp_cpu,
-                        progress=False, hand_eye_file=str(tmp_path / "handeye.yaml"))
+                        progress=False, surface="alpha", hand_eye_file=str(tmp_path / "handeye.yaml"))
     assert report["frames"]["processed"] >= len(s) - 2 and report["inliers"] > 30
     # the poses are stamped when the reply arrives, a frame period (16 ms) or so after they were measured
     assert report["accuracy"]["camera_raw_fk"]["position_rms_mm"] < 1.0

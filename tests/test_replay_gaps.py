@@ -69,7 +69,7 @@ def write_joint_session(folder: Path, warp_device: str, joint_spans=None, n_fram
 def _replay(session: Path, out: Path, warp_cpu: str) -> dict:
     from lapreco_hil.app.replay import run_replay
 
-    return run_replay(str(session), str(out), tracker="opencv", device=warp_cpu, progress=False)
+    return run_replay(str(session), str(out), tracker="opencv", device=warp_cpu, progress=False, surface="alpha")
 
 
 def test_frames_past_the_end_of_joints_csv_get_no_pose_and_a_warning(tmp_path, warp_cpu, caplog):

@@ -50,7 +50,7 @@ def test_sim_record_writes_a_complete_session_with_truth(recorded):
 
 def test_replay_is_deterministic_and_reports_accuracy(recorded, tmp_path, warp_cpu):
     reports = [run_replay(str(recorded), str(tmp_path / f"r{i}"), tracker="opencv", device=warp_cpu,
-                          progress=False) for i in range(2)]
+                          progress=False, surface="alpha") for i in range(2)]
     for name in ("trajectory.tum", "points.ply", "mesh.ply"):
         assert (tmp_path / "r0" / name).read_bytes() == (tmp_path / "r1" / name).read_bytes(), name
     r = reports[0]
@@ -69,7 +69,8 @@ def test_record_through_real_driver_and_emulator_then_replay_twice(link, tmp_pat
     assert len(s) == 20 and s.meta.source["robot_link"] == link
     t_joint = np.array([j.t_ns for j in s.joint_samples])
     assert np.all(np.diff(t_joint) > 0) and len(t_joint) > 3 * len(s)  # denser than the frames
-    r = [run_replay(str(session), str(tmp_path / f"r{i}"), tracker="opencv", device=warp_cpu, progress=False)
+    r = [run_replay(str(session), str(tmp_path / f"r{i}"), tracker="opencv", device=warp_cpu, progress=False,
+                    surface="alpha")
          for i in range(2)]
     assert (tmp_path / "r0" / "trajectory.tum").read_bytes() == (tmp_path / "r1" / "trajectory.tum").read_bytes()
     assert r[0]["inliers"] == r[1]["inliers"] > 30
@@ -78,7 +79,7 @@ def test_record_through_real_driver_and_emulator_then_replay_twice(link, tmp_pat
 
 def test_replay_with_the_warp_tracker_and_no_drift_check(recorded, tmp_path, warp_cpu):
     r = run_replay(str(recorded), str(tmp_path / "w"), tracker="warp", device=warp_cpu, drift_check=False,
-                   progress=False)
+                   progress=False, surface="alpha")
     assert r["tracker"] == "warp" and r["drift_check"] is False and r["inliers"] > 50
 
 
