@@ -279,10 +279,13 @@ def test_demo_runs_through_the_real_driver(link, tmp_path, warp_cpu):
 
     r = run_demo(scene="skull", frames=24, resolution=(320, 240), out=str(tmp_path), device=warp_cpu,
                  tracker="opencv", progress=False, robot_link=link, sim_speed=0.25)
-    # the first frame may come before the link's first reading: it is then skipped (never given a held pose)
+    # the first frame may come before the link's first reading: it is then skipped (never given a held pose); on a
+    # loaded machine a few replies may be lost, and a frame in such a gap is skipped too, never without a fault
     skipped = r["frames"]["without_pose_by_cause"]
-    assert skipped["after_last"] == skipped["in_gap"] == 0 and skipped["before_first"] <= 1
-    assert r["robot_link"] == link and r["frames"]["processed"] == 24 - skipped["before_first"] and r["inliers"] > 50
+    assert skipped["after_last"] == 0 and skipped["before_first"] <= 1 and skipped["in_gap"] <= 2
+    assert skipped["in_gap"] == 0 or sum(r["robot_faults"].values()) > 0, r["robot_faults"]
+    assert r["robot_link"] == link and r["inliers"] > 50
+    assert r["frames"]["processed"] == 24 - skipped["before_first"] - skipped["in_gap"]
     acc = r["accuracy"]
     assert acc["camera_raw_fk"]["position_rms_mm"] < 1.0  # the driver's samples carry the robot's pose
     assert acc["camera_refined"]["position_rms_mm"] < acc["camera_raw_fk"]["position_rms_mm"]
