@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from lapreco_hil.frontend.warp.block_sum import block_sum3
 from lapreco_hil.frontend.consensus import CLOSER_PX, MIN_INLIER_SHARE, MIN_TRACKS, RETRACK_MAX_LEVEL
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
@@ -18,6 +19,7 @@ wp.set_module_options({"enable_backward": False})
 
 HYPOTHESES = 256
 RETRACK_LEVELS = RETRACK_MAX_LEVEL + 1  # LK's levels with full resolution (the Warp kernel's count)
+SCORE_LANES = 128  # lanes per hypothesis's block in the scoring kernel
 DRAWS = 24  # random slots tried per hypothesis for its four distinct tracked ones
 _SEED = 20261125
 
@@ -125,18 +127,33 @@ def _hypotheses(before: wp.array(dtype=wp.vec2), after: wp.array(dtype=wp.vec2),
 def _score(before: wp.array(dtype=wp.vec2), after: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32),
            count: wp.array(dtype=wp.int32), frame: wp.vec3, tolerance_px: float, H: wp.array(dtype=wp.mat33),
            valid: wp.array(dtype=wp.int32), inliers: wp.array(dtype=wp.int32), tracked: wp.array(dtype=wp.int32)):
-    """Each (hypothesis, slot): one inlier more where the slot's step agrees within ``tolerance_px``; row 0 also
-    counts the tracked slots."""
-    h, t = wp.tid()
-    if t >= count[0] or status[t] != 1:
-        return
-    if h == 0:
-        wp.atomic_add(tracked, 0, 1)
-    if valid[h] == 0:
-        return
-    q = _apply(H[h], _normalised(before[t], frame))
-    if wp.length(_pixel(q, frame) - after[t]) <= tolerance_px:
-        wp.atomic_add(inliers, h, 1)
+    """Hypothesis h's inliers (tracked slots whose step agrees within ``tolerance_px``), one block per hypothesis:
+    each lane counts a stride of slots and a block sum adds them (an atomic per inlier on 256 counters made this
+    the front-end's second-costliest kernel, docs/benchmarks.md, session 21). Block 0 also counts the tracked
+    slots."""
+    h, lane = wp.tid()
+    if h != 0 and valid[h] == 0:
+        return  # the whole block leaves: no block sum is left waiting
+    nl = wp.block_dim()
+    n = count[0]
+    use = valid[h] == 1
+    Hh = H[h]
+    agree = float(0.0)
+    live = float(0.0)
+    t = lane
+    while t < n:
+        if status[t] == 1:
+            live += 1.0
+            if use:
+                q = _apply(Hh, _normalised(before[t], frame))
+                if wp.length(_pixel(q, frame) - after[t]) <= tolerance_px:
+                    agree += 1.0
+        t += nl
+    sums = block_sum3(wp.vec3(agree, live, 0.0), 0)
+    if lane == 0:
+        inliers[h] = int(sums[0] + 0.5)
+        if h == 0:
+            tracked[0] = int(sums[1] + 0.5)
 
 
 @wp.kernel
@@ -226,12 +243,12 @@ def find_consensus(b: ConsensusBuffers, before: wp.array, after: wp.array, statu
     """The best homography of the tracks' steps and each slot's start from it (``b.guess``), and which slots to
     track again (``b.again``)."""
     slots = before.shape[0]
-    b.tracked.zero_()
     b.ranked.fill_(-1)
     wp.launch(_hypotheses, dim=HYPOTHESES, inputs=[before, after, status, count, b.frame_no, b.frame, b.H, b.valid,
                                                    b.inliers], device=device)
-    wp.launch(_score, dim=(HYPOTHESES, slots), inputs=[before, after, status, count, b.frame, tolerance_px, b.H,
-                                                        b.valid, b.inliers, b.tracked], device=device)
+    wp.launch_tiled(_score, dim=[HYPOTHESES], inputs=[before, after, status, count, b.frame, tolerance_px, b.H,
+                                                       b.valid, b.inliers, b.tracked], block_dim=SCORE_LANES,
+                    device=device)
     wp.launch(_rank, dim=HYPOTHESES, inputs=[b.valid, b.inliers, b.ranked], device=device)
     wp.launch(_best, dim=1, inputs=[b.ranked, b.tracked, b.H, b.best, b.agreed, b.frame_no], device=device)
     wp.launch(_starts, dim=slots, inputs=[before, after, status, count, b.frame, tolerance_px, b.best, b.agreed,
