@@ -27,3 +27,19 @@ def test_the_live_path_pass_gives_each_frame_its_true_motion_and_depths(warp_cpu
     locked = result["rows"][0]["warp"]["page_locked"]  # the frames staged as the live capture thread does
     assert locked["total_ms"] > 0 and locked["with_motion_ms"] > 0
     assert "+motion" in bench.format_table(result) and "locked" in bench.format_table(result)
+
+
+def test_the_kernel_profile_adds_each_kernels_time_per_frame_without_prefix_or_hash():
+    from types import SimpleNamespace as A
+
+    acts = [A(name="forward kernel _make_lk_track__locals___lk_track_3aae74a0", elapsed=0.5),
+            A(name="forward kernel _make_lk_track__locals___lk_track_3aae74a0", elapsed=0.3),
+            A(name="memcpy HtoD", elapsed=0.1), A(name="forward kernel _score_ca2ea228", elapsed=0.2)]
+    times = bench.kernel_times(acts, frames=2)
+    assert list(times) == ["lk_track", "_score", "memcpy HtoD"]  # costliest first
+    np.testing.assert_allclose(list(times.values()), [0.4, 0.1, 0.05])
+    row = {"resolution": "1920x1080", "features": 2000, "ratio_total": 1.0, "ratio_lk": 1.0, "opencv": {
+        "total_ms": 1.0, "stages_ms": {}}, "warp": {"total_ms": 1.0, "stages_ms": {}, "tracks_median": 1,
+                                                   "kernels_ms": times}}
+    table = bench.format_table({"device": "cuda:0", "frames": 2, "warmup": 1, "cpu_threads": 2, "rows": [row]})
+    assert "lk_track 0.400, _score 0.100, memcpy HtoD 0.050" in table

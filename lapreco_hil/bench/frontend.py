@@ -7,11 +7,16 @@ The Warp front-end is also timed on the live path: every frame with the camera's
 source and map give it (the true relative pose, each track's depth from the renderer where it has one); and with
 its frames in page-locked memory, as a live run's capture thread stages them (``PageLockedFrames``: the copy is
 the capture thread's, beside tracking, so it is not in the front-end's time).
+
+On CUDA each row also has the GPU time of every kernel and copy per frame (``kernels_ms``: the frames without a
+motion, kernels launched one by one under Warp's activity timing), which names what a frame's time goes to.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
+from collections import defaultdict
 
 import os
 import platform
@@ -82,6 +87,37 @@ def _pass(frontend, frames, warmup: int, motion=None, page_locked=None):
     return totals, tracks, {name: float(np.median(v)) * 1e3 for name, v in stages.items()}
 
 
+KERNEL_ROWS = 12  # kernels listed per row, costliest first
+
+
+def kernel_times(activities, frames: int) -> dict[str, float]:
+    """GPU ms per frame of each kernel or copy (Warp's ``TimingResult`` list over ``frames`` frames), costliest
+    first; a kernel's name without Warp's prefix and module hash."""
+    per: dict[str, float] = defaultdict(float)
+    for a in activities:
+        name = re.sub(r"^(forward|builtin) kernel ", "", a.name)
+        name = re.sub(r"_[0-9a-f]{8}$", "", name).replace("_make_lk_track__locals___lk_track", "lk_track")
+        name = name.replace("_make_drift_check__locals___drift_check", "drift_check")
+        per[name] += a.elapsed / max(frames, 1)
+    return dict(sorted(per.items(), key=lambda kv: -kv[1]))
+
+
+def _kernel_profile(frontend, frames, warmup: int) -> dict[str, float]:
+    """Per-kernel GPU time of the frames after the warm-up, each kernel launched on its own (no graph): where the
+    front-end's time goes. Empty off CUDA (no activity timing there)."""
+    import warp as wp
+
+    if not frontend.device.is_cuda:
+        return {}
+    frontend.use_graphs = False
+    for frame in frames[:warmup]:
+        frontend.process(frame)
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    for frame in frames[warmup:]:
+        frontend.process(frame)
+    return kernel_times(wp.timing_end(), len(frames) - warmup)
+
+
 def _run(make, frames, warmup: int, motion=None, page_locked=None, make_without_prior=None) -> dict:
     """Totals from a steady-state pass; per-stage times from a second pass that synchronises at stage ends
     (where the front-end can: the Warp one has a ``profile`` switch, OpenCV's stages are synchronous). With
@@ -100,6 +136,10 @@ def _run(make, frames, warmup: int, motion=None, page_locked=None, make_without_
     if make_without_prior is not None:
         bare, _, _ = _pass(make_without_prior(), frames, warmup)
         row["without_global_prior_ms"] = float(np.median(bare)) * 1e3
+        if hasattr(frontend, "use_graphs"):
+            kernels = _kernel_profile(make_without_prior(), frames, warmup)
+            if kernels:
+                row["kernels_ms"] = kernels
     if motion is not None:
         live, live_tracks, _ = _pass(make(), frames, warmup, motion)
         row["with_motion"] = {"total_ms": float(np.median(live)) * 1e3,
@@ -167,6 +207,12 @@ def format_table(result: dict) -> str:
                      f"{c['total_ms']:9.2f} {c.get('without_global_prior_ms', float('nan')):7.2f} "
                      f"{cs.get('track', 0):7.2f} {cs.get('drift_check', 0):8.2f} | {r['ratio_total']:7.1f} "
                      f"{r['ratio_lk']:6.1f}")
+    for r in result["rows"]:
+        kernels = r["warp"].get("kernels_ms")
+        if kernels:
+            top = ", ".join(f"{name} {ms:.3f}" for name, ms in list(kernels.items())[:KERNEL_ROWS])
+            lines.append(f"{r['resolution']} / {r['features']}: GPU ms per frame (-prior, {sum(kernels.values()):.2f} "
+                         f"in all): {top}")
     lines.append("-prior: the frames without a motion, without the global motion prior's host alignment; +motion: "
                  "the Warp front-end's total with every frame's motion given, as in a live run (no alignment); "
                  "locked: the frames in page-locked memory, as the live run's capture thread stages them on CUDA")
