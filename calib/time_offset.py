@@ -75,26 +75,11 @@ class OffsetEstimate:
                 "backlash": [float(b) for b in self.backlash]}
 
 
-def sampson_px(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, f: float) -> np.ndarray:
-    """Sampson distances (pixels, for focal length f) of normalised correspondences to essential matrix E."""
-    return np.abs(_signed_sampson(np.broadcast_to(E, (len(x1), 3, 3)), x1, x2, f))
-
-
-def _signed_sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, f: float) -> np.ndarray:
-    """Per correspondence: E (N, 3, 3), x1/x2 (N, 2) normalised, with x2^T E x1 = 0 for a perfect match."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Ex1 = np.einsum("nij,nj->ni", E, h1)
-    Etx2 = np.einsum("nji,nj->ni", E, h2)
-    num = np.sum(h2 * Ex1, axis=1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    return f * num / np.sqrt(np.maximum(den, 1e-18))
-
-
 def _signed_sampson_of_pairs(E: np.ndarray, owner: np.ndarray, x1: np.ndarray, x2: np.ndarray,
                              f: float) -> np.ndarray:
-    """``_signed_sampson(E[owner], x1, x2, f)`` for E of each frame pair (P, 3, 3) and each correspondence's pair
-    ``owner``, written out per element: the einsums over (N, 3, 3) were most of a time-offset fit's time."""
+    """Signed Sampson distances (pixels, for focal length f) of normalised correspondences x1 -> x2 (N, 2) to the
+    essential matrix of their frame pair: E (P, 3, 3), ``owner`` (N,) each correspondence's pair; x2^T E x1 = 0
+    for a perfect match. Written out per element: einsums over (N, 3, 3) were most of a time-offset fit's time."""
     e = E.reshape(-1, 9)[owner]
     x, y, u, v = x1[:, 0], x1[:, 1], x2[:, 0], x2[:, 1]
     l0 = e[:, 0] * x + e[:, 1] * y + e[:, 2]  # E h1
