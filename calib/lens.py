@@ -97,9 +97,13 @@ def load_images(paths: list[str]) -> dict[str, np.ndarray]:
         images[p] = img
     if not images:
         raise CalibrationError("no calibration images given")
-    sizes = {im.shape[:2] for im in images.values()}
-    if len(sizes) > 1:
-        raise CalibrationError(f"calibration images have different sizes: {sorted(sizes)}; use one camera mode")
+    first: dict[tuple[int, int], str] = {}  # (height, width) -> the first image of that size
+    for p, im in images.items():
+        first.setdefault(im.shape[:2], p)
+    if len(first) > 1:
+        sizes = ", ".join(f"{p} is {w}x{h}" for (h, w), p in first.items())
+        raise CalibrationError(f"calibration images have different sizes ({sizes}); give images of one camera "
+                               f"mode only")
     return images
 
 

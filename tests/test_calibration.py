@@ -107,6 +107,18 @@ def test_lens_with_the_wrong_board_is_a_clear_error(tmp_path, capsys):
     assert status == 2 and "of 5 images; at least 4 are needed" in err and "inner corners" in err
 
 
+def test_lens_with_images_of_two_sizes_names_a_file_of_each_size_in_wxh(tmp_path, capsys):
+    small, big, small2 = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "c.png"
+    cv2.imwrite(str(small), np.zeros((288, 360, 3), np.uint8))
+    cv2.imwrite(str(big), np.zeros((1080, 1920, 3), np.uint8))
+    cv2.imwrite(str(small2), np.zeros((288, 360, 3), np.uint8))
+    status = main(["calibrate", "lens", str(small), str(big), str(small2), "--board", BOARD,
+                   "--out", str(tmp_path / "c.yaml")])
+    err = capsys.readouterr().err
+    assert status == 2 and f"{small} is 360x288" in err and f"{big} is 1920x1080" in err, err
+    assert str(small2) not in err and "(288, 360)" not in err, err
+
+
 # --- hand-eye -------------------------------------------------------------------------------------------------------
 
 X_TRUE = make_T(Rotation.from_euler("xyz", [30, 2, -3], degrees=True).as_matrix(), [0.001, -0.0015, 0.002])
