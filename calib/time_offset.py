@@ -374,6 +374,38 @@ def _wander_sigma(model: _EpipolarModel, params: np.ndarray, free: int, joint_si
 
 # a drift is called one only when it is this many standard errors of the offset (and the threshold) away
 DRIFT_SIGNIFICANCE = 3.0
+# the monitor smooths both motion signals in time by a Gaussian of this sigma (s) before lining them up: motion from
+# joint readings differentiated over one frame carries noise that biased the shift (a simulated arm's read -140 ms
+# at a true 0; docs/calibration-handeye.md), and one zero-phase filter on both keeps their timing
+MONITOR_SMOOTHING_S = 0.1
+
+
+def _smoothed(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
+    """``values`` (N, C) sampled at times ``t_s`` (N,), each replaced by its Gaussian-weighted mean over time
+    (zero phase, for irregular samples too); sigma 0: unchanged."""
+    if sigma_s <= 0 or len(t_s) < 2:
+        return values
+    w = np.exp(-0.5 * ((t_s[:, None] - t_s[None, :]) / sigma_s) ** 2)
+    return (w @ values) / w.sum(axis=1, keepdims=True)
+
+
+def _correlation_time(residual: np.ndarray) -> float:
+    """Samples per independent one in a residual series (N, C): 1 + 2 x the sum of its autocorrelations up to the
+    first that is not positive, averaged over the components; 1 for white residuals."""
+    taus = []
+    for x in residual.T:
+        x = x - np.mean(x)
+        v = float(np.mean(x * x))
+        if v <= 0.0:
+            continue
+        tau = 1.0
+        for k in range(1, len(x) // 2):
+            rho = float(np.mean(x[:-k] * x[k:])) / v
+            if rho <= 0.0:
+                break
+            tau += 2.0 * rho
+        taus.append(tau)
+    return float(np.mean(taus)) if taus else 1.0
 
 
 @dataclass(frozen=True)
@@ -399,15 +431,15 @@ class TimeOffsetMonitor:
     median displacement of the tracks since the previous frame over the frame interval, stamped at the
     middle of that interval, video clock) and, as the robot reports, the image motion its kinematics
     predicts (``add_predicted``: the same quantity from the camera's FK velocity, stamped on the kinematics
-    clock). The offset is the shift that best lines the two motion signals up (least squares over a grid,
-    refined by a parabola); ``reading()`` says whether it is more than ``drift_threshold_ns`` from the
-    offset in use. Motion signals carry a shift in their changes, so the window must hold some
+    clock). The offset is the shift that best lines the two motion signals up, both smoothed alike in time
+    (``smoothing_s``), by the median squared mismatch over a grid, refined by a parabola; ``reading()`` says
+    whether it is more than ``drift_threshold_ns`` from the offset in use (and beyond its uncertainty). Motion signals carry a shift in their changes, so the window must hold some
     acceleration: a camera moving at constant speed (or not at all) gives no reading.
     """
 
     def __init__(self, applied_offset_ns: int = 0, window_s: float = 10.0, search_s: float = 0.5,
                  step_s: float = 0.002, drift_threshold_ns: int = 20_000_000, min_samples: int = 50,
-                 min_motion_px_s: float = 5.0) -> None:
+                 min_motion_px_s: float = 5.0, smoothing_s: float = MONITOR_SMOOTHING_S) -> None:
         for name, v in (("window_s", window_s), ("search_s", search_s), ("step_s", step_s)):
             if not (math.isfinite(v) and v > 0):
                 raise CalibrationError(f"TimeOffsetMonitor: {name} must be a positive number, got {v!r}")
@@ -416,6 +448,9 @@ class TimeOffsetMonitor:
         self.search_s, self.step_s = search_s, step_s
         self.drift_threshold_ns = int(drift_threshold_ns)
         self.min_samples, self.min_motion_px_s = min_samples, min_motion_px_s
+        if not (math.isfinite(smoothing_s) and smoothing_s >= 0):
+            raise CalibrationError(f"TimeOffsetMonitor: smoothing_s must be >= 0, got {smoothing_s!r}")
+        self.smoothing_s = smoothing_s
         self._measured: deque[tuple[int, float, float]] = deque()
         self._predicted: deque[tuple[int, float, float]] = deque()
 
@@ -453,6 +488,8 @@ class TimeOffsetMonitor:
         shifts = np.arange(base - self.search_s, base + self.search_s + 1e-12, self.step_s)
         tv = (meas[:, 0] - pred[0, 0]) * 1e-9
         tp = (pred[:, 0] - pred[0, 0]) * 1e-9
+        meas = np.column_stack([meas[:, 0], _smoothed(tv, meas[:, 1:], self.smoothing_s)])
+        pred = np.column_stack([pred[:, 0], _smoothed(tp, pred[:, 1:], self.smoothing_s)])
         cost = np.full(len(shifts), np.nan)
         for k, d in enumerate(shifts):
             tk = tv + d
@@ -474,25 +511,46 @@ class TimeOffsetMonitor:
                 offset_s += 0.5 * self.step_s * (c0 - c2) / denom
         offset_ns = int(round(offset_s * 1e9))
         drift = offset_ns - self.applied_offset_ns
-        sigma_ns = self._uncertainty_ns(tv + offset_s, tp, pred, float(np.nanmin(cost)))
+        min_cost = float(np.nanmin(cost))
+        sigma_ns, n_independent = self._uncertainty_ns(tv + offset_s, tp, pred, meas[:, 1:], min_cost)
         drifted = (abs(drift) > self.drift_threshold_ns and sigma_ns is not None
-                   and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns)
+                   and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns
+                   and self._offset_in_use_refuted(shifts, cost, base, n_independent))
         return OffsetReading(offset_ns, drift, drifted, len(meas), motion, sigma_ns)
 
+    def _offset_in_use_refuted(self, shifts: np.ndarray, cost: np.ndarray, base_s: float,
+                               n_independent: float) -> bool:
+        """Whether every shift within the drift threshold of the offset in use fits the window worse than the best
+        by more than DRIFT_SIGNIFICANCE standard errors (a likelihood-ratio test: chi^2 grows by 2 n (c - c_min) /
+        c_min over n independent 2-D residuals). With noisy predictions the cost has several minima of nearly one
+        depth, and the best can jump between them from one reading to the next (a simulated arm's -52 and +28 ms
+        at a true 0): a second minimum near the offset in use keeps it."""
+        near = np.abs(shifts - base_s) <= self.drift_threshold_ns * 1e-9
+        finite = near & np.isfinite(cost)
+        c_min = float(np.nanmin(cost))
+        if not finite.any() or c_min <= 0.0:
+            return bool(not finite.any() and c_min > 0.0)
+        chi2_near = 2.0 * n_independent * (float(np.min(cost[finite])) - c_min) / c_min
+        return chi2_near > DRIFT_SIGNIFICANCE ** 2
+
     @staticmethod
-    def _uncertainty_ns(tk: np.ndarray, tp: np.ndarray, pred: np.ndarray, min_cost: float) -> int | None:
+    def _uncertainty_ns(tk: np.ndarray, tp: np.ndarray, pred: np.ndarray, meas: np.ndarray,
+                        min_cost: float) -> tuple[int | None, float]:
         """The standard error of the shift at its optimum: a residual of variance s^2 per component against a
         predicted motion whose rate of change is a(t) pins the shift to s / sqrt(sum |a|^2). The residual's
-        variance comes from the cost (the median of a 2-D Gaussian's squared length is 2 ln 2 of its variance).
-        None where the predicted motion does not change at all (no timing in the window). Residuals correlated
-        over frames (a backlash's lag) make it optimistic."""
+        variance comes from the cost (the median of a 2-D Gaussian's squared length is 2 ln 2 of its variance),
+        and counts once per run of correlated residuals (their integrated autocorrelation time: the smoothing,
+        a backlash's lag, a joint's wander). None where the predicted motion does not change at all. Also the
+        number of independent residuals (the samples over their correlation time)."""
         inside = (tk >= tp[0]) & (tk <= tp[-1])
         t = tk[inside]
         h = 0.01  # s: the rate of change over the predicted motion's own smoothing scale, not its sample noise
         rate = np.column_stack([(np.interp(t + h, tp, pred[:, c]) - np.interp(t - h, tp, pred[:, c])) / (2 * h)
                                 for c in (1, 2)])
+        residual = meas[inside] - np.column_stack([np.interp(t, tp, pred[:, c]) for c in (1, 2)])
+        tau = _correlation_time(residual)
         information = float(np.sum(rate ** 2))
         if information <= 0.0:
-            return None
-        variance = max(min_cost, 0.0) / (2.0 * math.log(2.0))
-        return int(round(math.sqrt(variance / information) * 1e9))
+            return None, len(t) / tau
+        variance = max(min_cost, 0.0) / (2.0 * math.log(2.0)) * tau
+        return int(round(math.sqrt(variance / information) * 1e9)), len(t) / tau
