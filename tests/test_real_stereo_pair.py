@@ -97,3 +97,5 @@ def test_the_hamlyn_pair_as_a_version_2_stereo_session_reconstructs_hundreds_of_
                         progress=False)
     assert report["inliers"] >= 500, report["funnel"]
     assert report["reprojection"]["median_px"] <= 0.5
+    (rig_fit,) = report["rig_check"]  # the rig judged against the frame: it fits
+    assert rig_fit["problem"] is None and rig_fit["in_front_share"] > 0.95

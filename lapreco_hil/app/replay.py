@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,6 +15,24 @@ from lapreco_hil.outputs import check_output_dir, prepare_output_dir
 from lapreco_hil.pose_sources import GivenPoseSource, MarkerPoseSource, RobotPoseSource
 from lapreco_hil.registry import DeviceContext, open_grabber, open_robot
 from lapreco_hil.warp_device import resolve_device
+
+log = logging.getLogger(__name__)
+
+
+def check_session_rig(session) -> list[dict]:
+    """A stereo session's rig judged against its first frame's images (``calib.rig_check``): each problem found
+    is logged as one warning line; the figures of every pair go to report.json (``rig_check``)."""
+    from lapreco_hil.calib.rig_check import check_rig
+
+    rig = session.meta.rig
+    if not rig.is_stereo or len(session) == 0:
+        return []
+    frame = session.frame(0)
+    fits = check_rig(rig, (frame.image,) + tuple(frame.views))
+    for fit in fits:
+        if fit.problem:
+            log.warning("%s: %s", Path(session.folder) / "session.json", fit.problem)
+    return [fit.summary() for fit in fits]
 
 
 def run_replay(session: str, out: str, tracker: str = "auto", device: str = "auto", config_path: str | None = None,
@@ -62,7 +81,9 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
               "time_offset_ms": offset_ns * 1e-6, "camera_file": camera_file, "hand_eye_file": hand_eye_file,
               "session_complete": meta.complete, "pace": "realtime" if realtime else "afap",
               # tables shorter than session.json's counts (Session.shortfall): {table: {recorded, found}}
-              "session_shortfall": grabber.session.shortfall}
+              "session_shortfall": grabber.session.shortfall,
+              # a stereo rig's extrinsics against its first frame: inverted, the wrong unit, not fitting
+              "rig_check": check_session_rig(grabber.session)}
     if meta.pose_source == "marker_poses":
         fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
                        "marker_samples_refused_by_cause": dict(poses.rejected_by_cause)})

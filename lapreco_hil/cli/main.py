@@ -459,6 +459,9 @@ def print_funnel(command: str, report: dict) -> None:
         from lapreco_hil.funnel import Funnel
 
         print(f"lapreco {command}: funnel: {Funnel(dict(report['funnel'])).summary()}")
+    for fit in report.get("rig_check") or ():
+        if fit.get("problem"):  # said at the start too; repeated here, where a run's few points are read
+            print(f"lapreco {command}: rig: {fit['problem']}")
 
 
 def _print_run(command: str, report: dict) -> None:
