@@ -29,9 +29,13 @@ class Funnel:
         return dict(self.counts)
 
     def losses(self) -> list[tuple[str, str, float]]:
-        """(stage, the stage before it, share kept) for each step where both counts are known."""
+        """(stage, the stage before it, share kept) for each step between counts of the same thing: the per-frame
+        sums, then the distinct tracks. Without any LK step (a single frame of a stereo rig: its candidates are
+        left-right matches of the corners) the corners lead to the candidates directly."""
         c = self.counts
         steps = [("after_drift_check", "after_lk"), ("triangulated", "candidates"), ("inliers", "triangulated")]
+        if c["after_lk"] == 0:
+            steps.insert(1, ("candidates", "corners"))
         return [(b, a, c[b] / c[a]) for b, a in steps if c[a] > 0]
 
     def lossy_stage(self) -> str | None:
@@ -42,7 +46,11 @@ class Funnel:
         return next((stage for stage, _, kept in self.losses() if kept < LOSSY_SHARE), None)
 
     def summary(self) -> str:
-        """One line: ``corners 351 -> after_lk 259 -> ...``, with the lossy step named."""
-        line = " -> ".join(f"{k} {v}" for k, v in self.counts.items())
+        """One line, each group of counts of the same thing together, with the lossy step named:
+        ``corners 351 started | per frame, summed: after_lk 259 -> after_drift_check 9 | distinct tracks: ...``."""
+        c = self.counts
+        line = (f"corners {c['corners']} started | per frame, summed: after_lk {c['after_lk']} -> after_drift_check "
+                f"{c['after_drift_check']} | distinct tracks: candidates {c['candidates']} -> triangulated "
+                f"{c['triangulated']} -> inliers {c['inliers']}")
         lossy = self.lossy_stage()
         return line + (f" (most were lost at {lossy})" if lossy else "")

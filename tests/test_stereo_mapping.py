@@ -121,6 +121,13 @@ def test_the_funnel_names_the_stage_that_lost_the_points():
     g.add({"corners": 800, "after_lk": 780, "after_drift_check": 760, "candidates": 700, "triangulated": 650,
            "inliers": 640})
     assert g.lossy_stage() is None
+    assert "per frame, summed: after_lk 780" in g.summary() and "distinct tracks: candidates 700" in g.summary()
+    # one stereo frame: no LK step; its candidates are left-right matches of the corners, and that is where the
+    # points went (an inverted rig found 4 of 1797), not at the inliers
+    h = Funnel()
+    h.add({"corners": 1797, "after_lk": 0, "after_drift_check": 0, "candidates": 4, "triangulated": 4,
+           "inliers": 1})
+    assert h.lossy_stage() == "candidates"
 
 
 def test_a_point_seen_by_both_eyes_at_two_instants_is_an_inlier():
