@@ -20,6 +20,15 @@ from lapreco_hil.mapping.prediction import MotionPredictor
 
 log = logging.getLogger(__name__)
 
+# what to check when no frame has a pose, by the pose source's kind (its ``source``)
+NO_POSE_HINTS = {
+    "robot": "is the robot connected (a replay: joints.csv), and does its stream cover the video?",
+    "camera poses": "do the camera poses' times (camera_poses.csv's t_ns, with time_offset_ns) cover the "
+                    "frames' times?",
+    "tracker": "is the scope's tool tracked, and do its marker poses' times (marker_poses.csv's t_ns, with "
+               "time_offset_ns) cover the frames' times?",
+}
+
 
 @dataclass
 class RunResult:
@@ -88,8 +97,8 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     if frames_without_pose:
         poses.warn_without_pose()
     if frames_without_pose == frames_in:
-        raise ReconstructionError(f"none of the {frames_in} frames has a pose ({by_cause}): is the robot "
-                                  f"connected, and does its stream cover the video?")
+        hint = NO_POSE_HINTS.get(getattr(poses, "source", "robot"), NO_POSE_HINTS["robot"])
+        raise ReconstructionError(f"none of the {frames_in} frames has a pose ({by_cause}): {hint}")
     t5 = time.perf_counter()
     result = mapper.finish()
     stages["final_ba"] = [time.perf_counter() - t5]

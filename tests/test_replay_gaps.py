@@ -92,6 +92,40 @@ def test_frames_past_the_end_of_joints_csv_get_no_pose_and_a_warning(tmp_path, w
     assert "0.400..0.760 s of the video" in warnings[0]
 
 
+def test_a_camera_pose_session_without_a_pose_for_any_frame_says_what_to_check(tmp_path, warp_cpu):
+    """No frame has a pose: the error points at the session's own pose source (camera_poses.csv here), not at
+    a robot that a camera-pose session does not have."""
+    from lapreco_hil.errors import ReconstructionError
+
+    folder = tmp_path / "late-poses"
+    (folder / "frames").mkdir(parents=True)
+    with open(folder / "frames.csv", "w") as f:
+        f.write("seq,t_ns,file\n")
+        for i in range(2):
+            cv2.imwrite(str(folder / "frames" / f"{i}.png"), np.full((48, 64, 3), 90, np.uint8))
+            f.write(f"{i},{T0_NS + i * FRAME_PERIOD_NS},frames/{i}.png\n")
+    with open(folder / "camera_poses.csv", "w") as f:  # poses that start after the video ends
+        f.write("t_ns,tx,ty,tz,qx,qy,qz,qw\n")
+        for i in range(2):
+            f.write(f"{T0_NS + (10 + i) * FRAME_PERIOD_NS},0,0,0,0,0,0,1\n")
+    (folder / "session.json").write_text(json.dumps({
+        "format": "lapreco-session", "version": 1, "units": {"length": "m", "angle": "rad", "time": "ns"},
+        "camera": {"width": 64, "height": 48, "K": [[50, 0, 32], [0, 50, 24], [0, 0, 1]]},
+        "pose_source": "camera_poses"}))
+    with pytest.raises(ReconstructionError) as exc:
+        _replay(folder, tmp_path / "out", warp_cpu)
+    text = str(exc.value)
+    assert text.startswith("none of the 2 frames has a pose") and "camera_poses.csv" in text, text
+    assert "robot" not in text, text
+    # every pose source has its own hint (the tracked scope's names marker_poses.csv)
+    from lapreco_hil.pipeline import NO_POSE_HINTS
+    from lapreco_hil.pose_sources import GivenPoseSource, MarkerPoseSource, RobotPoseSource
+
+    assert "joints.csv" in NO_POSE_HINTS[RobotPoseSource.source]
+    assert "camera_poses.csv" in NO_POSE_HINTS[GivenPoseSource.source]
+    assert "marker_poses.csv" in NO_POSE_HINTS[MarkerPoseSource.source]
+
+
 def test_frames_before_the_first_reading_and_in_a_gap_are_counted_by_cause(tmp_path, warp_cpu, caplog):
     """The joint stream starts late and drops out for 100 ms (20 periods, more than MAX_GAP_PERIODS): the
     frames before its start and inside the gap get no pose; frames close to a reading on both sides do."""
