@@ -374,8 +374,14 @@ def test_a_last_frame_cut_short_by_a_crash_is_left_out(tmp_path):
     rows = (folder / "frames.csv").read_text()
     # killed while appending the last frame's rows: camera 0's row complete, camera 1's unfinished
     (folder / "frames.csv").write_text(rows + "13,1120000000,0,frames/left/000002.png\n13,1120000000,1,fra")
+    _edit_json(folder, lambda d: d.update(complete=False))  # a killed recorder never marks it complete
     s = Session(folder)
     assert len(s) == 3 and s.truncated == ["frames.csv"]
+    # the same rows in a session marked complete (closed cleanly: nothing was cut short) are read, and the
+    # unfinished one is an error naming its line
+    _edit_json(folder, lambda d: d.update(complete=True))
+    with pytest.raises(SessionError, match="frames.csv: line 9: frame file 'fra' is missing"):
+        Session(folder)
     # cut between the two rows of a session never closed: the same
     (folder / "frames.csv").write_text(rows + "13,1120000000,0,frames/left/000002.png\n")
     _edit_json(folder, lambda d: d.update(complete=False))

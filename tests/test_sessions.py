@@ -200,12 +200,32 @@ def test_bad_session_gives_one_clear_line(case, recorded, tmp_path, capsys):
 def test_unfinished_last_rows_are_ignored(recorded, tmp_path):
     folder = tmp_path / "cut"
     shutil.copytree(recorded, folder)
+    _edit_json(folder, complete=False)  # a recorder killed mid-row never closed the session
     with open(folder / "frames.csv", "a") as fh:
         fh.write("30,2200000000,frames/0000")  # a row cut short by a kill: no newline
     with open(folder / "joints.csv", "a") as fh:
         fh.write("999,2200000000,0.1,0.")
     s = Session(folder)
     assert len(s) == 30 and set(s.truncated) == {"frames.csv", "joints.csv"}
+    # a session closed cleanly was not cut short: its last rows are read, and one that does not parse is an error
+    _edit_json(folder, complete=True)
+    with pytest.raises(SessionError, match="frames.csv: line 32: frame file 'frames/0000' is missing"):
+        Session(folder)
+
+
+def test_a_complete_sessions_last_joint_row_without_a_newline_is_read(recorded, tmp_path):
+    folder = tmp_path / "unterminated"
+    shutil.copytree(recorded, folder)
+    n = len(Session(folder).joint_samples)
+    last = (folder / "joints.csv").read_text().splitlines()[-1].split(",")
+    with open(folder / "joints.csv", "a") as fh:
+        fh.write(",".join([str(int(last[0]) + 1), str(int(last[1]) + 5_000_000), *last[2:]]))  # no newline
+    s = Session(folder)
+    assert len(s.joint_samples) == n + 1 and s.truncated == []
+    with open(folder / "joints.csv", "a") as fh:
+        fh.write("\n999,2200000000,0.1,0.")  # cut inside the row
+    with pytest.raises(SessionError, match="joints.csv: line [0-9]+: 4 columns, expected 6 \\(the last line"):
+        Session(folder)
 
 
 @pytest.mark.parametrize("kill_after_rows", [3, 9, 17])

@@ -24,6 +24,7 @@ short by a crash reads up to its last complete row.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 from dataclasses import dataclass, field
@@ -34,6 +35,8 @@ import numpy as np
 from lapreco_hil.camera import N_DIST, CameraModel, FieldOfView, Rig, read_fov_mask
 from lapreco_hil.errors import CalibrationError, SessionError
 from lapreco_hil.types import RobotDescription
+
+log = logging.getLogger(__name__)
 
 FORMAT = "lapreco-session"
 VERSION = 2  # the newest version this module reads and writes (a one-camera session is written as version 1)
@@ -506,10 +509,14 @@ def read_meta(folder: Path) -> SessionMeta:
 
 # --- CSV tables ---------------------------------------------------------------------------------------------
 
-def read_rows(path: Path, header: tuple[str, ...], min_columns: int | None = None) -> tuple[list[list[str]], bool]:
-    """Complete rows of a table (after its header) and whether an unfinished last row was left out.
+def read_rows(path: Path, header: tuple[str, ...], min_columns: int | None = None,
+              complete: bool = True) -> tuple[list[list[str]], bool]:
+    """The rows of a table (after its header) and whether an unfinished last row was left out.
 
-    The header must start with ``header``; a row is complete when it ends with a newline.
+    The header must start with ``header``. A last line without a newline is a row a crash cut short only in
+    a session not closed cleanly (``complete`` False): it is left out with a warning. A session closed cleanly
+    was written whole, so that line is read as a row like any other (a program that wrote it need not end
+    the file with a newline), and a line that does not parse is an error.
     """
     try:
         data = path.read_bytes()
@@ -522,8 +529,13 @@ def read_rows(path: Path, header: tuple[str, ...], min_columns: int | None = Non
     except UnicodeDecodeError as exc:
         raise SessionError(f"{path}: not UTF-8 text (byte {exc.start}); is it the right file?") from None
     lines = text.split("\n")
-    truncated = lines[-1] != ""  # the last piece has no newline: a row cut short by a crash
-    lines = lines[:-1]
+    unterminated = lines[-1] != ""  # the last piece has no newline
+    truncated = unterminated and not complete  # a row cut short by a crash
+    if truncated:
+        log.warning("%s: line %d has no newline: a row cut short when the recording stopped; it is left out",
+                    path, len(lines))
+    if not complete or not unterminated:
+        lines = lines[:-1]
     if not lines:
         raise SessionError(f"{path}: empty (expected the header '{','.join(header)}')")
     got = tuple(c.strip() for c in lines[0].rstrip("\r").split(","))
@@ -538,7 +550,9 @@ def read_rows(path: Path, header: tuple[str, ...], min_columns: int | None = Non
             continue
         cells = [c.strip() for c in line.split(",")]
         if len(cells) != ncols:
-            raise SessionError(f"{path}: line {lineno}: {len(cells)} columns, expected {ncols}")
+            cut = (" (the last line, without a newline, of a session marked complete: a copy cut short?)"
+                   if unterminated and complete and lineno == len(lines) else "")
+            raise SessionError(f"{path}: line {lineno}: {len(cells)} columns, expected {ncols}{cut}")
         rows.append(cells)
     return rows, truncated
 
@@ -569,11 +583,12 @@ def check_increasing(path: Path, t_ns: np.ndarray, what: str = "t_ns") -> None:
                                f"{t_ns[i - 1]}); timestamps must be strictly increasing")
 
 
-def read_pose_table(path: Path, length_scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """(t_ns (N,), T_world_camera (N, 4, 4)) from a table with POSE_COLUMNS; translations to metres."""
+def read_pose_table(path: Path, length_scale: float, complete: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(t_ns (N,), T_world_camera (N, 4, 4)) from a table with POSE_COLUMNS; translations to metres.
+    ``complete``: whether the session was closed cleanly (see read_rows)."""
     from lapreco_hil.geometry import pose_from_tum
 
-    rows, _ = read_rows(path, POSE_COLUMNS)
+    rows, _ = read_rows(path, POSE_COLUMNS, complete=complete)
     t = np.array([parse_int(path, i + 2, "t_ns", r[0]) for i, r in enumerate(rows)], dtype=np.int64)
     poses = np.empty((len(rows), 4, 4))
     for i, r in enumerate(rows):
@@ -587,12 +602,13 @@ def read_pose_table(path: Path, length_scale: float) -> tuple[np.ndarray, np.nda
     return t, poses
 
 
-def read_marker_table(path: Path, length_scale: float) -> tuple[MarkerTable, bool]:
-    """marker_poses.csv (MARKER_COLUMNS; translations to metres) and whether an unfinished last row was left out.
-    Times must increase per tool (several tools may share a reply's time)."""
+def read_marker_table(path: Path, length_scale: float, complete: bool = True) -> tuple[MarkerTable, bool]:
+    """marker_poses.csv (MARKER_COLUMNS; translations to metres) and whether an unfinished last row was left out
+    (``complete``: whether the session was closed cleanly, see read_rows). Times must increase per tool
+    (several tools may share a reply's time)."""
     from lapreco_hil.geometry import pose_from_tum
 
-    rows, truncated = read_rows(path, MARKER_COLUMNS)
+    rows, truncated = read_rows(path, MARKER_COLUMNS, complete=complete)
     n = len(rows)
     t = np.empty(n, np.int64)
     poses, rms, inside = np.empty((n, 4, 4)), np.empty(n), np.empty(n, bool)

@@ -39,7 +39,8 @@ class Session:
             self._read_markers()
         else:
             self.pose_t_ns, self.poses = fmt.read_pose_table(self.folder / fmt.CAMERA_POSES_FILE,
-                                                             fmt.LENGTH_UNITS[self.meta.length_unit])
+                                                             fmt.LENGTH_UNITS[self.meta.length_unit],
+                                                             self.meta.complete)
             if len(self.pose_t_ns) == 0:
                 raise SessionError(f"{self.folder / fmt.CAMERA_POSES_FILE}: no poses")
         if not self.meta.complete:
@@ -80,7 +81,7 @@ class Session:
     def _read_frames(self) -> None:
         path = self.folder / fmt.FRAMES_FILE
         version = self.meta.file_version or self.meta.version
-        rows, truncated = fmt.read_rows(path, fmt.FRAME_COLUMNS[version])
+        rows, truncated = fmt.read_rows(path, fmt.FRAME_COLUMNS[version], complete=self.meta.complete)
         if truncated:
             self.truncated.append(fmt.FRAMES_FILE)
         if version == 1:
@@ -196,7 +197,7 @@ class Session:
     def _read_joints(self) -> None:
         path = self.folder / fmt.JOINTS_FILE
         names = self.meta.joint_names
-        rows, truncated = fmt.read_rows(path, ("seq", "t_ns", *names))
+        rows, truncated = fmt.read_rows(path, ("seq", "t_ns", *names), complete=self.meta.complete)
         if truncated:
             self.truncated.append(fmt.JOINTS_FILE)
         scale = self.meta.joint_scale
@@ -211,7 +212,8 @@ class Session:
 
     def _read_markers(self) -> None:
         path = self.folder / fmt.MARKER_POSES_FILE
-        self.markers, truncated = fmt.read_marker_table(path, fmt.LENGTH_UNITS[self.meta.length_unit])
+        self.markers, truncated = fmt.read_marker_table(path, fmt.LENGTH_UNITS[self.meta.length_unit],
+                                                        self.meta.complete)
         if truncated:
             self.truncated.append(fmt.MARKER_POSES_FILE)
         tool = self.meta.tracker.tool
@@ -246,7 +248,7 @@ class Session:
                 raise SessionError(f"{surface_path}: the ground-truth mesh is empty")
             surface = surface.scale(fmt.LENGTH_UNITS[self.meta.length_unit])
         if poses_path.is_file():
-            t, T = fmt.read_pose_table(poses_path, fmt.LENGTH_UNITS[self.meta.length_unit])
+            t, T = fmt.read_pose_table(poses_path, fmt.LENGTH_UNITS[self.meta.length_unit], self.meta.complete)
             if len(t):
                 poses = SampledPoses(t, T)
         if surface is None and poses is None:
