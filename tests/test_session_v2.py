@@ -6,6 +6,7 @@ still read as a rig of one, and the recorder and replay:// carrying Frame.views.
 from __future__ import annotations
 
 import json
+import logging
 import re
 import shutil
 import subprocess
@@ -112,6 +113,125 @@ def test_a_hand_written_version_1_session_reads_as_a_rig_of_one(tmp_path):
     assert s.camera == LEFT and s.rig.cameras == (LEFT,) and not s.rig.is_stereo
     frame = s.frame(0)
     assert np.array_equal(frame.image, image) and frame.views == ()
+
+
+def write_v1(folder: Path, n: int = 2, ext: str = "png", camera: dict | None = None, **top) -> Path:
+    """A version-1 camera-pose session by hand: ``n`` frames, ``camera`` fields over LEFT's, ``top`` over
+    session.json's top level."""
+    (folder / "frames").mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    rows, poses = ["seq,t_ns,file"], ["t_ns,tx,ty,tz,qx,qy,qz,qw"]
+    for i in range(n):
+        cv2.imwrite(str(folder / "frames" / f"{i}.{ext}"), rng.integers(0, 256, (48, 64, 3), np.uint8))
+        rows.append(f"{i},{5000 + i * 1000},frames/{i}.{ext}")
+        poses.append(f"{5000 + i * 1000},0,0,{0.001 * i},0,0,0,1")
+    (folder / "frames.csv").write_text("\n".join(rows) + "\n")
+    (folder / "camera_poses.csv").write_text("\n".join(poses) + "\n")
+    cam = {"width": 64, "height": 48, "K": LEFT.K.tolist(), "dist": [0.1, -0.02], "fov_radius_px": 22,
+           **(camera or {})}
+    (folder / "session.json").write_text(json.dumps({
+        "format": "lapreco-session", "version": 1, "units": {"length": "m", "angle": "rad", "time": "ns"},
+        "camera": cam, "pose_source": "camera_poses", **top}))
+    return folder
+
+
+BAD_V1 = {
+    "negative fov radius": ({"camera": {"fov_radius_px": -3}},
+                            "field 'camera.fov_radius_px' must be positive (or 0: no field of view), got -3.0"),
+    "fov circle off the image": ({"camera": {"fov_radius_px": 10, "K": [[50, 0, 5000], [0, 51, 5000], [0, 0, 1]]}},
+                                 "field 'camera.fov_radius_px' = 10.0 about the principal point (5000, 5000) covers "
+                                 "no pixel of the 64x48 image"),
+    "misspelled camera field": ({"camera": {"distortion": [0.1]}},
+                                "field 'camera.distortion' is unknown; 'camera' allows width, height, K, dist, "
+                                "fov_radius_px"),
+    "a rig in version 1": ({"rig": {"cameras": [], "T_cam0_cam": []}},
+                           "field 'rig' is a version-2 field; set \"version\": 2 for a rig"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_V1))
+def test_a_bad_version_1_session_gives_one_clear_line(case, tmp_path):
+    """Version 1 is checked as strictly as version 2 (a field of view, unknown keys)."""
+    changes, message = BAD_V1[case]
+    folder = write_v1(tmp_path / "v1", camera=changes.get("camera"),
+                      **{k: v for k, v in changes.items() if k != "camera"})
+    with pytest.raises(SessionError) as exc:
+        Session(folder)
+    text = str(exc.value)
+    assert "\n" not in text and "session.json" in text and message in text, text
+
+
+def test_extra_top_level_keys_are_still_allowed(tmp_path):
+    """The top level of session.json is open (informative fields of other writers); the objects are not."""
+    s = Session(write_v1(tmp_path / "v1", notes={"operator": "A"}, my_tool_version="3.1"))
+    assert len(s) == 2 and s.camera == LEFT
+
+
+def test_a_jpeg_frame_is_read_with_one_warning_per_session(tmp_path, caplog):
+    s = Session(write_v1(tmp_path / "jpeg", n=3, ext="jpg"))
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.sessions"):
+        frames = [s.frame(i) for i in range(len(s))] + [s.frame(0)]
+    assert all(f.image.shape == (48, 64, 3) for f in frames)  # read, not refused
+    jpeg = [r.getMessage() for r in caplog.records if "JPEG" in r.getMessage()]
+    assert len(jpeg) == 1 and "0.jpg" in jpeg[0] and "JPEG artefacts bias tracking" in jpeg[0], jpeg
+    caplog.clear()
+    s = Session(write_v1(tmp_path / "png", n=3))
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.sessions"):
+        [s.frame(i) for i in range(len(s))]
+    assert not [r for r in caplog.records if "JPEG" in r.getMessage()]
+
+
+# --- a last line without a newline: read in a session closed cleanly, left out in one cut short ------------------
+
+def _strip_final_newline(file: Path, tail: str = "") -> None:
+    file.write_text(file.read_text().rstrip("\n") + tail)
+
+
+def test_a_complete_sessions_last_row_without_a_newline_is_read(tmp_path):
+    folder = write_v1(tmp_path / "s", n=3)
+    for name in ("frames.csv", "camera_poses.csv"):
+        _strip_final_newline(folder / name)
+    s = Session(folder)
+    assert s.meta.complete and len(s) == 3 and len(s.pose_t_ns) == 3 and s.truncated == []
+    assert s.frame(2).t_ns == 7000 and s.poses[2][2, 3] == pytest.approx(0.002)
+
+
+@pytest.mark.parametrize("name, tail, message", [
+    ("frames.csv", "\n3,8000,frames/3.p", "frames.csv: line 5: frame file 'frames/3.p' is missing"),
+    ("frames.csv", "\n3,80", "frames.csv: line 5: 2 columns, expected 3 (the last line, without a newline"),
+    ("camera_poses.csv", "\n8000,0,0,0.", "camera_poses.csv: line 5: 4 columns, expected 8"),
+])
+def test_a_complete_sessions_unfinished_last_row_is_an_error(name, tail, message, tmp_path):
+    folder = write_v1(tmp_path / "s", n=3)
+    _strip_final_newline(folder / name, tail)
+    with pytest.raises(SessionError, match=re.escape(message)):
+        Session(folder)
+
+
+def test_an_unfinished_last_row_of_a_session_cut_short_is_left_out_with_a_warning(tmp_path, caplog):
+    folder = write_v1(tmp_path / "s", n=3, complete=False)
+    _strip_final_newline(folder / "frames.csv", "\n3,80")
+    _strip_final_newline(folder / "camera_poses.csv", "\n8000,0,0,0.")
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.sessions"):
+        s = Session(folder)
+    assert len(s) == 3 and len(s.pose_t_ns) == 3 and s.truncated == ["frames.csv"]
+    cut = [r.getMessage() for r in caplog.records if "no newline" in r.getMessage()]
+    assert len(cut) == 2 and "frames.csv: line 5" in cut[0] and "camera_poses.csv: line 5" in cut[1], cut
+
+
+def test_marker_poses_follow_the_same_last_row_rule(tmp_path):
+    from lapreco_hil.sessions import format as fmt
+
+    path = tmp_path / "marker_poses.csv"
+    rows = ",".join(fmt.MARKER_COLUMNS) + "\n1000,scope,0,0,0,0,0,0,1,0.2,1\n2000,scope,0,0,0,0,0,0,1,0.2,1"
+    path.write_text(rows)
+    table, truncated = fmt.read_marker_table(path, 1.0, complete=True)
+    assert len(table) == 2 and not truncated
+    table, truncated = fmt.read_marker_table(path, 1.0, complete=False)
+    assert len(table) == 1 and truncated
+    path.write_text(rows[:-4])  # cut inside the last row
+    with pytest.raises(SessionError, match="marker_poses.csv: line 3: 10 columns, expected 11"):
+        fmt.read_marker_table(path, 1.0, complete=True)
 
 
 def test_a_frame_whose_views_do_not_match_the_rig_is_refused(tmp_path):
@@ -307,6 +427,11 @@ def _edit_frames(folder: Path, edit) -> None:
     (folder / "frames.csv").write_text("\n".join(edit(lines)) + "\n")
 
 
+def _mask_folder(folder: Path) -> None:
+    (folder / "masks" / "right.png").mkdir(parents=True)  # a folder where the mask file should be
+    _edit_json(folder, lambda d: d["rig"]["cameras"][1].update(fov={"mask": "masks/right.png"}))
+
+
 def _wrong_size_mask(folder: Path) -> None:
     (folder / "masks").mkdir()
     cv2.imwrite(str(folder / "masks" / "right.png"), np.full((48, 64), 255, np.uint8))  # the LEFT camera's size
@@ -348,6 +473,38 @@ BAD = {
                         "session.json", "field 'rig.cameras[1].name' is 'left'; camera names must be distinct"),
     "version 1 camera in version 2": (lambda f: _edit_json(f, lambda d: d.update(camera=d["rig"]["cameras"][0])),
                                       "session.json", "field 'camera' is a version-1 field"),
+    "ellipse off the image": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][1].update(
+        fov={"ellipse": {"cx": 5000, "cy": 5000, "a": 10, "b": 10}})), "session.json",
+                              "field 'rig.cameras[1].fov' = {\"ellipse\": {\"cx\": 5000, \"cy\": 5000, \"a\": 10, "
+                              "\"b\": 10}} covers no pixel of the 80x40 image"),
+    "circle off the image": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][0].update(
+        fov={"circle": {"cx": -1000, "cy": 144, "r": 10}})), "session.json",
+                             "field 'rig.cameras[0].fov' = {\"circle\": {\"cx\": -1000, \"cy\": 144, \"r\": 10}} "
+                             "covers no pixel of the 64x48 image"),
+    "circle too far out to draw": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][0].update(
+        fov={"circle": {"cx": 1e12, "cy": 20, "r": 1e12}})), "session.json",
+                                   "field 'rig.cameras[0].fov' = {\"circle\": {\"cx\": 1000000000000.0, \"cy\": 20, "
+                                   "\"r\": 1000000000000.0}} is too far out to draw"),
+    "misspelled camera field": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][0].update(
+        distortion=d["rig"]["cameras"][0].pop("dist"))), "session.json",
+                                "field 'rig.cameras[0].distortion' is unknown; 'rig.cameras[0]' allows name, width, "
+                                "height, K, dist, fov"),
+    "misspelled ellipse field": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][1]["fov"]["ellipse"].update(
+        angle=d["rig"]["cameras"][1]["fov"]["ellipse"].pop("angle_deg"))), "session.json",
+                                 "field 'rig.cameras[1].fov.ellipse.angle' is unknown; 'rig.cameras[1].fov.ellipse' "
+                                 "allows cx, cy, a, b, angle_deg"),
+    "misspelled circle field": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][0].update(
+        fov={"circle": {"cx": 30, "cy": 20, "radius": 10}})), "session.json",
+                                "field 'rig.cameras[0].fov.circle.radius' is unknown; 'rig.cameras[0].fov.circle' "
+                                "allows cx, cy, r"),
+    "unknown fov field": (lambda f: _edit_json(f, lambda d: d["rig"]["cameras"][1]["fov"].update(margin_px=3)),
+                          "session.json", "field 'rig.cameras[1].fov' must hold exactly one of 'circle', 'ellipse' "
+                                          "or 'mask', got ['ellipse', 'margin_px']"),
+    "misspelled rig field": (lambda f: _edit_json(f, lambda d: d["rig"].update(sigma_rot=0.001)), "session.json",
+                             "field 'rig.sigma_rot' is unknown; 'rig' allows cameras, T_cam0_cam, sigma_rotation_rad, "
+                             "sigma_translation_m"),
+    "mask is a folder": (_mask_folder, "session.json",
+                         "field 'rig.cameras[1].fov.mask' = 'masks/right.png' is a folder, not a PNG file"),
     "wrong size view": (lambda f: cv2.imwrite(str(f / "frames" / "right" / "000002.png"),
                                               np.zeros((48, 64, 3), np.uint8)),
                         "right/000002.png", "image is 64x48, the session's camera 'right' is 80x40"),

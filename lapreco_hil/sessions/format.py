@@ -30,6 +30,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from lapreco_hil.camera import N_DIST, CameraModel, FieldOfView, Rig, read_fov_mask
@@ -62,6 +63,11 @@ POSE_COLUMNS = ("t_ns", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
 MARKER_POSES_FILE = "marker_poses.csv"
 # T_tracker_marker of every tracked tool (the scope's and any other), with the device's quality fields
 MARKER_COLUMNS = ("t_ns", "tool", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "rms_mm", "in_volume")
+# the keys each object of session.json allows (a misspelled optional key would otherwise be ignored unseen)
+CAMERA_KEYS = ("width", "height", "K", "dist", "fov_radius_px")  # version 1's camera
+RIG_KEYS = ("cameras", "T_cam0_cam", "sigma_rotation_rad", "sigma_translation_m")
+RIG_CAMERA_KEYS = ("name", "width", "height", "K", "dist", "fov")
+FOV_SHAPE_KEYS = {"circle": ("cx", "cy", "r"), "ellipse": ("cx", "cy", "a", "b", "angle_deg")}
 TOOL_NAME = re.compile(r"[^,\r\n\"]{1,64}")
 DEFAULT_MAX_RMS_MM = 1.0  # a marker fit worse than this is refused (a Polaris's typical RMS is 0.1-0.3 mm)
 
@@ -296,6 +302,14 @@ class _Fields:
             raise self._fail(key, f"must be a {shape[0]}x{shape[1]} array of finite numbers")
         return m
 
+    def only(self, allowed: tuple[str, ...]) -> "_Fields":
+        """These fields, refusing any key not in ``allowed``: a misspelled optional key would otherwise be
+        ignored and its default used unseen."""
+        unknown = [k for k in self.data if k not in allowed]
+        if unknown:
+            raise self._fail(unknown[0], f"is unknown; '{self.where}' allows {', '.join(allowed)}")
+        return self
+
     def sub(self, key: str) -> "_Fields":
         return _Fields(self.get(key, dict), self._name(key), self.source)
 
@@ -319,6 +333,7 @@ def _check_rigid(f: _Fields, key: str) -> np.ndarray:
 
 def _camera(cam: _Fields, fov_of) -> CameraModel:
     """One camera's intrinsics (and, through ``fov_of(cam, width, height)``, its field of view)."""
+    cam.only(CAMERA_KEYS if fov_of is None else RIG_CAMERA_KEYS)
     width, height = cam.get("width", int), cam.get("height", int)
     if not (1 <= width <= 16384 and 1 <= height <= 16384):
         raise cam._fail("width", f"and height ({width}x{height}) must be 1..16384")
@@ -332,10 +347,30 @@ def _camera(cam: _Fields, fov_of) -> CameraModel:
         raise cam._fail("K", "must have positive focal lengths")
     dist_t = tuple(float(v) for v in dist)
     if fov_of is None:  # version 1: a circle about the principal point
-        return CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist_t,
-                           cam.get("fov_radius_px", float, 0.0))
+        radius = cam.get("fov_radius_px", float, 0.0)
+        if radius < 0:
+            raise cam._fail("fov_radius_px", f"must be positive (or 0: no field of view), got {radius!r}")
+        if radius > 0:
+            _check_covers(cam, "fov_radius_px", f"= {radius!r} about the principal point ({K[0, 2]:g}, "
+                                                f"{K[1, 2]:g})", FieldOfView.circle(K[0, 2], K[1, 2], radius),
+                          width, height)
+        return CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist_t, radius)
     return CameraModel(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist_t,
                        fov=fov_of(cam, width, height))
+
+
+def _check_covers(f: _Fields, key: str, given: str, fov: FieldOfView, width: int, height: int) -> FieldOfView:
+    """``fov``, refused when it lights no pixel of the image (a shape placed off the image would replay with
+    no corners at all, as an all-zero mask would)."""
+    try:
+        covered = bool(fov.region(width, height).any())
+    except cv2.error:  # OpenCV draws circles in 32-bit integer pixels
+        raise f._fail(key, f"{given} is too far out to draw; give the centre and size in pixels of the "
+                           f"{width}x{height} image") from None
+    if not covered:
+        raise f._fail(key, f"{given} covers no pixel of the {width}x{height} image; give the centre and size "
+                           f"in that image's pixels")
+    return fov
 
 
 def _positive(f: _Fields, key: str, default=...) -> float:
@@ -354,16 +389,19 @@ def _fov(folder: Path):
         if len(kinds) != 1 or len(fov.data) != 1:
             raise cam._fail("fov", f"must hold exactly one of 'circle', 'ellipse' or 'mask', got "
                                    f"{sorted(fov.data)}")
+        given = f"= {json.dumps(cam.data['fov'], separators=(', ', ': '))}"
         if kinds[0] == "circle":
-            c = fov.sub("circle")
-            return FieldOfView.circle(c.get("cx", float), c.get("cy", float), _positive(c, "r"))
+            c = fov.sub("circle").only(FOV_SHAPE_KEYS["circle"])
+            return _check_covers(cam, "fov", given, FieldOfView.circle(c.get("cx", float), c.get("cy", float),
+                                                                       _positive(c, "r")), width, height)
         if kinds[0] == "ellipse":
-            e = fov.sub("ellipse")
-            return FieldOfView.ellipse(e.get("cx", float), e.get("cy", float), _positive(e, "a"),
-                                       _positive(e, "b"), e.get("angle_deg", float, 0.0))
+            e = fov.sub("ellipse").only(FOV_SHAPE_KEYS["ellipse"])
+            shape = FieldOfView.ellipse(e.get("cx", float), e.get("cy", float), _positive(e, "a"),
+                                        _positive(e, "b"), e.get("angle_deg", float, 0.0))
+            return _check_covers(cam, "fov", given, shape, width, height)
         name = fov.get("mask", str)
         where = f"{fov.source}: field '{fov._name('mask')}' = {name!r}"
-        path = inside_session(folder, name, where)
+        path = inside_session(folder, name, where, "a PNG file")
         try:
             pixels = read_fov_mask(path)
         except CalibrationError:
@@ -381,6 +419,7 @@ def _fov(folder: Path):
 
 
 def _rig(r: _Fields, length_scale: float, folder: Path) -> tuple[Rig, tuple[str, ...]]:
+    r.only(RIG_KEYS)
     cams = r.elements("cameras")
     n = len(cams.data)
     cameras, names = [], []
@@ -406,9 +445,10 @@ def _rig(r: _Fields, length_scale: float, folder: Path) -> tuple[Rig, tuple[str,
     return rig, tuple(names)
 
 
-def inside_session(folder: Path, name: str, where: str) -> Path:
+def inside_session(folder: Path, name: str, where: str, what: str = "a file") -> Path:
     """The file a session names, checked: a relative path, inside the session folder (after following
-    symbolic links), and there. ``where`` starts the error (the file, line or field and the name)."""
+    symbolic links), and there. ``where`` starts the error (the file, line or field and the name), ``what``
+    says what the file must be (an image file, a PNG file)."""
     if not name or Path(name).is_absolute() or name.startswith(("/", "\\")) or name[1:2] == ":":
         raise SessionError(f"{where} is not a relative path; paths must be relative to the session folder "
                            f"(e.g. frames/000000.png)")
@@ -421,6 +461,8 @@ def inside_session(folder: Path, name: str, where: str) -> Path:
     if not resolved.is_relative_to(root):
         raise SessionError(f"{where} leads outside the session folder (to '{resolved}'); paths must stay "
                            f"inside it")
+    if resolved.is_dir():
+        raise SessionError(f"{where} is a folder, not {what}")
     if not resolved.is_file():
         raise SessionError(f"{where} is missing")
     return file
@@ -447,6 +489,9 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
         raise units._fail("time", f"is {time!r}; timestamps must be integer nanoseconds ('ns')")
 
     if version == 1:
+        if "rig" in f.data:
+            raise f._fail("rig", "is a version-2 field; set \"version\": 2 for a rig (a version-1 session gives "
+                                 "its one camera in 'camera')")
         camera = _camera(f.sub("camera"), None)
         rig, names = Rig.mono(camera), ()
     else:

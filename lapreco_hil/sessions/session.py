@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from pathlib import Path
 
 import cv2
@@ -28,6 +29,8 @@ class Session:
         self.truncated: list[str] = []
         # tables with fewer rows than session.json's counts say were recorded: {table: {recorded, found}}
         self.shortfall: dict[str, dict[str, int]] = {}
+        self._jpeg_warned = False  # frames are lossless by the spec: one warning per session for a JPEG frame
+        self._jpeg_lock = threading.Lock()  # (replay:// decodes frames in several threads)
         self._read_frames()
         self.joint_samples: list[JointSample] = []
         self.pose_t_ns = np.zeros(0, np.int64)
@@ -156,7 +159,8 @@ class Session:
     def _frame_file(self, table: Path, lineno: int, name: str) -> Path:
         """The frame file a row names, checked: relative, inside the session folder (after following
         symbolic links), and there."""
-        return fmt.inside_session(self.folder, name, f"{table}: line {lineno}: frame file '{name}'")
+        return fmt.inside_session(self.folder, name, f"{table}: line {lineno}: frame file '{name}'",
+                                  "an image file")
 
     def __len__(self) -> int:
         return len(self.frame_t_ns)
@@ -164,9 +168,29 @@ class Session:
     def frame(self, i: int) -> Frame:
         """Frame i: camera 0's image, and the other cameras' in ``views`` (each at its own size)."""
         names = self.meta.camera_names if len(self.meta.rig) > 1 else ("",)
+        if not self._jpeg_warned:
+            for path in self._files[i]:
+                self._warn_if_jpeg(path)
         images = tuple(self._image(path, cam, name) for path, cam, name in
                        zip(self._files[i], self.meta.rig.cameras, names))
         return Frame(image=images[0], t_ns=int(self.frame_t_ns[i]), seq=int(self.frame_seq[i]), views=images[1:])
+
+    def _warn_if_jpeg(self, path: Path) -> None:
+        """Warn (once per session) about a JPEG frame: the format asks for lossless frames, and JPEG's 8x8 block
+        artefacts sit on the image grid, not on the scene, and pull corners with them. Read, not refused."""
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(3)
+        except OSError:
+            return  # decoding it reports the problem
+        if head != b"\xff\xd8\xff":  # JPEG's start-of-image marker, whatever the file's name
+            return
+        with self._jpeg_lock:
+            if self._jpeg_warned:
+                return
+            self._jpeg_warned = True
+        log.warning("%s: a JPEG frame; frames should be lossless (PNG): JPEG artefacts bias tracking (warned once "
+                    "for this session)", path)
 
     @staticmethod
     def _image(path: Path, cam: CameraModel, name: str) -> np.ndarray:
