@@ -53,6 +53,22 @@ def test_laparoscope_default_calibration_agrees_with_the_owners():
     assert scores["full"].held_out_rms_px > 2 * scores["standard"].held_out_rms_px
 
 
+def test_the_owners_four_coefficient_model_is_offered_and_lands_near_the_owners():
+    """The laparoscope's owner ships k1 k2 p1 p2 (no k3): ``--model k1k2p1p2`` fits that model, whose principal
+    point lands nearer the owner's than the 5-coefficient fit's (whose k3 bends the corners the board never
+    reached)."""
+    board = parse_board("chessboard:14x10:0.003")
+    corners = np.load(LAPAROSCOPE / "corners.npz")
+    detections = {n: (corners[n].astype(np.float64), np.arange(140)) for n in sorted(corners.files)}
+    K, _ = _owner_camera(LAPAROSCOPE, "calib.right")
+    four = calibrate_detections(detections, (1920, 1080), board, model="k1k2p1p2").camera
+    five = calibrate_detections(detections, (1920, 1080), board, model="standard").camera
+    assert four.dist_array[4] == 0.0 and five.dist_array[4] != 0.0
+    off = lambda c: np.hypot(c.cx - K[0, 2], c.cy - K[1, 2])  # noqa: E731
+    assert off(four) < 3.0 < off(five)  # 1.8 against 6.1 px
+    assert abs(four.fx / K[0, 0] - 1) < 0.005 and abs(four.fy / K[1, 1] - 1) < 0.005
+
+
 def test_laparoscope_corners_are_detected_on_the_real_image():
     board = parse_board("chessboard:14x10:0.003")
     pts, ids = board.detect(cv2.imread(str(LAPAROSCOPE / "right-1095.png"), cv2.IMREAD_GRAYSCALE))

@@ -24,7 +24,7 @@ def add_parsers(sub, positive_int) -> None:
     boards = ("chessboard:9x6:0.025 (inner corners, square m), charuco:10x7:0.004:0.003[:DICT_5X5_100], "
               "circles:25x18:0.005[:8,5+16,5] (dots per row x rows, pitch m, large dots), acircles:4x11:0.02, "
               "or viking")
-    models = ("auto", "standard", "paper", "rational", "full")
+    models = ("auto", "k1k2p1p2", "standard", "paper", "rational", "full")
     lens = cal_sub.add_parser("lens", help="lens intrinsics and distortion from board images")
     lens.add_argument("images", nargs="+", help="board images (or a session's frames/*.png)")
     lens.add_argument("--board", required=True, help=boards)
