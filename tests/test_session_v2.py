@@ -146,6 +146,18 @@ BAD_V1 = {
                                 "fov_radius_px"),
     "a rig in version 1": ({"rig": {"cameras": [], "T_cam0_cam": []}},
                            "field 'rig' is a version-2 field; set \"version\": 2 for a rig"),
+    "misspelled units field": ({"units": {"length": "m", "angle": "rad", "time": "ns", "lenght": "mm"}},
+                               "field 'units.lenght' is unknown; 'units' allows length, angle, time"),
+    "misspelled camera_poses field": ({"camera_poses": {"sigma_rot": 0.01}},
+                                      "field 'camera_poses.sigma_rot' is unknown; 'camera_poses' allows "
+                                      "sigma_rotation_rad, sigma_translation_m"),
+    # a misspelled hand-eye made a calibration session (no hand-eye) of a robot session without a word
+    "misspelled robot field": ({"pose_source": "joints", "robot": {
+        "urdf": "ecm", "tip_frame": "ecm_tip", "joint_names": ["a"], "joint_units": ["angle"],
+        "T_tip_cam": np.eye(4).tolist()}}, "field 'robot.T_tip_cam' is unknown; 'robot' allows urdf, tip_frame, "
+                                           "joint_names, joint_units, T_tip_camera, T_world_base"),
+    "misspelled tracker field": ({"pose_source": "marker_poses", "tracker": {"tool": "scope", "max_rms": 1.0}},
+                                 "field 'tracker.max_rms' is unknown; 'tracker' allows tool, T_marker_camera"),
 }
 
 

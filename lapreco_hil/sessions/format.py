@@ -67,6 +67,10 @@ MARKER_COLUMNS = ("t_ns", "tool", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "rms
 CAMERA_KEYS = ("width", "height", "K", "dist", "fov_radius_px")  # version 1's camera
 RIG_KEYS = ("cameras", "T_cam0_cam", "sigma_rotation_rad", "sigma_translation_m")
 RIG_CAMERA_KEYS = ("name", "width", "height", "K", "dist", "fov")
+UNITS_KEYS = ("length", "angle", "time")
+ROBOT_KEYS = ("urdf", "tip_frame", "joint_names", "joint_units", "T_tip_camera", "T_world_base")
+CAMERA_POSES_KEYS = ("sigma_rotation_rad", "sigma_translation_m")
+TRACKER_KEYS = ("tool", "T_marker_camera", "T_world_tracker", "sigma_rotation_rad", "sigma_translation_m", "max_rms_mm")
 FOV_SHAPE_KEYS = {"circle": ("cx", "cy", "r"), "ellipse": ("cx", "cy", "a", "b", "angle_deg")}
 TOOL_NAME = re.compile(r"[^,\r\n\"]{1,64}")
 DEFAULT_MAX_RMS_MM = 1.0  # a marker fit worse than this is refused (a Polaris's typical RMS is 0.1-0.3 mm)
@@ -479,7 +483,7 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
     if version not in VERSIONS:
         raise SessionError(f"{source}: unknown session format version {version} (this lapreco reads versions "
                            f"{', '.join(map(str, VERSIONS))}); upgrade lapreco-hil or rewrite the session")
-    units = f.sub("units")
+    units = f.sub("units").only(UNITS_KEYS)
     length, angle, time = units.get("length", str), units.get("angle", str), units.get("time", str)
     if length not in LENGTH_UNITS:
         raise units._fail("length", f"is {length!r}; use one of {', '.join(LENGTH_UNITS)}")
@@ -507,7 +511,8 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
     joint_names: tuple[str, ...] = ()
     joint_units: tuple[str, ...] = ()
     if pose_source == "joints" or "robot" in f.data:
-        r = f.sub("robot")
+        # a misspelled T_tip_camera would make a calibration session (no hand-eye) of it without a word
+        r = f.sub("robot").only(ROBOT_KEYS)
         joint_names = tuple(r.get("joint_names", list))
         joint_units = tuple(r.get("joint_units", list))
         if not joint_names or not all(isinstance(n, str) and n for n in joint_names):
@@ -519,12 +524,12 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
                                  _check_rigid(r, "T_world_base") if "T_world_base" in r.data else np.eye(4))
     sigma = PoseSigma()
     if pose_source == "camera_poses" and "camera_poses" in f.data:
-        p = f.sub("camera_poses")
+        p = f.sub("camera_poses").only(CAMERA_POSES_KEYS)
         sigma = PoseSigma(p.get("sigma_rotation_rad", float, sigma.rotation_rad),
                           p.get("sigma_translation_m", float, sigma.translation_m))
         if sigma.rotation_rad <= 0 or sigma.translation_m <= 0:
             raise p._fail("sigma_rotation_rad", "and sigma_translation_m must be positive")
-    tracker = _tracker(f.sub("tracker"), LENGTH_UNITS[length]) if pose_source == "marker_poses" else None
+    tracker = _tracker(f.sub("tracker").only(TRACKER_KEYS), LENGTH_UNITS[length]) if pose_source == "marker_poses" else None
     fps = f.get("nominal_fps", float, None)
     return SessionMeta(camera=camera, pose_source=pose_source, robot=robot, joint_names=joint_names,
                        joint_units=joint_units, pose_sigma=sigma, time_offset_ns=f.get("time_offset_ns", int, 0),
