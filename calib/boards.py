@@ -268,6 +268,9 @@ def _labels_of(xy_large: np.ndarray, pts: np.ndarray, ij: np.ndarray) -> tuple[n
     return np.array(kept, np.float64).reshape(-1, 2), np.array(out, int).reshape(-1, 2)
 
 
+MAX_SQUARE_M = 1.0  # no printed calibration board has squares this large
+
+
 def parse_board(spec: str) -> Board:
     spec = PRESETS.get(spec, spec)
     parts = spec.split(":")
@@ -298,4 +301,8 @@ def parse_board(spec: str) -> Board:
                                f"pitch in m, large dots), acircles:4x11:0.02 or viking") from None
     if cols < 2 or rows < 2 or square <= 0 or (board.kind == "charuco" and not 0 < board.marker_m < square):
         raise CalibrationError(f"board '{spec}': sizes must be positive (and the marker smaller than the square)")
+    if square >= MAX_SQUARE_M:
+        # a size in millimetres read as metres scales every translation (a stereo baseline of 83 m)
+        raise CalibrationError(f"board '{spec}': a square (or pitch) of {square:g} m? sizes are in metres, e.g. "
+                               f"{square / 1000:g} for {square:g} mm")
     return board

@@ -195,6 +195,9 @@ def test_viking_board_parse_errors():
         parse_board("circles:25x18:0.005:30,5")
     with pytest.raises(CalibrationError, match="acircles"):
         parse_board("circles:25:0.005")
+    # millimetres given where metres are asked (a stereo baseline of 83 m followed, without a word)
+    with pytest.raises(CalibrationError, match=r"a square \(or pitch\) of 25 m\? sizes are in metres, e.g. 0.025"):
+        parse_board("chessboard:9x6:25")
 
 
 # --- ROS camera_info --------------------------------------------------------------------------------------------------
