@@ -250,6 +250,10 @@ class DepthConfig:
     consistency_fill_rel: float = ranged(0.04, gt=0.0)
     consistency_fill_lines: int = ranged(1, ge=1, le=4)
     consistency_fill_weight: float = ranged(0.5, gt=0.0, le=1.0)
+    # a stereo scope's partner views (rig camera >= 1) get depth maps of their own in the final build, filled,
+    # checked and fused as the reference keyframes' are, when the run keeps at most this many reference keyframes
+    # (0: never; the live incremental fusion is reference-only; docs/dense.md, "Two views")
+    partner_maps_up_to: int = ranged(1000, ge=0)
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too

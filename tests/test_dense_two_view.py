@@ -126,3 +126,87 @@ def test_a_stereo_pair_makes_a_surface_that_covers_most_of_what_both_see(liver_p
     beyond = cKDTree(X_world).query(points)[0] > 5e-3
     assert covered.mean() >= 0.8, covered.mean()
     assert beyond.mean() <= 0.005, beyond.mean()
+
+
+def test_a_version_2_stereo_pair_fuses_a_depth_map_from_each_camera(liver_pair):
+    """The pair as a version-2 session gives it: one keyframe of rig camera 0 and its stereo partner (camera 1,
+    ``reference`` 0). The final build makes the partner's own map too (its reference its first source), each map is
+    checked against the other's, and both are fused: the surface of the two-frame route (the reference-only build
+    fused one map, 20 302 of the 28 594 points on the liver at 75 mm; docs/dense.md, "Two views")."""
+    from lapreco_hil.camera import Rig
+    from lapreco_hil.dense.surface import DenseSurface
+    from scipy.spatial import cKDTree
+
+    camera, left, right, depth_left, depth_right, T_left, T_right = liver_pair
+    rig = Rig((camera, camera), (np.eye(4), np.linalg.inv(T_left) @ T_right))
+    dense = DenseSurface(camera, PipelineConfig(), DEVICE, rig)
+    sources, checked = {}, {}
+    choose = dense.sources_fn
+    dense.sources_fn = lambda ref, candidates, n: sources.setdefault(ref.kf_id, choose(ref, candidates, n))
+    check = dense.depth_fn.check_geometry
+    dense.depth_fn.check_geometry = lambda m, maps, *a: (checked.setdefault(m.kf_id, [s.kf_id for s in maps]),
+                                                         check(m, maps, *a))[1]
+    dense.add_view(0, left, T_left)
+    dense.add_view(1, right, T_right, camera=1, reference=0)
+    result = dense.build_at({0: T_left, 1: T_right}, {0: _range(depth_left), 1: _range(depth_right)})
+    assert [s.kf_id for s in sources[1]] == [0] and [s.kf_id for s in sources[0]] == [1]
+    assert checked == {0: [1], 1: [0]}  # each map checked against the other's
+    assert dense.fused == 2 and dense.partners_fused == 1
+    assert dense.views[1].T_fused is not None
+    assert result.stats["keyframes_fused"] == 2 and result.stats["partner_maps_fused"] == 1
+    # both views' true surfaces: most fused points near the right view's own depths too, none far from the truth
+    K = camera.K
+    clouds = []
+    for d, T in ((depth_left, T_left), (depth_right, T_right)):
+        v, u = np.nonzero(d > 0)
+        z = d[v, u]
+        X = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z])
+        clouds.append((T[:3, :3] @ X).T + T[:3, 3])
+    assert len(result.points) > 40000  # the reference-only build: 36 835 on this pair
+    assert (cKDTree(np.vstack(clouds)).query(result.points)[0] > 5e-3).mean() <= 0.005
+
+
+def test_partner_maps_are_made_by_the_final_build_up_to_the_configured_reference_keyframes(warp_cpu):
+    """``[depth] partner_maps_up_to``: with at most that many reference keyframes kept, the final build makes each
+    stereo partner view's map too (its reference its first source); with more, or 0, and in the live incremental
+    fusion, only the reference keyframes get maps (a partner is a source). A stand-in depth function (a plane)."""
+    from lapreco_hil.camera import Rig
+    from lapreco_hil.dense.surface import DenseSurface, nearest_views
+    from lapreco_hil.dense.types import DepthMap
+    from lapreco_hil.geometry import make_T
+
+    camera = CameraModel(160, 120, 150.0, 150.0, 79.5, 59.5)
+    rig = Rig((camera, camera), (np.eye(4), make_T(np.eye(3), [BASELINE_M, 0.0, 0.0])))
+    poses = {}
+    for i in range(3):
+        poses[2 * i] = make_T(np.eye(3), [0.004 * i, 0.0, 0.0])
+        poses[2 * i + 1] = poses[2 * i] @ rig.T_cam0_cam[1]
+    rng = np.random.default_rng(0)
+    images = {k: rng.integers(0, 255, (120, 160, 3), np.uint8) for k in poses}
+
+    def surface(up_to: int):
+        made = {}
+
+        def depth_fn(ref, sources, config, device):
+            made[ref.kf_id] = [s.kf_id for s in sources]
+            depth = np.full((120, 160), 0.05, np.float32)
+            return DepthMap(ref.kf_id, depth, np.full_like(depth, 0.8), ref.K, ref.T_world_camera)
+
+        config = PipelineConfig()
+        config = dataclasses.replace(config, depth=dataclasses.replace(config.depth, partner_maps_up_to=up_to))
+        dense = DenseSurface(camera, config, DEVICE, rig, depth_fn=depth_fn, sources_fn=nearest_views)
+        for k, T in poses.items():
+            dense.add_view(k, images[k], T, camera=k % 2, reference=None if k % 2 == 0 else k - 1)
+        return dense, made
+
+    assert PipelineConfig().depth.partner_maps_up_to >= 1
+    dense, made = surface(3)
+    assert dense.fuse_pending() == 3 and sorted(made) == [0, 2, 4]  # live: the reference keyframes alone
+    assert made[2][0] == 3  # a reference's stereo partner its first source
+    dense.build_at(poses, {k: (0.04, 0.06) for k in poses})
+    assert sorted(made) == [0, 1, 2, 3, 4, 5] and dense.fused == 6 and dense.partners_fused == 3
+    assert made[3][0] == 2  # a partner's reference its first source
+    for up_to in (2, 0):
+        dense, made = surface(up_to)
+        dense.build_at(poses, {k: (0.04, 0.06) for k in poses})
+        assert sorted(made) == [0, 2, 4] and dense.fused == 3 and dense.partners_fused == 0

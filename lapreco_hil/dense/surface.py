@@ -7,7 +7,8 @@ and its fused depth map PNG-encoded (depth in 10 um steps, confidence in 1/255 s
 stored, so taking it out again is exact); past ``keep_keyframes`` the oldest keyframes' images and maps are let
 go (their part of the volume stays). The volume itself has its block cap.
 
-Offline (``build``) every reference keyframe is fused once at the end with the final poses. The incremental API
+Offline (``build``) every reference keyframe is fused once at the end with the final poses (a stereo scope's partner
+views too, each a map of its own, where ``[depth] partner_maps_up_to`` says so). The incremental API
 is for the live run: ``add_view`` as keyframes come, ``set_depth_ranges`` / ``fuse_pending`` when their poses
 are refined, ``update_poses`` after each bundle adjustment. A fused keyframe whose new pose moves its fused points
 by more than ``[fusion] refuse_shift_voxels`` is taken out with its old pose and put back with its new one (the
@@ -62,10 +63,22 @@ def stereo_functions() -> tuple[DepthFn | None, SourcesFn | None, str | None]:
     return KeptEstimator(), choose_sources, None
 
 
+def same_rig_view(a, b) -> bool:
+    """Whether two views (``KeyframeView`` or ``_View``) are one rig frame's: a reference keyframe and its stereo
+    partners, or two partners of one reference."""
+    return _rig_frame(a) == _rig_frame(b)
+
+
+def _rig_frame(v) -> int:
+    return v.reference if v.reference is not None else v.kf_id
+
+
 def nearest_views(ref: KeyframeView, candidates: list, n: int) -> list:
-    """The ``n`` candidates whose cameras are nearest the reference's (its stereo partners first)."""
+    """The ``n`` candidates whose cameras are nearest the reference's (the views of its rig frame first: a reference
+    keyframe's stereo partners, a partner's reference)."""
     c = ref.T_world_camera[:3, 3]
-    return sorted(candidates, key=lambda v: (v.reference != ref.kf_id, np.linalg.norm(v.T_world_camera[:3, 3] - c)))[:n]
+    return sorted(candidates, key=lambda v: (not same_rig_view(v, ref),
+                                             np.linalg.norm(v.T_world_camera[:3, 3] - c)))[:n]
 
 
 @dataclass
@@ -124,7 +137,8 @@ class DenseSurface:
         self._undistort: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._decoded: OrderedDict[int, np.ndarray] = OrderedDict()
         self.timings = {"depth_s": 0.0, "integration_s": 0.0, "meshing_s": 0.0}
-        self.fused = 0
+        self.fused = 0  # depth maps fused (a keyframe's each; with a stereo scope's partner views', those too)
+        self.partners_fused = 0  # ... of them, stereo partner views' (``[depth] partner_maps_up_to``)
         self.refused = 0  # re-fusions after a pose update
         self.refused_final = 0  # ... of them by the final build
         self.refusions: Counter = Counter()  # kf_id -> its re-fusions
@@ -244,6 +258,8 @@ class DenseSurface:
         """Fuse a new map as it will be kept (quantised on the device, ``KEPT_STEPS``) and keep that quantised
         map, PNG-encoded in the encoder thread (off the fusing thread: cv2 lets go of the GIL), so taking it
         out again later is exact."""
+        if v.reference is not None and v.T_fused is None:
+            self.partners_fused += 1
         v.integration = self.volume.integrate(depth, colour, quantise=KEPT_STEPS)
         d16, c8 = self.volume.quantised_map()
         v.K = np.array(depth.K, float)
@@ -257,7 +273,7 @@ class DenseSurface:
         n = self.config.depth.source_views
         c = ref.T_world_camera[:3, 3]
         others = [v for v in self.views.values() if v.kf_id != ref.kf_id]
-        others.sort(key=lambda v: (v.reference != ref.kf_id, np.linalg.norm(v.T_world_camera[:3, 3] - c)))
+        others.sort(key=lambda v: (not same_rig_view(v, ref), np.linalg.norm(v.T_world_camera[:3, 3] - c)))
         # chosen on poses alone among many (an image stands in by its shape; only the chosen few are decoded): the
         # nearest keyframes are often too close for depth resolution, the best angle lies farther along the path
         w, h = self.size
@@ -282,9 +298,13 @@ class DenseSurface:
         """Depth maps for the kept reference keyframes not fused yet (or only ``kf_ids``), fused at their current
         poses. ``consistent`` (the final build): every map is made first, then each is fused with only the depths
         its neighbours' maps confirm (``_fuse_consistent``), where the depth function can check them and
-        ``[depth] consistency_views`` asks for it. Returns how many were fused."""
-        todo = [v.kf_id for v in self.views.values()
-                if v.reference is None and v.T_fused is None and (kf_ids is None or v.kf_id in kf_ids)]
+        ``[depth] consistency_views`` asks for it; and a stereo scope's partner views get maps of their own too
+        (their reference keyframe their first source; they check the reference maps and are checked by them),
+        where ``[depth] partner_maps_up_to`` says so (``_partner_maps``). The live incremental fusion
+        (``consistent`` False) makes the reference keyframes' maps alone. Returns how many were fused."""
+        partners = consistent and self._partner_maps()
+        todo = [v.kf_id for v in self.views.values() if (v.reference is None or partners) and v.T_fused is None
+                and (kf_ids is None or v.kf_id in kf_ids)]
         check = getattr(self.depth_fn, "check_geometry", None)
         if consistent and check is not None and self.config.depth.consistency_views > 0:
             done = sum(self._fuse_consistent(todo[i:i + CONSISTENCY_CHUNK], check)
@@ -311,6 +331,12 @@ class DenseSurface:
             done += 1
         self.fused += done
         return done
+
+    def _partner_maps(self) -> bool:
+        """Whether the final build makes the stereo partner views' own depth maps too (``[depth]
+        partner_maps_up_to``: at most that many reference keyframes kept)."""
+        n = self.config.depth.partner_maps_up_to
+        return n > 0 and sum(1 for v in self.views.values() if v.reference is None) <= n
 
     def _fuse_consistent(self, todo: list[int], check) -> int:
         """Multi-view geometric consistency: the maps of ``todo`` made first (kept quantised as they will be fused,
@@ -397,7 +423,7 @@ class DenseSurface:
 
     def build(self, m) -> DenseResult:
         """Offline: every kept reference keyframe of a finished map (``MapResult``) fused at its final pose,
-        with the depth range its landmarks span; the mesh and points."""
+        with the depth range its landmarks span (and its stereo partners, ``fuse_pending``); the mesh and points."""
         return self.build_at(*final_poses_and_ranges(m))
 
     def build_at(self, poses: dict[int, np.ndarray], ranges: dict[int, tuple[float, float] | None]) -> DenseResult:
@@ -424,6 +450,7 @@ class DenseSurface:
             "points": int(mesh.n_points) if mesh is not None else None,
             "mesh_triangles": int(mesh.n_cells) if mesh is not None else None,
             "keyframes_fused": self.fused,
+            "partner_maps_fused": self.partners_fused,  # (of them) stereo partner views' own maps
             "keyframes_refused": self.refused,
             "keyframes_refused_final": self.refused_final,  # (of them) by the final build, at the final poses
             "refusions_per_keyframe": {"mean": self.refused / max(self.fused, 1),
