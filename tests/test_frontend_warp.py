@@ -253,6 +253,57 @@ def test_lk_window_samples_stay_inside_the_image_wherever_the_window_goes(wp):
     assert np.all(np.isnan(rest) | ((rest >= 0) & (rest <= img.max())))
 
 
+def test_new_corners_take_their_slots_in_cell_order(wp):
+    """Which of the cut bin's corners fit, and every new corner's slot, follow the cells' order, not the order the
+    threads ran in (an atomic counter gave the slots before: the same frame put its tracks in different slots on
+    CUDA, and the consensus draws its hypotheses by slot, so runs differed)."""
+    from lapreco_hil.frontend.warp import corners
+
+    n = 12
+    best = 1.0
+    # cells 0..11: selected (1) or not; scores in bins 0 (strong) and 1 (the cut bin)
+    state = np.array([1, 0, 1, 1, 1, -1, 1, 1, 0, 1, 1, 1], np.int32)
+    weak = best * 2.0 ** (-1.0 / corners.SCORE_BINS_PER_OCTAVE) * 0.999  # bin 1
+    scores = np.where(np.arange(n) % 2 == 0, best, weak)
+    cells = np.column_stack([np.arange(n) * 3.0 + 1, np.full(n, 2.0), scores]).astype(np.float32)
+    occ = wp.zeros((8, 40), dtype=wp.int32, device=DEVICE)  # no track anywhere
+    stamp = wp.array(np.array([7], np.int32), dtype=wp.int32, device=DEVICE)
+    cut = wp.array(np.array([1, 2], np.int32), dtype=wp.int32, device=DEVICE)  # bin 1 is cut: 2 of it fit
+    count = wp.array(np.array([3], np.int32), dtype=wp.int32, device=DEVICE)  # three live tracks
+    next_id = wp.array(np.array([100], np.int32), dtype=wp.int32, device=DEVICE)
+    taken = wp.zeros(2, dtype=wp.int32, device=DEVICE)
+    pts = wp.zeros(20, dtype=wp.vec2, device=DEVICE)
+    ids = wp.zeros(20, dtype=wp.int32, device=DEVICE)
+    corners.take_corners(wp.array(cells, dtype=wp.vec3, device=DEVICE), wp.array(state, dtype=wp.int32, device=DEVICE),
+                         wp.array(np.array([best], np.float32), dtype=float, device=DEVICE), cut, occ, stamp, count,
+                         next_id, taken, pts, ids, corners.TakeScratch(n, DEVICE), DEVICE)
+    # selected strong cells (even): 0, 2, 4, 6, 10; selected cut-bin cells (odd): 3, 7, 9, 11 -> the first two: 3, 7
+    expect = [0, 2, 3, 4, 6, 7, 10]
+    assert int(taken.numpy()[0]) == len(expect)
+    got = pts.numpy()[3:3 + len(expect), 0]
+    np.testing.assert_array_equal(got, np.array(expect) * 3.0 + 1)
+    assert ids.numpy()[3:3 + len(expect)].tolist() == list(range(100, 100 + len(expect)))
+
+
+def test_the_same_frames_give_the_same_tracks_on_every_run(wp):
+    """Two front-ends on the same frames: the same track ids at the same positions, frame by frame (on CUDA too:
+    LAPRECO_TEST_DEVICE=cuda:0)."""
+    from lapreco_hil.frontend.warp import WarpFrontEnd
+
+    rng = np.random.default_rng(5)
+    base = texture_u8(rng, 240, 320)
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0, (0.0,) * 5)
+    frames = [Frame(bgr(warped(base, 3.0 * k, 1.5 * k, angle=0.01 * k)[0]), k * 40_000_000, k) for k in range(6)]
+    runs = []
+    for _ in range(2):
+        fe = WarpFrontEnd(camera, TrackerConfig(max_features=300, min_distance_px=6.0), DEVICE)
+        runs.append([fe.process(f) for f in frames])
+    for a, b in zip(*runs):
+        assert len(a) > 50
+        np.testing.assert_array_equal(a.track_ids, b.track_ids)
+        np.testing.assert_array_equal(a.uv, b.uv)
+
+
 @pytest.mark.parametrize("live, expect", [
     (0, (3, 1, 10)),   # 10 free slots: bins 0-2 hold 2 + 0 + 7 = 9, one more from bin 3
     (1, (3, 0, 9)),    # 9 free: bins 0-2 exactly; none from bin 3

@@ -74,3 +74,30 @@ def block_sum4(v: wp.vec4, parity: int) -> wp.vec4: ...
 
 @wp.func_native(_BLOCK_SUM_SNIPPET)
 def block_sum44(v: vec44, parity: int) -> vec44: ...
+
+
+# An exclusive prefix sum of one int per lane over a tiled block (Hillis-Steele in shared memory), for kernels that
+# must rank items in order inside a conditional graph node, where wp.utils.array_scan's temporary allocation is not
+# allowed. Every lane of the block must call it (uniform control flow). On the CPU a tiled launch has one lane: 0.
+_BLOCK_SCAN_SNIPPET = """
+#if defined(__CUDA_ARCH__)
+    __shared__ int scan[WP_TILE_BLOCK_DIM];
+    __syncthreads();
+    scan[threadIdx.x] = v;
+    __syncthreads();
+    for (int o = 1; o < WP_TILE_BLOCK_DIM; o <<= 1) {
+        int t = threadIdx.x >= o ? scan[threadIdx.x - o] : 0;
+        __syncthreads();
+        scan[threadIdx.x] += t;
+        __syncthreads();
+    }
+    return scan[threadIdx.x] - v;
+#else
+    static_assert(WP_TILE_BLOCK_DIM == 1, "block scans on the CPU need one lane per block (enable_cpu_blocks off)");
+    return 0;
+#endif
+"""
+
+
+@wp.func_native(_BLOCK_SCAN_SNIPPET)
+def block_exclusive_scan(v: int) -> int: ...

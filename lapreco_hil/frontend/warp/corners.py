@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from lapreco_hil.frontend.warp.block_sum import block_exclusive_scan
+
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
 
@@ -258,13 +260,14 @@ def _score_threshold(hist: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.in
 
 
 @wp.kernel
-def _take_corners(cells: wp.array(dtype=wp.vec3), state: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float),
-                  cut: wp.array(dtype=wp.int32), occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32),
-                  count: wp.array(dtype=wp.int32), next_id: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32),
-                  pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32)):
-    """The chosen corners (selected, free of tracks now, strong enough) become tracks after the live ones (slots
-    count .. count + taken[0] - 1)."""
+def _corner_offers(cells: wp.array(dtype=wp.vec3), state: wp.array(dtype=wp.int32), max_eig: wp.array(dtype=float),
+                   cut: wp.array(dtype=wp.int32), occ: wp.array2d(dtype=wp.int32), stamp: wp.array(dtype=wp.int32),
+                   offer: wp.array(dtype=wp.int32), in_cut: wp.array(dtype=wp.int32)):
+    """Per cell: whether its corner (selected, free of tracks now) is offered for sure (above the cut bin: 1) or
+    only if there is room in the cut bin (``in_cut`` 1; which of those are taken is decided in cell order)."""
     c = wp.tid()
+    offer[c] = 0
+    in_cut[c] = 0
     if state[c] != 1:
         return
     me = cells[c]
@@ -272,11 +275,59 @@ def _take_corners(cells: wp.array(dtype=wp.vec3), state: wp.array(dtype=wp.int32
     if b > cut[0] or not _free_now(me, occ, stamp):
         return
     if b == cut[0]:
-        if wp.atomic_add(taken, 1, 1) >= cut[1]:
-            return
-    k = wp.atomic_add(taken, 0, 1)
-    pts[count[0] + k] = wp.vec2(me[0], me[1])
-    ids[count[0] + k] = next_id[0] + k
+        in_cut[c] = 1
+    else:
+        offer[c] = 1
+
+
+TAKE_LANES = 1024  # one block ranks every cell: each lane a contiguous run of them
+
+
+@wp.kernel
+def _take_corners(cells: wp.array(dtype=wp.vec3), offer: wp.array(dtype=wp.int32), in_cut: wp.array(dtype=wp.int32),
+                  cut: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), next_id: wp.array(dtype=wp.int32),
+                  taken: wp.array(dtype=wp.int32), pts: wp.array(dtype=wp.vec2), ids: wp.array(dtype=wp.int32)):
+    """One block: the cut bin's first cut[1] corners in cell order join the offered ones, and the offered corners
+    become tracks after the live ones in cell order (slot count + their rank): the same frame gives the same
+    tracks in the same slots on every run (an atomic counter's order did not). Each lane ranks a contiguous run of
+    cells; two block scans order the runs."""
+    _b, lane = wp.tid()
+    nl = wp.block_dim()
+    n = offer.shape[0]
+    run = (n + nl - 1) // nl
+    start = wp.min(lane * run, n)
+    end = wp.min(start + run, n)
+    mine = int(0)
+    for c in range(start, end):
+        mine += in_cut[c]
+    rank = block_exclusive_scan(mine)
+    offered = int(0)
+    for c in range(start, end):
+        if in_cut[c] == 1:
+            if rank < cut[1]:
+                offer[c] = 1
+            rank += 1
+        offered += offer[c]
+    slot = block_exclusive_scan(offered)
+    base = count[0]
+    first = next_id[0]
+    for c in range(start, end):
+        if offer[c] == 1:
+            me = cells[c]
+            pts[base + slot] = wp.vec2(me[0], me[1])
+            ids[base + slot] = first + slot
+            slot += 1
+    if lane == nl - 1:
+        taken[0] = slot
+
+
+class TakeScratch:
+    """Per-cell scratch of ``take_corners`` (which cells offer a corner, which are in the cut bin)."""
+
+    def __init__(self, n_cells: int, device) -> None:
+        with wp.ScopedDevice(device):
+            self.offer = wp.zeros(n_cells, dtype=wp.int32)
+            self.in_cut = wp.zeros(n_cells, dtype=wp.int32)
 
 
 # --- host wrappers: a device and preallocated outputs --------------------------------------------------------
@@ -341,7 +392,13 @@ def score_threshold(hist: wp.array, count: wp.array, max_features: int, cut: wp.
 
 def take_corners(cells: wp.array, state: wp.array, max_eig: wp.array, cut: wp.array, occ: wp.array,
                  stamp: wp.array, count: wp.array, next_id: wp.array, taken: wp.array, pts: wp.array,
-                 ids: wp.array, device) -> None:
-    """The chosen corners into ``pts``, ``ids`` after the live tracks; ``taken[0]`` says how many."""
-    wp.launch(_take_corners, dim=cells.shape[0], inputs=[cells, state, max_eig, cut, occ, stamp, count, next_id,
-                                                         taken, pts, ids], device=device)
+                 ids: wp.array, scratch: TakeScratch, device) -> None:
+    """The chosen corners into ``pts``, ``ids`` after the live tracks, in cell order; ``taken[0]`` says how many.
+    Which of the cut bin's corners fit, and each corner's slot, are ranked in cell order (block scans: the launch
+    may sit in a conditional graph node, where a scan's temporary allocation is not allowed), so the result does
+    not depend on the order the threads run in."""
+    n = cells.shape[0]
+    wp.launch(_corner_offers, dim=n, inputs=[cells, state, max_eig, cut, occ, stamp, scratch.offer, scratch.in_cut],
+              device=device)
+    wp.launch_tiled(_take_corners, dim=[1], inputs=[cells, scratch.offer, scratch.in_cut, cut, count, next_id, taken,
+                                                    pts, ids], block_dim=TAKE_LANES, device=device)

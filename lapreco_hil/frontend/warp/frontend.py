@@ -205,6 +205,7 @@ class WarpFrontEnd:
             self._hist = wp.zeros(corners.SCORE_BINS, dtype=wp.int32)
             self._cut = wp.zeros(2, dtype=wp.int32)
             self._taken = wp.zeros(2, dtype=wp.int32)
+            self._take_scratch = corners.TakeScratch(n_cells, self.device)
             # track bookkeeping lives on the device, so a frame needs no read-back until its results
             self._ids = [wp.zeros(n, dtype=wp.int32) for _ in range(2)]
             self._count = [wp.zeros(1, dtype=wp.int32) for _ in range(2)]  # live tracks in each buffer
@@ -537,7 +538,7 @@ class WarpFrontEnd:
         corners.score_histogram(self._cells, self._cell_state, self._max_eig, self._occ, self._stamp, self._hist, dev)
         corners.score_threshold(self._hist, count, self._budget, self._cut, self._taken, dev)
         corners.take_corners(self._cells, self._cell_state, self._max_eig, self._cut, self._occ, self._stamp, count,
-                             self._next_id, self._taken, self._pts[cur], self._ids[cur], dev)
+                             self._next_id, self._taken, self._pts[cur], self._ids[cur], self._take_scratch, dev)
         drift_check.sample_patches(self._drift_images()[0], self.width, self.height, self._pts[cur], count,
                                    self._taken, self._patches[cur], self._A[cur], self._steps[cur], dev)
         if self._rescuing():
