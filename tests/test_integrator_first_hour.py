@@ -35,3 +35,27 @@ def test_record_through_a_chain_resting_at_2048_keeps_every_reading(tmp_path, wa
     names = [k for k in rows[0] if k not in ("t_ns", "seq")]
     q = np.array([[float(r[n]) for n in names] for r in rows])
     np.testing.assert_allclose(q, np.broadcast_to(expected_si(TICKS), q.shape), rtol=0, atol=1e-9)
+
+
+def test_a_robot_model_other_than_the_drivers_is_refused_before_recording(tmp_path, warp_cpu, capsys):
+    """The driver converts encoder counts by its URL's model (default ecm). A --robot-model whose insertion joint
+    is revolute recorded the ecm's metres as radians, 3000x too small, with exit 0; it is refused, naming both
+    models and the fix. The same model given twice passes."""
+    from lapreco_hil.robot_models import urdf_path
+
+    text = urdf_path("ecm").read_text()
+    mine = tmp_path / "myrobot.urdf"
+    mine.write_text(text.replace('<joint name="insertion" type="prismatic">', '<joint name="insertion" type="revolute">'))
+    same = tmp_path / "ecm_copy.urdf"
+    same.write_text(text)
+    hand_eye = tmp_path / "handeye.yaml"
+    write_handeye_yaml(hand_eye, np.eye(4))
+    with DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: TICKS) as emu:
+        args = ["record", "--robot", f"serial://{emu.port}?ids=1,2,3,4", "--grabber",
+                "sim://skull?width=160&height=120&fps=10", "--frames", "3", "--tip-frame", "ecm_tip",
+                "--hand-eye", str(hand_eye), "--device", warp_cpu, "--no-progress"]
+        rc = main(args + ["--robot-model", str(mine), "--out", str(tmp_path / "wrong")])
+        err = capsys.readouterr().err
+        assert rc == 2 and "insertion (rad)" in err and "insertion (m)" in err and f"model={mine}" in err, err
+        assert not (tmp_path / "wrong").exists()
+        assert main(args + ["--robot-model", str(same), "--out", str(tmp_path / "same")]) == 0

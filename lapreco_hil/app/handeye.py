@@ -47,6 +47,29 @@ def calibrate_next_step(session_dir: str) -> str:
             f"--hand-eye handeye.yaml")
 
 
+def check_model_matches_driver(robot, robot_model: str) -> None:
+    """A real robot's driver converts encoder counts by the joints of its URL's model (``model=``, default ecm):
+    a --robot-model whose joints differ in name, type (revolute: rad, prismatic: m) or limits would have its
+    readings converted by the other model's joints and recorded without a word. One ConfigError names both."""
+    joint_map = getattr(robot, "joint_map", None)
+    if joint_map is None:
+        return  # a simulator or a session: it reads by the model it describes
+    from lapreco_hil.kinematics import load_urdf_model, prismatic_joints
+    from lapreco_hil.robot_models import urdf_path
+
+    m = load_urdf_model(urdf_path(robot_model))
+    names, prismatic = tuple(m.names[1:]), prismatic_joints(m)
+    same = (names == tuple(joint_map.names) and np.array_equal(prismatic, joint_map.is_prismatic)
+            and np.allclose(m.lowerPositionLimit, joint_map.lower) and np.allclose(m.upperPositionLimit, joint_map.upper))
+    if not same:
+        def joints(ns, pr):
+            return ", ".join(f"{n} ({'m' if p else 'rad'})" for n, p in zip(ns, pr))
+        raise ConfigError(f"robot model '{robot_model}' (--robot-model or the hand-eye file's): its joints ({joints(names, prismatic)}, or their limits) "
+                          f"differ from the model robot '{robot.url.raw}' converts its encoder counts by "
+                          f"('{robot.config.model}': {joints(joint_map.names, joint_map.is_prismatic)}); give the "
+                          f"same model in the URL (model={robot_model})")
+
+
 def describe_rig(robot, grabber, camera_file: str | None = None, hand_eye_file: str | None = None,
                  robot_model: str | None = None, tip_frame: str | None = None):
     """(camera, description or None): the lens and the robot's description from files where given, else from
@@ -62,6 +85,8 @@ def describe_rig(robot, grabber, camera_file: str | None = None, hand_eye_file: 
         description = replace(base, urdf=robot_model or he.get("robot_model") or base.urdf,
                               tip_frame=tip_frame or he.get("tip_frame") or base.tip_frame,
                               T_tip_camera=he["T_tip_camera"] if he else base.T_tip_camera)
+    if description is not None and description.urdf:
+        check_model_matches_driver(robot, description.urdf)
     return camera, description
 
 
