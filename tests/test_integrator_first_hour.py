@@ -59,3 +59,19 @@ def test_a_robot_model_other_than_the_drivers_is_refused_before_recording(tmp_pa
         assert rc == 2 and "insertion (rad)" in err and "insertion (m)" in err and f"model={mine}" in err, err
         assert not (tmp_path / "wrong").exists()
         assert main(args + ["--robot-model", str(same), "--out", str(tmp_path / "same")]) == 0
+
+
+def test_a_live_run_whose_every_reading_the_driver_refuses_says_so(tmp_path, warp_cpu, capsys):
+    """Readings beyond the model's limits are refused by the driver itself, before the pose source: the run's
+    error blamed "the robot delivered no reading; check its URL and link" where the link was fine."""
+    hand_eye = tmp_path / "handeye.yaml"
+    write_handeye_yaml(hand_eye, np.eye(4), robot_model="ecm", tip_frame="ecm_tip")
+    far = np.array(TICKS) + 4096 * 10  # ten turns off: beyond every revolute joint's limits
+    with DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: far) as emu:
+        rc = main(["run", "--robot", f"serial://{emu.port}?ids=1,2,3,4",
+                   "--grabber", "sim://skull?width=160&height=120&fps=10", "--seconds", "3",
+                   "--hand-eye", str(hand_eye), "--device", warp_cpu, "--tracker", "opencv",
+                   "--out", str(tmp_path / "run"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "driver refused" in err and "out of the model's joint limits" in err, err
+    assert "delivered no reading" not in err

@@ -162,6 +162,11 @@ class PollingRobotDriver(RobotDriver):
                 self._device_faults[source] = message
                 self._last_fault = message
 
+    @property
+    def last_fault(self) -> str:
+        """The newest fault's one-line description ("" before any)."""
+        return self._last_fault
+
     def _note(self, kind: str, message: str) -> None:
         self.count_fault(kind)
         self._last_fault = message

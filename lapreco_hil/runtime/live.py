@@ -253,6 +253,12 @@ class LiveRun:
             parts.append("check the robot model and its joint limits against the robot: "
                          "'lapreco devices --probe URL' shows what it reads" if source == "robot" else
                          f"check the {source}: 'lapreco devices --probe URL' shows what it reads")
+        elif without_pose and (refused_by_driver := self._refused_by_driver()):
+            n, last = refused_by_driver
+            parts.append(f"the robot's driver refused {n} readings (out of the model's joint limits)"
+                         + (f"; last refused: {last}" if last else ""))
+            parts.append("check the robot model, its joint map and units against the robot: "
+                         "'lapreco devices --probe URL' shows what it reads")
         elif without_pose:
             parts.append(f"the {source} delivered no reading; check its URL and link, or run "
                          "'lapreco devices --probe URL'")
@@ -264,6 +270,16 @@ class LiveRun:
                          f"stamps, {m.get('tracking_errors')} tracking errors, {m.get('mapper_skipped')} not handed "
                          "to the mapper")
         return "; ".join(parts)
+
+    def _refused_by_driver(self) -> tuple[int, str] | None:
+        """(readings the robot's driver received and refused, its last fault), when it refused any: they never
+        reach the pose source, whose own count of refusals is then 0."""
+        from lapreco_hil.sessions.recorder import REFUSED_READING_FAULTS
+
+        robot = getattr(self.poses, "robot", None)
+        faults = dict(getattr(robot, "faults", {}) or {})
+        n = sum(int(faults.get(k, 0)) for k in REFUSED_READING_FAULTS)
+        return (n, getattr(robot, "last_fault", "") or "") if n else None
 
     def report(self, result) -> dict:
         sup = self.supervisor
