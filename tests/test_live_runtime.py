@@ -331,3 +331,23 @@ def test_gc_pauses_are_counted_by_generation_and_the_long_ones_kept_with_their_t
     assert s["collections"] == [1, 0, 1]
     assert s["max_ms"][2] == LONG_GC_PAUSE_MS + 5
     assert s["long"] == [(0.0, 2, LONG_GC_PAUSE_MS + 5)]
+
+
+def test_a_replay_at_full_speed_that_outran_the_live_run_is_named_with_the_fix(caplog):
+    """`lapreco run --grabber replay://S` (pace=afap by default) dropped 44 of 51 frames at capture and said
+    nothing beyond the count; a replay at the recorded rate, or one that dropped none, is not warned about."""
+    import logging
+    from types import SimpleNamespace
+
+    from lapreco_hil.app.run import _warn_if_replay_outran_the_run
+
+    def grabber(scheme, realtime):
+        return SimpleNamespace(url=SimpleNamespace(scheme=scheme, raw=f"{scheme}://S"), realtime=realtime)
+
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.app.run"):
+        _warn_if_replay_outran_the_run(grabber("replay", False), {"frames": {"dropped_capture": 44}})
+        _warn_if_replay_outran_the_run(grabber("replay", True), {"frames": {"dropped_capture": 3}})
+        _warn_if_replay_outran_the_run(grabber("replay", False), {"frames": {"dropped_capture": 0}})
+        _warn_if_replay_outran_the_run(grabber("sim", False), {"frames": {"dropped_capture": 9}})
+    (warning,) = [r.getMessage() for r in caplog.records]
+    assert warning.startswith("44 frames dropped at capture: 'replay://S'") and "?pace=realtime" in warning

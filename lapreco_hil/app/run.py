@@ -93,6 +93,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             if recorder is not None:
                 recorder.close()
     fields = {"command": "run", **(report_fields or {}), "runtime": "live"}
+    _warn_if_replay_outran_the_run(grabber, metrics)
     if marker is not None:
         fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
                        "marker_samples_refused_by_cause": dict(poses.rejected_by_cause),
@@ -114,6 +115,17 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     finally:
         if mcap_log is not None:  # the map, once the outputs are written
             mcap_log.close(out_dir if (out_dir / "points.ply").is_file() else None)
+
+
+def _warn_if_replay_outran_the_run(grabber, metrics: dict) -> None:
+    """A session replayed as a live source at ``pace=afap`` hands its frames on as fast as it reads them; a live
+    run keeps up with real time only, so it drops the rest at capture (counted, but easy to take for a slow
+    machine). Say so, with the two ways to have every frame."""
+    dropped = int(metrics.get("frames", {}).get("dropped_capture", 0) or 0)
+    if dropped and grabber.url.scheme == "replay" and not getattr(grabber, "realtime", True):
+        log.warning("%d frames dropped at capture: '%s' hands frames on as fast as it reads them (pace=afap), faster "
+                    "than a live run maps them; add '?pace=realtime' to both URLs, or use 'lapreco replay' (every "
+                    "frame, deterministic)", dropped, grabber.url.raw)
 
 
 def _mcap_logger(path: str, grabber, robot, camera, description, tracker_setup, poses):
