@@ -59,3 +59,20 @@ def test_probe_of_cia402_drives_shows_increments_and_si():
 def test_probe_of_a_missing_port_is_the_driver_s_clear_error():
     with pytest.raises(DeviceNotFoundError, match="serial port '/dev/ttyNOPE' cannot be opened"):
         probe_robot("serial:///dev/ttyNOPE?ids=1,2,3,4", DeviceContext(), 0.1)
+
+
+def test_probing_absent_canopen_nodes_prints_the_one_line_error_only(caplog, capsys):
+    """The canopen library logs each aborted SDO transfer at ERROR: a probe of nodes that do not answer printed
+    four of its lines before the driver's own one-line error. They are kept off the console (shown with -v)."""
+    import logging
+
+    from lapreco_hil.cli.main import main
+
+    jm = cia402_joint_map("ecm")
+    channel = f"probe-{next(_channels)}"
+    with CANopenDriveChainEmulator(channel, [1, 2, 3, 4], jm, lambda t_ns: np.zeros(4)):
+        with caplog.at_level(logging.WARNING):  # the console's level without -v
+            rc = main(["devices", "--probe", f"canopen://virtual/{channel}?nodes=2-5&rate=100"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("lapreco: error:") and "node" in err, err
+    assert not [r for r in caplog.records if r.name.startswith("canopen") and r.levelno >= logging.ERROR]

@@ -1,5 +1,6 @@
 """Third-party console output routed into Python logging, so that the app's own one-line error is the only
-line a failure prints: OpenCV's WARN/ERROR lines and VTK's output window and logger. Called once at app start
+line a failure prints: OpenCV's WARN/ERROR lines, VTK's output window and logger, and the canopen library's
+SDO error records. Called once at app start
 (the CLI does); with ``lapreco -v`` what VTK said shows as INFO records."""
 
 from __future__ import annotations
@@ -15,6 +16,10 @@ def route_third_party_output() -> None:
 
     # OpenCV's own logger writes straight to the console; what it reports the app reports as its own errors
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    # canopen logs each aborted SDO transfer at ERROR; the driver turns the abort into its own one-line error (a
+    # probe of absent nodes printed four library lines before it), so its records show with -v only, as INFO does
+    logging.getLogger("canopen").setLevel(logging.CRITICAL if log.getEffectiveLevel() > logging.INFO
+                                          else logging.NOTSET)
     _route_vtk()
 
 
