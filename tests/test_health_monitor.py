@@ -89,3 +89,24 @@ def test_conditions_name_their_counters_and_the_monitor_runs_in_a_thread():
     assert [(e["device"], e["state"]) for e in monitor.event_dicts()] == [("front-end", "tracking"),
                                                                          ("front-end", "no tracks")]
     assert monitor.counts == {"tracks_lost": 1}
+
+
+def test_ok_after_a_state_that_was_ok_too_is_not_ok_again(caplog):
+    """The time-offset watch goes from "watching" (OK, nothing measured yet) to "ok": that is news, but nothing was
+    wrong before, so the line is "time offset: ok", not "ok again"."""
+    caplog.set_level(logging.INFO, logger="lapreco_hil.runtime.health")
+    now = [0.0]
+    watch = Source(Condition("watching", True))
+    monitor = HealthMonitor({"time offset": watch}, log_interval_s=0.0, clock=lambda: now[0])
+    monitor.poll()
+    now[0] += 2.0
+    watch.reading = Condition("ok", True, "+12 ms")
+    monitor.poll()
+    now[0] += 2.0
+    watch.reading = Condition("drifted", False, "the video and the poses line up at +90 ms")
+    monitor.poll()
+    now[0] += 2.0
+    watch.reading = Condition("ok", True, "+3 ms")
+    monitor.poll()
+    assert [line for _, line in _lines(caplog)] == ["time offset: ok", "time offset: drifted: the video and the "
+                                                    "poses line up at +90 ms", "time offset: ok again"]

@@ -43,6 +43,7 @@ class HealthEvent:
     state: str
     detail: str
     ok: bool
+    recovered: bool = False  # OK after a state that was not (what "again" says)
 
     def as_dict(self) -> dict:
         # "device" is the report's key for the source (report.json's contract)
@@ -52,7 +53,7 @@ class HealthEvent:
     @property
     def line(self) -> str:
         if self.ok:
-            return f"{self.source}: {self.state} again" if self.state == "ok" else f"{self.source}: {self.state}"
+            return f"{self.source}: {self.state} again" if self.recovered else f"{self.source}: {self.state}"
         return f"{self.source}: {self.state}: {self.detail}" if self.detail else f"{self.source}: {self.state}"
 
 
@@ -106,8 +107,9 @@ class HealthMonitor:
                 if self._state.get(name) == (state, ok):
                     continue
                 first = name not in self._state
+                was_ok = self._state.get(name, (None, True))[1]
                 self._state[name] = (state, ok)
-                event = HealthEvent(now - self._t0, now, name, state, detail, ok)
+                event = HealthEvent(now - self._t0, now, name, state, detail, ok, recovered=ok and not was_ok)
                 self.event_count += 1
                 if len(self.events) < self.max_events:
                     self.events.append(event)
