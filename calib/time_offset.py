@@ -422,6 +422,8 @@ class OffsetReading:
     # no change at all); a drift within DRIFT_SIGNIFICANCE of it is not called one (a window of smooth motion pins
     # no offset)
     uncertainty_ns: int | None = None
+    # a drift beyond the threshold that is not called one, and why (its uncertainty; the likelihood-ratio test)
+    not_called_because: str | None = None
 
 
 class TimeOffsetMonitor:
@@ -513,10 +515,14 @@ class TimeOffsetMonitor:
         drift = offset_ns - self.applied_offset_ns
         min_cost = float(np.nanmin(cost))
         sigma_ns, n_independent = self._uncertainty_ns(tv + offset_s, tp, pred, meas[:, 1:], min_cost)
-        drifted = (abs(drift) > self.drift_threshold_ns and sigma_ns is not None
-                   and abs(drift) > DRIFT_SIGNIFICANCE * sigma_ns
-                   and self._offset_in_use_refuted(shifts, cost, base, n_independent))
-        return OffsetReading(offset_ns, drift, drifted, len(meas), motion, sigma_ns)
+        not_called = None
+        if abs(drift) > self.drift_threshold_ns:
+            if sigma_ns is None or abs(drift) <= DRIFT_SIGNIFICANCE * sigma_ns:
+                not_called = f"within {DRIFT_SIGNIFICANCE:g} standard errors"
+            elif not self._offset_in_use_refuted(shifts, cost, base, n_independent):
+                not_called = "a shift within the threshold of the offset in use fits nearly as well"
+        drifted = abs(drift) > self.drift_threshold_ns and not_called is None
+        return OffsetReading(offset_ns, drift, drifted, len(meas), motion, sigma_ns, not_called)
 
     def _offset_in_use_refuted(self, shifts: np.ndarray, cost: np.ndarray, base_s: float,
                                n_independent: float) -> bool:

@@ -164,6 +164,10 @@ def test_the_default_demos_window_calls_no_drift_at_any_reading():
     judged = [r for r in readings if r.offset_ns is not None]
     assert len(judged) >= 7 and not any(r.drifted for r in judged)
     assert any(abs(r.offset_ns) > 40e6 for r in judged)  # a reading far enough off to have been called before
+    # a reading beyond the 50 ms threshold says why it is not a drift (report.json: time_offset.not_called_because)
+    beyond = [r for r in judged if abs(r.drift_ns) > 50e6]
+    assert beyond and all(r.not_called_because for r in beyond)
+    assert all(r.not_called_because is None for r in judged if abs(r.drift_ns) <= 50e6)
 
 
 def test_the_watch_changes_its_state_only_after_readings_in_a_row():

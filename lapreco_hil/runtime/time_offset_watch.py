@@ -102,4 +102,7 @@ class TimeOffsetWatch:
                 "estimated_ms": None if r.offset_ns is None else r.offset_ns / 1e6,
                 "drift_ms": None if r.drift_ns is None else r.drift_ns / 1e6,
                 "uncertainty_ms": None if r.uncertainty_ns is None else r.uncertainty_ns / 1e6,
-                "drifted": self._drifted, "window_samples": r.samples}
+                "drifted": self._drifted, "window_samples": r.samples,
+                "drift_threshold_ms": getattr(self.monitor, "drift_threshold_ns", DRIFT_THRESHOLD_NS) / 1e6,
+                # a drift beyond the threshold that the reading does not call one, and why
+                "not_called_because": r.not_called_because}
