@@ -206,6 +206,8 @@ def test_a_live_run_without_a_renderer_switches_its_live_view_off(small_skull_se
     assert not (tmp_path / "out" / "live").exists()
     for name in ("points.ply", "mesh.ply", "trajectory.tum", "report.json"):
         assert (tmp_path / "out" / name).stat().st_size > 0, name
-    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    # (a replay at full speed may outrun the live run: its dropped frames are warned about too, not counted here)
+    warnings = [r.getMessage() for r in caplog.records
+                if r.levelno >= logging.WARNING and "dropped at capture" not in r.getMessage()]
     assert len(warnings) == 2 and warnings[0].startswith("live view off: no EGL device") and \
         warnings[1].startswith("reconstruction.png not written"), warnings
