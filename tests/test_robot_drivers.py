@@ -77,7 +77,9 @@ def _check_round_trip(robot, joint_map: JointMap, seconds: float = 1.0) -> list:
     assert 80 <= len(samples) / seconds <= 110, len(samples)
     t = np.array([s.t_ns for s in samples])
     assert np.all(np.diff(t) > 0)
-    assert abs(t[-1] - time.monotonic_ns()) < 0.1e9  # capture times on the monotonic clock
+    # capture times on the monotonic clock (the wall clock is decades away); the newest reading may lag a stalled
+    # poll thread by a fifth of a second on a loaded machine (a full suite run saw 0.196 s)
+    assert abs(t[-1] - time.monotonic_ns()) < 0.5e9
     for s in samples:
         err = np.abs(s.q - joints_at(s.t_ns))
         assert np.all(err <= tolerance(joint_map)), (err, joint_map.si_per_count)
