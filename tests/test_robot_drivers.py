@@ -210,7 +210,12 @@ def test_reader_thread_exception_is_raised_to_the_consumer(dxl):
 def test_canopen_positions_round_trip_within_one_increment(can_robot):
     emu, robot = can_robot
     _check_round_trip(robot, emu.joint_map)
-    assert robot.health.state is HealthState.OK
+    # OK in steady state: a stall of the machine (a full suite run once saw every heartbeat 190 ms late) may fault
+    # it for a moment; it must come back by itself
+    deadline = time.monotonic() + 1.0
+    while robot.health.state is not HealthState.OK and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert robot.health.state is HealthState.OK, robot.health
     # the master configured TPDO1 (statusword + position, on SYNC) and the heartbeat over SDO
     node = emu.nodes[2]
     assert node.sdo[0x1A00][1].raw >> 16 == 0x6041 and node.sdo[0x1A00][2].raw >> 16 == 0x6064
