@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from lapreco_hil.calib.time_offset import signed_sampson_of_pairs, skew_matrices
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.geometry import inv_T
 
@@ -82,19 +83,11 @@ def _normalised(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
 
 def _sampson_px(E: np.ndarray, x0: np.ndarray, xk: np.ndarray, f: float) -> np.ndarray:
     """Sampson distances (pixels at focal length f) of normalised matches to E, with x0^T E xk = 0."""
-    h0 = np.column_stack([x0, np.ones(len(x0))])
-    hk = np.column_stack([xk, np.ones(len(xk))])
-    Exk = hk @ E.T
-    Etx0 = h0 @ E
-    num = np.sum(h0 * Exk, axis=1)
-    den = Exk[:, 0] ** 2 + Exk[:, 1] ** 2 + Etx0[:, 0] ** 2 + Etx0[:, 1] ** 2
-    return f * np.abs(num) / np.sqrt(np.maximum(den, 1e-18))
+    return np.abs(signed_sampson_of_pairs(E[None], np.zeros(len(x0), np.int64), xk, x0, f))
 
 
 def _essential(T_cam0_camk: np.ndarray) -> np.ndarray:
-    R, t = T_cam0_camk[:3, :3], T_cam0_camk[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return tx @ R
+    return skew_matrices(T_cam0_camk[None, :3, 3])[0] @ T_cam0_camk[:3, :3]
 
 
 def _depths(T_cam0_camk: np.ndarray, x0: np.ndarray, xk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

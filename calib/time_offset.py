@@ -75,7 +75,7 @@ class OffsetEstimate:
                 "backlash": [float(b) for b in self.backlash]}
 
 
-def _signed_sampson_of_pairs(E: np.ndarray, owner: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+def signed_sampson_of_pairs(E: np.ndarray, owner: np.ndarray, x1: np.ndarray, x2: np.ndarray,
                              f: float) -> np.ndarray:
     """Signed Sampson distances (pixels, for focal length f) of normalised correspondences x1 -> x2 (N, 2) to the
     essential matrix of their frame pair: E (P, 3, 3), ``owner`` (N,) each correspondence's pair; x2^T E x1 = 0
@@ -92,7 +92,7 @@ def _signed_sampson_of_pairs(E: np.ndarray, owner: np.ndarray, x1: np.ndarray, x
     return f * num / np.sqrt(np.maximum(den, 1e-18))
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
+def skew_matrices(t: np.ndarray) -> np.ndarray:
     """(N, 3) -> (N, 3, 3) cross-product matrices."""
     z = np.zeros(len(t))
     return np.stack([np.stack([z, -t[:, 2], t[:, 1]], 1), np.stack([t[:, 2], z, -t[:, 0]], 1),
@@ -198,8 +198,8 @@ class _EpipolarModel:
         # camera b in camera a: x_a ~ R x_b + t  =>  x_a^T [t]x R x_b = 0
         R = np.einsum("pji,pjk->pik", Ta[:, :3, :3], Tb[:, :3, :3])
         t = np.einsum("pji,pj->pi", Ta[:, :3, :3], Tb[:, :3, 3] - Ta[:, :3, 3])
-        E = _skew(t) @ R  # maps x_b to the epipolar line in a
-        return _signed_sampson_of_pairs(E.transpose(0, 2, 1), p.owner, p.x1, p.x2, self.f)
+        E = skew_matrices(t) @ R  # maps x_b to the epipolar line in a
+        return signed_sampson_of_pairs(E.transpose(0, 2, 1), p.owner, p.x1, p.x2, self.f)
 
     def robust_cost(self, params: np.ndarray) -> float:
         r = self.residuals(params) / CAUCHY_SCALE_PX

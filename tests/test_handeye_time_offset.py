@@ -410,26 +410,26 @@ def test_a_live_run_watches_the_time_offset_from_its_own_tracks(true_offset_ms):
 
 
 def test_the_sampson_distance_of_each_pair_is_the_textbook_one():
-    """``_signed_sampson_of_pairs``, written out per element for speed, against Sampson's first-order distance
+    """``signed_sampson_of_pairs``, written out per element for speed, against Sampson's first-order distance
     written as matrices: zero for true matches, the same value and sign for perturbed ones, each
     correspondence with its own pair's essential matrix."""
-    from lapreco_hil.calib.time_offset import _signed_sampson_of_pairs, _skew
+    from lapreco_hil.calib.time_offset import signed_sampson_of_pairs, skew_matrices
 
     rng = np.random.default_rng(3)
     R = Rotation.from_rotvec(rng.normal(0, 0.1, (2, 3))).as_matrix()
     t = rng.normal(0, 1, (2, 3))
-    E = np.einsum("pij,pjk->pik", _skew(t), R)  # x2 = R x1 + t
+    E = np.einsum("pij,pjk->pik", skew_matrices(t), R)  # x2 = R x1 + t
     owner = rng.integers(0, 2, 40)
     X = np.column_stack([rng.uniform(-0.3, 0.3, (40, 2)), rng.uniform(2, 4, 40)])
     Y = np.einsum("nij,nj->ni", R[owner], X) + t[owner]
     x1, x2 = X[:, :2] / X[:, 2:], Y[:, :2] / Y[:, 2:]
     f = 800.0
-    assert np.max(np.abs(_signed_sampson_of_pairs(E, owner, x1, x2, f))) < 1e-9
+    assert np.max(np.abs(signed_sampson_of_pairs(E, owner, x1, x2, f))) < 1e-9
     x2n = x2 + rng.normal(0, 2e-3, x2.shape)
     h1, h2 = np.column_stack([x1, np.ones(40)]), np.column_stack([x2n, np.ones(40)])
     Ex1 = np.einsum("nij,nj->ni", E[owner], h1)
     Etx2 = np.einsum("nji,nj->ni", E[owner], h2)
     textbook = f * np.sum(h2 * Ex1, 1) / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2)
-    got = _signed_sampson_of_pairs(E, owner, x1, x2n, f)
+    got = signed_sampson_of_pairs(E, owner, x1, x2n, f)
     np.testing.assert_allclose(got, textbook, rtol=1e-12, atol=1e-12)
     assert np.median(np.abs(got)) > 0.1  # the perturbation is seen (about 1.6 px at f = 800)
