@@ -44,7 +44,9 @@ class RigFit:
                 "free_fitting_share": round(self.free_fitting_share, 3),
                 "in_front_share": round(self.in_front_share, 3),
                 "inverse_in_front_share": round(self.inverse_in_front_share, 3),
-                "median_depth_m": self.median_depth_m, "problem": self.problem}
+                # None: no fitting match in front of both cameras (report.json keeps to strict JSON)
+                "median_depth_m": self.median_depth_m if np.isfinite(self.median_depth_m) else None,
+                "problem": self.problem}
 
 
 def _matches(image0: np.ndarray, image_k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

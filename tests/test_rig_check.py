@@ -61,3 +61,66 @@ def test_extrinsics_that_do_not_fit_are_named(hamlyn_v2):
     fit = check_rig_pair(replace(rig, T_cam0_cam=(np.eye(4), T)), 1, left, right)
     assert fit.fitting_share < 0.5 and fit.free_fitting_share > 0.8
     assert fit.problem.startswith("rig.T_cam0_cam[1] does not fit the images")
+
+
+# --- the live run: the rig judged on a live frame, off the capture path ------------------------------------------
+
+def _latest(left, right, seq=7):
+    from lapreco_hil.runtime.stages import LatestView
+    from lapreco_hil.types import Frame
+
+    latest = LatestView()
+    latest.tracked(Frame(image=left, t_ns=0, seq=seq, views=(right,)), np.eye(4))
+    return latest
+
+
+def test_a_live_run_passes_over_a_frame_too_poor_to_judge_and_names_an_inverted_rig(hamlyn_v2, caplog):
+    import logging
+
+    from lapreco_hil.runtime.stages import RigCheck, StageLinks
+
+    rig, left, right = hamlyn_v2
+    inverted = replace(rig, T_cam0_cam=(np.eye(4), inv_T(rig.T_cam0_cam[1])))
+    check = RigCheck(inverted, None, StageLinks(), "v4l2:///dev/video0")
+    flat = np.full_like(left, 90)  # the scope still in its trocar: nothing to match
+    assert check._judge(_latest(flat, np.full_like(right, 90)).get()) is False and check.fits is None
+    assert check._judge(None) is False
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.runtime.stages"):
+        assert check._judge(_latest(left, right).get()) is True
+    (fit,) = check.fits
+    assert fit["frame_seq"] == 7 and fit["problem"].startswith("rig.T_cam0_cam[1] looks inverted")
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert line.startswith("v4l2:///dev/video0: rig.T_cam0_cam[1] looks inverted")
+
+
+def test_a_live_run_shorter_than_the_checks_wait_still_judges_its_last_frame(hamlyn_v2, caplog):
+    from lapreco_hil.runtime.stages import RigCheck, StageLinks
+
+    rig, left, right = hamlyn_v2
+    links = StageLinks()
+    links.stop.set()  # the source ended before the first wait was over
+    check = RigCheck(rig, _latest(left, right), links, "replay://S", first_after_s=30.0)
+    check.run()  # returns at once: stop is set
+    (fit,) = check.fits
+    assert fit["problem"] is None and fit["fitting_share"] > 0.8 and not caplog.records
+
+
+def test_lapreco_run_on_a_stereo_scope_reports_an_inverted_rig(tmp_path, monkeypatch):
+    """End to end: ``lapreco run`` with a simulated stereo scope whose grabber states the inverse of the rig it
+    renders with (what a hand-written rig file does); the run still maps, says so and puts it in report.json."""
+    import json
+
+    from lapreco_hil.app.run import run
+    from lapreco_hil.simulators.devices import SimGrabber
+
+    def stated_rig(self):
+        true = self._rig
+        return replace(true, T_cam0_cam=(np.eye(4), inv_T(true.T_cam0_cam[1])))
+
+    monkeypatch.setattr(SimGrabber, "rig", property(stated_rig))
+    url = "sim://skull?width=320&height=240"
+    report = run(url, url + "&frames=40&stereo=1", str(tmp_path / "out"), device="cpu", tracker="opencv", progress=False,
+                 surface="alpha")
+    (fit,) = report["rig_check"]
+    assert fit["problem"].startswith("rig.T_cam0_cam[1] looks inverted")
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["rig_check"] == report["rig_check"]

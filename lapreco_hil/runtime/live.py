@@ -41,8 +41,8 @@ from lapreco_hil.runtime.metrics import LiveMetrics
 from lapreco_hil.runtime.dense_process import DenseProcess, DenseProcessError, DenseSpec
 from lapreco_hil.runtime.processes import MapperProcesses
 from lapreco_hil.runtime.time_offset_watch import TimeOffsetWatch
-from lapreco_hil.runtime.stages import (Capture, LatestView, RecentFrames, Record, Results, StageLinks,
-                                        Surface, Tracking)
+from lapreco_hil.runtime.stages import (Capture, LatestView, RecentFrames, Record, Results, RigCheck,
+                                        StageLinks, Surface, Tracking)
 from lapreco_hil.runtime.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -120,6 +120,8 @@ class LiveRun:
                                  scene_depth_m=config.mapper.scene_depth_m,
                                  offset_watch=self.offset_watch, rig=stereo, recent=self.recent)
         self.tracking.frontend = frontend
+        source = getattr(getattr(grabber, "url", None), "raw", None) or "grabber"
+        self.rig_check = RigCheck(stereo, self.latest, self.links, source) if stereo is not None else None
         self.health = HealthMonitor(log_interval_s=health_log_interval_s)
         self.health.add("grabber", lambda: grabber.health)
         robot = poses.robot  # (a pose source given camera poses has no robot)
@@ -198,6 +200,8 @@ class LiveRun:
             stages["record"] = Record(self.recorder, self.links).run
         if self.dense is not None:
             stages["dense"] = self.dense.run
+        if self.rig_check is not None:
+            stages["rig check"] = self.rig_check.run
         sup.run(stages, seconds)
         fatal = sup.fatal_errors()
         mapper_raised = set(fatal) == {"mapper"} and isinstance(sup.final, MapperFailed)
@@ -228,6 +232,8 @@ class LiveRun:
                 self.links.disabled.add("dense")
                 self.metrics.add("dense_disabled")
         metrics = self.report(result)
+        if self.rig_check is not None:
+            metrics["rig_check"] = self.rig_check.fits or []
         if len(result.frames) < FEW_FRAMES:
             log.warning("the live run mapped only %d frames: %s", len(result.frames), self.why_few_frames())
             metrics["live"]["few_frames_why"] = self.why_few_frames()

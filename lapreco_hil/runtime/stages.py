@@ -11,7 +11,9 @@ what it writes and what it counts are given to its constructor.
 - ``Dense``: keyframe images (kept by tracking until the mapper names its keyframes) and poses -> depth maps
   fused into the TSDF volume, re-fused when local BA moves a keyframe, its mesh every ``surface_period_s``; run
   in a process of its own (runtime/dense_process.py: ``DenseProcess`` is its stand-in in this process).
-- ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture)."""
+- ``Record``: the record queue -> the session recorder (drops counted there, so disk never stalls capture).
+- ``RigCheck``: a stereo rig's extrinsics judged once against a live frame's images (``calib.rig_check``), off the
+  capture path; a problem is said while the run goes on, not after a run of few points."""
 
 from __future__ import annotations
 
@@ -459,3 +461,45 @@ class Record:
                 self.recorder.add_frame(item)
             else:
                 self.recorder.add_joints(item)
+
+
+class RigCheck:
+    """A stereo rig's extrinsics against the newest tracked frame's images, as a replay checks its first frame:
+    the rig inverted, in the wrong unit or not fitting at all is said at the start of the run. A frame too poor in
+    features to judge (a dark first second, the scope in its trocar) is passed over for a later one, up to
+    ``tries`` frames ``period_s`` apart. Never fails the run: a check that cannot run is logged."""
+
+    def __init__(self, rig, latest: LatestView, links: StageLinks, source: str, *, first_after_s: float = 0.5,
+                 period_s: float = 1.0, tries: int = 5) -> None:
+        self.rig, self.latest, self.links, self.source = rig, latest, links, source
+        self.first_after_s, self.period_s, self.tries = first_after_s, period_s, tries
+        self.fits: list[dict] | None = None  # one summary per judged pair; None: no frame could be judged
+
+    def run(self) -> None:
+        wait_s = self.first_after_s
+        for _ in range(self.tries):
+            stopped = self.links.stop.wait(wait_s)  # a run shorter than the wait: its last frame is judged
+            wait_s = self.period_s
+            if self._judge(self.latest.get()) or stopped:
+                return
+
+    def _judge(self, newest) -> bool:
+        """True once the check has run (judged, or could not run); False: no frame to judge yet."""
+        from lapreco_hil.calib.rig_check import check_rig
+
+        if newest is None or 1 + len(newest[0].views) < len(self.rig):
+            return False
+        frame = newest[0]
+        images = (np.array(frame.image),) + tuple(np.array(v) for v in frame.views)  # its slot is reused
+        try:
+            fits = check_rig(self.rig, images)
+        except Exception as exc:  # (an image OpenCV cannot read): the run goes on unchecked
+            log.warning("%s: the stereo rig could not be checked: %s: %s", self.source, type(exc).__name__, exc)
+            return True
+        if not fits:
+            return False
+        self.fits = [dict(fit.summary(), frame_seq=int(frame.seq)) for fit in fits]
+        for fit in fits:
+            if fit.problem:
+                log.warning("%s: %s", self.source, fit.problem)
+        return True

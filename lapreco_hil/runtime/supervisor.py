@@ -117,7 +117,7 @@ class Supervisor:
         self.threads["results"].join(timeout=10.0)
         links.finished.set()
         links.notify()
-        for name in ("surface", "dense", "record", "health"):
+        for name in ("surface", "dense", "record", "health", "rig check"):
             if name in self.threads:
                 self.threads[name].join(timeout=60.0)
         procs.close()
