@@ -8,6 +8,11 @@ quantises to ticks; or, in raw mode (``ticks_at``), straight from ticks the call
 at all (a chain whose servos rest where they rest). Framing, byte stuffing and the CRC are the SDK's own
 routines (the SDK is written for the master side; the device side here parses and answers).
 
+The chain runs at ``baud`` (default 1 000 000, the driver's default; the X-series factory setting is 57600). It
+reads the rate the driver set on the pty (termios, on the slave side) and ignores every byte sent at another rate,
+as a servo's UART would (framing errors, never a packet): a host at the wrong baud rate gets no answer at all
+(``stats["wrong_baud_bytes"]`` counts what it sent).
+
 Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
 replies, late replies, a silent bus, a servo's hardware-error alert, a joint reading out of its limits,
 and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
@@ -18,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import select
+import termios
 import threading
 import time
 from dataclasses import dataclass, field
@@ -63,8 +69,9 @@ class DynamixelFaults:
 
 class DynamixelChainEmulator(PtyEmulator):
     def __init__(self, ids: list[int], joint_map: JointMap | None = None, joints_at=None, clock_ns=time.monotonic_ns,
-                 link_dir: str | None = None, seed: int = 0, ticks_at=None) -> None:
-        """``joint_map`` + ``joints_at(t_ns) -> SI joints``, or ``ticks_at(t_ns) -> raw Present Position ticks``."""
+                 link_dir: str | None = None, seed: int = 0, ticks_at=None, baud: int = 1_000_000) -> None:
+        """``joint_map`` + ``joints_at(t_ns) -> SI joints``, or ``ticks_at(t_ns) -> raw Present Position ticks``;
+        ``baud``: the servos' Baud Rate setting (a host at another rate is not understood)."""
         from dynamixel_sdk import PacketHandler
 
         if (ticks_at is None) == (joint_map is None or joints_at is None):
@@ -75,7 +82,8 @@ class DynamixelChainEmulator(PtyEmulator):
         self.ticks_at = ticks_at or (lambda t_ns: joint_map.to_counts(joints_at(t_ns)))
         self.clock_ns = clock_ns
         self.faults = DynamixelFaults()
-        self.stats = {"packets": 0, "bad_crc": 0, "replies": 0}
+        self.baud = int(baud)
+        self.stats = {"packets": 0, "bad_crc": 0, "replies": 0, "wrong_baud_bytes": 0}
         self.instructions: dict[int, int] = {}  # instruction code -> count received (safety tests read it)
         self._sdk = PacketHandler(2.0)  # its CRC and stuffing routines
         self._rng = np.random.default_rng(seed)
@@ -93,8 +101,13 @@ class DynamixelChainEmulator(PtyEmulator):
                 if not ready:
                     continue
                 chunk = os.read(master, 4096)
-            except OSError:
+                line_baud = self._line_baud()
+            except (OSError, termios.error):
                 return  # the pty was closed under us (disconnect)
+            if line_baud is not None and line_baud != self.baud:
+                self.stats["wrong_baud_bytes"] += len(chunk)  # framing errors at the servos' UART: no packet
+                buf.clear()
+                continue
             buf.extend(chunk)
             for packet in self._packets(buf):
                 self._handle(master, packet)

@@ -1,16 +1,41 @@
 """A device behind a pseudo-terminal, as the device emulators are: a stable name (a symlink to the pty's slave,
 like /dev/ttyUSB0 or udev's by-id links) that a real driver opens with pyserial and cannot tell from a USB
 adapter, a thread that serves the master side, and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and
-plugged back in: the name disappears, then points at a new pty)."""
+plugged back in: the name disappears, then points at a new pty).
+
+A pty carries no line speed, but it keeps the one the driver set through termios: ``line_baud()`` reads it on the
+slave side, so an emulator can ignore what a host sends at a rate other than the device's, as a UART would (the
+bytes arrive as framing errors, never as a packet)."""
 
 from __future__ import annotations
 
 import abc
+import fcntl
 import os
+import struct
 import tempfile
+import termios
 import threading
 import tty
 from pathlib import Path
+
+# termios speed constant -> baud (B9600 -> 9600, B1000000 -> 1000000, ...)
+TERMIOS_RATES = {getattr(termios, n): int(n[1:]) for n in dir(termios) if n.startswith("B") and n[1:].isdigit()}
+_TCGETS2 = 0x802C542A  # Linux x86/arm: _IOR('T', 0x2A, struct termios2), 44 bytes; c_ispeed at offset 36
+
+
+def line_baud(fd: int) -> int | None:
+    """The rate a driver set on the tty ``fd`` (either side of a pty): a standard termios rate, or one set with
+    BOTHER through termios2 (pyserial's custom rates); None when neither can be read."""
+    rate = TERMIOS_RATES.get(termios.tcgetattr(fd)[4])
+    if rate is not None:
+        return rate
+    try:
+        raw = fcntl.ioctl(fd, _TCGETS2, bytes(44))
+    except OSError:
+        return None
+    ispeed = struct.unpack_from("I", raw, 36)[0]
+    return ispeed or None
 
 
 class PtyEmulator(abc.ABC):
@@ -42,6 +67,11 @@ class PtyEmulator(abc.ABC):
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, args=(master,), name=self._thread_name, daemon=True)
         self._thread.start()
+
+    def _line_baud(self) -> int | None:
+        """The rate the driver set on the pty (None: one that cannot be read). Raises OSError / termios.error
+        once the pty is closed."""
+        return line_baud(self._slave)
 
     def _close_pty(self) -> None:
         self._stop.set()

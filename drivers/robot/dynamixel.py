@@ -115,10 +115,16 @@ class DynamixelRobot(PollingRobotDriver):
                 missing.append(dxl_id)
         if missing:
             port.closePort()
-            found = ", ".join(str(i) for i in models) or "none"
+            asked = ", ".join(map(str, missing))
+            if not models:  # a whole chain silent: most often a baud rate the servos are not set to
+                raise DeviceNotFoundError(
+                    f"Dynamixel bus '{self.port_path}' at {self.baud} baud: no servo answered (ID(s) {asked} "
+                    f"pinged); check the baud rate first (baud= in the URL must equal the servos' Baud Rate "
+                    f"setting, address 8; X-series leave the factory at 57600), then the servos' power and IDs")
+            found = ", ".join(str(i) for i in models)
             raise DeviceNotFoundError(f"Dynamixel bus '{self.port_path}' at {self.baud} baud: no answer from "
-                                      f"ID(s) {', '.join(map(str, missing))} (answered: {found}); check the IDs, the "
-                                      f"baud rate and the servos' power")
+                                      f"ID(s) {asked} (answered: {found}); check the IDs, the baud rate and the "
+                                      f"servos' power")
         for dxl_id, model in models.items():
             if model not in X_SERIES_MODELS:
                 log.warning("Dynamixel ID %d reports model %d, not a known X-series servo; assuming the X-series "
