@@ -1,13 +1,21 @@
 """An NDI tracker (Polaris / Aurora) behind a pseudo-terminal: the device side of the Combined API.
 
 The real driver opens ``emulator.port`` (a stable symlink to the pty's slave, like /dev/ttyUSB0) with pyserial
-and cannot tell it from the tracker's USB serial cable. It answers ``INIT``, ``COMM``, ``VER``, ``APIREV``,
-``PHRQ``, ``PVWR`` (the uploaded .rom is kept: ``emulator.roms``), ``PHSR``, ``PINIT``, ``PENA``, ``TSTART``,
-``TSTOP``, ``TX`` and ``BX`` (reply options 0001 and 0800), with CRC-16/ARC on every reply; a command whose
-CRC is wrong gets ``ERROR04``, an unknown one ``ERROR01``, tracking replies outside tracking mode ``ERROR0C``.
+and cannot tell it from the tracker's USB serial cable. It answers ``RESET``, ``INIT``, ``COMM``, ``VER``,
+``APIREV``, ``PHRQ``, ``PVWR`` (the uploaded .rom is kept: ``emulator.roms``), ``PHF``, ``PHSR``, ``PINIT``,
+``PENA``, ``TSTART``, ``TSTOP``, ``TX`` and ``BX`` (reply options 0001 and 0800), with CRC-16/ARC on every reply; a
+command whose CRC is wrong gets ``ERROR04``, an unknown one ``ERROR01``, tracking replies outside tracking mode
+``ERROR0C``, a handle it does not hold ``ERROR2B``. ``command_log`` keeps the commands' names in order.
 
 Tools: passive tools (``passive``: one ``pose_at`` each, given to the handles PHRQ hands out, in order) and
-wired tools (``wired``: handles 0A, 0B, ... present after INIT, as an Aurora's sensors). ``pose_at(t_ns)``
+wired tools (``wired``: handles 0A, 0B, ... present after INIT, as an Aurora's sensors).
+
+Port handles live as on the device: ``PHRQ`` hands out the lowest free handle (01, 02, ...) to the first passive
+tool that holds none, ``PHF`` frees one, and ``INIT`` or ``RESET`` start a fresh handle table, as a device just
+brought up has (no passive handles; the wired tools present again, neither initialised nor enabled). A client
+that ended without freeing its handles (crashed, or killed) therefore leaves nothing in the way of the next
+bring-up, and the emulator serves any number of clients one after another on the same pty (each opens
+``emulator.port``, brings the device up, and closes it). ``pose_at(t_ns)``
 returns ``(T_tracker_tool 4x4 in MILLIMETRES, in_volume)`` or None (the tool is out of view: MISSING). The device
 measures at ``frame_rate_hz``: a reply carries the latest frame (number and pose at that frame's time);
 ``served`` logs what went out.
@@ -39,7 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lapreco_hil.drivers.tracker.ndi_protocol import crc16_arc
-from lapreco_hil.simulators.pty_emulator import PtyEmulator
+from lapreco_hil.simulators.pty_emulator import TERMIOS_RATES, PtyEmulator  # noqa: F401 (TERMIOS_RATES: once here)
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +55,6 @@ PoseAt = Callable[[int], "tuple[np.ndarray, bool] | None"]
 PORT_OCCUPIED, PORT_INITIALISED, PORT_ENABLED, PORT_OUT_OF_VOLUME = 0x01, 0x10, 0x20, 0x40
 COMM_RATES = {"0": 9600, "1": 14400, "2": 19200, "3": 38400, "4": 57600, "5": 115200, "6": 921600,
               "7": 1228739, "A": 230400}
-
-TERMIOS_RATES = {getattr(termios, n): int(n[1:]) for n in dir(termios) if n.startswith("B") and n[1:].isdigit()}
 
 
 @dataclass
@@ -64,6 +70,7 @@ class NDIFaults:
 class _Handle:
     pose_at: PoseAt
     wired: bool
+    tool: int = -1  # a passive handle's tool: its index in ``passive``
     rom: bytearray = field(default_factory=bytearray)
     initialised: bool = False
     enabled: bool = False
@@ -89,6 +96,7 @@ class NDITrackerEmulator(PtyEmulator):
         self.clock_ns = clock_ns
         self.faults = NDIFaults()
         self.commands: collections.Counter[str] = collections.Counter()  # command name -> count received
+        self.command_log: collections.deque[str] = collections.deque(maxlen=100_000)  # names, in order
         self.stats = {"bad_crc": 0, "wrong_baud_bytes": 0, "replies": 0}
         self.served: collections.deque[tuple[int, int, np.ndarray, bool]] = collections.deque(maxlen=100_000)
         self._lock = threading.Lock()
@@ -96,22 +104,26 @@ class NDITrackerEmulator(PtyEmulator):
         self.baud = start_baud
         self.tracking = start_tracking
         self.initialised = start_tracking
+        self.wired = list(wired)
+        self._uploads: dict[int, bytearray] = {}
         self.handles: dict[int, _Handle] = {}
-        for i, pose_at in enumerate(wired):
-            self.handles[0x0A + i] = _Handle(pose_at, True, initialised=start_tracking, enabled=start_tracking)
+        self._fresh_handles()
+        for tool in self.handles.values():  # a previous session left them enabled, tracking
+            tool.initialised = tool.enabled = start_tracking
         super().__init__(link_dir, "lapreco-ndi-", "ttyNDI0", "ndi emulator")
         self._open_pty()
 
     @property
     def roms(self) -> dict[int, bytes]:
-        """What PVWR uploaded, per passive handle."""
-        return {h: bytes(t.rom) for h, t in self.handles.items() if not t.wired}
+        """What PVWR uploaded, per passive handle number: the latest tool given that number, still readable after
+        the handle was freed (PHF, INIT)."""
+        return {h: bytes(rom) for h, rom in self._uploads.items()}
+
+    def _fresh_handles(self) -> None:
+        """The handle table of a device just brought up: the wired tools' handles, no passive ones."""
+        self.handles = {0x0A + i: _Handle(pose_at, True) for i, pose_at in enumerate(self.wired)}
 
     # --- serving ----------------------------------------------------------------------------------------------
-    def _line_baud(self) -> int | None:
-        """The rate the driver set on the pty (None: one termios has no constant for)."""
-        return TERMIOS_RATES.get(termios.tcgetattr(self._slave)[4])
-
     def _serve(self, master: int) -> None:
         buf = bytearray()
         while not self._stop.is_set():
@@ -153,6 +165,7 @@ class NDITrackerEmulator(PtyEmulator):
             name, _, params = text.partition(" ")
         name = name.upper()
         self.commands[name] += 1
+        self.command_log.append(name)
         handler = getattr(self, f"_cmd_{name.lower()}", None)
         if handler is None:
             self._text(master, "ERROR01")
@@ -180,9 +193,19 @@ class NDITrackerEmulator(PtyEmulator):
             pass
 
     # --- commands -----------------------------------------------------------------------------------------
+    def _cmd_reset(self, master: int, params: str) -> None:
+        """A software reset, as after a serial break: a fresh device at 9600 baud, not yet initialised."""
+        self.tracking = False
+        self.initialised = False
+        self._fresh_handles()
+        self._text(master, "RESET")
+        time.sleep(0.02)  # the reply leaves at the old rate
+        self.baud = 9600
+
     def _cmd_init(self, master: int, params: str) -> None:
         self.tracking = False
         self.initialised = True
+        self._fresh_handles()  # what an earlier client requested, initialised or enabled is gone
         self._text(master, "OKAY")
 
     def _cmd_comm(self, master: int, params: str) -> None:
@@ -201,13 +224,26 @@ class NDITrackerEmulator(PtyEmulator):
         self._text(master, "G.001.004")
 
     def _cmd_phrq(self, master: int, params: str) -> None:
-        passive = [h for h, t in self.handles.items() if not t.wired]
-        if len(passive) >= len(self.passive):
+        held = {t.tool for t in self.handles.values() if not t.wired}
+        free_tools = [i for i in range(len(self.passive)) if i not in held]
+        if not free_tools:
             self._text(master, "ERROR2B")  # no tool left to hand a handle to
             return
-        handle = len(passive) + 1
-        self.handles[handle] = _Handle(self.passive[len(passive)], False)
+        handle = next(h for h in range(1, 0xFF) if h not in self.handles)
+        self.handles[handle] = _Handle(self.passive[free_tools[0]], False, tool=free_tools[0])
+        self._uploads[handle] = self.handles[handle].rom
         self._text(master, f"{handle:02X}")
+
+    def _cmd_phf(self, master: int, params: str) -> None:
+        """Port handle free: the handle (and what was uploaded to it) is gone; PHRQ may hand it out again."""
+        try:
+            handle = int(params[:2], 16)
+        except ValueError:
+            handle = -1
+        if self.handles.pop(handle, None) is None:
+            self._text(master, "ERROR2B")
+            return
+        self._text(master, "OKAY")
 
     def _cmd_pvwr(self, master: int, params: str) -> None:
         try:

@@ -9,9 +9,14 @@ Bring-up, as ndicapi does it: a serial break at 9600 baud and the device's ``RES
 comes (a pty cannot carry a break; some adapters drop it) the RESET-less path: the device is asked at 9600 baud,
 then at the target rate (a previous session may have left it there), and taken on from where it is (``TSTOP``
 in case it was tracking). Then ``INIT``, ``COMM`` to ``baud``, ``VER 4``, ``APIREV``, per .rom tool ``PHRQ`` +
-``PVWR`` (64-byte chunks, hex), then ``PHSR 02`` -> ``PINIT``, ``PHSR 03`` -> ``PENA hh D``, ``PHSR 04`` (the
-enabled handles), ``TSTART``. A reader thread polls ``BX 0801`` (or ``TX 0801``) at ``rate``: transforms, and
-tools outside the characterised volume still reported with their out-of-volume flag. ``TSTOP`` on close.
+``PVWR`` (64-byte chunks, hex; after ``PHSR 01`` -> ``PHF`` for handles waiting to be freed), then ``PHSR 02`` ->
+``PINIT``, ``PHSR 03`` -> ``PENA hh D``, ``PHSR 04`` (the enabled handles), ``TSTART``. A reader thread polls
+``BX 0801`` (or ``TX 0801``) at ``rate``: transforms, and tools outside the characterised volume still reported
+with their out-of-volume flag. On close ``TSTOP``, then ``PHF`` for each of the session's handles: the next
+session (a record after a probe) finds the device as a new one. Every new session starts with ``INIT``, so
+handles a crashed client left behind are no obstacle either; only a reconnect of the same session (the cable
+pulled and plugged back in, the device still tracking at the session's rate with its handles) skips the
+bring-up and goes on with the tools it had.
 
 Each pose is stamped on the host clock (the run's ``clock_ns``) when its reply has arrived, minus nothing: the
 device's latency and the transfer are left in, for a time-offset fit to absorb.
@@ -272,42 +277,11 @@ class NDITracker(TrackerDriver):
             if not self.reset_seen:
                 log.info("%s: no RESET after the serial break; taking the device on where it is", self.device_name)
                 self._find_device()
-            self._command("INIT:", INIT_TIMEOUT_S)
-            if self._ser.baudrate != self.config.baud:
-                self._command(f"COMM:{COMM_BAUD_CODES[self.config.baud]}0000")
-                time.sleep(0.1)  # the device switches after its OKAY
-                self._ser.baudrate = self.config.baud
-            self.version = self._command("VER:4").strip()
-            try:
-                self.version += f" (API {self._command('APIREV:').strip()})"
-            except NDIReplyError:
-                pass  # older firmware: no APIREV
-            handles: dict[int, str] = {}
-            # a device taken on where it is (no RESET) still holds the handles this driver loaded before an unplug
-            earlier = {} if self.reset_seen else dict(self.tool_handles)
-            present = set(self._handles("00")) if earlier else set()
-            for name, rom in self._roms:
-                kept = [h for h, known in earlier.items() if known == name and h in present]
-                if kept:
-                    handles[kept[0]] = name
-                    continue
-                reply = self._command("PHRQ:*********1****")
-                try:
-                    handle = int(reply[:2], 16)
-                except ValueError:
-                    raise ProtocolError(f"{self.device_name}: PHRQ: malformed reply {reply[:40]!r}") from None
-                self._upload_rom(handle, rom)
-                handles[handle] = name
-            for handle in self._handles("02"):
-                self._command(f"PINIT:{handle:02X}", INIT_TIMEOUT_S)
-            for handle in self._handles("03"):
-                self._command(f"PENA:{handle:02X}D")
-            enabled = self._handles("04")
-            if not enabled:
-                raise DeviceError(f"{self.device_name}: no tool is enabled; give passive tools' .rom files "
-                                  f"(tools=a.rom,b.rom) or plug in the Aurora's sensors")
-            self.tool_handles = {h: handles.get(h, f"handle {h:02X}") for h in enabled}
-            self.tools = tuple(self.tool_handles.values())
+            # a device taken on where it is (no RESET) after this driver lost its cable still tracks the tools it
+            # set up: go on with them. Anything else (a new session, a device reset, another client's handles,
+            # one that crashed without freeing its own) gets the full bring-up, whose INIT starts afresh.
+            if not (not self.reset_seen and self.tool_handles and self._resume()):
+                self._bring_up()
             self._command("TSTART:", INIT_TIMEOUT_S)
             self._last_frame.clear()
         except (serial.SerialException, OSError, termios.error) as exc:
@@ -321,6 +295,70 @@ class NDITracker(TrackerDriver):
             raise
         log.info("%s: %s; tracking %s", self.device_name, self.version.splitlines()[0] if self.version else "?",
                  ", ".join(self.tools))
+
+    def _resume(self) -> bool:
+        """Whether the device, found at this session's rate, still has every handle this driver enabled."""
+        if self._ser.baudrate != self.config.baud:
+            return False  # back at 9600: it was reset or power-cycled, its handles are gone
+        try:
+            enabled = set(self._handles("04"))
+        except NDIReplyError:
+            return False  # not initialised (reset)
+        if not set(self.tool_handles) <= enabled:
+            return False
+        log.info("%s: the device kept this session's handles (%s); tracking again", self.device_name,
+                 ", ".join(f"{h:02X}" for h in sorted(self.tool_handles)))
+        return True
+
+    def _bring_up(self) -> None:
+        """INIT (a fresh handle table), COMM to the session's rate, VER, APIREV, the .rom tools' handles, PINIT,
+        PENA: every tool enabled, ready for TSTART."""
+        self._command("INIT:", INIT_TIMEOUT_S)
+        if self._ser.baudrate != self.config.baud:
+            self._command(f"COMM:{COMM_BAUD_CODES[self.config.baud]}0000")
+            time.sleep(0.1)  # the device switches after its OKAY
+            self._ser.baudrate = self.config.baud
+        self.version = self._command("VER:4").strip()
+        try:
+            self.version += f" (API {self._command('APIREV:').strip()})"
+        except NDIReplyError:
+            pass  # older firmware: no APIREV
+        # handles the device says are waiting to be freed (a tool unplugged, an earlier client's), as ndicapi's
+        # users do before they request their own
+        for handle in self._handles("01"):
+            self._command(f"PHF:{handle:02X}")
+        handles: dict[int, str] = {}
+        for name, rom in self._roms:
+            reply = self._command("PHRQ:*********1****")
+            try:
+                handle = int(reply[:2], 16)
+            except ValueError:
+                raise ProtocolError(f"{self.device_name}: PHRQ: malformed reply {reply[:40]!r}") from None
+            self._upload_rom(handle, rom)
+            handles[handle] = name
+        for handle in self._handles("02"):
+            self._command(f"PINIT:{handle:02X}", INIT_TIMEOUT_S)
+        for handle in self._handles("03"):
+            self._command(f"PENA:{handle:02X}D")
+        enabled = self._handles("04")
+        if not enabled:
+            raise DeviceError(f"{self.device_name}: no tool is enabled; give passive tools' .rom files "
+                              f"(tools=a.rom,b.rom) or plug in the Aurora's sensors")
+        self.tool_handles = {h: handles.get(h, f"handle {h:02X}") for h in enabled}
+        self.tools = tuple(self.tool_handles.values())
+
+    def _release(self) -> None:
+        """A clean end: TSTOP, then PHF for every handle this session enabled, so the device is left as a next
+        client (or NDI's own tools) expect to find it. Stops at the first sign the device is gone."""
+        try:
+            self._command("TSTOP:")
+        except NDIReplyError:
+            pass  # not tracking (ERROR0C): the handles are still to be freed
+        for handle in sorted(self.tool_handles):
+            try:
+                self._command(f"PHF:{handle:02X}")
+            except NDIReplyError as exc:  # already gone (a device reset under us): nothing to free
+                log.debug("%s", exc)
 
     def _upload_rom(self, handle: int, rom: bytes) -> None:
         """PVWR: the .rom in 64-byte chunks (hex), the last padded with zeros, as ndicapi does."""
@@ -363,9 +401,9 @@ class NDITracker(TrackerDriver):
         if self._connected:
             self._connected = False
             try:
-                self._command("TSTOP:")
+                self._release()
             except Exception:  # the device may be gone; nothing is left to do about it
-                log.debug("%s: TSTOP on close", self.device_name, exc_info=True)
+                log.debug("%s: TSTOP / PHF on close", self.device_name, exc_info=True)
             self._close_port()
 
     # --- the reader thread -------------------------------------------------------------------------------------
