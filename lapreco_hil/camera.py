@@ -67,8 +67,12 @@ class FieldOfView:
         (a negative margin grows it)."""
         mask = np.zeros((height, width), np.uint8)
         if self.kind == "circle":
-            r = int(round(self.r - margin_px))
-            cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(r, 0), 255, -1)
+            r = self.r - margin_px
+            if max(abs(self.cx), abs(self.cy), abs(r)) < 2 ** 20:
+                cv2.circle(mask, (int(round(self.cx)), int(round(self.cy))), max(int(round(r)), 0), 255, -1)
+            elif r > 0:  # beyond OpenCV's int coordinates: the implicit equation at pixel centres
+                yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+                mask[(xx - self.cx) ** 2 + (yy - self.cy) ** 2 <= r * r] = 255
         elif self.kind == "ellipse":
             # the implicit equation at pixel centres: exact, where cv2.ellipse would round centre and axes
             a, b = self.a - margin_px, self.b - margin_px

@@ -381,6 +381,15 @@ def test_a_circle_field_of_view_off_the_principal_point(tmp_path):
     assert s2.camera == CameraModel(80, 60, 70, 70, 40, 30, fov_radius_px=20) and s2.camera.fov is None
 
 
+def test_a_circle_beyond_opencvs_coordinates_still_makes_its_mask():
+    """A camera built in code (not read from a session, which bounds the circle) with a huge circle, e.g. "no
+    field of view" written as r = 1e12: OpenCV's circle takes C ints and failed inside the mask."""
+    everything = FieldOfView.circle(40, 30, 1e12).region(80, 60)
+    assert np.all(everything == 255)
+    edge = FieldOfView.circle(-1e9, 30, 1e9 + 20.0).region(80, 60)  # its edge a near-straight line at x = 20
+    assert np.all(edge[:, :20] == 255) and np.all(edge[:, 21:] == 0)
+
+
 def test_an_ellipse_field_of_view(tmp_path):
     s = Session(write_fov_session(tmp_path / "e", {"ellipse": {"cx": 40, "cy": 30, "a": 35, "b": 20,
                                                                "angle_deg": 90}}))

@@ -30,7 +30,6 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from lapreco_hil.camera import N_DIST, CameraModel, FieldOfView, Rig, read_fov_mask
@@ -366,12 +365,11 @@ def _camera(cam: _Fields, fov_of) -> CameraModel:
 def _check_covers(f: _Fields, key: str, given: str, fov: FieldOfView, width: int, height: int) -> FieldOfView:
     """``fov``, refused when it lights no pixel of the image (a shape placed off the image would replay with
     no corners at all, as an all-zero mask would)."""
-    try:
-        covered = bool(fov.region(width, height).any())
-    except cv2.error:  # OpenCV draws circles in 32-bit integer pixels
+    far = 64 * max(width, height)  # a field of view is the scope's image circle, about the image's size
+    if max(abs(fov.cx), abs(fov.cy), abs(fov.r), abs(fov.a), abs(fov.b)) > far:
         raise f._fail(key, f"{given} is too far out to draw; give the centre and size in pixels of the "
-                           f"{width}x{height} image") from None
-    if not covered:
+                           f"{width}x{height} image")
+    if not fov.region(width, height).any():
         raise f._fail(key, f"{given} covers no pixel of the {width}x{height} image; give the centre and size "
                            f"in that image's pixels")
     return fov
