@@ -365,7 +365,7 @@ def _camera(cam: _Fields, fov_of) -> CameraModel:
 def _check_covers(f: _Fields, key: str, given: str, fov: FieldOfView, width: int, height: int) -> FieldOfView:
     """``fov``, refused when it lights no pixel of the image (a shape placed off the image would replay with
     no corners at all, as an all-zero mask would)."""
-    far = 64 * max(width, height)  # a field of view is the scope's image circle, about the image's size
+    far = 2 ** 20  # px: a field of view is the scope's image circle, about the image's size
     if max(abs(fov.cx), abs(fov.cy), abs(fov.r), abs(fov.a), abs(fov.b)) > far:
         raise f._fail(key, f"{given} is too far out to draw; give the centre and size in pixels of the "
                            f"{width}x{height} image")
