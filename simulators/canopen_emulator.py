@@ -7,7 +7,10 @@ latches its position actual value (from ``joints_at(t_ns)`` through the shared J
 and sends TPDO1 with the mapping the master configured.
 
 Tests use python-can's in-process ``virtual`` interface (``canopen://virtual/<channel>``); nothing leaves
-the process. Faults on demand: a node that goes silent (no TPDO, no heartbeat), a node whose heartbeat
+the process, and nothing outside it can reach the nodes. ``lapreco emulate canopen`` puts them on a SocketCAN
+interface instead (``interface="socketcan"``: a virtual ``vcan0`` on this machine, for other programs to reach);
+an interface that does not exist is a DeviceNotFoundError that says how to create one. No other python-can
+interface is taken (some of them, udp_multicast for one, leave the machine). Faults on demand: a node that goes silent (no TPDO, no heartbeat), a node whose heartbeat
 stops, an EMCY (and its reset), the statusword's fault bit, a position out of the joint's limits.
 """
 
@@ -26,6 +29,24 @@ from lapreco_hil.drivers.robot.joint_map import JointMap
 
 log = logging.getLogger(__name__)
 
+EMULATOR_INTERFACES = ("virtual", "socketcan")
+
+
+def check_socketcan(channel: str) -> None:
+    """Raise DeviceNotFoundError, one line with the remedy, unless this machine has the SocketCAN ``channel``."""
+    from lapreco_hil.drivers.robot.canopen402 import SYS_NET, can_interfaces
+    from lapreco_hil.errors import DeviceNotFoundError
+
+    if not SYS_NET.is_dir():
+        raise DeviceNotFoundError(f"SocketCAN interface '{channel}': this machine has no SocketCAN ({SYS_NET} is "
+                                  f"missing; SocketCAN is Linux only)")
+    present = can_interfaces()
+    if channel not in present:
+        raise DeviceNotFoundError(
+            f"SocketCAN interface '{channel}' does not exist on this machine (SocketCAN interfaces here: "
+            f"{', '.join(present) or 'none'}); create a virtual one: sudo modprobe vcan && sudo ip link add dev "
+            f"{channel} type vcan && sudo ip link set up {channel}")
+
 
 @dataclass
 class CANopenFaults:
@@ -38,9 +59,12 @@ class CANopenFaults:
 class CANopenDriveChainEmulator:
     def __init__(self, channel: str, node_ids: list[int], joint_map: JointMap, joints_at,
                  clock_ns=time.monotonic_ns, interface: str = "virtual") -> None:
-        if interface != "virtual":
-            # the network rule: emulated traffic stays inside this process
-            raise ValueError("the CANopen emulator runs only on python-can's in-process 'virtual' interface")
+        if interface not in EMULATOR_INTERFACES:
+            # emulated traffic stays inside this process (virtual) or this machine's CAN interfaces (socketcan)
+            raise ValueError(f"the CANopen emulator runs on python-can's {' or '.join(EMULATOR_INTERFACES)} "
+                             f"interface, not '{interface}'")
+        if interface == "socketcan":
+            check_socketcan(channel)
         self.node_ids = list(node_ids)
         self.joint_map = joint_map
         self.joints_at = joints_at
@@ -51,7 +75,8 @@ class CANopenDriveChainEmulator:
         self._updating = False
         self._lock = threading.Lock()
         self.network = canopen.Network()
-        self.network.connect(interface="virtual", channel=channel)
+        self.interface, self.channel = interface, channel
+        self.network.connect(interface=interface, channel=channel)
         self.nodes: dict[int, canopen.LocalNode] = {}
         self._mapping_loaded: dict[int, bool] = {}
         for node_id in self.node_ids:

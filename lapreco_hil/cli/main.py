@@ -153,6 +153,11 @@ def build_parser() -> ArgumentParser:
 
     add_batch_parser(sub)
     # --- end lapreco batch ---
+    # --- lapreco emulate: one device emulator on its own; its own module, lapreco_hil/cli/emulate.py ---
+    from lapreco_hil.cli.emulate import add_parser as add_emulate_parser
+
+    add_emulate_parser(sub)
+    # --- end lapreco emulate ---
 
     bench = sub.add_parser("bench", help="benchmarks (figures for docs/benchmarks.md)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
