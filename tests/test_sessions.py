@@ -130,6 +130,10 @@ def test_session_in_millimetres_and_degrees_reads_as_si(recorded, tmp_path):
     shutil.copytree(recorded, copy)
     meta = json.loads((copy / "session.json").read_text())
     meta["units"] = {"length": "mm", "angle": "deg", "time": "ns"}
+    meta["robot"]["T_world_base"] = [[1, 0, 0, 10.0], [0, 1, 0, -20.0], [0, 0, 1, 30.0], [0, 0, 0, 1]]
+    T_tip_camera = np.array(meta["robot"]["T_tip_camera"], float)
+    T_tip_camera[:3, 3] *= 1000.0
+    meta["robot"]["T_tip_camera"] = T_tip_camera.tolist()  # units.length applies to every translation
     (copy / "session.json").write_text(json.dumps(meta))
     lines = (copy / "joints.csv").read_text().splitlines()
     scale = np.array([180 / np.pi, 180 / np.pi, 1000.0, 180 / np.pi])
@@ -140,6 +144,17 @@ def test_session_in_millimetres_and_degrees_reads_as_si(recorded, tmp_path):
     q_m = np.array([j.q for j in s_m.joint_samples])
     q_mm = np.array([j.q for j in s_mm.joint_samples])
     np.testing.assert_allclose(q_mm, q_m, rtol=1e-7, atol=1e-12)
+    # the robot's transforms too (they were once read as metres whatever the unit: a 1000x hand-eye)
+    np.testing.assert_allclose(s_mm.meta.robot.T_tip_camera, s_m.meta.robot.T_tip_camera, atol=1e-12)
+    np.testing.assert_allclose(s_mm.meta.robot.T_world_base[:3, 3], [0.010, -0.020, 0.030], atol=1e-12)
+    # and written back in the session's unit
+    from lapreco_hil.sessions.writer import SessionWriter
+
+    with SessionWriter(tmp_path / "again", s_mm.meta, copy / "robot.urdf"):
+        pass
+    again = json.loads((tmp_path / "again" / "session.json").read_text())
+    assert again["units"]["length"] == "mm" and again["robot"]["T_world_base"][0][3] == pytest.approx(10.0)
+    np.testing.assert_allclose(np.array(again["robot"]["T_tip_camera"]), T_tip_camera, atol=1e-9)
 
 
 # --- bad sessions: one clear error naming the file and the problem -------------------------------------------------

@@ -199,11 +199,12 @@ class SessionMeta:
         if self.nominal_fps:
             doc["nominal_fps"] = self.nominal_fps
         if self.robot is not None:
+            scale = LENGTH_UNITS[self.length_unit]  # units.length applies to every translation
             doc["robot"] = {"urdf": self.robot.urdf, "tip_frame": self.robot.tip_frame,
                             "joint_names": list(self.joint_names), "joint_units": list(self.joint_units),
-                            "T_world_base": self.robot.T_world_base.tolist()}
+                            "T_world_base": _in_unit(self.robot.T_world_base, scale)}
             if self.robot.T_tip_camera is not None:  # absent: a calibration session (no hand-eye yet)
-                doc["robot"]["T_tip_camera"] = self.robot.T_tip_camera.tolist()
+                doc["robot"]["T_tip_camera"] = _in_unit(self.robot.T_tip_camera, scale)
         if self.pose_source == "camera_poses":
             doc["camera_poses"] = {"sigma_rotation_rad": self.pose_sigma.rotation_rad,
                                    "sigma_translation_m": self.pose_sigma.translation_m}
@@ -212,17 +213,19 @@ class SessionMeta:
         return doc
 
 
-def _tracker_json(tracker: TrackerSetup, scale: float) -> dict:
-    def in_unit(T: np.ndarray) -> list:
-        m = np.asarray(T, float).copy()
-        m[:3, 3] /= scale
-        return m.tolist()
+def _in_unit(T: np.ndarray, scale: float) -> list:
+    """A rigid transform in metres as the session's length unit writes it (``scale``: metres per unit)."""
+    m = np.asarray(T, float).copy()
+    m[:3, 3] /= scale
+    return m.tolist()
 
-    doc = {"tool": tracker.tool, "T_world_tracker": in_unit(tracker.T_world_tracker),
+
+def _tracker_json(tracker: TrackerSetup, scale: float) -> dict:
+    doc = {"tool": tracker.tool, "T_world_tracker": _in_unit(tracker.T_world_tracker, scale),
            "sigma_rotation_rad": tracker.sigma.rotation_rad, "sigma_translation_m": tracker.sigma.translation_m,
            "max_rms_mm": tracker.max_rms_mm}
     if tracker.T_marker_camera is not None:  # absent: a calibration session (no hand-eye yet)
-        doc["T_marker_camera"] = in_unit(tracker.T_marker_camera)
+        doc["T_marker_camera"] = _in_unit(tracker.T_marker_camera, scale)
     return doc
 
 
@@ -232,16 +235,12 @@ def _tracker(t: "_Fields", scale: float) -> TrackerSetup:
         raise t._fail("tool", f"is {tool!r}; give the scope's tool name as marker_poses.csv's 'tool' column "
                               f"has it (1-64 characters, no comma or quote)")
 
-    def rigid_in_metres(key: str) -> np.ndarray:
-        m = _check_rigid(t, key).copy()
-        m[:3, 3] *= scale
-        return m
-
     default = PoseSigma()
     sigma = PoseSigma(_positive(t, "sigma_rotation_rad", default.rotation_rad),
                       _positive(t, "sigma_translation_m", default.translation_m))
-    return TrackerSetup(tool, rigid_in_metres("T_marker_camera") if "T_marker_camera" in t.data else None,
-                        rigid_in_metres("T_world_tracker") if "T_world_tracker" in t.data else np.eye(4), sigma,
+    return TrackerSetup(tool, _rigid_in_metres(t, "T_marker_camera", scale) if "T_marker_camera" in t.data else None,
+                        _rigid_in_metres(t, "T_world_tracker", scale) if "T_world_tracker" in t.data else np.eye(4),
+                        sigma,
                         _positive(t, "max_rms_mm", DEFAULT_MAX_RMS_MM))
 
 
@@ -323,6 +322,13 @@ class _Fields:
             raise self._fail(key, f"must be a list of {n if n is not None else 'one or more'} entries, "
                                   f"got {len(value)}")
         return _Fields({f"[{i}]": v for i, v in enumerate(value)}, self._name(key), self.source)
+
+
+def _rigid_in_metres(f: _Fields, key: str, scale: float) -> np.ndarray:
+    """A rigid transform field in the session's length unit (``scale``: metres per unit), in metres."""
+    m = _check_rigid(f, key).copy()
+    m[:3, 3] *= scale
+    return m
 
 
 def _check_rigid(f: _Fields, key: str) -> np.ndarray:
@@ -518,8 +524,10 @@ def meta_from_json(doc, source: str, folder: Path | None = None) -> SessionMeta:
         if len(joint_units) != len(joint_names) or not all(u in ("angle", "length") for u in joint_units):
             raise r._fail("joint_units", "must give 'angle' or 'length' for each joint in joint_names")
         robot = RobotDescription(r.get("urdf", str), r.get("tip_frame", str),
-                                 _check_rigid(r, "T_tip_camera") if "T_tip_camera" in r.data else None,
-                                 _check_rigid(r, "T_world_base") if "T_world_base" in r.data else np.eye(4))
+                                 _rigid_in_metres(r, "T_tip_camera", LENGTH_UNITS[length])
+                                 if "T_tip_camera" in r.data else None,
+                                 _rigid_in_metres(r, "T_world_base", LENGTH_UNITS[length])
+                                 if "T_world_base" in r.data else np.eye(4))
     sigma = PoseSigma()
     if pose_source == "camera_poses" and "camera_poses" in f.data:
         p = f.sub("camera_poses").only(CAMERA_POSES_KEYS)
