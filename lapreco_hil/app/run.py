@@ -11,7 +11,7 @@ from pathlib import Path
 
 from lapreco_hil.app.handeye import describe_rig, require_hand_eye
 from lapreco_hil.config import PipelineConfig
-from lapreco_hil.errors import ConfigError
+from lapreco_hil.errors import ConfigError, LaprecoError
 from lapreco_hil.frontend import resolve_tracker
 from lapreco_hil.outputs import check_output_dir, prepare_output_dir, write_outputs
 from lapreco_hil.pose_sources import MarkerPoseSource, RobotPoseSource
@@ -43,8 +43,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     MCAP file (fed beside the session recorder, encoded in its own thread; the map added at the end)."""
     from tqdm import tqdm
 
-    from lapreco_hil.sessions.recorder import session_meta_for
-    from lapreco_hil.sessions.writer import SessionWriter
+    from lapreco_hil.sessions.recorder import SessionRecorder, check_pose_coverage, session_meta_for
     from lapreco_hil.robot_models import urdf_path
 
     check_output_dir(out)
@@ -63,6 +62,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         first, second = marker, grabber  # the tracker's bring-up first: frames passing meanwhile would be lost
     bar = tqdm(total=total, desc=f"live {Path(out).name}", unit="frame", file=sys.stderr, disable=not progress)
     recorder = mcap_log = None
+    truth = _run_truth(grabber, robot, record, write)
     with first, second, bar:
         if marker is not None:
             from lapreco_hil.sessions.recorder import scope_tool
@@ -70,13 +70,20 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             tracker_setup = replace(tracker_setup, tool=scope_tool(marker, tracker_setup.tool))
             poses = MarkerPoseSource(tracker_setup, tracker=marker)
         out_dir = prepare_output_dir(out)  # only once the devices are open: a run that never starts leaves nothing
-        if record and marker is not None:
+        if record:
+            # what 'lapreco record' writes, through the same recorder: events.csv, source, health, the ground truth
+            # where it belongs to the poses (sessions/recorder.py); the console has the run's own health lines
             from lapreco_hil.sessions.recorder import tracked_session_meta
 
-            recorder = SessionWriter(record, tracked_session_meta(grabber, camera, tracker_setup))
-        elif record:
-            recorder = SessionWriter(record, session_meta_for(grabber, robot, camera, description),
-                                     urdf_path(description.urdf))
+            if marker is not None:
+                source = {"tracker": marker.url.raw, "grabber": grabber.url.raw}
+                recorder = SessionRecorder(record, tracked_session_meta(grabber, camera, tracker_setup, source),
+                                           grabber, marker, truth=truth, console=False)
+            else:
+                source = {"robot": robot.url.raw, "grabber": grabber.url.raw}
+                recorder = SessionRecorder(record, session_meta_for(grabber, robot, camera, description, source),
+                                           grabber, robot, urdf_file=urdf_path(description.urdf), truth=truth,
+                                           console=False)
         try:
             if mcap:
                 mcap_log = _mcap_logger(mcap, grabber, robot, camera, description, tracker_setup, poses)
@@ -85,6 +92,8 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             if on_live is not None:
                 on_live(live)
             result, metrics = live.run(seconds)
+            pose_device = marker if marker is not None else robot
+            problem = _device_problem(pose_device)  # (before the devices close)
         except BaseException:
             if mcap_log is not None:
                 mcap_log.close()  # the file finished as far as the run got
@@ -92,7 +101,8 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         finally:
             if recorder is not None:
                 recorder.close()
-    fields = {"command": "run", **(report_fields or {}), "runtime": "live"}
+    coverage = _pose_coverage(poses, pose_device, metrics["frames"]["in"])
+    fields = {"command": "run", **(report_fields or {}), "runtime": "live", "pose_coverage": coverage.as_dict()}
     _warn_if_replay_outran_the_run(grabber, metrics)
     if marker is not None:
         fields.update({"tracker_tool": poses.tool, "marker_samples_refused": poses.rejected,
@@ -108,13 +118,65 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
                 "surface": "dense" if dense is not None else "alpha", "dense": dense}
     if record:
         fields["recorded_session"] = record
+    recorded = f" and the recording is kept at {record}" if record else ""
     try:
-        return write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
-                             truth=grabber.ground_truth, report_fields=fields, metrics=metrics,
-                             run_wall_s=metrics["wall_s"], dense=live.dense_result, surface_note=live.surface_note)
+        report = write_outputs(result, camera, config, out_dir, tracker=tracker, device=device,
+                               truth=truth, report_fields=fields, metrics=metrics,
+                               run_wall_s=metrics["wall_s"], dense=live.dense_result, surface_note=live.surface_note)
+    except LaprecoError as exc:  # (too little mapped, say): the lost pose source is the cause to name
+        check_pose_coverage("run", coverage, f"the outputs could not be written ({exc}){recorded}", problem=problem,
+                            warn=False)
+        raise
     finally:
         if mcap_log is not None:  # the map, once the outputs are written
             mcap_log.close(out_dir if (out_dir / "points.ply").is_file() else None)
+    # a pose source lost partway: an error once everything is written (the command prints its summary first)
+    check_pose_coverage("run", coverage, f"the outputs are in {out_dir}{recorded}", problem=problem, warn=False,
+                        report=report)
+    return report
+
+
+def _run_truth(grabber, robot, record: str | None, write: bool):
+    """The ground truth of a run's recording and accuracy figures: a tracked scope's (robot None) is the grabber's;
+    a robot's only where it belongs to the robot's readings (sessions/recorder.py, ``recorded_truth``)."""
+    if not (record or write):
+        return None
+    if robot is None:
+        return grabber.ground_truth
+    from lapreco_hil.sessions.recorder import recorded_truth
+
+    return recorded_truth(grabber, robot, "the recording and report.json's accuracy" if record else
+                          "report.json's accuracy")
+
+
+def _device_problem(device) -> str:
+    """A device's state now when it is not OK ("stale: no reading for 0.3 s"), else ""."""
+    from lapreco_hil.drivers.health import HealthState
+
+    health = getattr(device, "health", None)
+    if health is None or health.state is HealthState.OK:
+        return ""
+    return f"{health.state.value}: {health.detail}" if health.detail else health.state.value
+
+
+def _pose_coverage(poses, device, frames_in: int):
+    """How the pose source's accepted readings covered the frames that reached it (its ``without_pose`` counts,
+    after-the-last ones moved to the gaps when readings resumed), as the recorder judges a recording's."""
+    from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP
+    from lapreco_hil.sessions.recorder import PoseCoverage
+
+    times = poses.without_pose.times
+    before, after, gaps = times[BEFORE_FIRST], times[AFTER_LAST], times[IN_GAP]
+    track = getattr(poses, "pose_at", None) or poses.track  # a robot's readings, or a tracker's poses
+    last = track.last_time_ns
+    return PoseCoverage("robot" if poses.robot is not None else getattr(poses, "source", "tracker"),
+                        device.url.raw, frames_in, before_first=len(before), in_gap=len(gaps),
+                        after_last=len(after), first_frame_ns=poses.without_pose.first_frame_ns,
+                        last_frame_ns=max(after) if after else None,
+                        # (a live track keeps its recent readings only: its first came just after this frame)
+                        first_reading_ns=max(before) if before else poses.without_pose.first_frame_ns,
+                        last_reading_ns=None if last is None else last - poses.time_offset_ns,
+                        gap_limit_ns=track.max_gap_ns, gap_frames_ns=(min(gaps), max(gaps)) if gaps else None)
 
 
 def _warn_if_replay_outran_the_run(grabber, metrics: dict) -> None:

@@ -7,22 +7,37 @@ from lapreco_hil.cli.args import non_negative, positive
 
 def cmd_run(args) -> int:
     from lapreco_hil.app.run import run, stop_on_signals
+    from lapreco_hil.sessions.recorder import DeviceLostError
 
     stop_on_signals()
-    report = run(args.robot, args.grabber, args.out, config_path=args.config, record=args.record,
-                 seconds=args.seconds, view_every=args.view_every, tracker=args.tracker, device=args.device,
-                 camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
-                 hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker, tool=args.tool,
-                 mcap=args.mcap, surface=args.surface)
+    try:
+        report = run(args.robot, args.grabber, args.out, config_path=args.config, record=args.record,
+                     seconds=args.seconds, view_every=args.view_every, tracker=args.tracker, device=args.device,
+                     camera_file=args.camera, robot_model=args.robot_model, tip_frame=args.tip_frame,
+                     hand_eye_file=args.hand_eye, progress=not args.no_progress, marker_url=args.marker,
+                     tool=args.tool, mcap=args.mcap, surface=args.surface)
+    except DeviceLostError as exc:  # the outputs are written: their summary, then the error line (exit 2)
+        if exc.report is not None:
+            _print_summary(exc.report)
+        raise
+    _print_summary(report)
+    return 0
+
+
+def _print_summary(report: dict) -> None:
+    """The run's summary: frames, throughput, latency, points, the pose source's coverage of the frames where it
+    left some without a reading (a gap, or the end: docs/reliability.md), and the tracking funnel."""
     f, lat = report["frames"], report["latency_ms"]
     before = f" ({f['passed_before_start']} passed before capture started)" if f.get("passed_before_start") else ""
     print(f"lapreco run: {f['in']} frames in{before}, {f['processed']} mapped, {f['dropped']} dropped; "
           f"{report['throughput_fps']:.1f} frames/s; latency p50 {lat.get('p50', float('nan')):.0f} ms, "
           f"p99 {lat.get('p99', float('nan')):.0f} ms; {report['inliers']} inlier points; outputs in {report['out']}")
+    line = (report.get("pose_coverage") or {}).get("summary")
+    if line:
+        print(f"lapreco run: {line}")
     from lapreco_hil.cli.main import print_funnel
 
     print_funnel("run", report)
-    return 0
 
 
 def add_parser(sub) -> None:

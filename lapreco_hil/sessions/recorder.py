@@ -1,15 +1,24 @@
-"""Recording: frames and joint readings from live (or simulated) devices into a session, as they arrive."""
+"""Recording: frames and joint readings (or a tracker's marker poses) from live (or simulated) devices into a
+session, as they arrive. ``SessionRecorder`` is what both ``lapreco record`` (``record``/``record_tracked``)
+and ``lapreco run --record`` (the live runtime's Record stage) write through, so both leave the same session:
+frames, pose samples, events.csv, session.json's source and health (with the pose source's coverage of the
+frames), and the ground truth where it belongs to the recorded poses."""
 
 from __future__ import annotations
 
 import collections
 import logging
+import math
 import sys
 import time
+from array import array
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.errors import ConfigError, DeviceError
+from lapreco_hil.geometry import max_gap_ns
 from lapreco_hil.robot_models import urdf_path
 from lapreco_hil.types import RobotDescription
 from lapreco_hil.drivers.health import HealthState
@@ -32,6 +41,7 @@ class RecordStats:
     marker_samples: int = 0  # rows of marker_poses.csv (every tool's), in a tracked-scope session
     scope_samples: int = 0  # of them, the scope's tool's
     tracker_faults: dict = field(default_factory=dict)  # the tracker driver's fault counts at the end
+    pose_coverage: "PoseCoverage | None" = None  # how the pose source's recorded samples cover the frames
 
     @property
     def frames_per_s(self) -> float:
@@ -42,10 +52,11 @@ class DeviceWatch:
     """Device faults and health changes while recording: each one a row of events.csv and one console
     warning (at most one per device and kind of event every ``warn_every_s``)."""
 
-    def __init__(self, writer: SessionWriter, devices: dict, warn_every_s: float = 1.0) -> None:
+    def __init__(self, writer: SessionWriter, devices: dict, warn_every_s: float = 1.0, console: bool = True) -> None:
         from lapreco_hil.pose_sources import RateLimitedWarning
 
         self.writer, self.devices = writer, devices  # name -> device (a grabber, a robot driver)
+        self.console = console  # False: events.csv only (a live run shows each change through its health monitor)
         self._warn = collections.defaultdict(lambda: RateLimitedWarning(log, warn_every_s))
         self._state = {name: None for name in devices}
         self._started: set[str] = set()  # devices seen in a state other than "no reading yet" (stale)
@@ -82,7 +93,278 @@ class DeviceWatch:
 
     def _event(self, t_ns: int, name: str, event: str, detail: str) -> None:
         self.writer.add_event(t_ns, name, event, detail)
-        self._warn[(name, event)]("record: %s %s: %s", name, event, detail or "(no detail)")
+        if self.console:
+            self._warn[(name, event)]("record: %s %s: %s", name, event, detail or "(no detail)")
+
+
+# a pose source counts as lost when its readings end this long before the frames do (or its gap limit,
+# MAX_GAP_PERIODS of its median reading periods, where that is longer): a late reply or two at the very end of a
+# recording is not a lost device, a robot whose cable came out is
+LOST_AFTER_S = 0.25
+
+
+@dataclass(frozen=True)
+class PoseCoverage:
+    """How one pose source's readings cover the frames of a recording or a live run. A frame has a pose only
+    between two readings at most the gap limit apart (``geometry.no_pose_cause``): the others come before its
+    first reading, in a gap, or after its last one. Times are capture times on the frames' clock. The gaps'
+    number and longest are known where the readings' times are (a recording), not in a live run."""
+
+    kind: str  # "robot" | "tracker"
+    url: str
+    frames: int
+    before_first: int = 0
+    in_gap: int = 0
+    after_last: int = 0
+    first_frame_ns: int | None = None
+    last_frame_ns: int | None = None
+    first_reading_ns: int | None = None
+    last_reading_ns: int | None = None
+    gap_limit_ns: float = math.inf
+    gap_frames_ns: tuple[int, int] | None = None  # the first and the last frame in a gap
+    gaps: int | None = None  # gaps longer than the gap limit with a frame in them
+    longest_gap_ns: tuple[int, int] | None = None  # (start, end) of the longest of them
+
+    @property
+    def device(self) -> str:
+        return f"{self.kind} {self.url}"
+
+    @property
+    def silent_s(self) -> float:
+        """How long before the last frame its last reading came (0 when it came after)."""
+        if self.last_frame_ns is None or self.last_reading_ns is None:
+            return 0.0
+        return max(0.0, (self.last_frame_ns - self.last_reading_ns) * 1e-9)
+
+    @property
+    def lost_after_s(self) -> float:
+        gap_s = self.gap_limit_ns * 1e-9 if math.isfinite(self.gap_limit_ns) else 0.0
+        return max(LOST_AFTER_S, gap_s)
+
+    @property
+    def lost(self) -> bool:
+        """Its readings ended (for the rest of the recording) more than ``lost_after_s`` before the frames did.
+        A source that delivered nothing at all is not judged here (each command says that with its own error)."""
+        return self.after_last > 0 and self.last_reading_ns is not None and self.silent_s > self.lost_after_s
+
+    @property
+    def late_start(self) -> bool:
+        """Its first reading came well after the first frame (not a device merely opened a moment later)."""
+        if self.first_reading_ns is None or self.first_frame_ns is None:
+            return self.before_first > 0
+        return (self.first_reading_ns - self.first_frame_ns) * 1e-9 > self.lost_after_s
+
+    def _at(self, t_ns: int | None) -> float:
+        """Seconds after the first frame."""
+        if t_ns is None:
+            return 0.0
+        return (t_ns - (t_ns if self.first_frame_ns is None else self.first_frame_ns)) * 1e-9
+
+    def summary(self) -> str | None:
+        """One line on the frames its readings do not cover (None when they cover every frame, but for a few at
+        the start)."""
+        parts = []
+        if self.after_last:
+            parts.append(f"{self.after_last} of {self.frames} frames come after its last reading (at "
+                         f"{self._at(self.last_reading_ns):.2f} s; none in the last {self.silent_s:.2f} s"
+                         + (": lost)" if self.lost else ")"))
+        if self.in_gap:
+            gap_ms = f"{self.gap_limit_ns * 1e-6:.0f} ms" if math.isfinite(self.gap_limit_ns) else "its gap limit"
+            text = f"{self.in_gap} of {self.frames} frames fall in "
+            if self.gaps is not None and self.longest_gap_ns is not None:
+                lo, hi = self.longest_gap_ns
+                text += (f"{self.gaps} gap{'s' if self.gaps != 1 else ''} between its readings longer than {gap_ms} "
+                         f"(the longest {(hi - lo) * 1e-9:.2f} s, from {self._at(lo):.2f} s)")
+            else:
+                lo, hi = self.gap_frames_ns or (self.first_frame_ns, self.first_frame_ns)
+                text += (f"gaps between its readings longer than {gap_ms} (frames at {self._at(lo):.2f}.."
+                         f"{self._at(hi):.2f} s)")
+            parts.append(text + ", after which its readings resumed")
+        if self.before_first and self.late_start:
+            parts.append(f"{self.before_first} of {self.frames} frames come before its first reading (at "
+                         f"{self._at(self.first_reading_ns):.2f} s)")
+        return f"{self.device}: " + "; ".join(parts) if parts else None
+
+    def lost_message(self, command: str, kept: str, problem: str = "") -> str:
+        """The one-line error of a lost pose source: the device, what happened, what to do, where the data is."""
+        return (f"{command}: {self.kind} '{self.url}' stopped delivering readings: its last came "
+                f"{self._at(self.last_reading_ns):.2f} s after the first frame, none in the last {self.silent_s:.2f} s "
+                f"({self.after_last} of {self.frames} frames come after it and have no pose"
+                f"{'; last problem: ' + problem if problem else ''}); check its cable and power, then "
+                f"'lapreco devices --probe {self.url}'; {kept}")
+
+    def as_dict(self) -> dict:
+        """session.json's health.pose_coverage and report.json's pose_coverage."""
+        def at(t_ns):
+            return None if t_ns is None else round(self._at(t_ns), 3) + 0.0  # (never -0.0)
+
+        return {"device": self.device, "frames": self.frames, "before_first": self.before_first,
+                "in_gap": self.in_gap, "after_last": self.after_last, "first_reading_s": at(self.first_reading_ns),
+                "last_reading_s": at(self.last_reading_ns), "silent_at_end_s": round(self.silent_s, 3),
+                "lost": self.lost, "gaps": self.gaps,
+                "longest_gap_s": None if self.longest_gap_ns is None else
+                round((self.longest_gap_ns[1] - self.longest_gap_ns[0]) * 1e-9, 3),
+                "gap_limit_ms": round(self.gap_limit_ns * 1e-6, 3) if math.isfinite(self.gap_limit_ns) else None,
+                "summary": self.summary()}
+
+
+def coverage_of(kind: str, url: str, frame_times, reading_times) -> PoseCoverage:
+    """The coverage of frames at ``frame_times`` by readings at ``reading_times`` (both increasing, one clock),
+    with the gap limit ``geometry.max_gap_ns`` takes from the readings."""
+    f = np.asarray(frame_times, np.int64)
+    r = np.asarray(reading_times, np.int64)
+    gap = max_gap_ns(r)
+    first_f, last_f = (int(f[0]), int(f[-1])) if len(f) else (None, None)
+    if len(f) == 0 or len(r) == 0:
+        return PoseCoverage(kind, url, len(f), before_first=len(f), first_frame_ns=first_f, last_frame_ns=last_f,
+                            first_reading_ns=int(r[0]) if len(r) else None,
+                            last_reading_ns=int(r[-1]) if len(r) else None, gap_limit_ns=gap)
+    before, after = f < r[0], f > r[-1]
+    j = np.searchsorted(r, f)  # r[j - 1] < f <= r[j] for the frames inside
+    exact = r[np.minimum(j, len(r) - 1)] == f
+    i = np.clip(j, 1, max(len(r) - 1, 1))
+    in_gap = ~before & ~after & ~exact & ((r[np.minimum(i, len(r) - 1)] - r[i - 1]) > gap)
+    gap_times, gap_starts = f[in_gap], np.unique(i[in_gap])  # a gap: the readings i - 1 and i around its frames
+    longest = None
+    if len(gap_starts):
+        k = int(gap_starts[np.argmax(r[gap_starts] - r[gap_starts - 1])])
+        longest = (int(r[k - 1]), int(r[k]))
+    return PoseCoverage(kind, url, len(f), int(before.sum()), int(in_gap.sum()), int(after.sum()), first_f, last_f,
+                        int(r[0]), int(r[-1]), gap,
+                        (int(gap_times[0]), int(gap_times[-1])) if len(gap_times) else None,
+                        gaps=len(gap_starts), longest_gap_ns=longest)
+
+
+class DeviceLostError(DeviceError):
+    """A pose source stopped delivering partway (``PoseCoverage.lost``); raised once everything is saved.
+    ``coverage``: its PoseCoverage; ``stats`` (a recording's RecordStats) or ``report`` (a run's report)."""
+
+    def __init__(self, message: str, coverage: PoseCoverage, *, stats: "RecordStats | None" = None,
+                 report: dict | None = None) -> None:
+        super().__init__(message)
+        self.coverage, self.stats, self.report = coverage, stats, report
+
+
+def check_pose_coverage(command: str, coverage: PoseCoverage | None, kept: str, *, problem: str = "",
+                        warn: bool = True, **context) -> None:
+    """The end of a recording or run: one warning on the frames the pose source's readings do not cover (a gap
+    it recovered from, or the end), and a DeviceLostError when it was lost (``context``: its stats/report)."""
+    if coverage is None:
+        return
+    line = coverage.summary()
+    if warn and line:
+        log.warning("%s: %s", command, line)
+    if coverage.lost:
+        raise DeviceLostError(coverage.lost_message(command, kept, problem), coverage, **context)
+
+
+def _truth_owner(device):
+    """What a device's data comes from when it is a simulated world's (``world``) or a session's (``session``)."""
+    return getattr(device, "world", None) or getattr(device, "session", None)
+
+
+def recorded_truth(grabber, robot, into: str = "the session"):
+    """The grabber's ground truth when it belongs to the robot's readings: the grabber's simulated world (or
+    replayed session) is the one the robot reads (``sim://`` for both, or ``sim://...&link=serial|canopen``: the
+    simulated robot through a real driver). Else None, with one warning: a simulated camera beside a real robot
+    shows the simulator's scope, not where the robot holds it, so accuracy against that truth would be
+    meaningless."""
+    truth = grabber.ground_truth
+    if truth is None or (truth.surface is None and truth.camera_pose is None):
+        return None
+    owner = _truth_owner(grabber)
+    if owner is not None and _truth_owner(robot) is owner:
+        return truth
+    log.warning("the ground truth of grabber '%s' (the true camera poses and surface of its world) is left out "
+                "of %s: the joint readings come from robot '%s', which does not move that world, so accuracy "
+                "against it would be meaningless; for ground truth, open the robot in the same world (--robot "
+                "sim://SCENE, or sim://SCENE?link=serial|canopen for the simulated robot through a real driver)",
+                grabber.url.raw, into, robot.url.raw)
+    return None
+
+
+class SessionRecorder:
+    """A recording's session, whoever feeds it: ``lapreco record``'s loop or the live run's Record stage (which
+    calls ``add_frame``, ``add_joints`` and ``close`` from one thread). It writes the frames, the pose source's
+    samples (joint readings, or every tool's marker poses), the ground truth it is given (``truth``: see
+    ``recorded_truth``), the devices' faults and health changes into events.csv as it goes (``DeviceWatch``; on
+    the console too unless ``console`` is False), and at the close session.json's ``health``: the devices' fault
+    counts and the pose source's coverage of the frames (``PoseCoverage``)."""
+
+    def __init__(self, out, meta: SessionMeta, grabber, device, *, urdf_file=None, truth=None,
+                 console: bool = True) -> None:
+        self.writer = SessionWriter(out, meta, urdf_file)
+        self.grabber, self.device, self.truth = grabber, device, truth
+        self.kind = "tracker" if meta.pose_source == "marker_poses" else "robot"
+        self.tool = meta.tracker.tool if meta.tracker is not None else None
+        self.device_name, self.grabber_name = f"{self.kind} {device.url.raw}", f"grabber {grabber.url.raw}"
+        try:
+            if truth is not None and truth.surface is not None:
+                self.writer.set_truth_surface(truth.surface)
+        except BaseException:
+            self.writer.close()
+            raise
+        self.watch = DeviceWatch(self.writer, {self.device_name: device, self.grabber_name: grabber}, console=console)
+        self.skipped = 0  # pose samples the writer did not record (non-finite, time not forward)
+        self.seen_tools: collections.Counter[str] = collections.Counter()  # marker samples by tool
+        self.faults: dict = {}
+        self.coverage: PoseCoverage | None = None
+        self._frame_times = array("q")
+        self.closed = False
+
+    def __enter__(self) -> "SessionRecorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def add_frame(self, frame) -> None:
+        self.writer.add_frame(frame)
+        if self.truth is not None and self.truth.camera_pose is not None:
+            self.writer.add_true_pose(frame.t_ns, self.truth.camera_pose(frame.t_ns))
+        self._frame_times.append(int(frame.t_ns))
+        self.watch.check(frame.t_ns)
+
+    def add_joints(self, samples) -> int:
+        """The pose source's samples (joint readings, or MarkerSamples); returns how many were not recorded."""
+        if self.kind == "tracker":
+            self.seen_tools.update(s.tool for s in samples)
+        skipped = self.writer.add_joints(samples)
+        self.skipped += skipped
+        return skipped
+
+    def close(self) -> None:
+        """Session.json's health (fault counts, the pose source's coverage), then the session closed, complete."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            writer, device = self.writer, self.device
+            if self._frame_times:
+                self.watch.check(self._frame_times[-1])
+            self.faults = {k: int(v) for k, v in dict(device.faults).items() if v}
+            # the frames against the pose samples the session holds (what a replay's poses will come from)
+            self.coverage = coverage_of(self.kind, device.url.raw, self._frame_times, writer.pose_times)
+            problem = self.watch.last_problem.get(self.device_name, "")
+            if self.kind == "robot":
+                health = {"robot_faults": self.faults, "robot_readings_delivered": device.readings_delivered,
+                          "joint_samples_not_recorded": self.skipped, "last_robot_problem": problem}
+            else:
+                health = {"tracker_faults": self.faults, "marker_samples_by_tool": dict(self.seen_tools),
+                          "marker_samples_not_recorded": self.skipped, "last_tracker_problem": problem}
+            writer.set_health({**health, "events": writer.n_events, "pose_coverage": self.coverage.as_dict()})
+        finally:
+            self.writer.close()
+
+    def fill(self, stats: RecordStats) -> None:
+        """A closed recording's figures into ``stats`` (every frame on disk by now)."""
+        w = self.writer
+        stats.frames, stats.joint_samples, stats.marker_samples = w.n_frames, w.n_joints, w.n_markers
+        stats.skipped_joint_samples, stats.events, stats.pose_coverage = self.skipped, w.n_events, self.coverage
+        if self.kind == "robot":
+            stats.robot_faults = self.faults
+        else:
+            stats.tracker_faults, stats.scope_samples = self.faults, self.seen_tools.get(self.tool, 0)
 
 
 def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames: int | None = None,
@@ -93,7 +375,9 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
     or Ctrl-C; the session is closed (complete) in every case. ``camera``/``rig``/``description`` override
     what the devices know (a real grabber does not know its lens: pass the calibration); ``camera`` replaces
     camera 0 of the grabber's rig. A grabber whose frames carry ``views`` (a stereo scope) is recorded as a
-    version-2 session of its rig."""
+    version-2 session of its rig. The grabber's ground truth is recorded only where it belongs to the robot's
+    readings (``recorded_truth``). A robot lost partway (its readings ended well before the frames did) is a
+    DeviceLostError once the session is closed: nothing recorded is lost."""
     from tqdm import tqdm
 
     camera = camera or (rig.cameras[0] if rig is not None else None) or grabber.camera
@@ -104,56 +388,19 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
     if description is None:
         raise ConfigError(f"robot '{robot.url.raw}' has no robot model/hand-eye; pass --robot-model and "
                           f"--hand-eye handeye.yaml")
-    truth = grabber.ground_truth if with_truth else None
+    truth = recorded_truth(grabber, robot) if with_truth else None
     meta = session_meta_for(grabber, robot, camera, description, source, rig)
     stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
     bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
     wall0 = time.perf_counter()
-    robot_name, grabber_name = f"robot {robot.url.raw}", f"grabber {grabber.url.raw}"
-    with SessionWriter(out, meta, urdf_path(description.urdf)) as writer, bar:
-        if truth is not None and truth.surface is not None:
-            writer.set_truth_surface(truth.surface)
-        watch = DeviceWatch(writer, {robot_name: robot, grabber_name: grabber})
-        first_t = last_t = None
-        try:
-            while True:
-                frame = grabber.read(timeout_s=GRABBER_READ_TIMEOUT_S)
-                if frame is None:
-                    break
-                stats.skipped_joint_samples += writer.add_joints(robot.read(timeout_s=0.0))
-                writer.add_frame(frame)
-                if truth is not None and truth.camera_pose is not None:
-                    writer.add_true_pose(frame.t_ns, truth.camera_pose(frame.t_ns))
-                first_t = frame.t_ns if first_t is None else first_t
-                last_t = frame.t_ns
-                stats.capture_span_s = (frame.t_ns - first_t) * 1e-9
-                watch.check(frame.t_ns)
-                bar.update(1)
-                if max_frames is not None and writer.n_queued >= max_frames:
-                    stats.stopped_by = "frame count"
-                    break
-                if seconds is not None and stats.capture_span_s >= seconds:
-                    stats.stopped_by = "duration"
-                    break
-            # the readings captured just after the last frame: without them it has no pose on replay
-            stats.skipped_joint_samples += writer.add_joints(robot.read(timeout_s=FINAL_READING_WAIT_S))
-        except KeyboardInterrupt:
-            stats.stopped_by = "interrupted"
-        if last_t is not None:
-            watch.check(last_t)
-        stats.robot_faults = {k: int(v) for k, v in dict(robot.faults).items() if v}
-        # readings the driver handed on (RobotDriver counts them)
-        delivered = robot.readings_delivered
-        writer.set_health({"robot_faults": stats.robot_faults, "robot_readings_delivered": delivered,
-                           "joint_samples_not_recorded": stats.skipped_joint_samples,
-                           "last_robot_problem": watch.last_problem.get(robot_name, ""),
-                           "events": writer.n_events})
-    stats.frames, stats.joint_samples = writer.n_frames, writer.n_joints  # after close: every frame on disk
-    stats.events = writer.n_events
+    recorder = SessionRecorder(out, meta, grabber, robot, urdf_file=urdf_path(description.urdf), truth=truth)
+    _record_loop(recorder, grabber, robot, stats, bar, seconds, max_frames)
     stats.wall_s = time.perf_counter() - wall0
+    recorder.fill(stats)
     by_driver = sum(stats.robot_faults.get(k, 0) for k in REFUSED_READING_FAULTS)
     refused = by_driver + stats.skipped_joint_samples
-    last = writer.last_skipped_joints or watch.last_problem.get(robot_name, "")
+    writer = recorder.writer
+    last = writer.last_skipped_joints or recorder.watch.last_problem.get(recorder.device_name, "")
     if stats.robot_faults or stats.skipped_joint_samples:
         faults = ", ".join(f"{k} {v}" for k, v in sorted(stats.robot_faults.items())) or "none"
         log.warning("record: robot %s: faults during the recording: %s; %d readings refused (%d by the driver, "
@@ -161,8 +408,38 @@ def record(grabber, robot, out: str, *, seconds: float | None = None, max_frames
                     stats.skipped_joint_samples, last or "-", out, EVENTS_FILE)
     _check_frames(grabber, out, stats, f"{stats.joint_samples} joint readings")
     if stats.frames and not stats.joint_samples:
-        raise DeviceError(_no_joints_message(robot.url.raw, out, stats, delivered, refused, last))
+        raise DeviceError(_no_joints_message(robot.url.raw, out, stats, robot.readings_delivered, refused, last))
+    check_pose_coverage("record", stats.pose_coverage, f"the recording is kept at {out}", stats=stats,
+                        problem=recorder.watch.last_problem.get(recorder.device_name, ""))
     return stats
+
+
+def _record_loop(recorder: "SessionRecorder", grabber, device, stats: RecordStats, bar, seconds: float | None,
+                 max_frames: int | None) -> None:
+    """``record``'s and ``record_tracked``'s loop: each frame with the pose samples read before it, until the
+    grabber ends, ``seconds`` of capture, ``max_frames`` or Ctrl-C; the recorder is closed in every case."""
+    with recorder, bar:
+        first_t = None
+        try:
+            while True:
+                frame = grabber.read(timeout_s=GRABBER_READ_TIMEOUT_S)
+                if frame is None:
+                    break
+                recorder.add_joints(device.read(timeout_s=0.0))
+                recorder.add_frame(frame)
+                first_t = frame.t_ns if first_t is None else first_t
+                stats.capture_span_s = (frame.t_ns - first_t) * 1e-9
+                bar.update(1)
+                if max_frames is not None and recorder.writer.n_queued >= max_frames:
+                    stats.stopped_by = "frame count"
+                    break
+                if seconds is not None and stats.capture_span_s >= seconds:
+                    stats.stopped_by = "duration"
+                    break
+            # the samples captured just after the last frame: without them it has no pose on replay
+            recorder.add_joints(device.read(timeout_s=FINAL_READING_WAIT_S))
+        except KeyboardInterrupt:
+            stats.stopped_by = "interrupted"
 
 
 # driver fault counters that stand for a reading received and refused (not one lost on the link)
@@ -227,75 +504,38 @@ def record_tracked(grabber, tracker, out: str, setup: TrackerSetup, *, seconds: 
                    progress: bool = True, with_truth: bool = True, rig: Rig | None = None) -> RecordStats:
     """Record frames and every tool's marker poses (``tracker``: an OPEN TrackerDriver; ``setup.tool`` is the
     scope's) into a marker_poses session, as ``record`` does a robot's joints: events.csv gets the tracker's
-    faults and health changes. A tracker that delivered no pose of the scope's tool is a DeviceError after the
-    session is closed (its frames are kept)."""
+    faults and health changes. A tracker that delivered no pose of the scope's tool, or whose scope poses ended
+    well before the frames did, is a DeviceError after the session is closed (its frames are kept)."""
     from tqdm import tqdm
 
     camera = camera or (rig.cameras[0] if rig is not None else None) or grabber.camera
     if camera is None:
         raise ConfigError(f"grabber '{grabber.url.raw}' does not know its lens; pass --camera camera.yaml "
                           f"(from 'lapreco calibrate lens')")
+    # (no tracker is part of a simulated world: a simulated grabber's truth is kept, as the tests that drive a
+    # tracker emulator from it rely on)
     truth = grabber.ground_truth if with_truth else None
     meta = tracked_session_meta(grabber, camera, setup, source, rig)
     stats = RecordStats(0, 0, 0, 0.0, 0.0, "end of source")
     bar = tqdm(total=max_frames, desc=f"record {out}", unit="frame", file=sys.stderr, disable=not progress)
     wall0 = time.perf_counter()
-    tracker_name, grabber_name = f"tracker {tracker.url.raw}", f"grabber {grabber.url.raw}"
-    seen_tools: collections.Counter[str] = collections.Counter()
-
-    def take(samples) -> None:
-        seen_tools.update(s.tool for s in samples)
-        stats.skipped_joint_samples += writer.add_marker_samples(samples)
-
-    with SessionWriter(out, meta) as writer, bar:
-        if truth is not None and truth.surface is not None:
-            writer.set_truth_surface(truth.surface)
-        watch = DeviceWatch(writer, {tracker_name: tracker, grabber_name: grabber})
-        first_t = last_t = None
-        try:
-            while True:
-                frame = grabber.read(timeout_s=GRABBER_READ_TIMEOUT_S)
-                if frame is None:
-                    break
-                take(tracker.read(timeout_s=0.0))
-                writer.add_frame(frame)
-                if truth is not None and truth.camera_pose is not None:
-                    writer.add_true_pose(frame.t_ns, truth.camera_pose(frame.t_ns))
-                first_t = frame.t_ns if first_t is None else first_t
-                last_t = frame.t_ns
-                stats.capture_span_s = (frame.t_ns - first_t) * 1e-9
-                watch.check(frame.t_ns)
-                bar.update(1)
-                if max_frames is not None and writer.n_queued >= max_frames:
-                    stats.stopped_by = "frame count"
-                    break
-                if seconds is not None and stats.capture_span_s >= seconds:
-                    stats.stopped_by = "duration"
-                    break
-            take(tracker.read(timeout_s=FINAL_READING_WAIT_S))  # the poses just after the last frame
-        except KeyboardInterrupt:
-            stats.stopped_by = "interrupted"
-        if last_t is not None:
-            watch.check(last_t)
-        stats.tracker_faults = {k: int(v) for k, v in dict(tracker.faults).items() if v}
-        writer.set_health({"tracker_faults": stats.tracker_faults, "marker_samples_by_tool": dict(seen_tools),
-                           "marker_samples_not_recorded": stats.skipped_joint_samples,
-                           "last_tracker_problem": watch.last_problem.get(tracker_name, ""),
-                           "events": writer.n_events})
-    stats.frames, stats.marker_samples = writer.n_frames, writer.n_markers
-    stats.scope_samples, stats.events = seen_tools.get(setup.tool, 0), writer.n_events
+    recorder = SessionRecorder(out, meta, grabber, tracker, truth=truth)
+    _record_loop(recorder, grabber, tracker, stats, bar, seconds, max_frames)
     stats.wall_s = time.perf_counter() - wall0
+    recorder.fill(stats)
     if stats.tracker_faults:
         log.warning("record: tracker %s: faults during the recording: %s (each one in %s/%s)", tracker.url.raw,
                     ", ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())), out, EVENTS_FILE)
     _check_frames(grabber, out, stats, f"{stats.marker_samples} marker poses")
     if stats.frames and not stats.scope_samples:
         faults = "; ".join(f"{k} {v}" for k, v in sorted(stats.tracker_faults.items())) or "no faults counted"
-        others = ", ".join(f"{t} {n}" for t, n in sorted(seen_tools.items())) or "none"
+        others = ", ".join(f"{t} {n}" for t, n in sorted(recorder.seen_tools.items())) or "none"
         raise DeviceError(f"record: tracker '{tracker.url.raw}' delivered no pose of the scope's tool "
                           f"'{setup.tool}' during {stats.frames} frames (poses of other tools: {others}; {faults}); "
                           f"the frames are saved in {out}, but a replay needs the scope's poses; next: check the "
                           f"marker is in view with 'lapreco devices --probe {tracker.url.raw}'")
+    check_pose_coverage("record", stats.pose_coverage, f"the recording is kept at {out}", stats=stats,
+                        problem=recorder.watch.last_problem.get(recorder.device_name, ""))
     return stats
 
 

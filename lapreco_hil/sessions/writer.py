@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import csv
+from array import array
 import json
 import os
 import shutil
@@ -77,6 +78,9 @@ class SessionWriter:
         self.n_markers = 0
         self._last_marker_t: dict[str, int] = {}  # tool -> its last recorded time
         self.last_skipped_joints = ""  # why the last joint sample was not recorded (names the joint and value)
+        # capture times of the recorded samples that place the camera (joint readings, or the scope tool's marker
+        # poses): what a replay's poses come from, for the recording's pose coverage (sessions/recorder.py)
+        self.pose_times = array("q")
         self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
         _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json(self.folder))
         self._tables = {"frames": self._open_table(fmt.FRAMES_FILE, fmt.FRAME_COLUMNS[self.version])}
@@ -193,6 +197,7 @@ class SessionWriter:
                 continue
             fh.write(f"{s.seq},{s.t_ns}," + ",".join(f"{v:.9g}" for v in q / scale) + "\n")
             self._last_joint_t = s.t_ns
+            self.pose_times.append(int(s.t_ns))
             self.n_joints += 1
         return skipped
 
@@ -229,6 +234,8 @@ class SessionWriter:
                      + f",{float(s.rms_mm):.6g},{int(bool(s.in_volume))}\n")
             self._last_marker_t[s.tool] = s.t_ns
             self.n_markers += 1
+            if s.tool == self.meta.tracker.tool:
+                self.pose_times.append(int(s.t_ns))
         return skipped
 
     def add_joints(self, samples: list) -> int:
@@ -257,6 +264,7 @@ class SessionWriter:
         self._tables["poses"].write(self._pose_row(t_ns, T_world_camera))
         self._last_pose_t = t_ns
         self.n_poses += 1
+        self.pose_times.append(int(t_ns))
 
     def add_true_pose(self, t_ns: int, T_world_camera: np.ndarray) -> None:
         if "truth" not in self._tables:
