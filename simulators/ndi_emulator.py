@@ -27,7 +27,10 @@ The emulator reads the pty's line speed (set by the driver through termios) and 
 other than its own, as a UART would see them: garbage.
 
 Faults on demand (``emulator.faults``): replies corrupted after their CRC was computed, every tool MISSING, a
-silent line, and ``disconnect()`` / ``reconnect()`` (the cable pulled and plugged back in).
+silent line, ``disconnect()`` / ``reconnect()`` (the cable pulled and plugged back in), and ``power_blip()``:
+the device resets by itself in the middle of a session, as after a power blip (back at 9600 baud, neither
+initialised nor tracking, a fresh handle table, ``RESET`` sent unasked, or nothing with ``announce=False``: a
+RESET sent at 9600 that a host at its session's rate reads as garbage).
 """
 
 from __future__ import annotations
@@ -106,6 +109,8 @@ class NDITrackerEmulator(PtyEmulator):
         self.initialised = start_tracking
         self.wired = list(wired)
         self._uploads: dict[int, bytearray] = {}
+        self._blip: bool | None = None  # a power blip to apply in the serving thread (True: announce it)
+        self.blips = 0  # power blips applied
         self.handles: dict[int, _Handle] = {}
         self._fresh_handles()
         for tool in self.handles.values():  # a previous session left them enabled, tracking
@@ -123,10 +128,35 @@ class NDITrackerEmulator(PtyEmulator):
         """The handle table of a device just brought up: the wired tools' handles, no passive ones."""
         self.handles = {0x0A + i: _Handle(pose_at, True) for i, pose_at in enumerate(self.wired)}
 
+    def power_blip(self, announce: bool = True, wait_s: float = 1.0) -> None:
+        """The device resets by itself, between two commands (applied by the serving thread, within ``wait_s``):
+        back at 9600 baud, not initialised, not tracking, a fresh handle table (uploaded .roms gone); it sends
+        ``RESET`` unasked when ``announce`` (the bytes reach the host whatever its rate: a pty carries no line
+        speed), else says nothing."""
+        blips = self.blips
+        self._blip = announce
+        deadline = time.monotonic() + wait_s
+        while self.blips == blips and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+    def _apply_blip(self, master: int) -> None:
+        announce, self._blip = self._blip, None
+        self.tracking = False
+        self.initialised = False
+        self._fresh_handles()
+        self.baud = 9600
+        self.command_log.append("(power blip)")
+        self.blips += 1
+        if announce:
+            self._text(master, "RESET")
+
     # --- serving ----------------------------------------------------------------------------------------------
     def _serve(self, master: int) -> None:
         buf = bytearray()
         while not self._stop.is_set():
+            if self._blip is not None:
+                self._apply_blip(master)
+                buf.clear()  # a command half received is lost with the reset
             try:
                 ready, _, _ = select.select([master], [], [], 0.05)
                 if not ready:

@@ -24,6 +24,13 @@ device's latency and the transfer are left in, for a time-offset fit to absorb.
 A reply with a bad CRC is a counted fault (``crc_errors``), never a pose; ``MISSING`` tools and out-of-volume
 poses are counted (``missing``, ``out_of_volume``) and mark the tracker degraded while they last; a repeated
 frame number (polled faster than the device measures) is not delivered twice.
+
+A tracker that resets in the middle of a session (a power blip: it is back at 9600 baud, not initialised, not
+tracking, its handles gone) is brought up again: a ``RESET`` seen on the line (``device_resets``; the same for
+``ERROR0C``, not tracking, in answer to a poll) goes straight to the full bring-up at 9600, and replies lost in a
+row for ``lost_for_s`` (``unanswered``: a RESET sent at 9600 reads as garbage at the session's rate, or is lost)
+reconnect as a new session does (the break, then the RESET-less path). Passive tools' .rom files are uploaded
+again; the port stays open meanwhile, so health reads stale (not disconnected) until poses come again.
 """
 
 from __future__ import annotations
@@ -38,10 +45,11 @@ from pathlib import Path
 from lapreco_hil.drivers.device import Discovery, FoundDevice
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.tracker.base import TrackerDriver
-from lapreco_hil.drivers.tracker.ndi_protocol import (BX_START, HANDLE_MISSING, HANDLE_VALID, REPLY_OUT_OF_VOLUME,
-                                                      REPLY_TRANSFORMS, NDIReplyError, ReplyCRCError, TrackingReply,
-                                                      bx_header, check_text_reply, command_bytes, parse_bx,
-                                                      parse_tx, pose_matrix)
+from lapreco_hil.drivers.tracker.ndi_protocol import (BX_START, ERROR_NOT_TRACKING, HANDLE_MISSING, HANDLE_VALID,
+                                                      REPLY_OUT_OF_VOLUME, REPLY_TRANSFORMS, RESET_REPLY,
+                                                      NDIReplyError, ReplyCRCError, TrackerResetError,
+                                                      TrackingReply, bx_header, check_text_reply, command_bytes,
+                                                      parse_bx, parse_tx, pose_matrix)
 from lapreco_hil.errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
                                 ProtocolError)
 from lapreco_hil.registry import URLConfig, url_param
@@ -90,6 +98,10 @@ def serial_ports() -> list[str]:
 
 class NDITracker(TrackerDriver):
     reconnect_interval_s = 0.5
+    # replies lost in a row (timeouts, CRC errors, garbled replies) for this long, and at least lost_replies_min
+    # of them, mean the device is not the one this session set up (reset, power blip): it is brought up again
+    lost_for_s = 1.0
+    lost_replies_min = 2
     stale_after_periods = 3.0
     degraded_after_periods = 10.0
     degraded_min_s = 0.25
@@ -124,6 +136,8 @@ class NDITracker(TrackerDriver):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self._connected = False
+        self._recovering = False  # not connected, the port fine: the device is being brought up again
+        self._after_reset = False  # the next bring-up follows a RESET the device sent: no break, straight to INIT
         self._faults: collections.Counter[str] = collections.Counter()
         self._faults_lock = threading.Lock()
         self._last_frame: dict[int, int] = {}
@@ -146,7 +160,8 @@ class NDITracker(TrackerDriver):
     @property
     def faults(self) -> collections.Counter[str]:
         """Counts per fault kind: missing, out_of_volume, crc_errors, timeouts, errors, disconnects,
-        reconnects, non_increasing_stamps."""
+        reconnects, non_increasing_stamps, device_resets (RESET or ERROR0C: the device lost its set-up),
+        unanswered (replies lost in a row for ``lost_for_s``: brought up again)."""
         with self._faults_lock:
             return collections.Counter(self._faults)
 
@@ -185,14 +200,18 @@ class NDITracker(TrackerDriver):
             ser.write(command_bytes(f"TX:{option:04X}"))
             raw = self._read_line(None)
             t_ns = self._clock()
-            return parse_tx(check_text_reply(raw, f"{self.device_name}: TX")), t_ns
+            text = check_text_reply(raw, f"{self.device_name}: TX")
+            if text == "RESET":
+                raise TrackerResetError(f"{self.device_name}: the tracker sent RESET instead of a TX reply")
+            return parse_tx(text), t_ns
         ser.write(command_bytes(f"BX:{option:04X}"))
         start = ser.read(2)
         if len(start) < 2:
             raise DeviceTimeoutError(f"{self.device_name}: no BX reply within {ser.timeout:.2g} s")
-        if start != BX_START:  # a text reply (ERRORxx) or garbage
+        if start != BX_START:  # a text reply (ERRORxx, RESET) or garbage
             raw = self._read_line(None, start)
-            check_text_reply(raw, f"{self.device_name}: BX")
+            if check_text_reply(raw, f"{self.device_name}: BX") == "RESET":
+                raise TrackerResetError(f"{self.device_name}: the tracker sent RESET instead of a BX reply")
             raise ProtocolError(f"{self.device_name}: BX answered with text {raw[:40]!r}")
         header = start + ser.read(4)
         if len(header) < 6:
@@ -207,6 +226,14 @@ class NDITracker(TrackerDriver):
         if len(rest) < length + 2:
             raise DeviceTimeoutError(f"{self.device_name}: BX reply cut short ({len(rest)} of {length + 2} bytes)")
         return parse_bx(header + rest), t_ns
+
+    def _check_unasked(self) -> None:
+        """Bytes the device sent since the last reply, unasked, are read before the next poll drops them: a
+        RESET among them (a device that reset between two polls) raises TrackerResetError."""
+        ser = self._ser
+        waiting = ser.in_waiting
+        if waiting and RESET_REPLY[:-1] in ser.read(waiting):
+            raise TrackerResetError(f"{self.device_name}: the tracker sent RESET between two polls")
 
     def _drain(self) -> None:
         """After a broken header: let the rest of the reply arrive and drop it."""
@@ -266,14 +293,20 @@ class NDITracker(TrackerDriver):
                                   f"RESET came after the serial break; check the tracker's power and cable, and the "
                                   f"port")
 
-    def _connect(self) -> None:
+    def _connect(self, after_reset: bool = False) -> None:
+        """Open the port and bring the device up. ``after_reset``: it has just sent RESET by itself (it is at
+        9600, fresh): no break and no search, straight to the full bring-up."""
         import termios
 
         import serial
 
-        self._ser = self._open_port()
         try:
-            self.reset_seen = self._wait_for_reset()
+            self._ser = self._open_port()
+        except DeviceNotFoundError:
+            self._recovering = False  # the port itself is gone: disconnected, not a device being brought up
+            raise
+        try:
+            self.reset_seen = after_reset or self._wait_for_reset()
             if not self.reset_seen:
                 log.info("%s: no RESET after the serial break; taking the device on where it is", self.device_name)
                 self._find_device()
@@ -420,27 +453,52 @@ class NDITracker(TrackerDriver):
 
         period = 1.0 / self.rate_hz
         next_t = time.monotonic()
+        lost, last_reply = 0, next_t  # replies lost in a row; when the last one came
         try:
             while not self._stop.is_set():
                 if not self._connected:
                     self._reconnect()
-                    next_t = time.monotonic()
+                    next_t = last_reply = time.monotonic()
+                    lost = 0
                     continue
                 try:
+                    self._check_unasked()
                     reply, t_ns = self._poll_reply()
                     self._accept(reply, t_ns)
+                    lost, last_reply = 0, time.monotonic()
+                except TrackerResetError as exc:
+                    self._bring_up_again("device_resets", f"{exc}: it reset (a power blip?); bringing it up "
+                                                          f"again", after_reset=True)
+                    continue
                 except DeviceTimeoutError as exc:
                     self._note_lost("timeouts", str(exc))
+                    lost += 1
                 except ReplyCRCError as exc:
                     self._note_lost("crc_errors", str(exc))
+                    lost += 1
+                except NDIReplyError as exc:
+                    if exc.code == ERROR_NOT_TRACKING:  # the device left tracking by itself: a reset
+                        self._bring_up_again("device_resets", f"{exc}: it is not tracking any more (reset?); "
+                                                              f"bringing it up again")
+                        continue
+                    self._note_lost("errors", str(exc))
+                    lost += 1
                 except ProtocolError as exc:
                     self._note_lost("errors", str(exc))
+                    lost += 1
                 except (serial.SerialException, OSError, termios.error) as exc:
                     self._count("disconnects")
                     self._last_fault = f"{self.device_name}: lost ({exc}); reconnecting"
                     log.warning("%s", self._last_fault)
                     self._connected = False
+                    self._recovering = False
                     self._close_port()
+                    continue
+                silent_s = time.monotonic() - last_reply
+                if lost >= self.lost_replies_min and silent_s >= self.lost_for_s:
+                    self._bring_up_again("unanswered", f"{self.device_name}: {lost} replies lost in a row over "
+                                                       f"{silent_s:.1f} s (last: {self._last_error}); bringing "
+                                                       f"the tracker up again (a reset puts it back at 9600 baud)")
                     continue
                 next_t += period
                 delay = next_t - time.monotonic()
@@ -452,15 +510,29 @@ class NDITracker(TrackerDriver):
             self._error = exc
             log.error("%s: reader thread failed: %s", self.device_name, exc)
 
+    def _bring_up_again(self, kind: str, message: str, after_reset: bool = False) -> None:
+        """The device no longer tracks for this session (it reset, or stopped answering): counted, then the
+        reader thread reconnects through the full bring-up; the port itself is fine, so health reads stale."""
+        self._count(kind)
+        self._last_fault = self._last_error = message
+        self._last_error_wall = time.monotonic()
+        log.warning("%s", message)
+        self._connected = False
+        self._recovering = True
+        self._after_reset = after_reset
+        self._close_port()
+
     def _reconnect(self) -> None:
         if self._stop.wait(self.reconnect_interval_s):
             return
+        after_reset, self._after_reset = self._after_reset, False  # a second try takes the usual path
         try:
-            self._connect()
+            self._connect(after_reset)
         except DeviceError as exc:
             self._last_fault = str(exc)
             return
         self._connected = True
+        self._recovering = False
         self._count("reconnects")
         log.warning("%s reconnected", self.device_name)
 
@@ -521,10 +593,13 @@ class NDITracker(TrackerDriver):
             return Health(HealthState.FAULTED, f"reader thread failed: {self._error}", self._clock())
         if self._thread is None:
             return Health(HealthState.DISCONNECTED, "not open", self._clock())
-        if not self._connected:
-            return Health(HealthState.DISCONNECTED, self._last_fault or "reconnecting", self._clock())
         with self._cond:
             last, trouble, last_reply = self._last_pose_wall, dict(self._tool_trouble), self._last_reply_wall
+        if not self._connected:
+            if self._recovering:  # the port is there; the device is being brought up again
+                silent = "no pose yet" if last == 0.0 else f"no pose for {(now - last) * 1e3:.0f} ms"
+                return Health(HealthState.STALE, f"{silent} ({self._last_fault})", self._clock())
+            return Health(HealthState.DISCONNECTED, self._last_fault or "reconnecting", self._clock())
         fresh = self.stale_after_periods / self.rate_hz
         if trouble and now - last_reply <= fresh:  # the device answers; a tool is not seen (well)
             silent = "" if now - last <= fresh else f" (no pose for {(now - last) * 1e3:.0f} ms)"

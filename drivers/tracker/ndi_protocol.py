@@ -37,6 +37,7 @@ REPLY_TRANSFORMS, REPLY_OUT_OF_VOLUME = 0x0001, 0x0800
 MAX_BX_BODY = 8192
 ERROR_CODES = {0x01: "unknown command", 0x04: "bad CRC in the command", 0x0C: "not tracking",
                0x2B: "bad port handle"}
+ERROR_NOT_TRACKING = 0x0C
 
 
 class ReplyCRCError(ProtocolError):
@@ -49,6 +50,11 @@ class NDIReplyError(ProtocolError):
     def __init__(self, message: str, code: int) -> None:
         super().__init__(message)
         self.code = code
+
+
+class TrackerResetError(ProtocolError):
+    """The device said ``RESET`` unasked (a power blip, a watchdog): it is back at 9600 baud, neither initialised
+    nor tracking, with a fresh handle table; only a full bring-up gets it going again."""
 
 
 def _crc16_arc_table() -> tuple[int, ...]:
@@ -70,6 +76,10 @@ def crc16_arc(data: bytes) -> int:
     for byte in data:
         crc = (crc >> 8) ^ _TABLE[(crc ^ byte) & 0xFF]
     return crc
+
+
+# what a device sends when it comes out of a reset (a break, a power blip): RESET, its CRC, CR
+RESET_REPLY = b"RESET" + f"{crc16_arc(b'RESET'):04X}".encode("ascii") + CR
 
 
 def command_bytes(command: str) -> bytes:
