@@ -68,7 +68,7 @@ def add_parser(sub) -> None:
     dxl = kinds.add_parser("dynamixel", help="X-series servos on a pseudo-terminal (Protocol 2.0)")
     dxl.add_argument("--ids", type=_ids("Dynamixel Protocol 2.0"), default=(1, 2, 3, 4),
                      help="servo IDs in joint order, e.g. 1,2,3,4 or 1-4 (default: 1-4)")
-    dxl.add_argument("--baud", type=int, default=1_000_000,
+    dxl.add_argument("--baud", type=integer(ge=1), default=1_000_000,
                      help="the servos' baud rate; a host at any other rate gets no answer (default: 1000000; "
                           "X-series factory setting: 57600)")
     dxl.add_argument("--model", default="ecm", help="robot model (packaged name or URDF): its joints (default: ecm)")
@@ -97,8 +97,8 @@ def add_parser(sub) -> None:
     ndi.add_argument("--wired", type=integer(ge=0, le=16), default=1, help="wired tools, handles 0A, 0B, ... (default: 1)")
     ndi.add_argument("--passive", type=integer(ge=0, le=9), default=0, help="passive tools, each loaded from a .rom (default: 0)")
     ndi.add_argument("--frame-rate", type=positive, default=60.0, help="measurements per second (default: 60)")
-    ndi.add_argument("--baud", type=int, default=921600, help="the rate put in the printed URL (default: 921600)")
-    ndi.add_argument("--start-baud", type=int, default=9600,
+    ndi.add_argument("--baud", type=integer(ge=1), default=921600, help="the rate put in the printed URL (default: 921600)")
+    ndi.add_argument("--start-baud", type=integer(ge=1), default=9600,
                      help="the rate the device is at when it starts (default: 9600, as after a reset)")
     ndi.add_argument("--start-tracking", action="store_true",
                      help="start in tracking mode, as a device a previous session left")
