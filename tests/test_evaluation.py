@@ -52,7 +52,7 @@ def test_evaluate_command_and_its_errors(skull, tmp_path, capsys, warp_cpu):
              tracker="opencv", progress=False)
     assert main(["evaluate", str(tmp_path / "run"), "--truth", str(truth), "--json", str(tmp_path / "e.json")]) == 0
     ev = json.loads((tmp_path / "e.json").read_text())
-    assert ev["icp"]["rms_mm"] < 3.0 and 0.97 < ev["icp"]["scale"] < 1.03
+    assert ev["icp"]["rms_mm"] < 3.0 and 0.97 < ev["similarity"]["scale"] < 1.03 and not ev["warnings"]
     assert 0 < ev["coverage"]["covered_fraction"] <= 1
     assert main(["evaluate", str(tmp_path), "--truth", str(truth)]) == 2
     assert "points.ply: missing" in capsys.readouterr().err

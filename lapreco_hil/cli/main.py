@@ -120,10 +120,14 @@ def build_parser() -> ArgumentParser:
     rep.add_argument("--no-progress", action="store_true", help="no progress bar")
     rep.set_defaults(func=_cmd_replay)
 
-    ev = sub.add_parser("evaluate", help="ICP of a run's points to a ground-truth surface: RMS, scale, coverage")
+    ev = sub.add_parser("evaluate", help="a run's points against a ground-truth surface: RMS unaligned and after "
+                                         "rigid ICP, the scale similarity ICP would need, coverage")
     ev.add_argument("outdir", help="a run's output folder (points.ply, trajectory.tum, report.json)")
-    ev.add_argument("--truth", required=True, help="ground-truth surface mesh in the world frame, metres (PLY, "
-                                                   "OBJ, STL, VTK)")
+    ev.add_argument("--truth", required=True, help="ground-truth surface mesh in the world frame (PLY, OBJ, STL, "
+                                                   "VTK), or a session folder (its truth/surface.ply)")
+    ev.add_argument("--truth-unit", choices=("m", "mm"), default=None,
+                    help="the mesh's length unit (default: a session's truth in its session.json's unit, any other "
+                         "mesh in metres)")
     ev.add_argument("--coverage-mm", type=positive, default=3.0, help="coverage radius, > 0 (default 3 mm)")
     ev.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ev.set_defaults(func=_cmd_evaluate)
@@ -344,13 +348,19 @@ def _cmd_bench_dense(args) -> int:
 def _cmd_evaluate(args) -> int:
     from lapreco_hil.app.evaluate import evaluate
 
-    result = evaluate(args.outdir, args.truth, args.coverage_mm)
-    icp = result["icp"]
-    cov = result.get("coverage", {}).get("covered_fraction")
-    print(f"lapreco evaluate: {result['points']} points; after similarity ICP RMS {icp['rms_mm']:.3f} mm, median "
-          f"{icp['median_mm']:.3f} mm, p95 {icp['p95_mm']:.3f} mm, scale {icp['scale']:.4f}; coverage "
-          f"{'n/a' if cov is None else f'{cov:.0%}'} of the visible true surface within {args.coverage_mm:g} mm; "
-          f"before alignment RMS {result['unaligned']['rms_mm']:.3f} mm")
+    result = evaluate(args.outdir, args.truth, args.coverage_mm, args.truth_unit)
+    raw, icp, sim, cov = result["unaligned"], result["icp"], result["similarity"], result["coverage"]
+    flat = result["relief"]["flat"]
+    covered = cov["covered_fraction"]
+    coverage = (f"{covered:.0%} of the visible true surface within {args.coverage_mm:g} mm" if covered is not None
+                else f"n/a: {cov['why']}")
+    print(f"lapreco evaluate: {result['points']} points; before alignment RMS {raw['rms_mm']:.3f} mm, median "
+          f"{raw['median_mm']:.3f} mm, p95 {raw['p95_mm']:.3f} mm; after rigid ICP (scale fixed at 1) RMS "
+          f"{icp['rms_mm']:.3f} mm, median {icp['median_mm']:.3f} mm, p95 {icp['p95_mm']:.3f} mm (moved "
+          f"{icp['rotation_deg']:.2f} deg, {icp['translation_mm']:.2f} mm{'; not pinned: flat truth' if flat else ''})"
+          f"; coverage {coverage}")
+    print(f"lapreco evaluate: similarity ICP (an extra, not the accuracy: the scale the map would need) scale "
+          f"{sim['scale']:.4f}, RMS {sim['rms_mm']:.3f} mm{' (meaningless on a flat truth)' if flat else ''}")
     surface = result.get("surface")
     if surface and "dense" in surface:
         sp, de = surface["sparse"], surface["dense"]
