@@ -62,7 +62,7 @@ def _f(v, fmt: str = "{:.2f}") -> str:
 def format_markdown(result: dict) -> str:
     lines = [f"Session: `{result['session']}`", "",
              "| variant (ran on) | inliers (Fig 3) | seed: skull / uterus | tracking ms/frame mean / p95 (Fig 5) "
-             "| ICP RMS mm (Fig 6b) | seed: skull | ICP scale | coverage | camera mm raw -> refined "
+             "| rigid ICP RMS mm (Fig 6b) | seed: skull | similarity ICP scale | coverage | camera mm raw -> refined "
              "| coverage 1 mm sparse / dense | dense RMS mm |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["variants"]:
