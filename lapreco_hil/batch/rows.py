@@ -26,7 +26,7 @@ class SessionRow:
     frames_in: int | None = None
     inliers: int | None = None
     rms_mm: float | None = None  # inlier points to the true surface, RMS (no alignment)
-    icp_rms_mm: float | None = None  # after similarity ICP (lapreco evaluate)
+    icp_rms_mm: float | None = None  # after rigid ICP, scale 1 (lapreco evaluate)
     coverage: float | None = None  # share of the visible true surface covered (0..1)
     camera_raw_mm: float | None = None  # camera position RMS of the raw pose source
     camera_mm: float | None = None  # camera position RMS after bundle adjustment
