@@ -16,6 +16,9 @@ as a servo's UART would (framing errors, never a packet): a host at the wrong ba
 Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
 replies, late replies, a silent bus, a servo's hardware-error alert, a joint reading out of its limits,
 and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
+
+``reply_order``: the servos answer a Sync Read in the order of the instruction's ID list (``"request"``, as the
+e-manual has it) or, as some chains do, by ascending or descending ID (``"ascending"``, ``"descending"``).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
 INST_PING, INST_READ, INST_WRITE, INST_SYNC_READ, INST_STATUS = 0x01, 0x02, 0x03, 0x82, 0x55
 BROADCAST = 0xFE
 ERR_INSTRUCTION, ERR_DATA_RANGE, ERR_ALERT = 0x02, 0x04, 0x80
+REPLY_ORDERS = ("request", "ascending", "descending")
 MODEL_XM430_W350 = 1020
 TABLE_SIZE = 147
 
@@ -69,14 +73,19 @@ class DynamixelFaults:
 
 class DynamixelChainEmulator(PtyEmulator):
     def __init__(self, ids: list[int], joint_map: JointMap | None = None, joints_at=None, clock_ns=time.monotonic_ns,
-                 link_dir: str | None = None, seed: int = 0, ticks_at=None, baud: int = 1_000_000) -> None:
+                 link_dir: str | None = None, seed: int = 0, ticks_at=None, baud: int = 1_000_000,
+                 reply_order: str = "request") -> None:
         """``joint_map`` + ``joints_at(t_ns) -> SI joints``, or ``ticks_at(t_ns) -> raw Present Position ticks``;
-        ``baud``: the servos' Baud Rate setting (a host at another rate is not understood)."""
+        ``baud``: the servos' Baud Rate setting (a host at another rate is not understood); ``reply_order``: how
+        the servos order their status packets after a Sync Read (REPLY_ORDERS)."""
         from dynamixel_sdk import PacketHandler
 
         if (ticks_at is None) == (joint_map is None or joints_at is None):
             raise ValueError("give joint_map and joints_at, or ticks_at")
+        if reply_order not in REPLY_ORDERS:
+            raise ValueError(f"reply_order must be one of {', '.join(REPLY_ORDERS)}, got {reply_order!r}")
         self.ids = list(ids)
+        self.reply_order = reply_order
         self.joint_map = joint_map
         self.joints_at = joints_at
         self.ticks_at = ticks_at or (lambda t_ns: joint_map.to_counts(joints_at(t_ns)))
@@ -156,9 +165,11 @@ class DynamixelChainEmulator(PtyEmulator):
             self._reply_block(master, dxl_id, addr, n, t_ns)
         elif inst == INST_SYNC_READ and dxl_id == BROADCAST and len(params) >= 5:
             addr, n = params[0] | (params[1] << 8), params[2] | (params[3] << 8)
-            for i in params[4:]:  # each servo answers in the order the master listed them
-                if i in self.ids:
-                    self._reply_block(master, i, addr, n, t_ns)
+            listed = [i for i in params[4:] if i in self.ids]  # by default in the order the master listed them
+            if self.reply_order != "request":
+                listed.sort(reverse=self.reply_order == "descending")
+            for i in listed:
+                self._reply_block(master, i, addr, n, t_ns)
         elif inst == INST_WRITE and dxl_id in self.ids:
             self._reply(master, dxl_id, 0, b"")  # acknowledged; this robot is read-only and never moves
         elif dxl_id in self.ids:

@@ -6,9 +6,11 @@
 joint positions with the X-series convention, 2048 ticks = 0 rad (see ``joint_map``).
 
 Each poll is one Sync Read of the block 120..135 of every servo (Realtime Tick, current, velocity, Present
-Position), servo IDs in joint order. A reading is stamped at the middle of the request/reply exchange on the
-injected clock (the servos sample their encoders when they build the reply). A reply with the error byte's
-alert bit set marks the robot faulted until replies come back clean.
+Position), servo IDs in joint order. The status packets are taken in whatever order they come, each by its ID
+(the e-manual has servos answer in the instruction's order, but a chain that answers otherwise loses nothing).
+A reading is stamped at the middle of the request/reply exchange on the injected clock (the servos sample their
+encoders when they build the reply). A reply with the error byte's alert bit set marks the robot faulted until
+replies come back clean.
 """
 
 from __future__ import annotations
@@ -140,7 +142,7 @@ class DynamixelRobot(PollingRobotDriver):
         import termios
 
         import serial
-        from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS
+        from dynamixel_sdk import COMM_SUCCESS
 
         port, packets = self._port, self._packets
         counts = np.empty(len(self.ids), np.int64)
@@ -151,12 +153,9 @@ class DynamixelRobot(PollingRobotDriver):
             result = packets.syncReadTx(port, BLOCK_START, BLOCK_LEN, self.ids, len(self.ids), False)
             if result != COMM_SUCCESS:
                 raise ProtocolError(f"{self.device_name}: Sync Read not sent ({packets.getTxRxResult(result)})")
+            replies = self._sync_read_replies(port, packets)
             for j, dxl_id in enumerate(self.ids):
-                data, result, error = packets.readRx(port, dxl_id, BLOCK_LEN)
-                if result == COMM_RX_TIMEOUT:
-                    raise DeviceTimeoutError(f"{self.device_name}: servo ID {dxl_id} did not answer the Sync Read")
-                if result != COMM_SUCCESS:
-                    raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {packets.getTxRxResult(result)}")
+                error, data = replies[dxl_id]
                 if error & ALERT_BIT:
                     self.set_device_fault(f"servo {dxl_id}", "hardware error alert (see Hardware Error Status, "
                                                              "address 70)")
@@ -174,3 +173,25 @@ class DynamixelRobot(PollingRobotDriver):
         finally:
             port.is_using = False
         return counts, (t0 + t1) // 2
+
+    def _sync_read_replies(self, port, packets) -> dict[int, tuple[int, list[int]]]:
+        """Every servo's status packet to the Sync Read just sent, in whatever order they come: servo ID ->
+        (error byte, data). The SDK's readRx(ID) would drop every packet before the one it waits for, so a
+        chain answering in another order than the instruction's list would lose them; here each is kept by its
+        ID (packets of IDs not asked for are skipped). Within the Sync Read's packet timeout, as readRx."""
+        from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS
+        from dynamixel_sdk.protocol2_packet_handler import PKT_ERROR, PKT_ID, PKT_PARAMETER0
+
+        replies: dict[int, tuple[int, list[int]]] = {}
+        while len(replies) < len(self.ids):
+            packet, result = packets.rxPacket(port, False)
+            if result != COMM_SUCCESS:
+                waiting = ", ".join(str(i) for i in self.ids if i not in replies)
+                if result == COMM_RX_TIMEOUT:
+                    raise DeviceTimeoutError(f"{self.device_name}: servo ID(s) {waiting} did not answer the Sync Read")
+                raise ProtocolError(f"{self.device_name}: servo ID(s) {waiting}: {packets.getTxRxResult(result)}")
+            dxl_id = packet[PKT_ID]
+            if dxl_id in self.ids and dxl_id not in replies:
+                replies[dxl_id] = (packet[PKT_ERROR],
+                                   packet[PKT_PARAMETER0 + 1:PKT_PARAMETER0 + 1 + BLOCK_LEN])
+        return replies
