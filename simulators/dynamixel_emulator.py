@@ -14,8 +14,9 @@ as a servo's UART would (framing errors, never a packet): a host at the wrong ba
 (``stats["wrong_baud_bytes"]`` counts what it sent).
 
 Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
-replies, late replies, a silent bus, a servo's hardware-error alert, a joint reading out of its limits,
-and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
+replies, late replies, a silent bus, a servo's hardware-error alert (the error byte's alert bit, and Hardware
+Error Status, address 70, with the bits ``hardware_error_status`` gives: overheating unless told), a joint
+reading out of its limits, and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
 
 ``reply_order``: the servos answer a Sync Read in the order of the instruction's ID list (``"request"``, as the
 e-manual has it) or, as some chains do, by ascending or descending ID (``"ascending"``, ``"descending"``).
@@ -42,6 +43,9 @@ HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
 INST_PING, INST_READ, INST_WRITE, INST_SYNC_READ, INST_STATUS = 0x01, 0x02, 0x03, 0x82, 0x55
 BROADCAST = 0xFE
 ERR_INSTRUCTION, ERR_DATA_RANGE, ERR_ALERT = 0x02, 0x04, 0x80
+HARDWARE_ERROR_STATUS = 70
+# Hardware Error Status bits (X-series): 0 input voltage, 2 overheating, 3 motor encoder, 4 electrical shock, 5 overload
+HW_INPUT_VOLTAGE, HW_OVERHEATING, HW_MOTOR_ENCODER, HW_ELECTRICAL_SHOCK, HW_OVERLOAD = 0x01, 0x04, 0x08, 0x10, 0x20
 REPLY_ORDERS = ("request", "ascending", "descending")
 MODEL_XM430_W350 = 1020
 TABLE_SIZE = 147
@@ -68,6 +72,8 @@ class DynamixelFaults:
     reply_delay_s: float = 0.0  # every reply is late by this much
     silent: bool = False  # no replies at all (cable cut on the data line)
     hardware_alert: set[int] = field(default_factory=set)  # servo IDs reporting a hardware error
+    # a servo's Hardware Error Status (address 70) while it reports the alert (absent: HW_OVERHEATING)
+    hardware_error_status: dict[int, int] = field(default_factory=dict)
     position_override: dict[int, int] = field(default_factory=dict)  # servo ID -> raw counts (e.g. off limits)
 
 
@@ -94,6 +100,7 @@ class DynamixelChainEmulator(PtyEmulator):
         self.baud = int(baud)
         self.stats = {"packets": 0, "bad_crc": 0, "replies": 0, "wrong_baud_bytes": 0}
         self.instructions: dict[int, int] = {}  # instruction code -> count received (safety tests read it)
+        self.reads: dict[tuple[int, int], int] = {}  # (servo ID, address) of a Read instruction -> count
         self._sdk = PacketHandler(2.0)  # its CRC and stuffing routines
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -162,6 +169,7 @@ class DynamixelChainEmulator(PtyEmulator):
                 self._reply(master, i, 0, bytes([MODEL_XM430_W350 & 0xFF, MODEL_XM430_W350 >> 8, 52]))
         elif inst == INST_READ and dxl_id in self.ids and len(params) == 4:
             addr, n = params[0] | (params[1] << 8), params[2] | (params[3] << 8)
+            self.reads[(dxl_id, addr)] = self.reads.get((dxl_id, addr), 0) + 1
             self._reply_block(master, dxl_id, addr, n, t_ns)
         elif inst == INST_SYNC_READ and dxl_id == BROADCAST and len(params) >= 5:
             addr, n = params[0] | (params[1] << 8), params[2] | (params[3] << 8)
@@ -184,7 +192,8 @@ class DynamixelChainEmulator(PtyEmulator):
         counts = int(self.ticks_at(t_ns)[j])
         counts = self.faults.position_override.get(dxl_id, counts)
         alert = dxl_id in self.faults.hardware_alert
-        table[70] = 0x04 if alert else 0  # Hardware Error Status: overheating
+        status = self.faults.hardware_error_status.get(dxl_id, HW_OVERHEATING)
+        table[HARDWARE_ERROR_STATUS] = status if alert else 0
         table[64] = 1  # Torque Enable
         tick = ((t_ns - self._tick0) // 1_000_000) % 32768
         table[120:122] = int(tick).to_bytes(2, "little")

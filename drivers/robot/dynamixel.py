@@ -9,8 +9,12 @@ Each poll is one Sync Read of the block 120..135 of every servo (Realtime Tick, 
 Position), servo IDs in joint order. The status packets are taken in whatever order they come, each by its ID
 (the e-manual has servos answer in the instruction's order, but a chain that answers otherwise loses nothing).
 A reading is stamped at the middle of the request/reply exchange on the injected clock (the servos sample their
-encoders when they build the reply). A reply with the error byte's alert bit set marks the robot faulted until
-replies come back clean.
+encoders when they build the reply).
+
+A status packet with the error byte's alert bit set marks the robot faulted until replies come back clean; at
+each servo's alert onset its Hardware Error Status (address 70) is read once and its bits named (input voltage,
+overheating, motor encoder, electrical shock, overload). With the motor-encoder bit set the positions are not
+trustworthy: the readings are refused (counted as ``refused_encoder_error``) until the alert clears.
 """
 
 from __future__ import annotations
@@ -33,7 +37,27 @@ BLOCK_START = 120  # Realtime Tick (2), Moving (1), Moving Status (1), PWM (2), 
 BLOCK_LEN = 16
 POSITION_OFFSET = 132 - BLOCK_START
 ALERT_BIT = 0x80
+HARDWARE_ERROR_STATUS = 70  # 1 byte
+HARDWARE_ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder", 0x10: "electrical shock",
+                       0x20: "overload"}
+HW_MOTOR_ENCODER = 0x08
+HW_STATUS_READ_TRIES = 3  # reads of address 70 per alert onset before its bits are given up as unknown
 X_SERIES_MODELS = {1020: "XM430-W350", 1030: "XM430-W210", 1060: "XL430-W250", 1120: "XM540-W270", 1000: "XH430-W350"}
+
+
+def hardware_error_text(status: int | None) -> str:
+    """A Hardware Error Status byte (address 70) in words; None: it could not be read."""
+    if status is None:
+        return "hardware error alert (Hardware Error Status, address 70, could not be read)"
+    names = [name for bit, name in HARDWARE_ERROR_BITS.items() if status & bit]
+    other = status & ~sum(HARDWARE_ERROR_BITS)
+    if other:
+        names.append(f"bits 0x{other:02X}")
+    text = (f"hardware error alert: Hardware Error Status (address 70) 0x{status:02X}: "
+            f"{', '.join(names) or 'no bit set'}")
+    if status & HW_MOTOR_ENCODER:
+        text += "; its positions are not trustworthy: readings refused"
+    return text
 
 
 def serial_ports() -> list[str]:
@@ -79,6 +103,11 @@ class DynamixelRobot(PollingRobotDriver):
         self._port = None
         self._packets = None
         self.models: dict[int, int] = {}
+        # per servo reporting the alert bit: its Hardware Error Status (None: unread after every try), and the
+        # reads tried; both forgotten when the alert clears, so the next onset is read again
+        self._hw_status: dict[int, int | None] = {}
+        self._hw_tries: dict[int, int] = {}
+        self._refuse = ""  # why the reading _poll just returned must not be delivered ("" : it may)
 
     @classmethod
     def discover(cls) -> Discovery:
@@ -146,6 +175,7 @@ class DynamixelRobot(PollingRobotDriver):
 
         port, packets = self._port, self._packets
         counts = np.empty(len(self.ids), np.int64)
+        self._refuse = ""
         try:
             port.ser.reset_input_buffer()  # a late reply from the last cycle must not pass for this one's
             port.is_using = False
@@ -154,12 +184,18 @@ class DynamixelRobot(PollingRobotDriver):
             if result != COMM_SUCCESS:
                 raise ProtocolError(f"{self.device_name}: Sync Read not sent ({packets.getTxRxResult(result)})")
             replies = self._sync_read_replies(port, packets)
+            t1 = self._clock()
+            refused = []
             for j, dxl_id in enumerate(self.ids):
                 error, data = replies[dxl_id]
                 if error & ALERT_BIT:
-                    self.set_device_fault(f"servo {dxl_id}", "hardware error alert (see Hardware Error Status, "
-                                                             "address 70)")
+                    status = self._hardware_error_status(port, packets, dxl_id)
+                    self.set_device_fault(f"servo {dxl_id}", hardware_error_text(status))
+                    if status is not None and status & HW_MOTOR_ENCODER:
+                        refused.append(f"servo {dxl_id}: motor encoder error (Hardware Error Status 0x{status:02X})")
                 else:
+                    self._hw_status.pop(dxl_id, None)
+                    self._hw_tries.pop(dxl_id, None)
                     self.set_device_fault(f"servo {dxl_id}", None)
                 if error & ~ALERT_BIT:
                     raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {packets.getRxPacketError(error)}")
@@ -167,7 +203,7 @@ class DynamixelRobot(PollingRobotDriver):
                     raise ProtocolError(f"{self.device_name}: servo ID {dxl_id}: {len(data)} data bytes, "
                                         f"expected {BLOCK_LEN}")
                 counts[j] = int.from_bytes(bytes(data[POSITION_OFFSET:POSITION_OFFSET + 4]), "little", signed=True)
-            t1 = self._clock()
+            self._refuse = "; ".join(refused)
         except (serial.SerialException, OSError, termios.error) as exc:
             raise DeviceDisconnectedError(f"{self.device_name}: lost ({exc}); reconnecting") from None
         finally:
@@ -195,3 +231,35 @@ class DynamixelRobot(PollingRobotDriver):
                 replies[dxl_id] = (packet[PKT_ERROR],
                                    packet[PKT_PARAMETER0 + 1:PKT_PARAMETER0 + 1 + BLOCK_LEN])
         return replies
+
+    def _hardware_error_status(self, port, packets, dxl_id: int) -> int | None:
+        """A servo's Hardware Error Status (address 70), read once per alert onset (up to HW_STATUS_READ_TRIES
+        reads while it cannot be read; None after them)."""
+        from dynamixel_sdk import COMM_SUCCESS
+
+        if dxl_id in self._hw_status:
+            return self._hw_status[dxl_id]
+        tries = self._hw_tries[dxl_id] = self._hw_tries.get(dxl_id, 0) + 1
+        port.ser.reset_input_buffer()
+        port.is_using = False
+        value, result, _error = packets.read1ByteTxRx(port, dxl_id, HARDWARE_ERROR_STATUS)
+        port.is_using = False
+        if result == COMM_SUCCESS:
+            self._hw_status[dxl_id] = value
+            log.warning("%s: servo %d: %s", self.device_name, dxl_id, hardware_error_text(value))
+            return value
+        log.debug("%s: servo %d: Hardware Error Status not read (%s)", self.device_name, dxl_id,
+                  packets.getTxRxResult(result))
+        if tries >= HW_STATUS_READ_TRIES:
+            self._hw_status[dxl_id] = None
+            log.warning("%s: servo %d: %s", self.device_name, dxl_id, hardware_error_text(None))
+        return None
+
+    def _accept(self, counts: np.ndarray, t_ns: int) -> None:
+        """A reading from a servo whose encoder reports an error is refused (counted, with the reason in the
+        fault) instead of delivered; any other goes on to the joint map and its limits."""
+        if self._refuse:
+            self.count_fault("refused_encoder_error")
+            log.debug("%s: reading refused: %s", self.device_name, self._refuse)
+            return
+        super()._accept(counts, t_ns)

@@ -1,0 +1,87 @@
+"""Dynamixel hardware-error alert, driver against its emulator on a pseudo-terminal: at each servo's alert onset
+its Hardware Error Status (address 70) is read once and its bits named in health; the readings go on while the
+positions are good, and with the motor-encoder bit set they are refused (counted), not delivered, until the
+alert clears."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from lapreco_hil.drivers.health import HealthState
+from lapreco_hil.registry import DeviceContext, open_robot
+from lapreco_hil.simulators.dynamixel_emulator import (HARDWARE_ERROR_STATUS, HW_MOTOR_ENCODER, HW_OVERHEATING,
+                                                       HW_OVERLOAD, DynamixelChainEmulator)
+
+
+def wait_for(predicate, timeout_s: float = 2.0) -> None:
+    t0 = time.monotonic()
+    while not predicate():
+        if time.monotonic() - t0 > timeout_s:
+            raise AssertionError("condition not reached in time")
+        time.sleep(0.002)
+
+
+def test_the_hardware_error_status_bits_in_words():
+    from lapreco_hil.drivers.robot.dynamixel import hardware_error_text
+
+    assert hardware_error_text(0x01) == "hardware error alert: Hardware Error Status (address 70) 0x01: input voltage"
+    assert hardware_error_text(0x3D).endswith("0x3D: input voltage, overheating, motor encoder, electrical shock, "
+                                              "overload; its positions are not trustworthy: readings refused")
+    assert hardware_error_text(0x42).endswith("0x42: bits 0x42")
+    assert "could not be read" in hardware_error_text(None)
+
+
+@pytest.fixture
+def chain():
+    emu = DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: np.array([2148, 2100, 1900, 2000]))
+    robot = open_robot(f"serial://{emu.port}?ids=1,2,3,4&rate=100", DeviceContext())
+    robot.open()
+    robot.read(timeout_s=1.0)
+    yield emu, robot
+    robot.close()
+    emu.close()
+
+
+def test_a_hardware_alert_reads_address_70_once_per_onset_and_names_its_bits(chain):
+    emu, robot = chain
+    emu.faults.hardware_error_status = {3: HW_OVERHEATING | HW_OVERLOAD}
+    emu.faults.hardware_alert = {3}
+    wait_for(lambda: robot.health.state is HealthState.FAULTED)
+    time.sleep(0.3)  # some 30 polls, each with the alert bit
+    health = robot.health
+    assert emu.reads.get((3, HARDWARE_ERROR_STATUS)) == 1 and len(emu.reads) == 1, emu.reads
+    assert "servo 3" in health.detail and "0x24: overheating, overload" in health.detail, health
+    assert "refused" not in health.detail
+    robot.read()
+    assert robot.read(timeout_s=0.5)  # the positions are still good: delivered
+    assert robot.faults["refused_encoder_error"] == 0
+    emu.faults.hardware_alert = set()
+    wait_for(lambda: robot.health.state is HealthState.OK)
+    emu.faults.hardware_error_status = {3: HW_OVERHEATING}
+    emu.faults.hardware_alert = {3}  # a second onset: read again
+    wait_for(lambda: "0x04: overheating" in robot.health.detail)
+    assert emu.reads[(3, HARDWARE_ERROR_STATUS)] == 2
+
+
+def test_a_motor_encoder_error_refuses_the_readings_until_it_clears(chain):
+    emu, robot = chain
+    emu.faults.hardware_error_status = {2: HW_MOTOR_ENCODER}
+    emu.faults.hardware_alert = {2}
+    wait_for(lambda: robot.faults["refused_encoder_error"] >= 5)
+    health = robot.health
+    robot.read()
+    time.sleep(0.15)
+    during = robot.read()
+    assert during == [], during  # untrustworthy positions are not poses
+    assert health.state is HealthState.FAULTED, health
+    assert "servo 2" in health.detail and "motor encoder" in health.detail and "refused" in health.detail
+    assert robot.faults["protocol_errors"] == 0 and emu.reads[(2, HARDWARE_ERROR_STATUS)] == 1
+    emu.faults.hardware_alert = set()
+    wait_for(lambda: robot.health.state is HealthState.OK)
+    refused = robot.faults["refused_encoder_error"]
+    robot.read()
+    assert robot.read(timeout_s=0.5)
+    assert robot.faults["refused_encoder_error"] == refused
