@@ -1,10 +1,14 @@
-"""The constant offset between video and kinematics timestamps (kinematics time = video time + offset).
+"""The constant offset between video timestamps and a pose source's (pose time = video time + offset): a robot's
+joint readings, a tracked scope's marker poses, or camera poses given directly, each on a clock of its own.
 
 Offline (``estimate_time_offset``): features are tracked through the session; for a candidate offset, the
-camera poses at the frame times come from the joint readings at the shifted times, and every pair of frames
-some distance apart gets its epipolar geometry from those poses. The Sampson distances of the tracked
+camera poses at the frame times come from the pose source at the shifted times (joint readings through the
+kinematics; a tracker's marker poses through the hand-eye, ``T_tracker_marker(t + offset) @ T_marker_camera``;
+given camera poses as they are: ``PoseSeries``, interpolated on SE(3) as the pose sources do), and every pair of
+frames some distance apart gets its epipolar geometry from those poses. The Sampson distances of the tracked
 correspondences to it are smallest when the offset is right. A coarse grid over the search range finds the
-basin; a robust least-squares fit (Cauchy loss) then refines the offset together with each joint's backlash.
+basin; a robust least-squares fit (Cauchy loss) then refines the offset, for joint readings together with each
+joint's backlash (a tracker sees the scope itself: it has no transmission to model).
 
 Why the backlash: a geared joint's encoder sits on the motor, and the link trails or leads it by the play in
 the transmission, on the side set by the direction of motion. That error is +-b while the joint moves one way
@@ -67,12 +71,14 @@ class OffsetEstimate:
     grid_s: np.ndarray
     cost_px: np.ndarray
     backlash: np.ndarray  # per joint, SI units (rad or m): half the play, the link's side ahead of the motor
+    # whose clock: "joints", "marker_poses" or "camera_poses" (a session's pose_source); only joints have backlash
+    pose_source: str = "joints"
 
     def summary(self) -> dict:
         return {"offset_ms": self.offset_ns * 1e-6, "sigma_ms": self.sigma_ns * 1e-6, "pairs": self.pairs,
                 "median_sampson_px_at_zero": self.cost_at_zero_px,
                 "median_sampson_px_at_offset": self.cost_at_offset_px,
-                "backlash": [float(b) for b in self.backlash]}
+                "backlash": [float(b) for b in self.backlash], "pose_source": self.pose_source}
 
 
 def signed_sampson_of_pairs(E: np.ndarray, owner: np.ndarray, x1: np.ndarray, x2: np.ndarray,
@@ -142,6 +148,58 @@ class JointTrack:
         return self._interp(t_s), np.tanh(v / self.switch_speed)
 
 
+class PoseSeries:
+    """Camera poses T_world_camera sampled at increasing times (a tracker's marker poses through the hand-eye, or
+    camera poses given directly) as a function of time: between the two samples around a time, slerp on the
+    rotation and linear on the translation (``geometry.interpolate_poses``, as the pose sources interpolate);
+    before the first sample or after the last, held at that sample (as ``JointTrack`` holds its ends)."""
+
+    def __init__(self, t_ns: np.ndarray, poses: np.ndarray) -> None:
+        t_ns = np.asarray(t_ns, np.int64)
+        poses = np.asarray(poses, float)
+        if len(t_ns) < 2:
+            raise CalibrationError("the time offset needs at least two poses")
+        if np.any(np.diff(t_ns) <= 0):
+            raise CalibrationError("the poses' times must increase")
+        self.t_ns, self.poses = t_ns, poses
+
+    def at(self, t_ns: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) poses at times ``t_ns`` (the series' clock)."""
+        from lapreco_hil.geometry import interpolate_poses
+
+        t = np.clip(np.asarray(t_ns, np.int64), self.t_ns[0], self.t_ns[-1])
+        i = np.clip(np.searchsorted(self.t_ns, t, side="right") - 1, 0, len(self.t_ns) - 2)
+        s = (t - self.t_ns[i]) / (self.t_ns[i + 1] - self.t_ns[i])
+        return interpolate_poses(self.poses[i], self.poses[i + 1], s.astype(float))
+
+
+class _JointPoses:
+    """Camera poses from joint readings through the kinematics, with each joint's backlash as unknowns."""
+
+    def __init__(self, kinematics: CameraKinematics, joints: JointTrack) -> None:
+        self.kin, self.joints = kinematics, joints
+        self.n_backlash = joints.q.shape[1]
+
+    def camera_poses(self, t_ns: np.ndarray, backlash: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
+        q, side = self.joints.at(t_ns)
+        q = q + side * backlash  # the link is where the motor reads plus the play on the side of motion
+        if dq is not None:
+            q = q + dq
+        return np.array([self.kin.camera_pose(qk) for qk in q]).reshape(-1, 4, 4)
+
+
+class _SeriesPoses:
+    """Camera poses interpolated in a PoseSeries: nothing to fit but the offset."""
+
+    n_backlash = 0
+
+    def __init__(self, series: PoseSeries) -> None:
+        self.series = series
+
+    def camera_poses(self, t_ns: np.ndarray, backlash: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
+        return self.series.at(t_ns)
+
+
 @dataclass
 class _Pairs:
     first: np.ndarray  # (P,) frame index of each pair's earlier frame
@@ -172,23 +230,21 @@ def _frame_pairs(obs, K: np.ndarray, gaps, min_common: int) -> _Pairs:
 
 
 class _EpipolarModel:
-    """Signed Sampson distances of every correspondence for parameters (offset s, backlash per joint)."""
+    """Signed Sampson distances of every correspondence for parameters (offset s, then the pose source's own:
+    backlash per joint for joint readings, none for a pose series)."""
 
-    def __init__(self, obs, kinematics: CameraKinematics, joints: JointTrack, K: np.ndarray, pairs: _Pairs):
+    def __init__(self, obs, source, K: np.ndarray, pairs: _Pairs):
         self.frame_t_ns = np.array([o.t_ns for o in obs], np.int64)
-        self.kin, self.joints, self.pairs = kinematics, joints, pairs
+        self.source, self.pairs = source, pairs
+        self.n_backlash = source.n_backlash
         self.f = float(K[0, 0])
         used = np.unique(np.concatenate([pairs.first, pairs.second]))
         self.used = used
 
     def poses(self, offset_s: float, backlash: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
         T = np.zeros((len(self.frame_t_ns), 4, 4))
-        q, side = self.joints.at(self.frame_t_ns[self.used] + int(round(offset_s * 1e9)))
-        q = q + side * backlash  # the link is where the motor reads plus the play on the side of motion
-        if dq is not None:
-            q = q + dq[self.used]
-        for k, i in enumerate(self.used):
-            T[i] = self.kin.camera_pose(q[k])
+        T[self.used] = self.source.camera_poses(self.frame_t_ns[self.used] + int(round(offset_s * 1e9)), backlash,
+                                                None if dq is None else dq[self.used])
         return T
 
     def residuals(self, params: np.ndarray, dq: np.ndarray | None = None) -> np.ndarray:
@@ -216,15 +272,26 @@ class _EpipolarModel:
 def estimate_time_offset(session, config: PipelineConfig | None = None, search_s: float = 1.0,
                          device: str = "cpu", obs=None, T_tip_camera: np.ndarray | None = None,
                          wander_time_s: float = 0.0) -> OffsetEstimate:
-    """The offset of a session with joint readings; ``obs`` (the tracker's observations of every frame) can
-    be given to skip tracking; ``T_tip_camera`` replaces the session's hand-eye (a calibration session has
-    none); ``wander_time_s``: the arm's joint-error time constant, if known (``estimate_from_tracks``)."""
-    if session.meta.pose_source != "joints":
-        raise CalibrationError(f"session '{session.folder}' has camera poses, not joint readings: there is no "
-                               f"kinematics clock to align")
+    """The offset of a session's pose source (pose time = video time + offset), whichever it is: joint readings
+    (through the robot's kinematics), a tracked scope's marker poses (through its hand-eye T_marker_camera, the
+    samples the replay would refuse left out) or camera poses given directly. ``obs`` (the tracker's observations
+    of every frame) can be given to skip tracking; ``T_tip_camera`` replaces the session's hand-eye (a
+    calibration session has none; for marker poses it is T_marker_camera, as ``calibrate handeye-tracked``
+    writes it); ``wander_time_s``: the arm's joint-error time constant, if known (``estimate_from_tracks``;
+    joint readings only)."""
     if not (math.isfinite(search_s) and search_s > 0):
         raise CalibrationError(f"the time-offset search range must be a positive number of ms, got "
                                f"{search_s * 1e3:g}")
+    where = f"session '{session.folder}'"
+    source = session.meta.pose_source
+    if source != "joints":
+        if wander_time_s:
+            raise CalibrationError(f"{where} has {source.replace('_', ' ')}, not joint readings: the joints' wander "
+                                   f"time constant (--joint-wander-s) does not apply")
+        series = session_pose_series(session, T_tip_camera)
+        obs = obs if obs is not None else track_session(session, config or PipelineConfig(), device)
+        return estimate_from_pose_series(obs, series, session.meta.camera.K, session.frame_period_ns, search_s,
+                                         pose_source=source, where=where)
     robot = session.robot
     if T_tip_camera is not None:
         robot = replace(robot, T_tip_camera=np.asarray(T_tip_camera, float))
@@ -236,27 +303,65 @@ def estimate_time_offset(session, config: PipelineConfig | None = None, search_s
                         np.array([j.q for j in session.joint_samples]))
     obs = obs if obs is not None else track_session(session, config or PipelineConfig(), device)
     return estimate_from_tracks(obs, kin, joints, session.meta.camera.K, session.frame_period_ns, search_s,
-                                wander_time_s=wander_time_s, where=f"session '{session.folder}'")
+                                wander_time_s=wander_time_s, where=where)
+
+
+def session_pose_series(session, T_marker_camera: np.ndarray | None = None) -> PoseSeries:
+    """The camera poses of a session without joint readings, on the pose source's own clock: a tracked scope's
+    (``T_world_tracker @ T_tracker_marker @ T_marker_camera``, its tool's samples only and those the replay
+    refuses left out; ``T_marker_camera`` in place of the session's) or the given camera poses."""
+    where = f"session '{session.folder}'"
+    if session.meta.pose_source == "marker_poses":
+        from lapreco_hil.pose_sources import MarkerPoseSource
+
+        track = MarkerPoseSource(session.meta.tracker, table=session.markers, T_marker_camera=T_marker_camera).track
+        if len(track) < 2:
+            raise CalibrationError(f"{where}: {len(track)} usable marker pose of the scope's tool "
+                                   f"'{session.meta.tracker.tool}'; the time offset needs the scope moving")
+        return PoseSeries(track.t_ns, track.poses)
+    if T_marker_camera is not None:
+        raise CalibrationError(f"{where} gives camera poses directly; a hand-eye does not apply")
+    if len(session.pose_t_ns) < 2:
+        raise CalibrationError(f"{where}: {len(session.pose_t_ns)} camera pose; the time offset needs the camera "
+                               f"moving")
+    return PoseSeries(session.pose_t_ns, session.poses)
 
 
 def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, K: np.ndarray, period_ns: int,
                          search_s: float = 1.0, model_backlash: bool = True, joint_sigma=None,
                          wander_time_s: float = 0.0, wander_samples: int = WANDER_SAMPLES,
                          where: str = "") -> OffsetEstimate:
-    """The uncertainty is a delete-a-block jackknife over time (``JACKKNIFE_BLOCK_S``). If the arm's joint
-    errors are known to wander slowly, ``wander_time_s`` (their time constant, s) and ``joint_sigma`` (1 sigma
-    per joint, SI; default: the pipeline's prior) add the fit's spread under ``wander_samples`` draws of such
-    wander, which a short session's jackknife cannot see. 0 (default) leaves that part out."""
+    """From joint readings. The uncertainty is a delete-a-block jackknife over time (``JACKKNIFE_BLOCK_S``). If
+    the arm's joint errors are known to wander slowly, ``wander_time_s`` (their time constant, s) and
+    ``joint_sigma`` (1 sigma per joint, SI; default: the pipeline's prior) add the fit's spread under
+    ``wander_samples`` draws of such wander, which a short session's jackknife cannot see. 0 (default) leaves
+    that part out."""
     if not (math.isfinite(wander_time_s) and wander_time_s >= 0):
         raise CalibrationError(f"the joints' wander time constant must be >= 0 s, got {wander_time_s!r}")
     if joint_sigma is None:
         joint_sigma = _default_joint_sigma(joints.q.shape[1])
+    wander = (np.asarray(joint_sigma, float), wander_time_s, wander_samples) \
+        if wander_samples > 0 and wander_time_s > 0 else None
+    return _estimate(obs, _JointPoses(kinematics, joints), K, period_ns, search_s, model_backlash, wander,
+                     "joints", where)
+
+
+def estimate_from_pose_series(obs, series: PoseSeries, K: np.ndarray, period_ns: int, search_s: float = 1.0,
+                              pose_source: str = "camera_poses", where: str = "") -> OffsetEstimate:
+    """From camera poses sampled on the pose source's clock (a tracker's marker poses through the hand-eye, or
+    given camera poses): the offset alone is fitted. The uncertainty is the block jackknife over time; it
+    assumes the poses' errors (and the tracks') are unrelated between stretches ``JACKKNIFE_BLOCK_S`` apart."""
+    return _estimate(obs, _SeriesPoses(series), K, period_ns, search_s, False, None, pose_source, where)
+
+
+def _estimate(obs, source, K: np.ndarray, period_ns: int, search_s: float, model_backlash: bool, wander,
+              pose_source: str, where: str) -> OffsetEstimate:
     pairs = _frame_pairs(obs, K, PAIR_GAPS, MIN_COMMON_TRACKS)
     if len(pairs.first) < 5:
         raise CalibrationError(f"{where}: only {len(pairs.first)} frame pairs share {MIN_COMMON_TRACKS}+ tracks; "
                                f"the time offset needs a moving camera over a textured scene")
-    model = _EpipolarModel(obs, kinematics, joints, K, pairs)
-    n = joints.q.shape[1]
+    model = _EpipolarModel(obs, source, K, pairs)
+    n = model.n_backlash
     zero_b = np.zeros(n)
     period_s = period_ns * 1e-9
     # the basin: a grid at half a frame period, then a tenth of one around its best point
@@ -269,18 +374,21 @@ def estimate_from_tracks(obs, kinematics: CameraKinematics, joints: JointTrack, 
     free = n if model_backlash else 0
     offset_s, backlash = _fit(model, start, free, period_s, where)
     within_s = _jackknife_sigma(model, free, period_s, offset_s)
-    wander_s = _wander_sigma(model, np.r_[offset_s, backlash], free, np.asarray(joint_sigma, float), period_s,
-                             wander_time_s, wander_samples) if wander_samples > 0 and wander_time_s > 0 else 0.0
+    wander_s = 0.0
+    if wander is not None:
+        joint_sigma, wander_time_s, wander_samples = wander
+        wander_s = _wander_sigma(model, np.r_[offset_s, backlash], free, joint_sigma, period_s, wander_time_s,
+                                 wander_samples)
     sigma_s = float(np.hypot(within_s, wander_s))
     grid = np.concatenate([coarse, fine])
     order = np.argsort(grid)
     params = np.r_[offset_s, backlash]
-    log.info("time offset %.1f ms +- %.1f ms from %d frame pairs; backlash %s", offset_s * 1e3, sigma_s * 1e3,
-             len(pairs.first), np.array2string(backlash, precision=5))
+    log.info("time offset (%s) %.1f ms +- %.1f ms from %d frame pairs; backlash %s", pose_source, offset_s * 1e3,
+             sigma_s * 1e3, len(pairs.first), np.array2string(backlash, precision=5))
     return OffsetEstimate(int(round(offset_s * 1e9)), int(round(sigma_s * 1e9)),
                           float(np.median(model.pair_medians(np.r_[0.0, zero_b]))),
                           float(np.median(model.pair_medians(params))), len(pairs.first), grid[order],
-                          np.concatenate([coarse_cost, fine_cost])[order], backlash)
+                          np.concatenate([coarse_cost, fine_cost])[order], backlash, pose_source)
 
 
 def _fit(model: _EpipolarModel, start_s: float, free: int, period_s: float, where: str = "",
@@ -288,7 +396,7 @@ def _fit(model: _EpipolarModel, start_s: float, free: int, period_s: float, wher
     """Offset (s) and backlash (per joint) by robust least squares from the grid's best offset."""
     from scipy.optimize import least_squares
 
-    n = model.joints.q.shape[1]
+    n = model.n_backlash
     keep = None if pair_mask is None else pair_mask[model.pairs.owner]
 
     # unknowns from zero (least_squares sizes its first step by |x0|): the offset's change from the start, in
@@ -356,7 +464,7 @@ def _wander_sigma(model: _EpipolarModel, params: np.ndarray, free: int, joint_si
     per joint with time constant wander_time_s, as elastic joints wander): wander drawn at the frame times,
     added to the readings, and the fit repeated. A shift and a slow wander look alike over a short session,
     which the spread within the session (the jackknife) cannot see."""
-    n = model.joints.q.shape[1]
+    n = model.n_backlash
     t = (model.frame_t_ns - model.frame_t_ns[0]) * 1e-9
     a = np.exp(-np.diff(t, prepend=t[0]) / wander_time_s)
     rng = np.random.default_rng(seed)

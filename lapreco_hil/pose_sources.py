@@ -296,6 +296,11 @@ class PoseTrack:
         return np.asarray(self._times, np.int64)
 
     @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) the poses held, in the order of ``t_ns`` (the time-offset estimate interpolates them)."""
+        return np.asarray(self._poses, float).reshape(-1, 4, 4)
+
+    @property
     def last_time_ns(self) -> int | None:
         return self._times[-1] if self._times else None
 
