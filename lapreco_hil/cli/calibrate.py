@@ -93,13 +93,18 @@ def add_parsers(sub, positive_int) -> None:
     ht.add_argument("--json", default=None, help="also write the report as JSON")
     ht.set_defaults(func=cmd_handeye_tracked)
 
-    to = cal_sub.add_parser("time-offset", help="offset between video and kinematics timestamps")
-    to.add_argument("session", help="a session with joint readings over a textured scene, the camera moving")
+    to = cal_sub.add_parser("time-offset", help="offset between the video's and the pose source's timestamps "
+                                                 "(joint readings, a tracker's marker poses or given camera poses)")
+    to.add_argument("session", help="a session of any pose source (joints, marker_poses, camera_poses) over a "
+                                    "textured scene, the camera moving")
     to.add_argument("--search-ms", type=positive, default=1000.0, help="search +- this many ms (default 1000)")
     to.add_argument("--apply", action="store_true", help="write the estimate into the session's time_offset_ns")
-    to.add_argument("--hand-eye", default=None, help="hand-eye (OpenCV YAML) in place of the session's own")
+    to.add_argument("--hand-eye", default=None,
+                    help="hand-eye (OpenCV YAML) in place of the session's own: T_tip_camera for joint readings, "
+                         "T_marker_camera for a tracked scope (as 'calibrate handeye-tracked' writes it)")
     to.add_argument("--joint-wander-s", type=non_negative, default=0.0,
-                    help="the arm's joint-error time constant (s), if known: the uncertainty then adds the "
+                    help="joint readings only: the arm's joint-error time constant (s), if known: the uncertainty "
+                         "then adds the "
                          "offset's spread under such wander of the pipeline's joint sigma; 0 (default): the "
                          "uncertainty is the block jackknife alone")
     to.add_argument("--json", default=None, help="also write the report as JSON")
@@ -224,15 +229,24 @@ def cmd_handeye_tracked(args) -> int:
     return 0
 
 
+# whose clock the offset is to, by the session's pose_source
+TIME_OFFSET_CLOCKS = {"joints": "kinematics", "marker_poses": "tracker", "camera_poses": "pose"}
+
+
 def cmd_time_offset(args) -> int:
     from lapreco_hil.app.handeye import estimate_session_time_offset
 
     s = estimate_session_time_offset(args.session, args.search_ms, apply=args.apply, hand_eye_file=args.hand_eye,
                                      json_file=args.json, joint_wander_s=args.joint_wander_s)
-    print(f"lapreco calibrate time-offset: kinematics time = video time + {s['offset_ms']:.1f} ms "
+    joints = s.get("pose_source", "joints") == "joints"
+    clock = TIME_OFFSET_CLOCKS.get(s.get("pose_source"), "pose")
+    print(f"lapreco calibrate time-offset: {clock} time = video time + {s['offset_ms']:.1f} ms "
           f"(+- {s['sigma_ms']:.1f} ms, {s['pairs']} frame pairs; median Sampson distance "
           f"{s['median_sampson_px_at_zero']:.3f} px at 0 -> {s['median_sampson_px_at_offset']:.3f} px)")
-    if not args.joint_wander_s:
+    if not joints:
+        print("  the uncertainty is a block jackknife over 1 s stretches: it assumes the pose errors are unrelated "
+              "that far apart")
+    elif not args.joint_wander_s:
         print("  the uncertainty is a block jackknife over 1 s stretches: it assumes the joint errors are unrelated "
               "that far apart; if the arm's joints wander slowly, give --joint-wander-s")
     if args.apply:
