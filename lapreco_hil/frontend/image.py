@@ -35,6 +35,11 @@ HIGHPASS_RANGE = 128.0 / HIGHPASS_GAIN
 # the motion (px on the coarsest level) LK alone still converges from on real frames (docs/benchmarks.md,
 # "LK's reach without the motion")
 LK_COARSE_REACH_PX = 2.5
+# how far the global motion prior (frontend.global_motion) can put a track from where it is: LK from the prior
+# climbs only the levels this needs. All of them let a periodic texture (a chessboard zoomed at 80 px per frame)
+# pull most tracks one period off on the coarse levels, and the consensus then agreed on the wrong homography
+# (docs/benchmarks.md, session 22)
+PRIOR_ERROR_PX = 20.0
 # the baseline's shading estimate: at a resolution reduced by a power of two up to this, keeping its sigma at
 # least SHADING_MIN_SIGMA_PX pixels there; the 3-level sigma (24 px) stays at full resolution, exactly the blur
 # the simulated and real-frame figures were measured with (a coarser one moved them: docs/benchmarks.md, session 11)
@@ -53,6 +58,12 @@ def pyramid_levels(config: TrackerConfig, width: int, height: int) -> int:
                               f'or "auto"')
         return config.pyramid_levels
     return levels_for_reach(config.expected_motion_px, config, width, height)
+
+
+def prior_levels(config: TrackerConfig, width: int, height: int) -> int:
+    """LK's pyramid levels above full resolution for tracks started from the global motion prior: those that
+    reach PRIOR_ERROR_PX, never more than ``pyramid_levels`` gives."""
+    return min(pyramid_levels(config, width, height), levels_for_reach(PRIOR_ERROR_PX, config, width, height))
 
 
 def levels_for_reach(reach_px: float, config: TrackerConfig, width: int, height: int) -> int:

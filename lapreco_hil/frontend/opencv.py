@@ -20,7 +20,7 @@ from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.frontend import consensus, epipolar, stereo_depth
 from lapreco_hil.frontend.global_motion import GlobalMotion
 from lapreco_hil.frontend.drift import AffineDriftCheck, drift_image, gradients
-from lapreco_hil.frontend.image import pyramid_levels, tracker_image
+from lapreco_hil.frontend.image import prior_levels, pyramid_levels, tracker_image
 
 
 class OpenCVFrontEnd:
@@ -51,6 +51,7 @@ class OpenCVFrontEnd:
         self._smoothed = np.zeros(0, bool)
         self._rig = False
         self.levels = pyramid_levels(config, camera.width, camera.height)
+        self._prior_levels = prior_levels(config, camera.width, camera.height)  # LK from the global prior
         self._lk = epipolar.lk_params(config.window_px, self.levels)
         # frames without a pose prediction: the image motion from a dense alignment (frontend.global_motion),
         # and the tracks' consensus homography of the last frame (a seed of the next alignment)
@@ -110,9 +111,11 @@ class OpenCVFrontEnd:
             if motion is None:
                 guess = None
                 if prior is not None:
-                    # every track starts where the frame's image motion puts it (LK on all levels from there)
+                    # every track starts where the frame's image motion puts it (LK on the levels that reach the
+                    # prior's error from there)
                     guess = cv2.perspectiveTransform(pts.astype(np.float64), prior).astype(np.float32)
-                nxt, status, err = self._track(gray, pts, guess)
+                    levels = self._prior_levels
+                nxt, status, err = self._track(gray, pts, guess, levels)
                 predicted = np.ones(len(pts), bool)
             else:
                 guess, searched = self._predict(motion, depth, intensity)

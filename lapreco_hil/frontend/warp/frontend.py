@@ -30,8 +30,8 @@ from lapreco_hil.config import TrackerConfig
 from lapreco_hil.types import Frame, FrameMotion, Observations
 from lapreco_hil.warp_device import device_lock, preload_kernels
 from lapreco_hil.frontend import epipolar, stereo_depth, track_capacity
-from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, pyramid_levels, shading_factor, shading_sigma_px,
-                                        to_u8, tracker_image)
+from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, prior_levels, pyramid_levels, shading_factor,
+                                        shading_sigma_px, to_u8, tracker_image)
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
 from lapreco_hil.frontend.global_motion import GlobalMotion, reduced_grey, reduced_maps
@@ -88,6 +88,7 @@ class WarpFrontEnd:
         self.pyramid_levels = pyramid_levels(config, W, H)  # above full resolution
         self.levels = self.pyramid_levels + 1  # with full resolution
         self._lk_levels = self.levels  # LK's this frame: fewer where a pose prediction starts the tracks
+        self._prior_lk_levels = prior_levels(config, W, H) + 1  # ... or the global motion prior (with full resolution)
         self._budget = config.max_features  # the tracks this frame keeps (track_budget)
         self._sigma = shading_sigma_px(config, self.pyramid_levels)
         offs, ws, hs, total, w, h = [], [], [], 0, W, H
@@ -640,8 +641,7 @@ class WarpFrontEnd:
         try:
             self._process_frame(frame, time.perf_counter(), cur)
         finally:
-            self._prior = False
-            self._use_guess.fill_(0)
+            self._clear_prior()
 
     def _warm_motion_frame(self, frame: Frame, motion: FrameMotion, budget: int, lk_levels: int) -> None:
         """One frame of the kind (a motion, ``budget`` tracks, ``lk_levels`` LK levels) whatever its motion
@@ -709,8 +709,7 @@ class WarpFrontEnd:
             if self._motion is not None:
                 self._clear_motion()
             if self._prior:
-                self._prior = False
-                self._use_guess.fill_(0)
+                self._clear_prior()
 
     def _set_prior(self, image: np.ndarray, motion: FrameMotion | None) -> None:
         """A frame without a motion: its image motion from the host's dense alignment (``frontend.global_motion``:
@@ -737,6 +736,13 @@ class WarpFrontEnd:
         wp.copy(self._prior_H, self._prior_up)
         self._use_guess.fill_(1)
         self._prior = True
+        self._lk_levels = self._prior_lk_levels
+
+    def _clear_prior(self) -> None:
+        """Back to a frame without the prior: LK from the tracks' last positions, all levels."""
+        self._prior = False
+        self._use_guess.fill_(0)
+        self._lk_levels = self.levels
 
     def _read_consensus(self) -> np.ndarray | None:
         """The homography (pixels) of the frame's tracks' consensus, when the frame found one (a seed of the next
