@@ -261,8 +261,8 @@ class LiveRun:
                          f"check the {source}: 'lapreco devices --probe URL' shows what it reads")
         elif without_pose and (refused_by_driver := self._refused_by_driver()):
             n, last = refused_by_driver
-            parts.append(f"the robot's driver refused {n} readings (out of the model's joint limits)"
-                         + (f"; last refused: {last}" if last else ""))
+            parts.append(f"the robot's driver refused {n} readings (out of the model's joint limits, or flagged "
+                         f"by the device)" + (f"; last refused: {last}" if last else ""))
             parts.append("check the robot model, its joint map and units against the robot: "
                          "'lapreco devices --probe URL' shows what it reads")
         elif without_pose:

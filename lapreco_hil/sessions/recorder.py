@@ -443,7 +443,8 @@ def _record_loop(recorder: "SessionRecorder", grabber, device, stats: RecordStat
 
 
 # driver fault counters that stand for a reading received and refused (not one lost on the link)
-REFUSED_READING_FAULTS = ("out_of_limits",)
+# (out of the joint limits; a servo whose hardware error status flags its motor encoder)
+REFUSED_READING_FAULTS = ("out_of_limits", "refused_encoder_error")
 # a grabber that delivers no frame for this long has ended the recording
 GRABBER_READ_TIMEOUT_S = 1.0
 # how long the end of a recording waits for the readings captured just after its last frame
