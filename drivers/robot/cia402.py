@@ -14,6 +14,41 @@ PRODUCER_HEARTBEAT = 0x1017
 ERROR_CODE = 0x603F
 STATUS_FAULT_BIT = 1 << 3
 STATUS_OPERATION_ENABLED = 0x0237
+TPDO1_COMMUNICATION = 0x1800
+TPDO1_MAPPING = 0x1A00
+TPDO_NOT_VALID = 1 << 31  # COB-ID bit 31: the PDO does not exist / is not valid
+RTR_NOT_ALLOWED = 1 << 30  # COB-ID bit 30: no RTR allowed on this PDO (some devices refuse to clear it)
+TPDO_EXTENDED_ID = 1 << 29  # COB-ID bit 29: 29-bit identifier
+
+# CiA 301 emergency error codes, by class (the high byte; the codes below a class name its sub-classes)
+EMCY_CLASSES = {
+    0x00: "error reset or no error",
+    0x10: "generic error",
+    0x20: "current", 0x21: "current, device input side", 0x22: "current inside the device",
+    0x23: "current, device output side",
+    0x30: "voltage", 0x31: "mains voltage", 0x32: "voltage inside the device", 0x33: "output voltage",
+    0x40: "temperature", 0x41: "ambient temperature", 0x42: "device temperature",
+    0x50: "device hardware",
+    0x60: "device software", 0x61: "internal software", 0x62: "user software", 0x63: "data set",
+    0x70: "additional modules",
+    0x80: "monitoring", 0x81: "monitoring: communication", 0x82: "monitoring: protocol error",
+    0x90: "external error",
+    0xF0: "additional functions",
+    0xFF: "device specific",
+}
+
+
+def emcy_description(code: int) -> str:
+    """What a CiA 301 emergency error code means, from its class (high byte; its sub-class where CiA 301 names
+    one), e.g. 0x4210 'device temperature', 0x7305 'additional modules', 0x8130 'monitoring: communication'.
+    A device profile's code within a class gets the class (0x5530: 'device hardware'); a code of no class is
+    'reserved error class 0xNN'."""
+    high = (code >> 8) & 0xFF
+    if high in EMCY_CLASSES:
+        return EMCY_CLASSES[high]
+    if 0x10 <= high < 0xA0 or 0xF0 <= high < 0xFF:
+        return EMCY_CLASSES[high & 0xF0]
+    return f"reserved error class 0x{high:02X}"
 
 
 def _var(name, index, subindex, dtype, access="rw", default=0) -> ODVariable:
