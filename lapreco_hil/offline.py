@@ -16,6 +16,7 @@ from lapreco_hil.config import PipelineConfig
 from lapreco_hil.ground_truth import GroundTruth
 from lapreco_hil.outputs import write_outputs
 from lapreco_hil.pipeline import run_sequence
+from lapreco_hil.runtime.time_offset_watch import RecordingTimeOffsetWatch
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +51,15 @@ def reconstruct(grabber, poses, camera: CameraModel, config: PipelineConfig, out
         few = {"frames": total, "max_features": tracker_config.max_features,
                "min_distance_px": tracker_config.min_distance_px}
         report_fields = {**(report_fields or {}), "few_views": few}
+    # the pose source's clock against the video's, watched from the run's own tracks as a live run watches it
+    # (runtime/time_offset_watch.py): report.json time_offset, for every pose source alike
+    watch = RecordingTimeOffsetWatch(camera.K, poses.time_offset_ns) if hasattr(poses, "time_offset_ns") else None
     bar = tqdm(total=total, desc=label, unit="frame", file=sys.stderr, disable=not progress)
     with bar:
         run = run_sequence(grabber, poses, camera, config, tracker=tracker, progress=bar, device=device,
-                           rig=rig if rig is not None else grabber.rig)
+                           rig=rig if rig is not None else grabber.rig, offset_watch=watch)
+    if watch is not None:
+        report_fields = {**(report_fields or {}), "time_offset": watch.finish()}
     write_frame_timings(out_dir / "frame_timings.csv", run.map.frames, run.stage_s)
     metrics = {
         "frames": {"in": run.frames_in, "processed": run.frames_processed,

@@ -46,10 +46,12 @@ class RunResult:
 
 def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tracker: str = "opencv",
                  progress=None, device: str | None = None, rig: Rig | None = None,
-                 predict: bool = True) -> RunResult:
+                 predict: bool = True, offset_watch=None) -> RunResult:
     """Every frame of ``grabber`` through the pipeline; ``poses`` is a pose source (lapreco_hil.pose_sources).
     ``rig``: the scope's cameras when it has more than one (``camera`` is its camera 0); ``predict``: start
-    each track where the pose source's motion says it lands (pose-predicted tracking)."""
+    each track where the pose source's motion says it lands (pose-predicted tracking); ``offset_watch``: the
+    time-offset watch (runtime/time_offset_watch.py), given each frame's tracks and that motion as the live
+    tracking stage gives them (with prediction only: the motion is the prediction's)."""
     frontend = make_frontend(tracker, camera, config.tracker, device)
     mapper = Mapper(camera.K, config.mapper, schedule=MapperSchedule.offline(), rig=rig)
     predictor = MotionPredictor(mapper, config.mapper.scene_depth_m) if predict and config.tracker.predict else None
@@ -61,6 +63,7 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
     stages: dict[str, list[float]] = {k: [] for k in ("capture", "pose", "frontend", "mapper")}
     latency: list[float] = []
     frames_in = frames_without_pose = 0
+    prev_obs = None  # the last mapped frame's tracks (the offset watch's)
     t_start = time.perf_counter()
     while True:
         t0 = time.perf_counter()
@@ -86,6 +89,9 @@ def run_sequence(grabber, poses, camera: CameraModel, config: PipelineConfig, tr
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             stages[name].append(dt)
         latency.append(t4 - t1)  # frame in hand -> pose/points available
+        if offset_watch is not None and motion is not None and prev_obs is not None:
+            offset_watch.observe(prev_obs, obs, motion)  # (outside the stage times: no stage of the pipeline)
+        prev_obs = obs
         if progress is not None:
             progress.update(1)
             progress.set_postfix(tracks=len(obs), keyframes=len(mapper.keyframes), points=len(mapper.landmarks),

@@ -106,3 +106,35 @@ class TimeOffsetWatch:
                 "drift_threshold_ms": getattr(self.monitor, "drift_threshold_ns", DRIFT_THRESHOLD_NS) / 1e6,
                 # a drift beyond the threshold that the reading does not call one, and why
                 "not_called_because": r.not_called_because}
+
+
+class RecordingTimeOffsetWatch(TimeOffsetWatch):
+    """The watch over a recording (``lapreco replay``, ``demo --sequential``), for every pose source alike (joint
+    readings, a tracker's marker poses, given camera poses: each has a clock of its own). It reads on the video's
+    clock, not the wall's: searched every READING_PERIOD_S of video as the frames come (a replay runs as fast as
+    it can, and a wall clock would make its readings depend on the machine), and once more at the end
+    (``finish``) over the last window, so the report's figures are the same on every replay."""
+
+    def __init__(self, K: np.ndarray, applied_offset_ns: int, monitor: TimeOffsetMonitor | None = None) -> None:
+        self._video_s = 0.0
+        self._read_at: float | None = None  # the video time of the last reading
+        super().__init__(K, applied_offset_ns, monitor, clock=lambda: self._video_s)
+
+    def observe(self, prev: Observations, obs: Observations, motion: FrameMotion) -> None:
+        super().observe(prev, obs, motion)
+        self._video_s = obs.t_ns * 1e-9
+        self.reading()
+
+    def reading(self) -> OffsetReading:
+        before = self._next_reading
+        r = super().reading()
+        if self._next_reading != before:
+            self._read_at = self._video_s
+        return r
+
+    def finish(self) -> dict:
+        """The summary after a last reading over the window at the end (unless the newest reading was of it)."""
+        if self._read_at != self._video_s:
+            self._next_reading = -float("inf")
+            self.reading()
+        return self.summary()
