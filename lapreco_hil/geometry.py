@@ -74,11 +74,14 @@ def interpolate_poses(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarr
     return out
 
 
-def to_tum(t_s: float, T: np.ndarray) -> str:
-    """One TUM trajectory line: ``t tx ty tz qx qy qz qw``."""
+def to_tum(t_ns: int, T: np.ndarray) -> str:
+    """One TUM trajectory line: ``t tx ty tz qx qy qz qw``, the time in seconds written exactly from integer
+    nanoseconds (a wall-clock stamp, ~1.8e9 s, has no exact float64 nanoseconds)."""
     qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
     x, y, z = T[:3, 3]
-    return f"{t_s:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
+    t_ns = int(t_ns)
+    sign, t_ns = ("-", -t_ns) if t_ns < 0 else ("", t_ns)
+    return f"{sign}{t_ns // 10**9}.{t_ns % 10**9:09d} {x:.9f} {y:.9f} {z:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
 
 
 def pose_from_tum(values) -> np.ndarray:

@@ -93,7 +93,7 @@ def write_tum(path: Path, t_ns: np.ndarray, poses: np.ndarray) -> None:
     with open(path, "w", encoding="utf-8") as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_camera, metres, capture time in s)\n")
         for t, T in zip(t_ns, poses):
-            fh.write(to_tum(t * 1e-9, T) + "\n")
+            fh.write(to_tum(t, T) + "\n")
 
 
 def write_json(path: str | Path, doc: dict) -> None:

@@ -28,9 +28,16 @@ def test_interpolation_midpoint_is_half_the_relative_rotation(rng):
 
 def test_tum_line_order_is_t_xyz_then_quaternion_xyzw():
     T = make_T(Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix(), [1, 2, 3])
-    fields = [float(v) for v in to_tum(1.5, T).split()]
+    fields = [float(v) for v in to_tum(1_500_000_000, T).split()]
     assert fields[:4] == [1.5, 1, 2, 3]
     assert fields[4:] == pytest.approx([0, 0, np.sqrt(0.5), np.sqrt(0.5)], abs=1e-9)
+
+
+def test_a_tum_lines_time_is_its_integer_nanoseconds_exactly():
+    """A ROS bag's wall-clock stamp (1.77e18 ns) written as t * 1e-9 came out 166 ns off in float64."""
+    line = to_tum(1765432100123456789, np.eye(4))
+    assert line.split()[0] == "1765432100.123456789"
+    assert to_tum(-1_500_000_001, np.eye(4)).split()[0] == "-1.500000001"
 
 
 def test_look_at_gives_an_opencv_camera():
