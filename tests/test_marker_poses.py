@@ -213,6 +213,42 @@ def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cp
     assert main(["calibrate", "handeye-tracked", "--session", str(cal), "--board-tool", "scope", "--board", board,
                  "--out", str(tmp_path / "x.yaml")]) == 2
     assert "--board-tool 'scope' is the scope's tool" in capsys.readouterr().err
+    # too few views at a coarse stride: the error says which stride it used and what to try
+    assert main(["calibrate", "handeye-tracked", "--session", str(cal), "--board-tool", "board", "--board", board,
+                 "--stride", "30", "--out", str(tmp_path / "x.yaml")]) == 2
+    assert "at least 3 are needed; --stride 30 took every 30th frame of the session: try --stride 1" \
+        in capsys.readouterr().err
+
+
+def test_frames_a_tracked_calibration_leaves_out_are_counted_with_their_cause(tmp_path, warp_cpu, caplog):
+    """A tracker clock 40 ms late that session.json does not declare leaves the first frames without a pose of
+    the scope before them: they were left out of the calibration without a word."""
+    import logging
+
+    from lapreco_hil.app.handeye_tracked import tracked_views_from_session
+    from lapreco_hil.app.record import sim_record
+    from lapreco_hil.calib.boards import parse_board
+
+    src, cal = tmp_path / "src", tmp_path / "cal"
+    sim_record("board", str(src), frames=12, resolution=(320, 240), device=warp_cpu, progress=False)
+    cal.mkdir()
+    shutil.copytree(src / "frames", cal / "frames")
+    shutil.copy(src / "frames.csv", cal / "frames.csv")
+    doc = json.loads((src / "session.json").read_text())
+    doc.pop("robot")
+    doc.update(pose_source="marker_poses", tracker={"tool": "scope"}, counts={})
+    (cal / "session.json").write_text(json.dumps(doc))
+    t, T_true = fmt.read_pose_table(src / "truth" / "camera_poses.csv", 1.0)
+    late = 40_000_000
+    (cal / "marker_poses.csv").write_text(",".join(fmt.MARKER_COLUMNS) + "\n" + "".join(
+        marker_row(int(ti) + late, "scope", marker_pose(Ti)) + marker_row(int(ti) + late, "board", np.eye(4))
+        for ti, Ti in zip(t, T_true)))
+    with caplog.at_level(logging.WARNING, logger="lapreco_hil.app.handeye_tracked"):
+        views, _ = tracked_views_from_session(str(cal), parse_board("charuco:10x7:0.004:0.003:DICT_5X5_100"),
+                                              "board", stride=1)
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert f"{12 - len(views)} of 12 frames used left out" in line and "tool 'scope'" in line
+    assert "time_offset_ns" in line and len(views) < 12
 
 
 # --- live: the NDI emulator on a pty ---------------------------------------------------------------------------

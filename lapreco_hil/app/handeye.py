@@ -161,7 +161,8 @@ def calibrate_hand_eye_session(session_dir: str, board_spec: str, out: str, came
     session = Session(session_dir)
     if session.meta.pose_source == "marker_poses":
         raise CalibrationError(f"session '{session_dir}' follows a tracked scope (marker poses), not a robot; its "
-                               f"hand-eye comes from 'lapreco calibrate handeye-tracked' (per-view pose files)")
+                               f"hand-eye comes from 'lapreco calibrate handeye-tracked --session {session_dir} "
+                               f"--board-tool NAME' (the board's tracked tool; or from per-view pose files)")
     if session.meta.pose_source != "joints":
         raise CalibrationError(f"session '{session_dir}' has camera poses, not joint readings; hand-eye "
                                f"calibration needs the robot's kinematics")

@@ -149,9 +149,13 @@ def tracked_views_from_session(session_dir: str, board, board_tool: str, stride:
         tracks[tool] = track
     cameras = dict(zip(("left", "right"), meta.rig.cameras[:2]))
     views = []
+    left_out: dict[str, int] = {}  # frames without poses of both tools around them, by cause
     for i in range(0, len(session), stride):
         t = int(session.frame_t_ns[i]) + meta.time_offset_ns
-        if any(track.no_pose_cause(t) is not None for track in tracks.values()):
+        causes = [f"tool '{tool}': {cause}" for tool, track in tracks.items()
+                  if (cause := track.no_pose_cause(t)) is not None]
+        if causes:
+            left_out[causes[0]] = left_out.get(causes[0], 0) + 1
             continue
         T_bm_sm = np.linalg.inv(tracks[board_tool](t)) @ tracks[tracker.tool](t)
         frame = session.frame(i)
@@ -160,6 +164,11 @@ def tracked_views_from_session(session_dir: str, board, board_tool: str, stride:
     if not views:
         raise CalibrationError(f"session '{session_dir}': no frame has poses of both the scope's tool "
                                f"'{tracker.tool}' and the board's '{board_tool}' around it")
+    if left_out:
+        log.warning("session '%s': %d of %d frames used left out for want of tracker poses around them (%s); "
+                    "a frame before the first pose or after the last can mean a time offset not declared in "
+                    "session.json's time_offset_ns", session_dir, sum(left_out.values()),
+                    len(range(0, len(session), stride)), "; ".join(f"{n} x {c}" for c, n in left_out.items()))
     return views, cameras
 
 
@@ -168,7 +177,13 @@ def calibrate_tracked_session(session_dir: str, board_spec: str, board_tool: str
     """``lapreco calibrate handeye-tracked --session S --board-tool NAME``: the tracked hand-eye from a session's
     frames and marker poses (the lenses: the session's cameras)."""
     views, cameras = tracked_views_from_session(session_dir, parse_board(board_spec), board_tool, stride)
-    return calibrate_tracked_views(views, board_spec, cameras, out, json_file, leave_one_out)
+    try:
+        return calibrate_tracked_views(views, board_spec, cameras, out, json_file, leave_one_out)
+    except CalibrationError as exc:
+        if stride > 1 and "at least 3 are needed" in str(exc):
+            raise CalibrationError(f"{exc}; --stride {stride} took every {stride}th frame of the session: try "
+                                   f"--stride 1") from None
+        raise
 
 
 def calibrate_tracked_views(views: list, board_spec: str, cameras: dict, out: str, json_file: str | None = None,
