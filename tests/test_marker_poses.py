@@ -177,20 +177,13 @@ def test_bad_tracker_fields_name_the_field(skull_session, tmp_path):
             Session(session)
 
 
-def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cpu, capsys):
-    """The next step after ``lapreco record --marker`` without a hand-eye: the simulated ChArUco board scene, the
-    scope's and the board marker's poses made from the true camera and board poses; the hand-eye comes back."""
+def _board_calibration_session(tmp_path, warp_cpu, frames, resolution, T_tracker_boardmarker, late_ns=0):
+    """The simulated ChArUco board scene as a tracked scope's calibration session (no hand-eye): the scope's
+    marker poses from the true camera poses and the board marker's, both stamped ``late_ns`` late."""
     from lapreco_hil.app.record import sim_record
-    from lapreco_hil.calib.files import read_handeye_yaml
-    from lapreco_hil.calib.handeye import pose_difference
-    from lapreco_hil.simulators.world import SimSettings, SimWorld
 
     src, cal = tmp_path / "src", tmp_path / "cal"
-    sim_record("board", str(src), frames=60, resolution=(480, 360), device=warp_cpu, progress=False)
-    world = SimWorld(SimSettings(scene="board", width=480, height=360, device=warp_cpu))
-    T_world_pattern = world.T_world_scene @ world.scene.board[1]
-    T_boardmarker_pattern = make_T(Rotation.from_euler("x", 0.4).as_matrix(), [0.05, 0.0, -0.01])
-    T_tracker_boardmarker = inv_T(T_WORLD_TRACKER) @ T_world_pattern @ inv_T(T_boardmarker_pattern)
+    sim_record("board", str(src), frames=frames, resolution=resolution, device=warp_cpu, progress=False)
     cal.mkdir()
     shutil.copytree(src / "frames", cal / "frames")
     shutil.copy(src / "frames.csv", cal / "frames.csv")
@@ -200,8 +193,23 @@ def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cp
     (cal / "session.json").write_text(json.dumps(doc))
     t, T_true = fmt.read_pose_table(src / "truth" / "camera_poses.csv", 1.0)
     (cal / "marker_poses.csv").write_text(",".join(fmt.MARKER_COLUMNS) + "\n" + "".join(
-        marker_row(int(ti), "scope", marker_pose(Ti)) + marker_row(int(ti), "board", T_tracker_boardmarker)
-        for ti, Ti in zip(t, T_true)))
+        marker_row(int(ti) + late_ns, "scope", marker_pose(Ti))
+        + marker_row(int(ti) + late_ns, "board", T_tracker_boardmarker) for ti, Ti in zip(t, T_true)))
+    return cal
+
+
+def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cpu, capsys):
+    """The next step after ``lapreco record --marker`` without a hand-eye: the simulated ChArUco board scene, the
+    scope's and the board marker's poses made from the true camera and board poses; the hand-eye comes back."""
+    from lapreco_hil.calib.files import read_handeye_yaml
+    from lapreco_hil.calib.handeye import pose_difference
+    from lapreco_hil.simulators.world import SimSettings, SimWorld
+
+    world = SimWorld(SimSettings(scene="board", width=480, height=360, device=warp_cpu))
+    T_world_pattern = world.T_world_scene @ world.scene.board[1]
+    T_boardmarker_pattern = make_T(Rotation.from_euler("x", 0.4).as_matrix(), [0.05, 0.0, -0.01])
+    T_tracker_boardmarker = inv_T(T_WORLD_TRACKER) @ T_world_pattern @ inv_T(T_boardmarker_pattern)
+    cal = _board_calibration_session(tmp_path, warp_cpu, 60, (480, 360), T_tracker_boardmarker)
     board = "charuco:10x7:0.004:0.003:DICT_5X5_100"
     assert main(["calibrate", "handeye-tracked", "--session", str(cal), "--board-tool", "board", "--board", board,
                  "--stride", "3", "--out", str(tmp_path / "handeye.yaml")]) == 0
@@ -226,23 +234,9 @@ def test_frames_a_tracked_calibration_leaves_out_are_counted_with_their_cause(tm
     import logging
 
     from lapreco_hil.app.handeye_tracked import tracked_views_from_session
-    from lapreco_hil.app.record import sim_record
     from lapreco_hil.calib.boards import parse_board
 
-    src, cal = tmp_path / "src", tmp_path / "cal"
-    sim_record("board", str(src), frames=12, resolution=(320, 240), device=warp_cpu, progress=False)
-    cal.mkdir()
-    shutil.copytree(src / "frames", cal / "frames")
-    shutil.copy(src / "frames.csv", cal / "frames.csv")
-    doc = json.loads((src / "session.json").read_text())
-    doc.pop("robot")
-    doc.update(pose_source="marker_poses", tracker={"tool": "scope"}, counts={})
-    (cal / "session.json").write_text(json.dumps(doc))
-    t, T_true = fmt.read_pose_table(src / "truth" / "camera_poses.csv", 1.0)
-    late = 40_000_000
-    (cal / "marker_poses.csv").write_text(",".join(fmt.MARKER_COLUMNS) + "\n" + "".join(
-        marker_row(int(ti) + late, "scope", marker_pose(Ti)) + marker_row(int(ti) + late, "board", np.eye(4))
-        for ti, Ti in zip(t, T_true)))
+    cal = _board_calibration_session(tmp_path, warp_cpu, 12, (320, 240), np.eye(4), late_ns=40_000_000)
     with caplog.at_level(logging.WARNING, logger="lapreco_hil.app.handeye_tracked"):
         views, _ = tracked_views_from_session(str(cal), parse_board("charuco:10x7:0.004:0.003:DICT_5X5_100"),
                                               "board", stride=1)
