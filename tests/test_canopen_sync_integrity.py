@@ -20,6 +20,8 @@ from lapreco_hil.errors import DeviceError
 from lapreco_hil.registry import DeviceContext, open_robot
 from lapreco_hil.simulators.canopen_emulator import CANopenDriveChainEmulator
 
+from test_robot_drivers import wait_for
+
 BASE = 1000  # position = BASE + SYNC number: inside every ECM joint's limits for the few hundred SYNCs of a test
 _channels = itertools.count()
 
@@ -27,14 +29,6 @@ _channels = itertools.count()
 def still(t_ns: int) -> np.ndarray:
     return np.array([0.1, -0.2, 0.12, 0.3])
 
-
-def wait_for(predicate, timeout_s: float = 2.0) -> float:
-    t0 = time.monotonic()
-    while not predicate():
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError("condition not reached in time")
-        time.sleep(0.002)
-    return time.monotonic() - t0
 
 
 def open_chain(query: str = "", **emulator_options):

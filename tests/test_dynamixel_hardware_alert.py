@@ -15,13 +15,8 @@ from lapreco_hil.registry import DeviceContext, open_robot
 from lapreco_hil.simulators.dynamixel_emulator import (HARDWARE_ERROR_STATUS, HW_MOTOR_ENCODER, HW_OVERHEATING,
                                                        HW_OVERLOAD, DynamixelChainEmulator)
 
+from test_robot_drivers import wait_for
 
-def wait_for(predicate, timeout_s: float = 2.0) -> None:
-    t0 = time.monotonic()
-    while not predicate():
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError("condition not reached in time")
-        time.sleep(0.002)
 
 
 def test_the_hardware_error_status_bits_in_words():

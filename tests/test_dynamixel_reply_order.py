@@ -13,16 +13,11 @@ from lapreco_hil.drivers.robot.joint_map import dynamixel_joint_map
 from lapreco_hil.registry import DeviceContext, open_robot
 from lapreco_hil.simulators.dynamixel_emulator import DynamixelChainEmulator
 
+from test_robot_drivers import wait_for
+
 # Present Position of servo ID 1..4: distinct, near the centre (2048 = 0 rad), insertion (joint 3) >= 0
 TICKS = {1: 2148, 2: 2100, 3: 1900, 4: 2000}
 
-
-def wait_for(predicate, timeout_s: float = 2.0) -> None:
-    t0 = time.monotonic()
-    while not predicate():
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError("condition not reached in time")
-        time.sleep(0.002)
 
 
 def still_chain(reply_order: str = "request") -> DynamixelChainEmulator:
