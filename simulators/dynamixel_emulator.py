@@ -14,9 +14,14 @@ as a servo's UART would (framing errors, never a packet): a host at the wrong ba
 (``stats["wrong_baud_bytes"]`` counts what it sent).
 
 Faults on demand (``emulator.faults``): corrupted replies (bad CRC), garbage bytes on the line, dropped
-replies, late replies, a silent bus, a servo's hardware-error alert (the error byte's alert bit, and Hardware
+replies, late replies, one servo's reply to one chosen Sync Read held back until a later time or until the next
+Sync Read (so it lands among that one's replies: a status packet carries no sequence number), a silent bus, a servo's hardware-error alert (the error byte's alert bit, and Hardware
 Error Status, address 70, with the bits ``hardware_error_status`` gives: overheating unless told), a joint
 reading out of its limits, and ``disconnect()`` / ``reconnect()`` (the adapter unplugged and plugged back in).
+
+Every Sync Read is counted (``sync_reads``, from 1) and the time it was answered kept (``sync_read_times``), so
+a test can make the positions a function of the Sync Read's number (``ticks_at`` reads ``sync_reads``) and tell
+which one a reading answers.
 
 ``reply_order``: the servos answer a Sync Read in the order of the instruction's ID list (``"request"``, as the
 e-manual has it) or, as some chains do, by ascending or descending ID (``"ascending"``, ``"descending"``).
@@ -75,6 +80,12 @@ class DynamixelFaults:
     # a servo's Hardware Error Status (address 70) while it reports the alert (absent: HW_OVERHEATING)
     hardware_error_status: dict[int, int] = field(default_factory=dict)
     position_override: dict[int, int] = field(default_factory=dict)  # servo ID -> raw counts (e.g. off limits)
+    # (Sync Read number, counted from 1 as ``sync_reads``; servo ID): that servo's status packet to that Sync Read
+    # is held back, and sent ``late_reply_s`` later (from a timer; the chain goes on answering meanwhile) or, with
+    # ``late_reply_s`` None, at the next Sync Read, ahead of that one's replies (a late packet landing in the next
+    # cycle)
+    late_reply: tuple[int, int] | None = None
+    late_reply_s: float | None = None
 
 
 class DynamixelChainEmulator(PtyEmulator):
@@ -101,6 +112,11 @@ class DynamixelChainEmulator(PtyEmulator):
         self.stats = {"packets": 0, "bad_crc": 0, "replies": 0, "wrong_baud_bytes": 0}
         self.instructions: dict[int, int] = {}  # instruction code -> count received (safety tests read it)
         self.reads: dict[tuple[int, int], int] = {}  # (servo ID, address) of a Read instruction -> count
+        self.sync_reads = 0  # Sync Read instructions answered so far (the one being answered: its number)
+        self.sync_read_times: list[int] = []  # clock_ns() when each was answered (index: its number - 1)
+        self.late_sent: list[tuple[int, int, int]] = []  # (Sync Read number, servo ID, clock_ns) of held-back replies
+        self._held: list[tuple[int, int, bytes]] = []  # held-back status packets for the next Sync Read
+        self._write_lock = threading.Lock()  # the serving thread and a late reply's timer write to the pty
         self._sdk = PacketHandler(2.0)  # its CRC and stuffing routines
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -176,8 +192,15 @@ class DynamixelChainEmulator(PtyEmulator):
             listed = [i for i in params[4:] if i in self.ids]  # by default in the order the master listed them
             if self.reply_order != "request":
                 listed.sort(reverse=self.reply_order == "descending")
+            with self._lock:
+                self.sync_reads += 1
+                self.sync_read_times.append(t_ns)
+                held, self._held = self._held, []
+                late = self.faults.late_reply
+            for cycle, i, data in held:  # the last Sync Read's held-back packet, ahead of this one's
+                self._write_late(master, cycle, i, data)
             for i in listed:
-                self._reply_block(master, i, addr, n, t_ns)
+                self._reply_block(master, i, addr, n, t_ns, late=late == (self.sync_reads, i))
         elif inst == INST_WRITE and dxl_id in self.ids:
             self._reply(master, dxl_id, 0, b"")  # acknowledged; this robot is read-only and never moves
         elif dxl_id in self.ids:
@@ -202,14 +225,27 @@ class DynamixelChainEmulator(PtyEmulator):
         table[146] = 38  # degrees C
         return table
 
-    def _reply_block(self, master: int, dxl_id: int, addr: int, n: int, t_ns: int) -> None:
+    def _reply_block(self, master: int, dxl_id: int, addr: int, n: int, t_ns: int, late: bool = False) -> None:
         if addr + n > TABLE_SIZE or n == 0:
             self._reply(master, dxl_id, ERR_DATA_RANGE, b"")
             return
         error = ERR_ALERT if dxl_id in self.faults.hardware_alert else 0
-        self._reply(master, dxl_id, error, bytes(self._table(dxl_id, t_ns)[addr:addr + n]))
+        self._reply(master, dxl_id, error, bytes(self._table(dxl_id, t_ns)[addr:addr + n]), late)
 
-    def _reply(self, master: int, dxl_id: int, error: int, params: bytes) -> None:
+    def _write_late(self, master: int, cycle: int, dxl_id: int, data: bytes) -> None:
+        self.late_sent.append((cycle, dxl_id, self.clock_ns()))
+        self._write(master, data)
+
+    def _write(self, master: int, data: bytes) -> None:
+        try:
+            with self._write_lock:
+                os.write(master, data)
+            self.stats["replies"] += 1
+        except OSError:
+            pass
+
+    def _reply(self, master: int, dxl_id: int, error: int, params: bytes, late: bool = False) -> None:
+        """``late``: the packet held back as ``faults.late_reply`` says (built now, with the values of now)."""
         f = self.faults
         with self._lock:
             if f.silent:
@@ -227,10 +263,16 @@ class DynamixelChainEmulator(PtyEmulator):
             data[9 + int(self._rng.integers(0, max(1, total - 11)))] ^= 0x5A
         if garbage:
             data = bytearray(self._rng.integers(0, 256, garbage, dtype=np.uint8).tobytes()) + data
+        if late:
+            cycle, late_s = self.sync_reads, f.late_reply_s
+            if late_s is None:
+                with self._lock:
+                    self._held.append((cycle, dxl_id, bytes(data)))
+            else:
+                timer = threading.Timer(late_s, self._write_late, (master, cycle, dxl_id, bytes(data)))
+                timer.daemon = True
+                timer.start()
+            return
         if delay:
             time.sleep(delay)
-        try:
-            os.write(master, bytes(data))
-            self.stats["replies"] += 1
-        except OSError:
-            pass
+        self._write(master, bytes(data))

@@ -11,6 +11,21 @@ Position), servo IDs in joint order. The status packets are taken in whatever or
 A reading is stamped at the middle of the request/reply exchange on the injected clock (the servos sample their
 encoders when they build the reply).
 
+Status packets carry no sequence number, so a packet that comes after its Sync Read gave up (timed out, or cut
+short by a corrupt or duplicate packet) would pass for the next Sync Read's reply from that servo, and a reading
+would join positions of two cycles under one stamp. After any exchange that did not end clean, and whenever
+bytes wait on the line before a Sync Read, the driver lets the line go quiet first: it reads and drops what
+comes until nothing has come for ``settle_quiet_s`` (the servos' longest Return Delay, 508 us, plus a USB
+adapter's latency timer, 16 ms, plus a few byte-times), at most ``settle_limit_s`` (past that the cycle is lost
+and the next one tries again). The status packets dropped so are counted as ``stale_replies``. The first Sync
+Read after such an exchange is on probation: after its last reply the driver listens for another
+``settle_quiet_s``, and any status packet then (a late one may have come ahead of the fresh reply of the same
+servo and filled the set), or a second packet from one servo within an exchange, discards the whole reading
+(``stale_replies`` and a protocol error): a reading is never made of packets of two cycles. What is left: a
+packet later than the timeout, the quiet wait and a whole clean cycle that comes just before its servo's fresh
+reply; the servos' Realtime Tick could tell it, but it follows the emulator's clock in a simulation, so it is
+not used.
+
 A status packet with the error byte's alert bit set marks the robot faulted until replies come back clean; at
 each servo's alert onset its Hardware Error Status (address 70) is read once and its bits named (input voltage,
 overheating, motor encoder, electrical shock, overload). With the motor-encoder bit set the positions are not
@@ -20,6 +35,7 @@ trustworthy: the readings are refused (counted as ``refused_encoder_error``) unt
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +58,9 @@ HARDWARE_ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor 
                        0x20: "overload"}
 HW_MOTOR_ENCODER = 0x08
 HW_STATUS_READ_TRIES = 3  # reads of address 70 per alert onset before its bits are given up as unknown
+STATUS_HEADER = b"\xff\xff\xfd\x00"  # starts every packet; byte stuffing keeps it out of any payload
+RETURN_DELAY_MAX_S = 254 * 2e-6  # Return Delay Time (address 9) at its largest: 254 x 2 us
+USB_LATENCY_S = 0.016  # a USB-serial adapter's latency timer (FTDI's default; dynamixel-sdk's LATENCY_TIMER)
 X_SERIES_MODELS = {1020: "XM430-W350", 1030: "XM430-W210", 1060: "XL430-W250", 1120: "XM540-W270", 1000: "XH430-W350"}
 
 
@@ -108,6 +127,11 @@ class DynamixelRobot(PollingRobotDriver):
         self._hw_status: dict[int, int | None] = {}
         self._hw_tries: dict[int, int] = {}
         self._refuse = ""  # why the reading _poll just returned must not be delivered ("" : it may)
+        # set until an exchange ends clean: late packets of it may still come, so the line is let go quiet first
+        self._unsettled = False
+        # the line is quiet once nothing came for this long (see the module's doc); at most settle_limit_s of it
+        self.settle_quiet_s = RETURN_DELAY_MAX_S + USB_LATENCY_S + 20 * 10 / self.baud
+        self.settle_limit_s = 0.2
 
     @classmethod
     def discover(cls) -> Discovery:
@@ -177,7 +201,11 @@ class DynamixelRobot(PollingRobotDriver):
         counts = np.empty(len(self.ids), np.int64)
         self._refuse = ""
         try:
-            port.ser.reset_input_buffer()  # a late reply from the last cycle must not pass for this one's
+            # bytes waiting before the request are late packets (or noise): the line may not be quiet yet
+            probation = self._unsettled or getattr(port.ser, "in_waiting", 0) > 0  # (a scripted test port has none)
+            self._unsettled = True  # until this exchange ends clean
+            if probation:
+                self._settle(port)
             port.is_using = False
             t0 = self._clock()
             result = packets.syncReadTx(port, BLOCK_START, BLOCK_LEN, self.ids, len(self.ids), False)
@@ -185,6 +213,13 @@ class DynamixelRobot(PollingRobotDriver):
                 raise ProtocolError(f"{self.device_name}: Sync Read not sent ({packets.getTxRxResult(result)})")
             replies = self._sync_read_replies(port, packets)
             t1 = self._clock()
+            if probation:
+                late = self._drain_until_quiet(port)
+                if late:
+                    raise ProtocolError(f"{self.device_name}: reading discarded: {self._stale_text(late)} came "
+                                        f"after the Sync Read's replies (a late packet may have stood in for a "
+                                        f"fresh one)")
+            self._unsettled = False
             refused = []
             for j, dxl_id in enumerate(self.ids):
                 error, data = replies[dxl_id]
@@ -210,11 +245,55 @@ class DynamixelRobot(PollingRobotDriver):
             port.is_using = False
         return counts, (t0 + t1) // 2
 
+    def _drain_until_quiet(self, port) -> list[int]:
+        """Read and drop what comes until nothing has come for ``settle_quiet_s``; the IDs of the status packets
+        dropped (each counted as ``stale_replies``). ProtocolError when the line is not quiet within
+        ``settle_limit_s`` (the exchange stays unsettled: the next poll waits again)."""
+        start = last = time.monotonic()
+        dropped = bytearray()
+        while True:
+            chunk = port.readPort(4096)  # the SDK's port reads without blocking (timeout 0)
+            now = time.monotonic()
+            if chunk:
+                dropped += chunk
+                last = now
+            elif now - last >= self.settle_quiet_s:
+                break
+            if now - start > self.settle_limit_s:
+                ids = self._count_stale(dropped)
+                raise ProtocolError(f"{self.device_name}: the bus did not go quiet within "
+                                    f"{self.settle_limit_s * 1e3:.0f} ms ({len(dropped)} bytes dropped"
+                                    + (f", {self._stale_text(ids)}" if ids else "") + ")")
+            time.sleep(min(0.001, self.settle_quiet_s / 4))
+        return self._count_stale(dropped)
+
+    def _count_stale(self, dropped: bytes) -> list[int]:
+        """The servo IDs of the status packets (whole or cut) in ``dropped``, each counted as ``stale_replies``."""
+        ids, at = [], dropped.find(STATUS_HEADER)
+        while at >= 0:
+            ids.append(dropped[at + 4] if at + 4 < len(dropped) else -1)
+            self.count_fault("stale_replies")
+            at = dropped.find(STATUS_HEADER, at + 4)
+        return ids
+
+    @staticmethod
+    def _stale_text(ids: list[int]) -> str:
+        return (f"{len(ids)} late status packet(s) (servo ID(s) "
+                f"{', '.join('?' if i < 0 else str(i) for i in ids)})")
+
+    def _settle(self, port) -> None:
+        """Let the line go quiet before a Sync Read, dropping (and counting) what comes meanwhile."""
+        ids = self._drain_until_quiet(port)
+        if ids:
+            log.debug("%s: %s dropped before the Sync Read", self.device_name, self._stale_text(ids))
+
     def _sync_read_replies(self, port, packets) -> dict[int, tuple[int, list[int]]]:
         """Every servo's status packet to the Sync Read just sent, in whatever order they come: servo ID ->
         (error byte, data). The SDK's readRx(ID) would drop every packet before the one it waits for, so a
         chain answering in another order than the instruction's list would lose them; here each is kept by its
-        ID (packets of IDs not asked for are skipped). Within the Sync Read's packet timeout, as readRx."""
+        ID (packets of IDs not asked for are skipped, counted as ``stale_replies``). A second packet from one
+        servo means one of the two answers an earlier request: the reading is discarded (ProtocolError). Within
+        the Sync Read's packet timeout, as readRx."""
         from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS
         from dynamixel_sdk.protocol2_packet_handler import PKT_ERROR, PKT_ID, PKT_PARAMETER0
 
@@ -227,9 +306,15 @@ class DynamixelRobot(PollingRobotDriver):
                     raise DeviceTimeoutError(f"{self.device_name}: servo ID(s) {waiting} did not answer the Sync Read")
                 raise ProtocolError(f"{self.device_name}: servo ID(s) {waiting}: {packets.getTxRxResult(result)}")
             dxl_id = packet[PKT_ID]
-            if dxl_id in self.ids and dxl_id not in replies:
+            if dxl_id in replies:
+                self.count_fault("stale_replies")
+                raise ProtocolError(f"{self.device_name}: reading discarded: two status packets from servo ID "
+                                    f"{dxl_id} to one Sync Read (one of them late, from an earlier request)")
+            if dxl_id in self.ids:
                 replies[dxl_id] = (packet[PKT_ERROR],
                                    packet[PKT_PARAMETER0 + 1:PKT_PARAMETER0 + 1 + BLOCK_LEN])
+            else:
+                self.count_fault("stale_replies")
         return replies
 
     def _hardware_error_status(self, port, packets, dxl_id: int) -> int | None:
@@ -248,6 +333,7 @@ class DynamixelRobot(PollingRobotDriver):
             self._hw_status[dxl_id] = value
             log.warning("%s: servo %d: %s", self.device_name, dxl_id, hardware_error_text(value))
             return value
+        self._unsettled = True  # its reply may still come, during the next Sync Read
         log.debug("%s: servo %d: Hardware Error Status not read (%s)", self.device_name, dxl_id,
                   packets.getTxRxResult(result))
         if tries >= HW_STATUS_READ_TRIES:
