@@ -18,7 +18,8 @@ bring-up, and the emulator serves any number of clients one after another on the
 ``emulator.port``, brings the device up, and closes it). ``pose_at(t_ns)``
 returns ``(T_tracker_tool 4x4 in MILLIMETRES, in_volume)`` or None (the tool is out of view: MISSING). The device
 measures at ``frame_rate_hz``: a reply carries the latest frame (number and pose at that frame's time);
-``served`` logs what went out.
+``served`` logs what went out. ``in_volume`` may also be ``PARTIAL`` ("partial"): the tool is partially out of the
+characterised volume (port status bit 7, 0x80); its pose is reported whatever the reply option, as one inside.
 
 A serial break cannot pass through a Linux pty (the driver's tcsendbreak does nothing here), so the emulator
 never answers a break with ``RESET``: the driver's RESET-less path is what runs against it. With
@@ -56,6 +57,15 @@ log = logging.getLogger(__name__)
 
 PoseAt = Callable[[int], "tuple[np.ndarray, bool] | None"]
 PORT_OCCUPIED, PORT_INITIALISED, PORT_ENABLED, PORT_OUT_OF_VOLUME = 0x01, 0x10, 0x20, 0x40
+PORT_PARTIALLY_OUT_OF_VOLUME = 0x80
+PARTIAL = "partial"  # pose_at's in_volume for a tool partially out of the characterised volume
+
+
+def _port_status(in_volume: bool | str) -> int:
+    status = PORT_OCCUPIED | PORT_INITIALISED | PORT_ENABLED
+    if in_volume == PARTIAL:
+        return status | PORT_PARTIALLY_OUT_OF_VOLUME
+    return status | (0 if in_volume else PORT_OUT_OF_VOLUME)
 COMM_RATES = {"0": 9600, "1": 14400, "2": 19200, "3": 38400, "4": 57600, "5": 115200, "6": 921600,
               "7": 1228739, "A": 230400}
 
@@ -343,7 +353,8 @@ class NDITrackerEmulator(PtyEmulator):
             if not tool.enabled:
                 continue
             got = None if self.faults.missing else tool.pose_at(t_frame)
-            T, in_volume = (None, False) if got is None else (np.asarray(got[0], np.float64), bool(got[1]))
+            T, in_volume = (None, False) if got is None else (np.asarray(got[0], np.float64),
+                                                              PARTIAL if isinstance(got[1], str) else bool(got[1]))
             out.append((handle, frame, T, in_volume))
         return out
 
@@ -363,7 +374,7 @@ class NDITrackerEmulator(PtyEmulator):
             return
         parts, corrupt_at = [], None
         for handle, frame, T, in_volume in self._frame():
-            status = PORT_OCCUPIED | PORT_INITIALISED | PORT_ENABLED | (0 if in_volume else PORT_OUT_OF_VOLUME)
+            status = _port_status(in_volume)
             head = f"{handle:02X}"
             if T is None or (not in_volume and not option & 0x0800):
                 parts.append(f"{head}MISSING{status:08X}{frame:08X}\n")
@@ -388,7 +399,7 @@ class NDITrackerEmulator(PtyEmulator):
         corrupt_at = None
         for handle, frame, T, in_volume in self._frame():
             body[0] += 1
-            status = PORT_OCCUPIED | PORT_INITIALISED | PORT_ENABLED | (0 if in_volume else PORT_OUT_OF_VOLUME)
+            status = _port_status(in_volume)
             if T is None or (not in_volume and not option & 0x0800):
                 body += struct.pack("<BB", handle, 0x02) + struct.pack("<II", status, frame)
                 continue

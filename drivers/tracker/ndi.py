@@ -23,7 +23,10 @@ device's latency and the transfer are left in, for a time-offset fit to absorb.
 
 A reply with a bad CRC is a counted fault (``crc_errors``), never a pose; ``MISSING`` tools and out-of-volume
 poses are counted (``missing``, ``out_of_volume``) and mark the tracker degraded while they last; a repeated
-frame number (polled faster than the device measures) is not delivered twice.
+frame number (polled faster than the device measures) is not delivered twice. A pose *partially* out of the
+volume (port status bit 7) is out of it for the app: delivered with ``in_volume`` False (recorded as
+``in_volume`` 0, refused as a camera pose), counted in ``out_of_volume`` and on its own in
+``partially_out_of_volume``, and shown as "partially out of volume".
 
 A tracker that resets in the middle of a session (a power blip: it is back at 9600 baud, not initialised, not
 tracking, its handles gone) is brought up again: a ``RESET`` seen on the line (``device_resets``; the same for
@@ -159,8 +162,8 @@ class NDITracker(TrackerDriver):
 
     @property
     def faults(self) -> collections.Counter[str]:
-        """Counts per fault kind: missing, out_of_volume, crc_errors, timeouts, errors, disconnects,
-        reconnects, non_increasing_stamps, device_resets (RESET or ERROR0C: the device lost its set-up),
+        """Counts per fault kind: missing, out_of_volume (wholly or partially), partially_out_of_volume (those of
+        them only partially out), crc_errors, timeouts, errors, disconnects, reconnects, non_increasing_stamps, device_resets (RESET or ERROR0C: the device lost its set-up),
         unanswered (replies lost in a row for ``lost_for_s``: brought up again)."""
         with self._faults_lock:
             return collections.Counter(self._faults)
@@ -549,6 +552,9 @@ class NDITracker(TrackerDriver):
             if not rec.in_volume:
                 self._count("out_of_volume")
                 trouble[tool] = "out of volume"
+                if rec.partially_out_of_volume:
+                    self._count("partially_out_of_volume")
+                    trouble[tool] = "partially out of volume"
             if self._last_frame.get(rec.handle) == rec.frame:
                 continue  # polled faster than the device measures: the same measurement again
             self._last_frame[rec.handle] = rec.frame

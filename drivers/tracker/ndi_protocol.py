@@ -31,8 +31,11 @@ from lapreco_hil.errors import ProtocolError
 CR = b"\r"
 BX_START = b"\xc4\xa5"  # 0xA5C4, little-endian
 HANDLE_VALID, HANDLE_MISSING, HANDLE_DISABLED = 0x01, 0x02, 0x04
-PORT_OUT_OF_VOLUME = 0x40  # port status bit: outside the characterised volume (reported with reply option 0800)
-PORT_PARTIALLY_IN_VOLUME = 0x80
+# port status bits (NDI Combined API): bit 6 out of volume: the tool is outside the characterised volume (its pose
+# reported only with reply option 0800); bit 7 partially out of volume: some of its markers are (ndicapi names the
+# bit NDI_PARTIALLY_IN_VOLUME; NDI's guide "partially out of volume"). A pose with either is less trusted.
+PORT_OUT_OF_VOLUME = 0x40
+PORT_PARTIALLY_OUT_OF_VOLUME = 0x80
 REPLY_TRANSFORMS, REPLY_OUT_OF_VOLUME = 0x0001, 0x0800
 MAX_BX_BODY = 8192
 ERROR_CODES = {0x01: "unknown command", 0x04: "bad CRC in the command", 0x0C: "not tracking",
@@ -133,7 +136,14 @@ class HandleRecord:
 
     @property
     def in_volume(self) -> bool:
-        return not self.port_status & PORT_OUT_OF_VOLUME
+        """Wholly inside the characterised volume: neither out of it (bit 6) nor partially out (bit 7). A pose
+        partially out is not trusted either: the device's accuracy holds inside the volume only."""
+        return not self.port_status & (PORT_OUT_OF_VOLUME | PORT_PARTIALLY_OUT_OF_VOLUME)
+
+    @property
+    def partially_out_of_volume(self) -> bool:
+        """Partially out of the characterised volume (bit 7) and not wholly out (bit 6)."""
+        return bool(self.port_status & PORT_PARTIALLY_OUT_OF_VOLUME) and not self.port_status & PORT_OUT_OF_VOLUME
 
 
 @dataclass(frozen=True)
