@@ -254,6 +254,10 @@ class DepthConfig:
     # checked and fused as the reference keyframes' are, when the run keeps at most this many reference keyframes
     # (0: never; the live incremental fusion is reference-only; docs/dense.md, "Two views")
     partner_maps_up_to: int = ranged(1000, ge=0)
+    # the final build's two-view maps (a stereo partner's, or a run of two keyframes) get their holes from OpenCV's
+    # semi-global matching against that one partner (dense/stereo_fill.py), checked left-right as every depth is
+    # (docs/dense.md, "Two views")
+    two_view_sgbm: bool = True
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too

@@ -107,7 +107,18 @@ def test_a_stereo_pair_makes_a_surface_that_covers_most_of_what_both_see(liver_p
     poses = {0: T_left, 1: T_right}
     result = dense.build_at(poses, {0: _range(depth_left), 1: _range(depth_right)})
     assert dense.fused == 2
-    # the true surface: the left view's pixels the right view sees too (their true depths, back-projected)
+    X_world, seen = _seen_by_both(liver_pair)
+    points = result.points
+    assert len(points) > 1000
+    covered = cKDTree(points).query(X_world[seen])[0] < 1e-3
+    beyond = cKDTree(X_world).query(points)[0] > 5e-3
+    assert covered.mean() >= 0.8, covered.mean()
+    assert beyond.mean() <= 0.005, beyond.mean()
+
+
+def _seen_by_both(pair):
+    """The left view's true surface points (world) and which of them the right view sees too."""
+    camera, _, _, depth_left, depth_right, T_left, T_right = pair
     K = camera.K
     v, u = np.nonzero(depth_left > 0)
     z = depth_left[v, u]
@@ -119,13 +130,49 @@ def test_a_stereo_pair_makes_a_surface_that_covers_most_of_what_both_see(liver_p
     inside = (iu >= 0) & (iu < SIZE[0]) & (iv >= 0) & (iv < SIZE[1])
     seen = np.zeros(len(z), bool)
     seen[inside] = np.abs(depth_right[iv[inside], iu[inside]] - X_right[2, inside]) < 1e-3
-    truth = X_world[seen]
-    points = result.points
-    assert len(points) > 1000
-    covered = cKDTree(points).query(truth)[0] < 1e-3
-    beyond = cKDTree(X_world).query(points)[0] > 5e-3
-    assert covered.mean() >= 0.8, covered.mean()
-    assert beyond.mean() <= 0.005, beyond.mean()
+    return X_world, seen
+
+
+def test_semi_global_matching_depths_either_view_of_a_pair_from_its_own_pixels(liver_pair):
+    """``stereo_fill.sgbm_depth``: the pair rectified for its pose, matched, and the disparity taken back to the
+    reference's pixels; the left view (its partner to the right) and the right view (its partner to the left)."""
+    from lapreco_hil.dense.stereo_fill import sgbm_depth
+
+    camera, left, right, depth_left, depth_right, T_left, T_right = liver_pair
+    views = [KeyframeView(i, image[:, :, ::-1].copy(), camera.K, T) for i, (image, T)
+             in enumerate(((left, T_left), (right, T_right)))]
+    for ref, src, truth in ((views[0], views[1], depth_left), (views[1], views[0], depth_right)):
+        m = sgbm_depth(ref, src, _range(truth))
+        both = (m.depth_m > 0) & (truth > 0)
+        err = np.abs(m.depth_m - truth)[both]
+        assert both.sum() > 0.5 * (truth > 0).sum() and np.median(err) < 5e-4, (both.sum(), np.median(err))
+        assert np.mean(err > 5e-3) < 0.002
+
+
+def test_semi_global_matching_fills_a_near_pairs_holes_without_outliers():
+    """The liver 75 mm away (its silhouette over the omentum 70 mm behind): the final build's two maps with their
+    holes filled from SGBM (``[depth] two_view_sgbm``) cover more of what both views see, and the left-right
+    check still keeps the far points out (measured on the CPU: 62.2 -> 66.4% within 1 mm; beyond 5 mm 0.000 ->
+    0.016% of the fused points)."""
+    from lapreco_hil.dense.surface import DenseSurface
+    from scipy.spatial import cKDTree
+
+    pair = _render_pair("liver", (0.01, 0.03, 0.075))
+    camera, left, right, depth_left, depth_right, T_left, T_right = pair
+    X_world, seen = _seen_by_both(pair)
+    covered, beyond = {}, {}
+    for on in (False, True):
+        config = PipelineConfig()
+        config = dataclasses.replace(config, depth=dataclasses.replace(config.depth, two_view_sgbm=on))
+        dense = DenseSurface(camera, config, DEVICE)
+        dense.add_view(0, left, T_left)
+        dense.add_view(1, right, T_right)
+        points = dense.build_at({0: T_left, 1: T_right}, {0: _range(depth_left), 1: _range(depth_right)}).points
+        assert dense.report()["sgbm_filled_maps"] == (2 if on else 0)
+        covered[on] = float(np.mean(cKDTree(points).query(X_world[seen])[0] < 1e-3))
+        beyond[on] = float(np.mean(cKDTree(X_world).query(points)[0] > 5e-3))
+    assert covered[True] >= covered[False] + 0.02, covered
+    assert beyond[True] <= 0.002, beyond
 
 
 def test_a_version_2_stereo_pair_fuses_a_depth_map_from_each_camera(liver_pair):

@@ -33,6 +33,7 @@ import pyvista as pv
 from lapreco_hil.camera import CameraModel, Rig
 from lapreco_hil.config import DepthConfig, PipelineConfig
 from lapreco_hil.dense.fill import fill_holes
+from lapreco_hil.dense.stereo_fill import fill_from, sgbm_depth
 from lapreco_hil.dense.fusion import TsdfVolume
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.errors import ConfigError
@@ -139,6 +140,7 @@ class DenseSurface:
         self.timings = {"depth_s": 0.0, "integration_s": 0.0, "meshing_s": 0.0}
         self.fused = 0  # depth maps fused (a keyframe's each; with a stereo scope's partner views', those too)
         self.partners_fused = 0  # ... of them, stereo partner views' (``[depth] partner_maps_up_to``)
+        self.sgbm_filled = 0  # two-view maps whose holes semi-global matching filled (``[depth] two_view_sgbm``)
         self.refused = 0  # re-fusions after a pose update
         self.refused_final = 0  # ... of them by the final build
         self.refusions: Counter = Counter()  # kf_id -> its re-fusions
@@ -373,6 +375,10 @@ class DenseSurface:
                                       cfg.consistency_fill_lines, cfg.consistency_fill_weight, self.device)
                     for kf_id, m in made.items()}
             self.timings["depth_s"] += time.perf_counter() - t0
+        if cfg.two_view_sgbm:
+            t0 = time.perf_counter()
+            made = {kf_id: self._sgbm_filled(kf_id, m, chosen[kf_id]) for kf_id, m in made.items()}
+            self.timings["depth_s"] += time.perf_counter() - t0
         done = 0
         stored: OrderedDict[int, DepthMap] = OrderedDict()  # kept maps of fused neighbours, decoded (a few)
         for kf_id, as_kept in made.items():
@@ -392,6 +398,22 @@ class DenseSurface:
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         return done
+
+    def _sgbm_filled(self, kf_id: int, depth: DepthMap, sources: list[int]) -> DepthMap:
+        """A two-view map (its first source its stereo partner, or the run's other keyframe) with its holes from
+        semi-global matching against that view (``stereo_fill``); any other map as it is."""
+        if not sources:
+            return depth
+        view, partner = self.views[kf_id], self.views[sources[0]]
+        if not (same_rig_view(view, partner) or len(self.views) == 2):
+            return depth
+        cfg = self.config.depth
+        other = sgbm_depth(self.keyframe_view(kf_id), self.keyframe_view(partner.kf_id),
+                           view.depth_range or (cfg.default_near_m, cfg.default_far_m), cfg)
+        if other is None:
+            return depth
+        self.sgbm_filled += 1
+        return fill_from(depth, other)
 
     def _neighbours(self, kf_id: int, sources: list[int], made: dict) -> list[int]:
         """The keyframes whose maps check ``kf_id``'s: its sources, then the nearest others with a map (made in
@@ -451,6 +473,7 @@ class DenseSurface:
             "mesh_triangles": int(mesh.n_cells) if mesh is not None else None,
             "keyframes_fused": self.fused,
             "partner_maps_fused": self.partners_fused,  # (of them) stereo partner views' own maps
+            "sgbm_filled_maps": self.sgbm_filled,  # (of them) two-view maps with holes from semi-global matching
             "keyframes_refused": self.refused,
             "keyframes_refused_final": self.refused_final,  # (of them) by the final build, at the final poses
             "refusions_per_keyframe": {"mean": self.refused / max(self.fused, 1),
