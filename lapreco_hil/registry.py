@@ -43,6 +43,7 @@ GRABBER_BACKENDS = MappingProxyType({
 
 TRACKER_BACKENDS = MappingProxyType({
     "ndi": "lapreco_hil.drivers.tracker.ndi:NDITracker",
+    "replay": "lapreco_hil.sessions.replay_tracker:ReplayTracker",
 })
 
 HOST, SIMULATED, RECORDED = "host", "simulated", "recorded"
