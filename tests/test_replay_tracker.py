@@ -22,7 +22,7 @@ from lapreco_hil.errors import ConfigError, SessionError
 from lapreco_hil.registry import DeviceContext, open_grabber, open_tracker
 from lapreco_hil.sessions.session import Session
 
-from test_marker_poses import T_MARKER_CAMERA, T_WORLD_TRACKER, skull_session, tracked_copy  # noqa: F401
+from test_marker_poses import T_MARKER_CAMERA, skull_session, tracked_copy  # noqa: F401
 
 
 @pytest.fixture(scope="module")
@@ -129,28 +129,53 @@ def test_run_marker_replay_maps_the_tracked_scope_close_to_the_truth(tracked, tm
     base = ["run", "--marker", f"replay://{tracked}", "--grabber", f"replay://{tracked}?pace=realtime",
             "--hand-eye", str(tmp_path / "he.yaml"), "--tracker", "opencv", "--device", "cpu", "--surface", "alpha",
             "--no-progress"]
-    # two tools: the scope's is named, and must be one the session has
-    assert main([*base, "--out", str(tmp_path / "o1")]) == 2
-    assert "tracks 2 tools (scope, board); say which one is on the scope with --tool" in capsys.readouterr().err
+    # two tools: a --tool must be one the session has; without one, the session's tracker.tool is the scope's
     assert main([*base, "--tool", "nope", "--out", str(tmp_path / "o2")]) == 2
     assert "has no tool 'nope'; its tools: scope, board" in capsys.readouterr().err
 
     out = tmp_path / "out"
-    assert main([*base, "--tool", "scope", "--out", str(out)]) == 0
+    assert main([*base, "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     s = Session(tracked)
     assert report["tracker_tool"] == "scope" and report["marker"] == f"replay://{tracked}"
     assert report["frames"]["processed"] >= len(s) - 4 and report["inliers"] > 50, report["frames"]
     assert report["marker_samples_refused_by_cause"] == {"out_of_volume": 1, "rms_above_limit": 1}
     assert report["tracker_faults"] == {"out_of_volume": 1}
-    # the live run's world is the tracker's frame (no T_world_tracker): T_WORLD_TRACKER takes it to the truth's
+    # the session's tracker block places the tracker in the world (T_world_tracker), as a replay does: the map
+    # and the report's accuracy are in the truth's frame
+    assert not np.allclose(s.meta.tracker.T_world_tracker, np.eye(4))
     truth = s.ground_truth()
     points = np.asarray(pv.read(str(out / "points.ply")).points, float)
-    world = points @ T_WORLD_TRACKER[:3, :3].T + T_WORLD_TRACKER[:3, 3]
-    d = surface_distances(world, truth.surface)
+    d = surface_distances(points, truth.surface)
     assert np.median(d) < 2e-3 and np.percentile(d, 95) < 6e-3, (np.median(d), np.percentile(d, 95))
+    assert report["accuracy"]["points_to_surface"]["median_mm"] < 2.0
     t_s, T = read_tum(out / "trajectory.tum")  # (seconds)
-    errors = np.array([pose_error(T_WORLD_TRACKER @ Ti, truth.camera_pose(int(round(ti * 1e9))))
-                       for ti, Ti in zip(t_s, T)])
+    errors = np.array([pose_error(Ti, truth.camera_pose(int(round(ti * 1e9)))) for ti, Ti in zip(t_s, T)])
     assert len(t_s) >= len(s) - 4 and errors[:, 0].max() < 1e-3 and np.degrees(errors[:, 1]).max() < 0.2
+    # without --hand-eye the session's own T_marker_camera serves
+    out2 = tmp_path / "out-session-hand-eye"
+    assert main([*base[:5], *base[7:], "--out", str(out2)]) == 0, capsys.readouterr().err
+    assert json.loads((out2 / "report.json").read_text())["inliers"] > 50
 
+
+
+def test_a_live_run_from_a_recording_applies_its_declared_clock_offset_and_probes_it_by_its_pose_source(
+        skull_session, tracked, tmp_path, capsys):  # noqa: F811
+    """A recorded session's pose source keeps the clock offset its session.json declares when it is run live
+    (``--robot/--marker replay://S``), as a replay applies it; a live device's is 0 until calibrated. ``devices
+    --probe replay://S`` reads a joints session as a robot and a marker session as a tracker."""
+    from lapreco_hil.app.run import _declared_offset_ns
+    from lapreco_hil.registry import open_robot
+
+    shifted = tmp_path / "shifted"
+    shutil.copytree(skull_session, shifted)
+    doc = json.loads((shifted / "session.json").read_text())
+    doc["time_offset_ns"] = 12_345_678
+    (shifted / "session.json").write_text(json.dumps(doc))
+    context = DeviceContext()
+    assert _declared_offset_ns(open_robot(f"replay://{shifted}", context)) == 12_345_678
+    assert _declared_offset_ns(open_robot("sim://skull?width=64&height=48", DeviceContext())) == 0
+    assert main(["devices", "--probe", f"replay://{shifted}", "--seconds", "0.2"]) == 0
+    assert "no marker poses" not in capsys.readouterr().out
+    assert main(["devices", "--probe", f"replay://{tracked}", "--seconds", "0.2"]) == 0
+    assert "scope" in capsys.readouterr().out

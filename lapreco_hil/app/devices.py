@@ -18,6 +18,16 @@ def probe(url: str, seconds: float, device: str = "auto") -> str:
     from lapreco_hil.drivers.probe import probe_robot, probe_tracker
 
     context = DeviceContext(device=resolve_device(device))
-    if parse_url(url).scheme in TRACKER_BACKENDS:
+    if _is_tracker(url):
         return probe_tracker(url, context, seconds)
     return probe_robot(url, context, seconds)
+
+
+def _is_tracker(url: str) -> bool:
+    """A tracker's URL scheme; a recorded session (``replay://``, robot and tracker alike) by its pose source."""
+    parsed = parse_url(url)
+    if parsed.scheme == "replay":
+        from lapreco_hil.sessions import Session
+
+        return Session(parsed.name).meta.pose_source == "marker_poses"
+    return parsed.scheme in TRACKER_BACKENDS

@@ -53,7 +53,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
     if marker is None:
         if camera is None or description is None:
             camera, description = rig_from(robot, grabber)
-        poses = RobotPoseSource(robot, description, config.prior)
+        poses = RobotPoseSource(robot, description, config.prior, offset_ns=_declared_offset_ns(robot))
         first, second = robot, grabber
     else:
         if camera is None:
@@ -68,7 +68,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
             from lapreco_hil.sessions.recorder import scope_tool
 
             tracker_setup = replace(tracker_setup, tool=scope_tool(marker, tracker_setup.tool))
-            poses = MarkerPoseSource(tracker_setup, tracker=marker)
+            poses = MarkerPoseSource(tracker_setup, tracker=marker, offset_ns=_declared_offset_ns(marker))
         out_dir = prepare_output_dir(out)  # only once the devices are open: a run that never starts leaves nothing
         if record:
             # what 'lapreco record' writes, through the same recorder: events.csv, source, health, the ground truth
@@ -271,6 +271,19 @@ def run(robot_url: str | None, grabber_url: str, out: str, *, config_path: str |
                     report_fields={"robot": robot_url, "grabber": grabber_url}, mcap=mcap)
 
 
+def _recorded_session(device):
+    """The session a ``replay://`` robot or tracker plays, else None."""
+    return getattr(device, "session", None) if getattr(device, "url", None) is not None \
+        and device.url.scheme == "replay" else None
+
+
+def _declared_offset_ns(device) -> int:
+    """The pose source's clock offset a recorded session declares (``time_offset_ns``); 0 for a live device (its
+    offset is watched, and applied once calibrated)."""
+    recorded = _recorded_session(device)
+    return int(recorded.meta.time_offset_ns) if recorded is not None else 0
+
+
 def _run_tracked(marker_url: str, grabber_url: str, out: str, config: PipelineConfig, context: DeviceContext, *,
                  tool: str | None, hand_eye_file: str | None, camera_file: str | None, record: str | None,
                  seconds: float | None, tracker: str, device: str, progress: bool, mcap: str | None = None) -> dict:
@@ -278,11 +291,20 @@ def _run_tracked(marker_url: str, grabber_url: str, out: str, config: PipelineCo
     from lapreco_hil.app.record import tracker_setup
     from lapreco_hil.calib.files import read_camera_yaml
 
-    if not hand_eye_file:
+    marker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
+    recorded = _recorded_session(marker)
+    if recorded is not None and recorded.meta.tracker is not None:
+        # a recorded tracked scope: the session's tracker placement, RMS limit and sigmas, and its hand-eye unless
+        # one is given
+        setup = recorded.meta.tracker
+        if hand_eye_file:
+            setup = replace(setup, T_marker_camera=tracker_setup(setup.tool, hand_eye_file).T_marker_camera)
+        setup = replace(setup, tool=tool or setup.tool)
+    else:
+        setup = tracker_setup(tool, hand_eye_file) if hand_eye_file else None
+    if setup is None or setup.T_marker_camera is None:
         raise ConfigError(f"lapreco run --marker {marker_url}: the scope's hand-eye is missing (T_marker_camera): "
                           f"pass --hand-eye handeye.yaml (from 'lapreco calibrate handeye-tracked')")
-    setup = tracker_setup(tool, hand_eye_file)
-    marker, grabber = open_tracker(marker_url, context), open_grabber(grabber_url, context)
     camera = read_camera_yaml(camera_file) if camera_file else grabber.camera
     return run_live(None, grabber, config, out, tracker=tracker, device=device, camera=camera, record=record,
                     seconds=seconds, progress=progress, marker=marker, tracker_setup=setup, mcap=mcap,

@@ -45,8 +45,10 @@ def add_parser(sub) -> None:
     # exactly one of --robot / --marker (checked by app.run, which says so in one line)
     run.add_argument("--robot", default=None, help="robot URL (serial://, canopen://, sim://, replay://)")
     run.add_argument("--marker", default=None, help="instead of a robot, a tracker following the scope's marker "
-                                                    "(ndi://...; needs --hand-eye)")
-    run.add_argument("--tool", default=None, help="with --marker: the scope's tool (default: the tracker's only one)")
+                                                    "(ndi://... or a recorded marker session replay://S; needs "
+                                                    "--hand-eye, which a recorded session may carry)")
+    run.add_argument("--tool", default=None, help="with --marker: the scope's tool (default: the tracker's only one, "
+                                                  "or a recorded session's tracker.tool)")
     run.add_argument("--grabber", required=True, help="grabber URL (v4l2://, sim://, replay://)")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", default=None, help="pipeline configuration (TOML)")
