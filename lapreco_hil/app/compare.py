@@ -48,6 +48,9 @@ def run_comparison(session: str, out: str, device: str = "auto", config_path: st
             _, poses = read_tum(out_dir / name / "trajectory.tum")
             ev = evaluate_points(read_points_ply(out_dir / name / "points.ply"), truth.surface, poses,
                                  np.array(cam["K"]), (cam["width"], cam["height"]))
+            if "error" in ev:  # (a truth in another unit, ...): said, and kept in the row, not blank columns
+                log.error("compare: %s: evaluation failed: %s", name, ev["error"])
+                row["evaluation_error"] = ev["error"]
             # the headline is rigid ICP (the world frame is metric); the similarity's scale is what the map
             # would need (lapreco_hil.evaluation.icp)
             row["icp_rms_mm"] = ev.get("icp", {}).get("rms_mm")
