@@ -147,17 +147,26 @@ def test_run_error_line_names_the_robot_and_what_to_do(tmp_path, monkeypatch, ca
 
     coverage = PoseCoverage("robot", "serial:///dev/ttyUSB0?ids=1,2,3,4", 101, after_last=67,
                             first_frame_ns=0, last_frame_ns=4_000_000_000, first_reading_ns=0,
-                            last_reading_ns=1_320_000_000, gap_limit_ns=30e6)
+                            last_reading_ns=1_320_000_000, gap_limit_ns=30e6, silent_received_s=2.68,
+                            late_received_s=0.0, after_received=67)
     with pytest.raises(DeviceLostError) as exc:
         check_pose_coverage("run", coverage, "the outputs are in OUT and the recording is kept at REC",
                             problem="stale: no reading for 2.7 s", warn=False)
     msg = str(exc.value)
     assert "\n" not in msg and msg.startswith("run: robot 'serial:///dev/ttyUSB0?ids=1,2,3,4' stopped delivering")
+    assert "none received in the last 2.68 s of the capture" in msg
     assert "67 of 101 frames come after it" in msg and "1.32 s after the first frame" in msg
     assert "check its cable and power" in msg and msg.endswith("the recording is kept at REC")
     # a short silence at the very end (a late reply or two) is not a lost robot
     assert not PoseCoverage("robot", "x", 101, after_last=2, first_frame_ns=0, last_frame_ns=4_000_000_000,
-                            last_reading_ns=3_900_000_000, gap_limit_ns=30e6).lost
+                            last_reading_ns=3_900_000_000, gap_limit_ns=30e6, silent_received_s=0.1).lost
+    # nor are readings whose stamps end early but that were received to the end (a clock offset not declared), or
+    # whose receipts are not known: the stamps alone never fail a command
+    offset = PoseCoverage("robot", "x", 101, after_last=67, first_frame_ns=0, last_frame_ns=4_000_000_000,
+                          last_reading_ns=1_320_000_000, gap_limit_ns=30e6, silent_received_s=0.0)
+    assert not offset.lost and "calibrate time-offset" in offset.summary()
+    assert not PoseCoverage("robot", "x", 101, after_last=67, first_frame_ns=0, last_frame_ns=4_000_000_000,
+                            last_reading_ns=1_320_000_000, gap_limit_ns=30e6).lost
 
 
 @pytest.mark.slow
@@ -228,3 +237,40 @@ def test_a_simulated_robot_and_camera_record_their_ground_truth(tmp_path, caplog
     truth = Session(out).ground_truth()
     assert truth is not None and truth.surface is not None and truth.camera_pose is not None
     assert not [m for m in caplog.messages if "ground truth" in m]
+
+
+@pytest.mark.parametrize("offset_ms", [-600, 400])
+def test_a_kinematics_clock_offset_is_not_a_lost_robot(tmp_path, caplog, capsys, offset_ms, warp_cpu):
+    """A robot whose clock is offset from the video's (its readings stamped 600 ms early, or 400 ms late) with no
+    offset declared: its stamps end before the last frame (or start after the first), but its readings came to the
+    end of the capture. Lost is judged on when they were received: exit 0, the coverage a warning that names the
+    offset, never 'stopped delivering readings'."""
+    out = tmp_path / "rec"
+    with caplog.at_level(logging.WARNING):
+        rc = main(["sim-record", "--scene", "skull", "--out", str(out), "--frames", "30", "--resolution", "160x120",
+                   "--device", warp_cpu, "--kinematics-offset-ms", str(offset_ms), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "stopped delivering" not in err and "lost" not in " ".join(caplog.messages)
+    coverage = Session(out).meta.health["pose_coverage"]
+    assert not coverage["lost"] and coverage["received_silent_at_end_s"] < 0.25, coverage
+    assert coverage["time_offset_ms"] == 0.0
+    if offset_ms < 0:  # (30 frames at 25 fps: the last 0.6 s of them after the last stamp)
+        assert coverage["after_last"] >= 13 and "received to the end of the capture" in coverage["summary"]
+    else:
+        assert coverage["before_first"] >= 8 and coverage["after_last"] == 0, coverage
+        assert "received from the start of the capture" in coverage["summary"]
+    (summary,) = [m for m in caplog.messages if "clock is likely offset" in m]
+    assert "calibrate time-offset" in summary
+
+
+def test_a_declared_time_offset_is_applied_to_the_coverage(tmp_path):
+    """The same stamps with the session's time_offset_ns: pose time = video time + offset."""
+    from lapreco_hil.sessions.recorder import coverage_of
+
+    frames = [1_000_000_000 + i * 40_000_000 for i in range(30)]
+    readings = [t - 600_000_000 for t in range(960_000_000, 2_200_000_000, 5_000_000)]  # stamped 600 ms early
+    assert coverage_of("robot", "x", frames, readings).after_last >= 13
+    declared = coverage_of("robot", "x", frames, readings, time_offset_ns=-600_000_000)
+    assert declared.after_last == declared.before_first == declared.in_gap == 0 and declared.summary() is None
+    assert declared.as_dict()["time_offset_ms"] == -600.0

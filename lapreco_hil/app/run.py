@@ -85,6 +85,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
                                            grabber, robot, urdf_file=urdf_path(description.urdf), truth=truth,
                                            console=False)
         try:
+            receipts = _watch_receipts(poses)  # when its readings reached the run, on the host's clock
             if mcap:
                 mcap_log = _mcap_logger(mcap, grabber, robot, camera, description, tracker_setup, poses)
             live = LiveRun(grabber, poses, camera, config, tracker=tracker, device=device, out_dir=out_dir,
@@ -101,7 +102,7 @@ def run_live(robot, grabber, config: PipelineConfig, out: str, *, tracker: str =
         finally:
             if recorder is not None:
                 recorder.close()
-    coverage = _pose_coverage(poses, pose_device, metrics["frames"]["in"])
+    coverage = _pose_coverage(poses, pose_device, metrics["frames"]["in"], receipts)
     fields = {"command": "run", **(report_fields or {}), "runtime": "live", "pose_coverage": coverage.as_dict()}
     _warn_if_replay_outran_the_run(grabber, metrics)
     if marker is not None:
@@ -159,9 +160,29 @@ def _device_problem(device) -> str:
     return f"{health.state.value}: {health.detail}" if health.detail else health.state.value
 
 
-def _pose_coverage(poses, device, frames_in: int):
+def _watch_receipts(poses):
+    """The host-clock receipts of a live run (sessions/recorder.py, ``Receipts``): the tracking stage polls the
+    pose source once a frame, so each ``poll()`` is a frame reaching it, and one that returns readings their
+    receipt. Whether the source was lost is judged on these, not on its stamps (its clock may be offset)."""
+    from lapreco_hil.sessions.recorder import Receipts
+
+    receipts, poll = Receipts(), poses.poll
+
+    def poll_and_note() -> list:
+        samples = poll()
+        receipts.frame()
+        if samples:
+            receipts.reading()
+        return samples
+
+    poses.poll = poll_and_note
+    return receipts
+
+
+def _pose_coverage(poses, device, frames_in: int, receipts=None):
     """How the pose source's accepted readings covered the frames that reached it (its ``without_pose`` counts,
-    after-the-last ones moved to the gaps when readings resumed), as the recorder judges a recording's."""
+    after-the-last ones moved to the gaps when readings resumed; its times less the offset it applies), as the
+    recorder judges a recording's: lost or not by ``receipts`` (``_watch_receipts``), on the host's clock."""
     from lapreco_hil.geometry import AFTER_LAST, BEFORE_FIRST, IN_GAP
     from lapreco_hil.sessions.recorder import PoseCoverage
 
@@ -176,7 +197,9 @@ def _pose_coverage(poses, device, frames_in: int):
                         # (a live track keeps its recent readings only: its first came just after this frame)
                         first_reading_ns=max(before) if before else poses.without_pose.first_frame_ns,
                         last_reading_ns=None if last is None else last - poses.time_offset_ns,
-                        gap_limit_ns=track.max_gap_ns, gap_frames_ns=(min(gaps), max(gaps)) if gaps else None)
+                        gap_limit_ns=track.max_gap_ns, gap_frames_ns=(min(gaps), max(gaps)) if gaps else None,
+                        time_offset_ns=poses.time_offset_ns,
+                        **(receipts.figures() if receipts is not None else {}))
 
 
 def _warn_if_replay_outran_the_run(grabber, metrics: dict) -> None:

@@ -97,18 +97,56 @@ class DeviceWatch:
             self._warn[(name, event)]("record: %s %s: %s", name, event, detail or "(no detail)")
 
 
-# a pose source counts as lost when its readings end this long before the frames do (or its gap limit,
-# MAX_GAP_PERIODS of its median reading periods, where that is longer): a late reply or two at the very end of a
-# recording is not a lost device, a robot whose cable came out is
+# a pose source counts as lost when none of its readings was received during this long at the end of the capture
+# (or its gap limit, MAX_GAP_PERIODS of its median reading periods, where that is longer), on the host's clock: a
+# late reply or two at the very end of a recording is not a lost device, a robot whose cable came out is
 LOST_AFTER_S = 0.25
+
+
+class Receipts:
+    """When the frames and the pose source's readings of a recording or a run reached the host (its monotonic
+    clock), in the order the capture loop received them. Whether a pose source was lost is judged on these, not on
+    the readings' stamps: a device's clock may be offset from the video's (by seconds, in public datasets), and an
+    offset not declared would make readings that came to the very end look as if they had stopped early."""
+
+    def __init__(self) -> None:
+        self.first_frame_ns = self.last_frame_ns = None  # host monotonic ns
+        self.first_reading_ns = self.last_reading_ns = None
+        self.frames_after_reading = 0  # frames received after the last reading was
+
+    def frame(self) -> None:
+        now = time.monotonic_ns()
+        self.first_frame_ns = now if self.first_frame_ns is None else self.first_frame_ns
+        self.last_frame_ns = now
+        self.frames_after_reading += 1
+
+    def reading(self) -> None:
+        now = time.monotonic_ns()
+        self.first_reading_ns = now if self.first_reading_ns is None else self.first_reading_ns
+        self.last_reading_ns = now
+        self.frames_after_reading = 0
+
+    def figures(self) -> dict:
+        """PoseCoverage's host-clock fields (none when no frame or no reading was received)."""
+        if self.last_frame_ns is None or self.last_reading_ns is None:
+            return {}
+        return {"silent_received_s": max(0, self.last_frame_ns - self.last_reading_ns) * 1e-9,
+                "late_received_s": max(0, self.first_reading_ns - self.first_frame_ns) * 1e-9,
+                "after_received": self.frames_after_reading}
 
 
 @dataclass(frozen=True)
 class PoseCoverage:
     """How one pose source's readings cover the frames of a recording or a live run. A frame has a pose only
     between two readings at most the gap limit apart (``geometry.no_pose_cause``): the others come before its
-    first reading, in a gap, or after its last one. Times are capture times on the frames' clock. The gaps'
-    number and longest are known where the readings' times are (a recording), not in a live run."""
+    first reading, in a gap, or after its last one. Times are capture times on the frames' clock: the readings'
+    stamps as recorded less the declared ``time_offset_ns`` (pose time = video time + offset), so an offset not
+    declared shows as frames before the first or after the last reading (a warning, never a failure). The gaps'
+    number and longest are known where the readings' times are (a recording), not in a live run.
+
+    Whether the source was ``lost`` is judged on the host's clock instead (``Receipts``): ``silent_received_s``,
+    how long before the end of the capture its last reading was received; ``late_received_s``, how long after the
+    first frame its first was; ``after_received``, the frames received after its last reading (None: not known)."""
 
     kind: str  # "robot" | "tracker"
     url: str
@@ -124,6 +162,10 @@ class PoseCoverage:
     gap_frames_ns: tuple[int, int] | None = None  # the first and the last frame in a gap
     gaps: int | None = None  # gaps longer than the gap limit with a frame in them
     longest_gap_ns: tuple[int, int] | None = None  # (start, end) of the longest of them
+    time_offset_ns: int = 0  # the declared offset taken off the readings' stamps
+    silent_received_s: float | None = None  # host clock: its last reading received this long before the last frame
+    late_received_s: float | None = None  # host clock: its first reading received this long after the first frame
+    after_received: int | None = None  # host clock: frames received after its last reading was
 
     @property
     def device(self) -> str:
@@ -131,7 +173,7 @@ class PoseCoverage:
 
     @property
     def silent_s(self) -> float:
-        """How long before the last frame its last reading came (0 when it came after)."""
+        """How long before the last frame its last reading is stamped, on the frames' clock (0 when after)."""
         if self.last_frame_ns is None or self.last_reading_ns is None:
             return 0.0
         return max(0.0, (self.last_frame_ns - self.last_reading_ns) * 1e-9)
@@ -143,9 +185,16 @@ class PoseCoverage:
 
     @property
     def lost(self) -> bool:
-        """Its readings ended (for the rest of the recording) more than ``lost_after_s`` before the frames did.
-        A source that delivered nothing at all is not judged here (each command says that with its own error)."""
-        return self.after_last > 0 and self.last_reading_ns is not None and self.silent_s > self.lost_after_s
+        """No reading of it was received, on the host's clock, during the last ``lost_after_s`` of the capture
+        (``silent_received_s``); its stamps do not decide (a clock offset would). A source that delivered nothing
+        at all, or one whose receipts are not known, is not judged here (each command says the first with its own
+        error)."""
+        return self.silent_received_s is not None and self.silent_received_s > self.lost_after_s
+
+    def _offset_hint(self) -> str:
+        return (f"its clock is likely offset from the video's by more than the time offset applied "
+                f"({self.time_offset_ns * 1e-6:.0f} ms); measure it with 'lapreco calibrate time-offset' on a "
+                f"recording")
 
     @property
     def late_start(self) -> bool:
@@ -164,10 +213,17 @@ class PoseCoverage:
         """One line on the frames its readings do not cover (None when they cover every frame, but for a few at
         the start)."""
         parts = []
-        if self.after_last:
+        if self.lost:
             parts.append(f"{self.after_last} of {self.frames} frames come after its last reading (at "
-                         f"{self._at(self.last_reading_ns):.2f} s; none in the last {self.silent_s:.2f} s"
-                         + (": lost)" if self.lost else ")"))
+                         f"{self._at(self.last_reading_ns):.2f} s; none received in the last "
+                         f"{self.silent_received_s:.2f} s of the capture: lost)")
+        elif self.after_last and self.silent_received_s is not None:
+            parts.append(f"{self.after_last} of {self.frames} frames come after its last reading (at "
+                         f"{self._at(self.last_reading_ns):.2f} s), though its readings were received to the end "
+                         f"of the capture: {self._offset_hint()}")
+        elif self.after_last:
+            parts.append(f"{self.after_last} of {self.frames} frames come after its last reading (at "
+                         f"{self._at(self.last_reading_ns):.2f} s; none in the last {self.silent_s:.2f} s)")
         if self.in_gap:
             gap_ms = f"{self.gap_limit_ns * 1e-6:.0f} ms" if math.isfinite(self.gap_limit_ns) else "its gap limit"
             text = f"{self.in_gap} of {self.frames} frames fall in "
@@ -181,17 +237,23 @@ class PoseCoverage:
                          f"{self._at(hi):.2f} s)")
             parts.append(text + ", after which its readings resumed")
         if self.before_first and self.late_start:
+            on_time = self.late_received_s is not None and self.late_received_s <= self.lost_after_s
             parts.append(f"{self.before_first} of {self.frames} frames come before its first reading (at "
-                         f"{self._at(self.first_reading_ns):.2f} s)")
+                         f"{self._at(self.first_reading_ns):.2f} s)"
+                         + (f", though its readings were received from the start of the capture: "
+                            f"{self._offset_hint()}" if on_time else ""))
         return f"{self.device}: " + "; ".join(parts) if parts else None
 
     def lost_message(self, command: str, kept: str, problem: str = "") -> str:
         """The one-line error of a lost pose source: the device, what happened, what to do, where the data is."""
-        return (f"{command}: {self.kind} '{self.url}' stopped delivering readings: its last came "
-                f"{self._at(self.last_reading_ns):.2f} s after the first frame, none in the last {self.silent_s:.2f} s "
-                f"({self.after_last} of {self.frames} frames come after it and have no pose"
-                f"{'; last problem: ' + problem if problem else ''}); check its cable and power, then "
-                f"'lapreco devices --probe {self.url}'; {kept}")
+        # (the frames its stamps leave without a pose, as the summary counts them; those received after its last
+        # reading where the stamps, on a clock offset by more than declared, seem to cover every frame)
+        after = self.after_last if self.after_last or self.after_received is None else self.after_received
+        return (f"{command}: {self.kind} '{self.url}' stopped delivering readings: none received in the last "
+                f"{self.silent_received_s or 0.0:.2f} s of the capture ({after} of {self.frames} frames come after "
+                f"its last reading and have no pose; that reading is stamped {self._at(self.last_reading_ns):.2f} s "
+                f"after the first frame{'; last problem: ' + problem if problem else ''}); check its cable and "
+                f"power, then 'lapreco devices --probe {self.url}'; {kept}")
 
     def as_dict(self) -> dict:
         """session.json's health.pose_coverage and report.json's pose_coverage."""
@@ -201,6 +263,9 @@ class PoseCoverage:
         return {"device": self.device, "frames": self.frames, "before_first": self.before_first,
                 "in_gap": self.in_gap, "after_last": self.after_last, "first_reading_s": at(self.first_reading_ns),
                 "last_reading_s": at(self.last_reading_ns), "silent_at_end_s": round(self.silent_s, 3),
+                "time_offset_ms": round(self.time_offset_ns * 1e-6, 3) + 0.0,
+                "received_silent_at_end_s": None if self.silent_received_s is None else
+                round(self.silent_received_s, 3),
                 "lost": self.lost, "gaps": self.gaps,
                 "longest_gap_s": None if self.longest_gap_ns is None else
                 round((self.longest_gap_ns[1] - self.longest_gap_ns[0]) * 1e-9, 3),
@@ -208,17 +273,22 @@ class PoseCoverage:
                 "summary": self.summary()}
 
 
-def coverage_of(kind: str, url: str, frame_times, reading_times) -> PoseCoverage:
-    """The coverage of frames at ``frame_times`` by readings at ``reading_times`` (both increasing, one clock),
-    with the gap limit ``geometry.max_gap_ns`` takes from the readings."""
+def coverage_of(kind: str, url: str, frame_times, reading_times, *, time_offset_ns: int = 0,
+                receipts: Receipts | None = None) -> PoseCoverage:
+    """The coverage of frames at ``frame_times`` by readings stamped ``reading_times`` (both increasing), with the
+    gap limit ``geometry.max_gap_ns`` takes from the readings; the readings' stamps are on the frames' clock once
+    ``time_offset_ns`` (pose time = video time + offset) is taken off. ``receipts``: when both reached the host,
+    what decides ``lost``."""
     f = np.asarray(frame_times, np.int64)
-    r = np.asarray(reading_times, np.int64)
+    r = np.asarray(reading_times, np.int64) - np.int64(time_offset_ns)
     gap = max_gap_ns(r)
+    host = receipts.figures() if receipts is not None else {}
     first_f, last_f = (int(f[0]), int(f[-1])) if len(f) else (None, None)
     if len(f) == 0 or len(r) == 0:
         return PoseCoverage(kind, url, len(f), before_first=len(f), first_frame_ns=first_f, last_frame_ns=last_f,
                             first_reading_ns=int(r[0]) if len(r) else None,
-                            last_reading_ns=int(r[-1]) if len(r) else None, gap_limit_ns=gap)
+                            last_reading_ns=int(r[-1]) if len(r) else None, gap_limit_ns=gap,
+                            time_offset_ns=int(time_offset_ns), **host)
     before, after = f < r[0], f > r[-1]
     j = np.searchsorted(r, f)  # r[j - 1] < f <= r[j] for the frames inside
     exact = r[np.minimum(j, len(r) - 1)] == f
@@ -232,7 +302,7 @@ def coverage_of(kind: str, url: str, frame_times, reading_times) -> PoseCoverage
     return PoseCoverage(kind, url, len(f), int(before.sum()), int(in_gap.sum()), int(after.sum()), first_f, last_f,
                         int(r[0]), int(r[-1]), gap,
                         (int(gap_times[0]), int(gap_times[-1])) if len(gap_times) else None,
-                        gaps=len(gap_starts), longest_gap_ns=longest)
+                        gaps=len(gap_starts), longest_gap_ns=longest, time_offset_ns=int(time_offset_ns), **host)
 
 
 class DeviceLostError(DeviceError):
@@ -310,6 +380,7 @@ class SessionRecorder:
         self.faults: dict = {}
         self.coverage: PoseCoverage | None = None
         self._frame_times = array("q")
+        self.receipts = Receipts()  # when the frames and the pose samples reached it, on the host's clock
         self.closed = False
 
     def __enter__(self) -> "SessionRecorder":
@@ -319,6 +390,7 @@ class SessionRecorder:
         self.close()
 
     def add_frame(self, frame) -> None:
+        self.receipts.frame()  # (as it reaches the recorder: before any wait for the PNG encoders)
         self.writer.add_frame(frame)
         if self.truth is not None and self.truth.camera_pose is not None:
             self.writer.add_true_pose(frame.t_ns, self.truth.camera_pose(frame.t_ns))
@@ -329,6 +401,9 @@ class SessionRecorder:
         """The pose source's samples (joint readings, or MarkerSamples); returns how many were not recorded."""
         if self.kind == "tracker":
             self.seen_tools.update(s.tool for s in samples)
+        # a reading received (the device delivers): the robot's any, the tracker's of the scope's tool
+        if any(self.kind == "robot" or s.tool == self.tool for s in samples):
+            self.receipts.reading()
         skipped = self.writer.add_joints(samples)
         self.skipped += skipped
         return skipped
@@ -343,8 +418,10 @@ class SessionRecorder:
             if self._frame_times:
                 self.watch.check(self._frame_times[-1])
             self.faults = {k: int(v) for k, v in dict(device.faults).items() if v}
-            # the frames against the pose samples the session holds (what a replay's poses will come from)
-            self.coverage = coverage_of(self.kind, device.url.raw, self._frame_times, writer.pose_times)
+            # the frames against the pose samples the session holds (what a replay's poses will come from), their
+            # stamps with the session's declared offset; lost or not by when they were received
+            self.coverage = coverage_of(self.kind, device.url.raw, self._frame_times, writer.pose_times,
+                                        time_offset_ns=writer.meta.time_offset_ns, receipts=self.receipts)
             problem = self.watch.last_problem.get(self.device_name, "")
             if self.kind == "robot":
                 health = {"robot_faults": self.faults, "robot_readings_delivered": device.readings_delivered,
