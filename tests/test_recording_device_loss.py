@@ -274,3 +274,39 @@ def test_a_declared_time_offset_is_applied_to_the_coverage(tmp_path):
     declared = coverage_of("robot", "x", frames, readings, time_offset_ns=-600_000_000)
     assert declared.after_last == declared.before_first == declared.in_gap == 0 and declared.summary() is None
     assert declared.as_dict()["time_offset_ms"] == -600.0
+
+
+def test_a_run_whose_every_reading_was_refused_has_no_coverage_crash(warp_cpu):
+    """`lapreco run` with no reading accepted at all: the pose coverage of an empty robot track (an empty
+    PoseAtTime is falsy) is one of frames before the first reading, never an AttributeError, and not a lost robot
+    (a source that delivered nothing usable is the run's own error: the live run mapped no frames)."""
+    from lapreco_hil.app.run import _pose_coverage, _watch_receipts
+    from lapreco_hil.config import PipelineConfig
+    from lapreco_hil.pose_sources import RobotPoseSource
+    from lapreco_hil.registry import DeviceContext, open_robot
+    from lapreco_hil.sessions.recorder import check_pose_coverage
+
+    robot = open_robot("sim://skull?width=160&height=120", DeviceContext())
+    poses = RobotPoseSource(robot, robot.description, PipelineConfig().prior)
+    receipts = _watch_receipts(poses)
+    for t in (1_000_000_000, 1_050_000_000, 1_100_000_000):  # frames came; no reading was accepted
+        poses.has_pose(t)
+    coverage = _pose_coverage(poses, robot, 3, receipts)
+    assert len(poses.pose_at) == 0 and coverage.before_first == 3 and coverage.last_reading_ns is None
+    assert not coverage.lost
+    check_pose_coverage("run", coverage, "kept")  # (no DeviceLostError: the run's own error names the cause)
+
+
+@pytest.mark.slow
+def test_run_with_every_reading_refused_ends_with_its_one_line_error(tmp_path, monkeypatch, capsys, warp_cpu):
+    from lapreco_hil.pose_sources import RobotPoseSource
+
+    monkeypatch.setattr(RobotPoseSource, "_refusal",
+                        lambda self, s: ("beyond limits", "joint 'j1' = 9 beyond its limits [-1, 1] (margin included)"))
+    url = "sim://skull?width=160&height=120"
+    rc = main(["run", "--robot", url, "--grabber", url + "&frames=10", "--out", str(tmp_path / "out"), "--device",
+               warp_cpu, "--tracker", "opencv", "--surface", "alpha", "--no-progress"])
+    captured = capsys.readouterr()
+    assert rc != 0 and "AttributeError" not in captured.err + captured.out
+    (err,) = [line for line in captured.err.splitlines() if line.startswith("lapreco: error:")]
+    assert "mapped no frames" in err and "refused" in err and "beyond limits" in err, err

@@ -188,7 +188,8 @@ def _pose_coverage(poses, device, frames_in: int, receipts=None):
 
     times = poses.without_pose.times
     before, after, gaps = times[BEFORE_FIRST], times[AFTER_LAST], times[IN_GAP]
-    track = getattr(poses, "pose_at", None) or poses.track  # a robot's readings, or a tracker's poses
+    # a robot's readings, or a tracker's poses (an empty PoseAtTime is falsy: no reading accepted at all)
+    track = poses.pose_at if hasattr(poses, "pose_at") else poses.track
     last = track.last_time_ns
     return PoseCoverage("robot" if poses.robot is not None else getattr(poses, "source", "tracker"),
                         device.url.raw, frames_in, before_first=len(before), in_gap=len(gaps),
