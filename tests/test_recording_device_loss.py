@@ -276,6 +276,52 @@ def test_a_declared_time_offset_is_applied_to_the_coverage(tmp_path):
     assert declared.as_dict()["time_offset_ms"] == -600.0
 
 
+class _Device:
+    """What SessionRecorder reads of a device besides its samples: its URL, health and faults."""
+
+    def __init__(self, url: str) -> None:
+        from types import SimpleNamespace
+
+        self.url, self.health, self.faults = SimpleNamespace(raw=url), None, {}
+
+
+@pytest.mark.parametrize("leaves_by", ["out_of_volume", "rms"])
+def test_tracker_samples_a_replay_refuses_cover_no_frame(tmp_path, leaves_by):
+    """A scope that leaves the tracker's volume (or whose marker fit goes bad) for the last frames: the tracker
+    still delivers its poses, recorded with their flags, but a replay refuses them, so they cover no frame. The
+    coverage says so (frames after the last usable reading), as a warning: the tracker was not lost."""
+    from lapreco_hil.camera import CameraModel
+    from lapreco_hil.sessions import format as fmt
+    from lapreco_hil.sessions.recorder import SessionRecorder
+    from lapreco_hil.types import Frame, MarkerSample
+
+    camera = CameraModel(64, 48, 50.0, 51.0, 31.5, 23.5, (0.1, -0.02), 22.0)
+    meta = fmt.SessionMeta(camera=camera, pose_source="marker_poses", length_unit="mm",
+                           tracker=fmt.TrackerSetup("scope", np.eye(4), max_rms_mm=1.0))
+    recorder = SessionRecorder(tmp_path / "s", meta, _Device("sim://grabber"), _Device("ndi:///dev/ttyUSB0"),
+                               console=False)
+    leaves_at = 1_600_000_000  # usable until then, for 7 of the 20 frames (1.65 .. 1.95 s) not
+
+    def sample(t: int, seq: int, tool: str = "scope") -> MarkerSample:
+        out = tool == "scope" and t > leaves_at
+        return MarkerSample(np.eye(4), t, seq, tool, 2.5 if out and leaves_by == "rms" else 0.2,
+                            not (out and leaves_by == "out_of_volume"))
+
+    samples = [s for i, t in enumerate(range(980_000_000, 2_020_000_000, 20_000_000))
+               for s in (sample(t, i), sample(t + 1, i, "board"))]
+    with recorder:
+        for i in range(20):
+            t = 1_000_000_000 + i * 50_000_000
+            recorder.add_joints([s for s in samples if s.t_ns <= t])
+            samples = [s for s in samples if s.t_ns > t]
+            recorder.add_frame(Frame(np.zeros((48, 64, 3), np.uint8), t, i))
+        recorder.add_joints(samples)
+    coverage = recorder.coverage
+    assert max(recorder.writer.pose_times) <= leaves_at and recorder.writer.n_markers == 2 * 52
+    assert coverage.after_last == 7 and not coverage.lost, coverage
+    assert coverage.summary().startswith("tracker ndi:///dev/ttyUSB0: 7 of 20 frames come after its last reading")
+
+
 def test_a_run_whose_every_reading_was_refused_has_no_coverage_crash(warp_cpu):
     """`lapreco run` with no reading accepted at all: the pose coverage of an empty robot track (an empty
     PoseAtTime is falsy) is one of frames before the first reading, never an AttributeError, and not a lost robot

@@ -79,7 +79,8 @@ class SessionWriter:
         self._last_marker_t: dict[str, int] = {}  # tool -> its last recorded time
         self.last_skipped_joints = ""  # why the last joint sample was not recorded (names the joint and value)
         # capture times of the recorded samples that place the camera (joint readings, or the scope tool's marker
-        # poses): what a replay's poses come from, for the recording's pose coverage (sessions/recorder.py)
+        # poses a replay accepts: in the volume, RMS within max_rms_mm): what a replay's poses come from, for the
+        # recording's pose coverage (sessions/recorder.py)
         self.pose_times = array("q")
         self._last_frame_t = self._last_joint_t = self._last_pose_t = self._last_truth_t = None
         _write_json_atomic(self.folder / fmt.META_FILE, meta.to_json(self.folder))
@@ -234,8 +235,9 @@ class SessionWriter:
                      + f",{float(s.rms_mm):.6g},{int(bool(s.in_volume))}\n")
             self._last_marker_t[s.tool] = s.t_ns
             self.n_markers += 1
-            if s.tool == self.meta.tracker.tool:
-                self.pose_times.append(int(s.t_ns))
+            tracker = self.meta.tracker
+            if s.tool == tracker.tool and s.in_volume and float(s.rms_mm) <= tracker.max_rms_mm:
+                self.pose_times.append(int(s.t_ns))  # (one a replay refuses covers no frame)
         return skipped
 
     def add_joints(self, samples: list) -> int:
