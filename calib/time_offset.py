@@ -111,27 +111,37 @@ def track_session(session, config: PipelineConfig, device: str = "cpu", tracker:
     return [frontend.process(session.frame(i)) for i in range(len(session))]
 
 
+def _uniform_grid(t_ns: np.ndarray, what: str) -> tuple[int, np.ndarray, float, np.ndarray]:
+    """(t0_ns, the samples' times in s from t0, the grid step, the grid): a uniform grid at the samples' median
+    interval (drivers' and trackers' samples jitter a little)."""
+    t_ns = np.asarray(t_ns, np.int64)
+    if len(t_ns) < 2:
+        raise CalibrationError(f"the time offset needs at least two {what}")
+    t0_ns = int(t_ns[0])
+    raw_t = (t_ns - t0_ns) * 1e-9
+    dt = float(np.median(np.diff(raw_t)))
+    return t0_ns, raw_t, dt, np.arange(0.0, raw_t[-1] + 1e-12, dt)
+
+
+def _smoothed_on_grid(values: np.ndarray, dt: float, smoothing_s: float) -> np.ndarray:
+    """Values on a uniform grid (N, ...) smoothed by a local quadratic fit over ``smoothing_s`` (zero phase: no
+    delay of its own); unchanged where the window holds too few samples."""
+    from scipy.signal import savgol_filter
+
+    window = int(round(smoothing_s / dt)) | 1
+    return savgol_filter(values, window, 2, axis=0, mode="interp") if 3 < window < len(values) else values
+
+
 class JointTrack:
     """Joint readings as a smooth function of time: positions smoothed by a local quadratic fit over
     SMOOTHING_S (zero phase: no delay of its own), and the side each joint's backlash is on (from its
     velocity)."""
 
     def __init__(self, t_ns: np.ndarray, q: np.ndarray) -> None:
-        from scipy.signal import savgol_filter
-
-        t_ns = np.asarray(t_ns, np.int64)
-        if len(t_ns) < 2:
-            raise CalibrationError("the time offset needs at least two joint readings")
-        self.t0_ns = int(t_ns[0])
-        raw_t = (t_ns - self.t0_ns) * 1e-9
+        self.t0_ns, raw_t, dt, self.t_s = _uniform_grid(t_ns, "joint readings")
         q = np.asarray(q, float)
-        # on a uniform grid at the readings' median interval (drivers' readings jitter a little)
-        dt = float(np.median(np.diff(raw_t)))
-        self.t_s = np.arange(0.0, raw_t[-1] + 1e-12, dt)
         uniform = np.column_stack([np.interp(self.t_s, raw_t, q[:, j]) for j in range(q.shape[1])])
-        window = int(round(SMOOTHING_S / dt)) | 1
-        self.q = savgol_filter(uniform, window, 2, axis=0, mode="interp") if 3 < window < len(self.t_s) \
-            else uniform
+        self.q = _smoothed_on_grid(uniform, dt, SMOOTHING_S)
         h = VELOCITY_HALF_WINDOW_S
         velocity = (self._interp(self.t_s + h) - self._interp(self.t_s - h)) / (2 * h)
         rms = np.sqrt(np.mean(velocity**2, axis=0))
@@ -159,31 +169,22 @@ class PoseSeries:
     +- 0.9 ms at a true 0). Before the first sample or after the last, held at that end."""
 
     def __init__(self, t_ns: np.ndarray, poses: np.ndarray, smoothing_s: float = SMOOTHING_S) -> None:
-        from scipy.signal import savgol_filter
         from scipy.spatial.transform import Rotation
 
         from lapreco_hil.geometry import interpolate_poses
 
-        t_ns = np.asarray(t_ns, np.int64)
         poses = np.asarray(poses, float)
-        if len(t_ns) < 2:
-            raise CalibrationError("the time offset needs at least two poses")
-        if np.any(np.diff(t_ns) <= 0):
+        if np.any(np.diff(np.asarray(t_ns, np.int64)) <= 0):
             raise CalibrationError("the poses' times must increase")
-        self.t0_ns = int(t_ns[0])
-        raw_t = (t_ns - self.t0_ns) * 1e-9
-        dt = float(np.median(np.diff(raw_t)))
-        self.t_s = np.arange(0.0, raw_t[-1] + 1e-12, dt)
+        self.t0_ns, raw_t, dt, self.t_s = _uniform_grid(t_ns, "poses")
         i = np.clip(np.searchsorted(raw_t, self.t_s, side="right") - 1, 0, len(raw_t) - 2)
         u = np.clip((self.t_s - raw_t[i]) / (raw_t[i + 1] - raw_t[i]), 0.0, 1.0)
         uniform = interpolate_poses(poses[i], poses[i + 1], u)
-        window = int(round(smoothing_s / dt)) | 1
-        if 3 < window < len(self.t_s):
-            quat = Rotation.from_matrix(uniform[:, :3, :3]).as_quat()
-            flip = np.cumprod(np.r_[1.0, np.sign(np.sum(quat[1:] * quat[:-1], axis=1) + 1e-300)])
-            quat = savgol_filter(quat * flip[:, None], window, 2, axis=0, mode="interp")
-            uniform[:, :3, :3] = Rotation.from_quat(quat / np.linalg.norm(quat, axis=1, keepdims=True)).as_matrix()
-            uniform[:, :3, 3] = savgol_filter(uniform[:, :3, 3], window, 2, axis=0, mode="interp")
+        quat = Rotation.from_matrix(uniform[:, :3, :3]).as_quat()
+        flip = np.cumprod(np.r_[1.0, np.sign(np.sum(quat[1:] * quat[:-1], axis=1) + 1e-300)])
+        quat = _smoothed_on_grid(quat * flip[:, None], dt, smoothing_s)
+        uniform[:, :3, :3] = Rotation.from_quat(quat / np.linalg.norm(quat, axis=1, keepdims=True)).as_matrix()
+        uniform[:, :3, 3] = _smoothed_on_grid(uniform[:, :3, 3], dt, smoothing_s)
         self.poses = uniform
 
     def at(self, t_ns: np.ndarray) -> np.ndarray:
