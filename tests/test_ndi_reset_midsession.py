@@ -18,6 +18,8 @@ from lapreco_hil.drivers.health import HealthState
 from lapreco_hil.registry import DeviceContext, open_tracker
 from lapreco_hil.simulators.ndi_emulator import NDITrackerEmulator
 
+from test_robot_drivers import wait_for
+
 FAST = "reset_wait_ms=100&timeout_ms=300"
 
 
@@ -29,14 +31,6 @@ def moving_pose(offset_mm: np.ndarray):
         T[:3, 3] = offset_mm + [30.0 * np.sin(s), 20.0 * np.cos(s), -1200.0]
         return T, True
     return pose_at
-
-
-def wait_for(predicate, timeout_s: float) -> None:
-    t0 = time.monotonic()
-    while not predicate():
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError("condition not reached in time")
-        time.sleep(0.005)
 
 
 def served_error(emu: NDITrackerEmulator, handle: int, T_m: np.ndarray) -> float:
@@ -136,3 +130,54 @@ def test_a_reset_whose_bring_up_fails_keeps_trying_and_stays_stale(roms):
             tracker.read()
             assert tracker.read(timeout_s=1.0)
     assert health.state is HealthState.STALE and "no NDI tracker answers" in health.detail, health
+
+
+# --- close() while the reader brings the tracker up again -------------------------------------------------------
+
+def test_close_during_a_mid_session_bring_up_closes_the_port_and_leaves_the_tracker_stopped():
+    """close() while the reader waits for the RESET after its break (up to reset_wait_ms): the bring-up stops at
+    once, and neither the port nor a tracking device is left behind by a reader that outlived close()."""
+    with NDITrackerEmulator(wired=[moving_pose(np.zeros(3))]) as emu:
+        tracker = open_tracker(f"ndi://{emu.port}?rate=60&reset_wait_ms=6000&timeout_ms=300", DeviceContext())
+        tracker.open()
+        assert tracker.read(timeout_s=1.0)
+        reader = tracker._thread
+        emu.power_blip(announce=False)
+        wait_for(lambda: tracker.faults["unanswered"] == 1, 5.0)
+        time.sleep(0.5)  # the reader is inside the bring-up: the 6 s wait for RESET after its break
+        t0 = time.monotonic()
+        tracker.close()
+        took = time.monotonic() - t0
+        reader.join(timeout=8.0)
+        time.sleep(0.3)
+        assert took < 2.0, took
+        assert not reader.is_alive() and not tracker._connected and tracker._ser is None
+        assert not emu.tracking and emu.command_log[-1] != "TSTART", list(emu.command_log)[-5:]
+
+
+def test_a_bring_up_that_completes_as_close_gives_up_on_it_ends_the_session_itself(roms):
+    """The bring-up completes after close() stopped waiting for the reader: the reader ends the session (TSTOP,
+    PHF of its passive tool's handle) and closes the port, instead of marking itself connected with nobody left
+    to do it."""
+    with NDITrackerEmulator(passive=[moving_pose(np.zeros(3))]) as emu:
+        tracker = open_tracker(f"ndi://{emu.port}?rate=60&tools={roms[0]}&{FAST}", DeviceContext())
+        tracker.open()
+        assert tracker.read(timeout_s=1.0)
+        reader = tracker._thread
+        connect, completed = tracker._connect, threading.Event()
+
+        def slow_connect(after_reset: bool = False) -> None:  # a device that takes its time (INIT, PINIT)
+            connect(after_reset)
+            completed.set()
+            time.sleep(0.6)
+
+        tracker._connect = slow_connect
+        tracker.close_join_s = 0.2
+        emu.power_blip(announce=True)
+        assert completed.wait(5.0) and emu.tracking  # brought up again: tracking, the reader not yet back
+        tracker.close()  # gives up on the reader after 0.2 s
+        reader.join(timeout=3.0)
+        assert not reader.is_alive()
+        assert not emu.tracking and list(emu.command_log)[-2:] == ["TSTOP", "PHF"], list(emu.command_log)[-5:]
+        assert [h for h, t in emu.handles.items() if not t.wired] == []
+        assert not tracker._connected and tracker._ser is None and tracker.faults["reconnects"] == 0

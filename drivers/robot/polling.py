@@ -76,6 +76,9 @@ class PollingRobotDriver(RobotDriver):
     degraded_min_s = 0.25
     buffer_len = 4096
     raw_unit = "counts"  # what the device's raw positions are called (ticks, increments)
+    # how long close() waits for the reader thread; one still busy past it (inside a reconnect's _connect, or a
+    # poll) disconnects what it holds itself when it ends
+    close_join_s = 5.0
 
     def __init__(self, url, context, config: PolledRobotConfig, joint_map: JointMap, device_name: str) -> None:
         self.url = url
@@ -96,6 +99,12 @@ class PollingRobotDriver(RobotDriver):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self._connected = False
+        # the hand-over between close() and a reader thread it could not wait for: under _life, whether the reader
+        # still runs and whether close() gave up on it (the reader then disconnects itself when it ends)
+        self._life = threading.Lock()
+        self._reader_running = False
+        self._abandoned = False
+        self._leftover: threading.Thread | None = None  # a reader close() left busy (open() waits for it)
         self._device_faults: dict[str, str] = {}  # source -> message, while a device reports a fault
         self._last_fault = ""
         self._last_sample_wall = 0.0
@@ -134,23 +143,43 @@ class PollingRobotDriver(RobotDriver):
     def open(self) -> None:
         if self._thread is not None:
             return
+        if self._leftover is not None:  # the last close() left its reader busy: it ends at its next step
+            self._leftover.join(timeout=self.close_join_s)
+            if self._leftover.is_alive():
+                raise DeviceError(f"{self.device_name}: the previous session's reader thread is still busy "
+                                  f"(connecting?); try again")
+            self._leftover = None
+        self._stop.clear()
         self._connect()
         self._connected = True
-        self._stop.clear()
+        self._reader_running, self._abandoned = True, False
         self._thread = threading.Thread(target=self._run, name=f"robot {self.device_name}", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
+        """Stop the reader and disconnect. A reader busy past ``close_join_s`` (a reconnect's _connect on a slow
+        device, a blocked poll) is left to end by itself: it disconnects whatever it holds by then, so the
+        transport is never left open with nobody to close it."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        if self._connected:
-            self._connected = False
-            try:
-                self._disconnect()
-            except Exception:  # closing a dead transport may fail; nothing is left to do about it
-                log.debug("closing %s", self.device_name, exc_info=True)
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=self.close_join_s)
+        with self._life:
+            if self._reader_running:
+                self._abandoned = True
+                self._leftover = thread
+                log.warning("%s: the reader thread is still busy after %.1f s; it disconnects when it ends",
+                            self.device_name, self.close_join_s)
+                return
+            connected, self._connected = self._connected, False
+        if connected:
+            self._disconnect_quietly()
+
+    def _disconnect_quietly(self) -> None:
+        try:
+            self._disconnect()
+        except Exception:  # closing a dead transport may fail; nothing is left to do about it
+            log.debug("closing %s", self.device_name, exc_info=True)
 
     # --- the reader thread -------------------------------------------------------------------------------
     def set_device_fault(self, source: str, message: str | None) -> None:
@@ -212,6 +241,14 @@ class PollingRobotDriver(RobotDriver):
         except BaseException as exc:  # stored and raised by read(): never lost with the thread
             self._error = exc
             log.error("%s: reader thread failed: %s", self.device_name, exc)
+        finally:
+            with self._life:
+                self._reader_running = False
+                disconnect = self._abandoned and self._connected  # close() gave up waiting: nobody else will
+                if disconnect:
+                    self._connected = False
+            if disconnect:
+                self._disconnect_quietly()
 
     def _reconnect(self) -> None:
         if self._stop.wait(self.reconnect_interval_s):
@@ -221,7 +258,13 @@ class PollingRobotDriver(RobotDriver):
         except DeviceError as exc:
             self._last_fault = str(exc)
             return
-        self._connected = True
+        with self._life:
+            closing = self._stop.is_set()
+            if not closing:
+                self._connected = True
+        if closing:  # close() came while connecting (and may have stopped waiting): what was opened is closed here
+            self._disconnect_quietly()
+            return
         self.count_fault("reconnects")
         log.warning("%s reconnected", self.device_name)
 

@@ -34,6 +34,10 @@ tracking, its handles gone) is brought up again: a ``RESET`` seen on the line (`
 row for ``lost_for_s`` (``unanswered``: a RESET sent at 9600 reads as garbage at the session's rate, or is lost)
 reconnect as a new session does (the break, then the RESET-less path). Passive tools' .rom files are uploaded
 again; the port stays open meanwhile, so health reads stale (not disconnected) until poses come again.
+
+``close()`` during such a bring-up stops it at its next step (the wait for ``RESET`` included) and closes the
+port; a bring-up that completes as ``close()`` comes is ended as a session is (``TSTOP``, ``PHF``), by the reader
+thread itself when ``close()`` could not wait for it: the port is never left open, nor the device tracking.
 """
 
 from __future__ import annotations
@@ -93,6 +97,10 @@ class NDIConfig(URLConfig):
     timeout_ms: int = url_param(500, low=10, high=60000, unit="ms", help="reply timeout of one command")
 
 
+class BringUpStopped(DeviceError):
+    """close() came during a bring-up: it stopped at its next step."""
+
+
 def serial_ports() -> list[str]:
     from serial.tools import list_ports
 
@@ -109,6 +117,9 @@ class NDITracker(TrackerDriver):
     degraded_after_periods = 10.0
     degraded_min_s = 0.25
     buffer_len = 4096
+    # how long close() waits for the reader thread (its longest step: INIT, PINIT or TSTART, INIT_TIMEOUT_S); one
+    # still busy past it ends the session itself (TSTOP, PHF, the port closed) when it is done
+    close_join_s = INIT_TIMEOUT_S + 1.0
 
     def __init__(self, url, context) -> None:
         self.config = NDIConfig.from_url(url)
@@ -139,6 +150,12 @@ class NDITracker(TrackerDriver):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self._connected = False
+        # the hand-over between close() and a reader thread it could not wait for: under _life, whether the reader
+        # still runs and whether close() gave up on it (the reader then ends the session itself)
+        self._life = threading.Lock()
+        self._reader_running = False
+        self._abandoned = False
+        self._leftover: threading.Thread | None = None  # a reader close() left busy (open() waits for it)
         self._recovering = False  # not connected, the port fine: the device is being brought up again
         self._after_reset = False  # the next bring-up follows a RESET the device sent: no break, straight to INIT
         self._faults: collections.Counter[str] = collections.Counter()
@@ -268,7 +285,8 @@ class NDITracker(TrackerDriver):
         deadline = time.monotonic() + self.config.reset_wait_ms / 1e3
         got = b""
         while time.monotonic() < deadline:
-            ser.timeout = max(0.01, deadline - time.monotonic())
+            self._check_stop()  # close() need not wait out a long reset_wait_ms
+            ser.timeout = min(0.1, max(0.01, deadline - time.monotonic()))
             got += ser.read_until(b"\r")
             if got.endswith(b"\r"):
                 try:
@@ -309,6 +327,7 @@ class NDITracker(TrackerDriver):
             self._recovering = False  # the port itself is gone: disconnected, not a device being brought up
             raise
         try:
+            self._check_stop()
             self.reset_seen = after_reset or self._wait_for_reset()
             if not self.reset_seen:
                 log.info("%s: no RESET after the serial break; taking the device on where it is", self.device_name)
@@ -316,8 +335,10 @@ class NDITracker(TrackerDriver):
             # a device taken on where it is (no RESET) after this driver lost its cable still tracks the tools it
             # set up: go on with them. Anything else (a new session, a device reset, another client's handles,
             # one that crashed without freeing its own) gets the full bring-up, whose INIT starts afresh.
+            self._check_stop()
             if not (not self.reset_seen and self.tool_handles and self._resume()):
                 self._bring_up()
+            self._check_stop()
             self._command("TSTART:", INIT_TIMEOUT_S)
             self._last_frame.clear()
         except (serial.SerialException, OSError, termios.error) as exc:
@@ -331,6 +352,12 @@ class NDITracker(TrackerDriver):
             raise
         log.info("%s: %s; tracking %s", self.device_name, self.version.splitlines()[0] if self.version else "?",
                  ", ".join(self.tools))
+
+    def _check_stop(self) -> None:
+        """Between bring-up steps: close() asked the reader to stop (the port is closed by _connect's caller; what
+        this bring-up requested is freed by the next session's INIT)."""
+        if self._stop.is_set():
+            raise BringUpStopped(f"{self.device_name}: bring-up stopped: the tracker is being closed")
 
     def _resume(self) -> bool:
         """Whether the device, found at this session's rate, still has every handle this driver enabled."""
@@ -350,6 +377,7 @@ class NDITracker(TrackerDriver):
         """INIT (a fresh handle table), COMM to the session's rate, VER, APIREV, the .rom tools' handles, PINIT,
         PENA: every tool enabled, ready for TSTART."""
         self._command("INIT:", INIT_TIMEOUT_S)
+        self._check_stop()
         if self._ser.baudrate != self.config.baud:
             self._command(f"COMM:{COMM_BAUD_CODES[self.config.baud]}0000")
             time.sleep(0.1)  # the device switches after its OKAY
@@ -365,6 +393,7 @@ class NDITracker(TrackerDriver):
             self._command(f"PHF:{handle:02X}")
         handles: dict[int, str] = {}
         for name, rom in self._roms:
+            self._check_stop()
             reply = self._command("PHRQ:*********1****")
             try:
                 handle = int(reply[:2], 16)
@@ -373,8 +402,10 @@ class NDITracker(TrackerDriver):
             self._upload_rom(handle, rom)
             handles[handle] = name
         for handle in self._handles("02"):
+            self._check_stop()
             self._command(f"PINIT:{handle:02X}", INIT_TIMEOUT_S)
         for handle in self._handles("03"):
+            self._check_stop()
             self._command(f"PENA:{handle:02X}D")
         enabled = self._handles("04")
         if not enabled:
@@ -423,24 +454,44 @@ class NDITracker(TrackerDriver):
     def open(self) -> None:
         if self._thread is not None:
             return
+        if self._leftover is not None:  # the last close() left its reader busy: it ends at its next step
+            self._leftover.join(timeout=self.close_join_s)
+            if self._leftover.is_alive():
+                raise DeviceError(f"{self.device_name}: the previous session's reader thread is still busy "
+                                  f"(bringing the tracker up); try again")
+            self._leftover = None
+        self._stop.clear()  # before the bring-up, which stops at its next step once it is set
         self._connect()
         self._connected = True
-        self._stop.clear()
+        self._reader_running, self._abandoned = True, False
         self._thread = threading.Thread(target=self._run, name=f"tracker {self.port_path}", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
+        """Stop the reader, end the session (TSTOP, PHF) and close the port. A reader still busy past
+        ``close_join_s`` (a bring-up step that waits for the device) is left to end by itself: it stops the
+        bring-up at its next step, or ends the session it completed, and closes the port either way."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        if self._connected:
-            self._connected = False
-            try:
-                self._release()
-            except Exception:  # the device may be gone; nothing is left to do about it
-                log.debug("%s: TSTOP / PHF on close", self.device_name, exc_info=True)
-            self._close_port()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=self.close_join_s)
+        with self._life:
+            if self._reader_running:
+                self._abandoned = True
+                self._leftover = thread
+                log.warning("%s: the reader thread is still busy after %.1f s; it closes the port when it ends",
+                            self.device_name, self.close_join_s)
+                return
+            connected, self._connected = self._connected, False
+        if connected:
+            self._release_quietly()
+        self._close_port()
+
+    def _release_quietly(self) -> None:
+        try:
+            self._release()
+        except Exception:  # the device may be gone; nothing is left to do about it
+            log.debug("%s: TSTOP / PHF on close", self.device_name, exc_info=True)
 
     # --- the reader thread -------------------------------------------------------------------------------------
     def _note_lost(self, kind: str, message: str) -> None:
@@ -512,6 +563,17 @@ class NDITracker(TrackerDriver):
         except BaseException as exc:  # stored and raised by read(): never lost with the thread
             self._error = exc
             log.error("%s: reader thread failed: %s", self.device_name, exc)
+        finally:
+            with self._life:
+                self._reader_running = False
+                abandoned = self._abandoned  # close() gave up waiting: nobody else will end the session
+                release = abandoned and self._connected
+                if abandoned:
+                    self._connected = False
+            if release:
+                self._release_quietly()
+            if abandoned:
+                self._close_port()
 
     def _bring_up_again(self, kind: str, message: str, after_reset: bool = False) -> None:
         """The device no longer tracks for this session (it reset, or stopped answering): counted, then the
@@ -531,11 +593,20 @@ class NDITracker(TrackerDriver):
         after_reset, self._after_reset = self._after_reset, False  # a second try takes the usual path
         try:
             self._connect(after_reset)
+        except BringUpStopped:
+            return  # close() came: _connect closed the port
         except DeviceError as exc:
             self._last_fault = str(exc)
             return
-        self._connected = True
-        self._recovering = False
+        with self._life:
+            closing = self._stop.is_set()
+            if not closing:
+                self._connected = True
+                self._recovering = False
+        if closing:  # close() came as the bring-up completed (and may have stopped waiting): end it here
+            self._release_quietly()
+            self._close_port()
+            return
         self._count("reconnects")
         log.warning("%s reconnected", self.device_name)
 
