@@ -8,13 +8,15 @@ command whose CRC is wrong gets ``ERROR04``, an unknown one ``ERROR01``, trackin
 ``ERROR0C``, a handle it does not hold ``ERROR2B``. ``command_log`` keeps the commands' names in order.
 
 Tools: passive tools (``passive``: one ``pose_at`` each, given to the handles PHRQ hands out, in order) and
-wired tools (``wired``: handles 0A, 0B, ... present after INIT, as an Aurora's sensors).
+wired tools (``wired``: handles 0A, 0B, ... present after INIT, as an Aurora's sensors). A wired tool's handle
+that a client freed (``PHF``) is not assigned again, by INIT or RESET, until its sensor is plugged in again
+(``replug()``) or the device is power-cycled (``power_blip()``), as a real Aurora may behave.
 
 Port handles live as on the device: ``PHRQ`` hands out the lowest free handle (01, 02, ...) to the first passive
 tool that holds none, ``PHF`` frees one, and ``INIT`` or ``RESET`` start a fresh handle table, as a device just
-brought up has (no passive handles; the wired tools present again, neither initialised nor enabled). A client
-that ended without freeing its handles (crashed, or killed) therefore leaves nothing in the way of the next
-bring-up, and the emulator serves any number of clients one after another on the same pty (each opens
+brought up has (no passive handles; the wired tools present again but for those freed, neither initialised nor
+enabled). A client that ended without freeing its handles (crashed, or killed) therefore leaves nothing in the way
+of the next bring-up, and the emulator serves any number of clients one after another on the same pty (each opens
 ``emulator.port``, brings the device up, and closes it). ``pose_at(t_ns)``
 returns ``(T_tracker_tool 4x4 in MILLIMETRES, in_volume)`` or None (the tool is out of view: MISSING). The device
 measures at ``frame_rate_hz``: a reply carries the latest frame (number and pose at that frame's time);
@@ -119,6 +121,7 @@ class NDITrackerEmulator(PtyEmulator):
         self.initialised = start_tracking
         self.wired = list(wired)
         self._uploads: dict[int, bytearray] = {}
+        self._unassigned: set[int] = set()  # wired tools (index) whose handle was freed: gone until replugged
         self._blip: bool | None = None  # a power blip to apply in the serving thread (True: announce it)
         self.blips = 0  # power blips applied
         self.handles: dict[int, _Handle] = {}
@@ -135,8 +138,14 @@ class NDITrackerEmulator(PtyEmulator):
         return {h: bytes(rom) for h, rom in self._uploads.items()}
 
     def _fresh_handles(self) -> None:
-        """The handle table of a device just brought up: the wired tools' handles, no passive ones."""
-        self.handles = {0x0A + i: _Handle(pose_at, True) for i, pose_at in enumerate(self.wired)}
+        """The handle table of a device just brought up: the wired tools' handles (but those freed since their
+        sensor was plugged in), no passive ones."""
+        self.handles = {0x0A + i: _Handle(pose_at, True) for i, pose_at in enumerate(self.wired)
+                        if i not in self._unassigned}
+
+    def replug(self) -> None:
+        """Every wired sensor unplugged and plugged in again: a freed wired handle is assigned at the next INIT."""
+        self._unassigned.clear()
 
     def power_blip(self, announce: bool = True, wait_s: float = 1.0) -> None:
         """The device resets by itself, between two commands (applied by the serving thread, within ``wait_s``):
@@ -153,6 +162,7 @@ class NDITrackerEmulator(PtyEmulator):
         announce, self._blip = self._blip, None
         self.tracking = False
         self.initialised = False
+        self._unassigned.clear()  # powered up again: every plugged-in sensor is found
         self._fresh_handles()
         self.baud = 9600
         self.command_log.append("(power blip)")
@@ -275,14 +285,18 @@ class NDITrackerEmulator(PtyEmulator):
         self._text(master, f"{handle:02X}")
 
     def _cmd_phf(self, master: int, params: str) -> None:
-        """Port handle free: the handle (and what was uploaded to it) is gone; PHRQ may hand it out again."""
+        """Port handle free: the handle (and what was uploaded to it) is gone; PHRQ may hand it out again. A wired
+        tool's handle stays gone until its sensor is plugged in again (``replug``) or a power-up."""
         try:
             handle = int(params[:2], 16)
         except ValueError:
             handle = -1
-        if self.handles.pop(handle, None) is None:
+        tool = self.handles.pop(handle, None)
+        if tool is None:
             self._text(master, "ERROR2B")
             return
+        if tool.wired:
+            self._unassigned.add(handle - 0x0A)
         self._text(master, "OKAY")
 
     def _cmd_pvwr(self, master: int, params: str) -> None:

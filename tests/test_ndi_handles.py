@@ -55,14 +55,44 @@ def test_a_probe_then_a_record_on_one_emulator(rom):
     assert samples and {s.tool for s in samples} == {"8700339"}
 
 
-def test_two_sessions_of_an_aurora_free_and_get_back_their_wired_handles():
+def test_sessions_of_an_aurora_keep_its_wired_handles():
+    """A wired sensor's handle is the device's: the driver does not free it on close (a real Aurora may not assign
+    a freed one again until the sensor is plugged in again; the emulator behaves so), and the next session's INIT
+    initialises it afresh."""
     with NDITrackerEmulator(wired=[still_pose(0.0), still_pose(50.0)]) as emu:
-        for session in (1, 2):
+        for session in (1, 2, 3):
             with open_tracker(f"ndi://{emu.port}?rate=40&{FAST}", DeviceContext()) as tracker:
                 assert tracker.tools == ("handle 0A", "handle 0B")
                 assert tracker.read(timeout_s=1.0)
-            assert emu.handles == {} and emu.commands["PHF"] == 2 * session  # both freed on each close
-        assert emu.commands["INIT"] == 2  # INIT brought the wired tools' handles back
+            assert sorted(emu.handles) == [0x0A, 0x0B] and not emu.tracking
+        assert emu.commands["PHF"] == 0 and emu.commands["INIT"] == 3
+
+
+def test_close_frees_only_the_handles_requested_with_phrq(rom):
+    with NDITrackerEmulator(passive=[still_pose(0.0)], wired=[still_pose(50.0)]) as emu:
+        for _session in (1, 2):
+            with open_tracker(f"ndi://{emu.port}?rate=40&tools={rom}&{FAST}", DeviceContext()) as tracker:
+                assert tracker.tools == ("8700339", "handle 0A")
+                assert tracker.read(timeout_s=1.0)
+            assert list(emu.command_log)[-2:] == ["TSTOP", "PHF"]  # one PHF: the passive tool's handle 01
+            assert sorted(emu.handles) == [0x0A]
+        assert emu.commands["PHF"] == 2
+
+
+def test_the_emulator_assigns_a_freed_wired_handle_again_only_once_its_sensor_is_replugged():
+    with NDITrackerEmulator(wired=[still_pose(0.0), still_pose(50.0)]) as emu:
+        line = Line(emu.port)
+        try:
+            assert line("INIT:") == "OKAY" and line("PHSR:00") == "020A0010B001"
+            assert line("PHF:0A") == "OKAY"
+            assert line("INIT:") == "OKAY" and line("PHSR:00") == "010B001"  # not assigned again by INIT
+            emu.replug()
+            assert line("INIT:") == "OKAY" and line("PHSR:00") == "020A0010B001"
+            assert line("PHF:0B") == "OKAY"
+            emu.power_blip()  # a power-up finds every plugged-in sensor
+            assert sorted(emu.handles) == [0x0A, 0x0B]
+        finally:
+            line.close()
 
 
 def test_a_client_that_died_holding_its_handles_is_no_obstacle(rom):

@@ -12,11 +12,13 @@ in case it was tracking). Then ``INIT``, ``COMM`` to ``baud``, ``VER 4``, ``APIR
 ``PVWR`` (64-byte chunks, hex; after ``PHSR 01`` -> ``PHF`` for handles waiting to be freed), then ``PHSR 02`` ->
 ``PINIT``, ``PHSR 03`` -> ``PENA hh D``, ``PHSR 04`` (the enabled handles), ``TSTART``. A reader thread polls
 ``BX 0801`` (or ``TX 0801``) at ``rate``: transforms, and tools outside the characterised volume still reported
-with their out-of-volume flag. On close ``TSTOP``, then ``PHF`` for each of the session's handles: the next
-session (a record after a probe) finds the device as a new one. Every new session starts with ``INIT``, so
-handles a crashed client left behind are no obstacle either; only a reconnect of the same session (the cable
-pulled and plugged back in, the device still tracking at the session's rate with its handles) skips the
-bring-up and goes on with the tools it had.
+with their out-of-volume flag. On close ``TSTOP``, then ``PHF`` for each handle the session requested with
+``PHRQ`` (its passive tools): the next session (a record after a probe) finds the device as a new one. Wired
+tools' handles (an Aurora's sensors) are not freed: the device assigned them, a freed one may not come back until
+the sensor is plugged in again, and the next session's ``INIT`` initialises them afresh. Every new session starts
+with ``INIT``, so handles a crashed client left behind are no obstacle either; only a reconnect of the same
+session (the cable pulled and plugged back in, the device still tracking at the session's rate with its handles)
+skips the bring-up and goes on with the tools it had.
 
 Each pose is stamped on the host clock (the run's ``clock_ns``) when its reply has arrived, minus nothing: the
 device's latency and the transfer are left in, for a time-offset fit to absorb.
@@ -141,6 +143,7 @@ class NDITracker(TrackerDriver):
         self._clock = context.clock_ns
         self._ser = None
         self.tool_handles: dict[int, str] = {}  # port handle -> tool name (the .rom's stem, or 'handle 0A')
+        self._requested: set[int] = set()  # the handles this session asked for with PHRQ (freed with PHF on close)
         self.tools = ()
         self.version = ""
         self.reset_seen = False  # whether the last bring-up got RESET after its break
@@ -377,6 +380,7 @@ class NDITracker(TrackerDriver):
         """INIT (a fresh handle table), COMM to the session's rate, VER, APIREV, the .rom tools' handles, PINIT,
         PENA: every tool enabled, ready for TSTART."""
         self._command("INIT:", INIT_TIMEOUT_S)
+        self._requested = set()  # INIT's fresh handle table holds none of ours
         self._check_stop()
         if self._ser.baudrate != self.config.baud:
             self._command(f"COMM:{COMM_BAUD_CODES[self.config.baud]}0000")
@@ -399,6 +403,7 @@ class NDITracker(TrackerDriver):
                 handle = int(reply[:2], 16)
             except ValueError:
                 raise ProtocolError(f"{self.device_name}: PHRQ: malformed reply {reply[:40]!r}") from None
+            self._requested.add(handle)
             self._upload_rom(handle, rom)
             handles[handle] = name
         for handle in self._handles("02"):
@@ -415,13 +420,15 @@ class NDITracker(TrackerDriver):
         self.tools = tuple(self.tool_handles.values())
 
     def _release(self) -> None:
-        """A clean end: TSTOP, then PHF for every handle this session enabled, so the device is left as a next
-        client (or NDI's own tools) expect to find it. Stops at the first sign the device is gone."""
+        """A clean end: TSTOP, then PHF for every handle this session requested with PHRQ (its passive tools), so
+        the device is left as a next client (or NDI's own tools) expect to find it. Wired tools' handles are the
+        device's own: kept (a freed one may not be assigned again until its sensor is plugged in again; the next
+        INIT initialises them). Stops at the first sign the device is gone."""
         try:
             self._command("TSTOP:")
         except NDIReplyError:
             pass  # not tracking (ERROR0C): the handles are still to be freed
-        for handle in sorted(self.tool_handles):
+        for handle in sorted(self._requested):
             try:
                 self._command(f"PHF:{handle:02X}")
             except NDIReplyError as exc:  # already gone (a device reset under us): nothing to free
