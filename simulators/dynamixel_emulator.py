@@ -39,6 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# Hardware Error Status (address 70) and its bits (X-series): the driver's, one definition for both sides
+from lapreco_hil.drivers.robot.dynamixel import (HARDWARE_ERROR_STATUS, HW_ELECTRICAL_SHOCK,  # noqa: F401
+                                                 HW_INPUT_VOLTAGE, HW_MOTOR_ENCODER, HW_OVERHEATING, HW_OVERLOAD)
 from lapreco_hil.drivers.robot.joint_map import JointMap
 from lapreco_hil.simulators.pty_emulator import PtyEmulator
 
@@ -48,9 +51,6 @@ HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
 INST_PING, INST_READ, INST_WRITE, INST_SYNC_READ, INST_STATUS = 0x01, 0x02, 0x03, 0x82, 0x55
 BROADCAST = 0xFE
 ERR_INSTRUCTION, ERR_DATA_RANGE, ERR_ALERT = 0x02, 0x04, 0x80
-HARDWARE_ERROR_STATUS = 70
-# Hardware Error Status bits (X-series): 0 input voltage, 2 overheating, 3 motor encoder, 4 electrical shock, 5 overload
-HW_INPUT_VOLTAGE, HW_OVERHEATING, HW_MOTOR_ENCODER, HW_ELECTRICAL_SHOCK, HW_OVERLOAD = 0x01, 0x04, 0x08, 0x10, 0x20
 REPLY_ORDERS = ("request", "ascending", "descending")
 MODEL_XM430_W350 = 1020
 TABLE_SIZE = 147

@@ -80,3 +80,18 @@ def test_a_motor_encoder_error_refuses_the_readings_until_it_clears(chain):
     robot.read()
     assert robot.read(timeout_s=0.5)
     assert robot.faults["refused_encoder_error"] == refused
+
+
+def test_the_emulator_uses_the_driver_s_hardware_error_constants():
+    """One definition of address 70 and its bits, the driver's: the emulator imports them."""
+    import inspect
+
+    from lapreco_hil.drivers.robot import dynamixel as driver
+    from lapreco_hil.simulators import dynamixel_emulator as emulator
+
+    source = inspect.getsource(emulator)
+    for name in ("HARDWARE_ERROR_STATUS", "HW_INPUT_VOLTAGE", "HW_OVERHEATING", "HW_MOTOR_ENCODER",
+                 "HW_ELECTRICAL_SHOCK", "HW_OVERLOAD"):
+        assert getattr(emulator, name) == getattr(driver, name)
+    # no definition of its own (a module-level assignment of any of them)
+    assert not [line for line in source.splitlines() if line.startswith(("HW_", "HARDWARE_ERROR"))]

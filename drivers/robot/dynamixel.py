@@ -54,9 +54,11 @@ BLOCK_LEN = 16
 POSITION_OFFSET = 132 - BLOCK_START
 ALERT_BIT = 0x80
 HARDWARE_ERROR_STATUS = 70  # 1 byte
-HARDWARE_ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder", 0x10: "electrical shock",
-                       0x20: "overload"}
-HW_MOTOR_ENCODER = 0x08
+# Hardware Error Status bits (X-series): 0 input voltage, 2 overheating, 3 motor encoder, 4 electrical shock, 5 overload
+HW_INPUT_VOLTAGE, HW_OVERHEATING, HW_MOTOR_ENCODER, HW_ELECTRICAL_SHOCK, HW_OVERLOAD = 0x01, 0x04, 0x08, 0x10, 0x20
+HARDWARE_ERROR_BITS = {HW_INPUT_VOLTAGE: "input voltage", HW_OVERHEATING: "overheating",
+                       HW_MOTOR_ENCODER: "motor encoder", HW_ELECTRICAL_SHOCK: "electrical shock",
+                       HW_OVERLOAD: "overload"}
 HW_STATUS_READ_TRIES = 3  # reads of address 70 per alert onset before its bits are given up as unknown
 STATUS_HEADER = b"\xff\xff\xfd\x00"  # starts every packet; byte stuffing keeps it out of any payload
 RETURN_DELAY_MAX_S = 254 * 2e-6  # Return Delay Time (address 9) at its largest: 254 x 2 us
