@@ -1,6 +1,7 @@
 """A look at a device before recording with it. A robot: what each joint reads, raw (ticks, increments) and in
 SI with the joint map applied, against the joint limits; a wrong joint map (a zero in the wrong place, a flipped
-sign) shows as readings beyond the limits, which the driver refuses. A tracker: each tool's poses, how often it
+sign) shows as readings beyond the limits, which the driver refuses; readings it refuses because the device flags
+its encoder (a Dynamixel's Hardware Error Status) are counted apart, with the servo to check. A tracker: each tool's poses, how often it
 was missing or outside the measured volume. ``lapreco devices --probe URL`` prints either."""
 
 from __future__ import annotations
@@ -9,7 +10,8 @@ import time
 
 import numpy as np
 
-from lapreco_hil.drivers.robot.polling import PollingRobotDriver, RawReading
+from lapreco_hil.drivers.robot.polling import (REFUSED_ENCODER_ERROR, REFUSED_LIMITS, PollingRobotDriver,
+                                              RawReading)
 from lapreco_hil.registry import DeviceContext, open_robot, open_tracker
 from lapreco_hil.types import JointSample, MarkerSample
 
@@ -35,8 +37,14 @@ def probe_robot(url: str, context: DeviceContext, seconds: float) -> str:
     if polled:
         jm = robot.joint_map
         refused = sum(not r.delivered for r in raw)
+        by_limits = sum(r.refused == REFUSED_LIMITS for r in raw)
+        by_encoder = sum(r.refused == REFUSED_ENCODER_ERROR for r in raw)
+        causes = [text for n, text in ((by_limits, f"{by_limits} beyond the joint limits"),
+                                       (by_encoder, f"{by_encoder} for an encoder error the device flags"),
+                                       (refused - by_limits - by_encoder,
+                                        f"{refused - by_limits - by_encoder} for another reason")) if n]
         lines.append(f"robot {url} ({robot.device_name}): {len(raw)} readings in {seconds:g} s, {len(samples)} "
-                     f"delivered, {refused} refused as beyond the joint limits")
+                     f"delivered, {refused} refused" + (f" ({', '.join(causes)})" if causes else ""))
         lines.append(f"joint map: model '{robot.config.model}', file {robot.config.map or 'none (the device convention)'}; "
                      f"SI = sign * ({robot.raw_unit} - zero) * scale + offset")
         counts = np.array([r.counts for r in raw], np.int64).reshape(len(raw), len(names))
@@ -59,7 +67,12 @@ def probe_robot(url: str, context: DeviceContext, seconds: float) -> str:
             n_beyond = int(beyond[:, i].sum())
             row += f" {n_beyond} of {len(raw)}" + ("  <-- BEYOND THE LIMITS" if n_beyond else "")
             lines.append(row)
-        if refused:
+        if by_encoder:
+            lines.append("readings the device flags with an encoder error are refused by the driver (their positions "
+                         "are not trustworthy): a hardware fault, not the joint map; check the servo named in health "
+                         "(its Hardware Error Status, address 70: motor encoder; its cable and power), then "
+                         "power-cycle or reboot it to clear the alert")
+        if by_limits:
             lines.append("readings beyond the limits are refused by the driver: check the joint map (zero_count, "
                          "sign, offset, counts_per_rev per joint in a map=FILE TOML) and the servo IDs' order")
     else:

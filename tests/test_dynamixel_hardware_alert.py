@@ -82,6 +82,20 @@ def test_a_motor_encoder_error_refuses_the_readings_until_it_clears(chain):
     assert robot.faults["refused_encoder_error"] == refused
 
 
+def test_readings_refused_for_an_encoder_error_are_in_the_raw_log_with_their_cause(chain):
+    from lapreco_hil.drivers.robot.polling import REFUSED_ENCODER_ERROR
+
+    emu, robot = chain
+    robot.take_raw_readings()
+    emu.faults.hardware_error_status = {2: HW_MOTOR_ENCODER}
+    emu.faults.hardware_alert = {2}
+    wait_for(lambda: robot.faults["refused_encoder_error"] >= 5)
+    time.sleep(0.1)
+    refused = [r for r in robot.take_raw_readings() if not r.delivered]
+    assert len(refused) >= 5 and {r.refused for r in refused} == {REFUSED_ENCODER_ERROR}
+    assert [int(c) for c in refused[-1].counts] == [2148, 2100, 1900, 2000]
+
+
 def test_the_emulator_uses_the_driver_s_hardware_error_constants():
     """One definition of address 70 and its bits, the driver's: the emulator imports them."""
     import inspect
@@ -95,3 +109,31 @@ def test_the_emulator_uses_the_driver_s_hardware_error_constants():
         assert getattr(emulator, name) == getattr(driver, name)
     # no definition of its own (a module-level assignment of any of them)
     assert not [line for line in source.splitlines() if line.startswith(("HW_", "HARDWARE_ERROR"))]
+
+
+def test_a_run_and_a_recording_whose_readings_an_encoder_error_refused_name_the_servo_not_the_joint_map():
+    from types import SimpleNamespace
+
+    from lapreco_hil.runtime.live import LiveRun
+    from lapreco_hil.runtime.metrics import LiveMetrics
+    from lapreco_hil.sessions.recorder import RecordStats, _no_joints_message
+
+    last = "servo 2: hardware error alert: Hardware Error Status (address 70) 0x08: motor encoder"
+    run = LiveRun.__new__(LiveRun)
+    run.metrics = LiveMetrics()
+    run.metrics.counts.update(frames_in=20, frames_without_pose=20)
+    robot = SimpleNamespace(faults={"refused_encoder_error": 50}, last_fault=last)
+    run.poses = SimpleNamespace(rejected=0, rejected_by_cause={}, last_refusal="", robot=robot, source="robot")
+    hint = run.why_few_frames()
+    assert "refused 50 readings" in hint and "encoder error" in hint and "Hardware Error Status" in hint, hint
+    assert "check the servo" in hint and "joint map and units" not in hint, hint
+    robot.faults = {"out_of_limits": 50}  # the limits: the joint map is still what to check
+    assert "joint map and units" in run.why_few_frames()
+
+    stats = RecordStats(frames=30, joint_samples=0, skipped_joint_samples=0, capture_span_s=1.0, wall_s=1.0,
+                        stopped_by="seconds", robot_faults={"refused_encoder_error": 50})
+    message = _no_joints_message("serial:///dev/ttyUSB0", "out", stats, 0, 50, last)
+    assert "hardware fault" in message and "Hardware Error Status" in message and "check the servo" in message
+    assert "(joint map, limits, units)" not in message, message
+    stats.robot_faults = {"out_of_limits": 50}
+    assert "(joint map, limits, units)" in _no_joints_message("serial:///dev/ttyUSB0", "out", stats, 0, 50, "")

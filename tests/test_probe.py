@@ -77,3 +77,24 @@ def test_probing_absent_canopen_nodes_prints_the_one_line_error_only(caplog, cap
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("lapreco: error:") and "node" in err, err
     assert not [r for r in caplog.records if r.name.startswith("canopen") and r.levelno >= logging.ERROR]
+
+
+def test_probe_of_a_servo_flagging_an_encoder_error_says_why_its_readings_were_refused():
+    """Readings the driver refuses because a servo's Hardware Error Status flags its motor encoder are shown (not
+    "0 readings ... no readings"), counted by their cause, with the servo to check rather than the joint map."""
+    from lapreco_hil.simulators.dynamixel_emulator import HW_MOTOR_ENCODER
+
+    emu = DynamixelChainEmulator([1, 2, 3, 4], ticks_at=lambda t_ns: np.array([2148, 2100, 1900, 2000]))
+    emu.faults.hardware_error_status = {2: HW_MOTOR_ENCODER}
+    emu.faults.hardware_alert = {2}
+    try:
+        text = probe_robot(f"serial://{emu.port}?ids=1,2,3,4&rate=100", DeviceContext(), 0.5)
+    finally:
+        emu.close()
+    head = text.splitlines()[0]
+    n = int(re.search(r": (\d+) readings", head).group(1))
+    assert n >= 20 and "0 delivered" in head and f"{n} refused ({n} for an encoder error the device flags)" in head
+    assert "no readings" not in text and "2148" in _row(text, "yaw")
+    assert "Hardware Error Status" in text and "not the joint map" in text, text
+    assert "check the joint map (zero_count" not in text  # the limits hint: none beyond them
+    assert re.search(r"^faults: .*refused_encoder_error \d+", text, re.M), text

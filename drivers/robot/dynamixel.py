@@ -42,7 +42,7 @@ import numpy as np
 
 from lapreco_hil.drivers.device import Discovery, FoundDevice
 from lapreco_hil.drivers.robot.joint_map import DYNAMIXEL_TICKS_PER_REV, dynamixel_joint_map
-from lapreco_hil.drivers.robot.polling import PolledRobotConfig, PollingRobotDriver
+from lapreco_hil.drivers.robot.polling import REFUSED_ENCODER_ERROR, PolledRobotConfig, PollingRobotDriver, RawReading
 from lapreco_hil.errors import (DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceTimeoutError,
                        ProtocolError)
 from lapreco_hil.registry import id_list_parser, url_param
@@ -348,6 +348,9 @@ class DynamixelRobot(PollingRobotDriver):
         fault) instead of delivered; any other goes on to the joint map and its limits."""
         if self._refuse:
             self.count_fault("refused_encoder_error")
+            # in the raw log as a refused reading, as one beyond the limits is: a probe shows what came and why
+            # none was delivered
+            self._raw.append(RawReading(np.array(counts, np.int64), t_ns, False, REFUSED_ENCODER_ERROR))
             log.debug("%s: reading refused: %s", self.device_name, self._refuse)
             return
         super()._accept(counts, t_ns)

@@ -40,13 +40,20 @@ class PolledRobotConfig(URLConfig):
     lead_m: float = url_param(0.002, low=1e-6, high=1.0, unit="m", help="prismatic joints: metres per revolution")
 
 
+# why a raw reading was refused (RawReading.refused)
+REFUSED_LIMITS = "limits"  # beyond the joint limits (a wrong joint map, or a broken reading)
+REFUSED_ENCODER_ERROR = "encoder_error"  # the device flags its encoder (a Dynamixel's Hardware Error Status)
+
+
 @dataclass(frozen=True)
 class RawReading:
-    """One reading as the device gave it (before the joint map), and whether it was delivered."""
+    """One reading as the device gave it (before the joint map), whether it was delivered, and if not why
+    (``refused``: REFUSED_LIMITS, REFUSED_ENCODER_ERROR; "" when delivered)."""
 
     counts: np.ndarray
     t_ns: int
     delivered: bool
+    refused: str = ""
 
 
 class _RateLimitedWarning:
@@ -272,7 +279,8 @@ class PollingRobotDriver(RobotDriver):
         jm = self.joint_map
         q = jm.to_si(counts)
         beyond = jm.beyond_limits(q)
-        self._raw.append(RawReading(np.array(counts, np.int64), t_ns, not beyond.any()))
+        self._raw.append(RawReading(np.array(counts, np.int64), t_ns, not beyond.any(),
+                                    REFUSED_LIMITS if beyond.any() else ""))
         if beyond.any():
             # a reading beyond the joint limits is a broken reading (or a wrong joint map), not a pose: it is
             # counted and reported, not delivered

@@ -261,10 +261,19 @@ class LiveRun:
                          f"check the {source}: 'lapreco devices --probe URL' shows what it reads")
         elif without_pose and (refused_by_driver := self._refused_by_driver()):
             n, last = refused_by_driver
-            parts.append(f"the robot's driver refused {n} readings (out of the model's joint limits, or flagged "
-                         f"by the device)" + (f"; last refused: {last}" if last else ""))
-            parts.append("check the robot model, its joint map and units against the robot: "
-                         "'lapreco devices --probe URL' shows what it reads")
+            faults = getattr(getattr(self.poses, "robot", None), "faults", {}) or {}
+            if int(faults.get("refused_encoder_error", 0)):  # the device flags its encoder: a hardware fault
+                parts.append(f"the robot's driver refused {n} readings ({int(faults['refused_encoder_error'])} "
+                             f"because a servo flags an encoder error: its positions are not trustworthy)"
+                             + (f"; last refused: {last}" if last else ""))
+                parts.append("a hardware fault, not the joint map: check the servo named (its Hardware Error "
+                             "Status, address 70; its encoder, cable and power), then power-cycle or reboot it; "
+                             "'lapreco devices --probe URL' shows why each reading was refused")
+            else:
+                parts.append(f"the robot's driver refused {n} readings (out of the model's joint limits, or "
+                             f"flagged by the device)" + (f"; last refused: {last}" if last else ""))
+                parts.append("check the robot model, its joint map and units against the robot: "
+                             "'lapreco devices --probe URL' shows what it reads")
         elif without_pose:
             parts.append(f"the {source} delivered no reading; check its URL and link, or run "
                          "'lapreco devices --probe URL'")

@@ -547,9 +547,13 @@ def _no_joints_message(url: str, out: str, stats: RecordStats, delivered: int | 
     faults = "; ".join(f"{k} {v}" for k, v in sorted(stats.robot_faults.items())) or "no faults counted"
     if refused or delivered:
         n = delivered if delivered else refused
+        check = "(joint map, limits, units)"
+        if stats.robot_faults.get("refused_encoder_error", 0):  # the device flags its encoder: a hardware fault
+            check = ("(a hardware fault, not the joint map: a servo flags an encoder error, so its positions are "
+                     "not trustworthy; check the servo named in the last fault, its Hardware Error Status, address "
+                     "70, its encoder, cable and power, then power-cycle or reboot it)")
         return (f"record: robot '{url}' delivered {n} readings but none was usable (0 joint samples kept, "
-                f"{refused} refused: {faults}; last: {last or 'no detail'}); {kept}; {probe} (joint map, "
-                f"limits, units)")
+                f"{refused} refused: {faults}; last: {last or 'no detail'}); {kept}; {probe} {check}")
     return (f"record: robot '{url}' delivered no readings during {stats.frames} frames ({faults}"
             f"{'; last: ' + last if last else ''}); {kept}; {probe}")
 
