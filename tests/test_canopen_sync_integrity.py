@@ -212,6 +212,71 @@ def test_a_drive_that_restarts_is_configured_again_and_delivers(boot_up):
         emu.close()
 
 
+def test_a_drive_that_restarts_during_a_sync_s_wait_is_no_longer_waited_for(caplog):
+    """Node 3 restarts (boot-up) while the master waits for its answer to a SYNC: from then on it owes none, so
+    that SYNC costs one timeout, with no wait for a late frame and no SYNC pause after it."""
+    import logging
+    import threading
+
+    emu, robot = open_chain("&sync_timeout_ms=150", count_syncs_from=BASE)
+    restarted_at: list[int] = []
+
+    def restart_while_waited_for(node_id: int, sync_no: int):
+        if node_id != 3 or restarted_at:
+            return None
+        restarted_at.append(sync_no)
+        threading.Timer(0.02, emu.restart, (3,)).start()
+        return 5.0  # its answer to this SYNC never comes in time (the drive restarts before sending it)
+
+    try:
+        robot.read(timeout_s=1.0)
+        with caplog.at_level(logging.DEBUG, logger="lapreco_hil.drivers.robot.polling"):
+            emu.faults.tpdo_delay = restart_while_waited_for
+            wait_for(lambda: robot.faults["node_restarts"] == 1 and robot.faults["timeouts"] >= 1, 3.0)
+            k = restarted_at[0]
+            wait_for(lambda: k + 1 in emu.sync_times, 2.0)
+        first = next(r.getMessage() for r in caplog.records if "no TPDO1 from node(s)" in r.getMessage())
+        assert "node(s) 3 within 150 ms" in first, first
+        assert "no SYNC for" not in first and "answered later" not in first, first
+        gap_s = (emu.sync_times[k + 1] - emu.sync_times[k]) * 1e-9
+        assert gap_s < 0.4, gap_s  # the wait (150 ms) and the node's configuration, no drain nor 750 ms pause
+    finally:
+        robot.close()
+        emu.close()
+
+
+def test_a_restarted_drive_whose_configuration_fails_counts_one_timeout_per_attempt():
+    """Configuring a restarted node again fails for about a second (it does not answer SDO yet): it is retried
+    every reconnect_interval_s, each failed attempt one timeout, none for the polls of the back-off between."""
+    import canopen
+
+    emu, robot = open_chain(count_syncs_from=BASE)
+    configure, fail_until = robot._configure_node, [0.0]
+
+    def flaky_configure(node):
+        if node.id == 3 and time.monotonic() < fail_until[0]:
+            raise canopen.SdoCommunicationError("no SDO response (test)")
+        return configure(node)
+
+    robot._configure_node = flaky_configure
+    try:
+        robot.read(timeout_s=1.0)
+        wait_for(lambda: robot.health.state is HealthState.OK)
+        before = robot.faults["timeouts"]
+        fail_until[0] = time.monotonic() + 1.2
+        emu.restart(3)
+        wait_for(lambda: robot.faults["node_restarts"] == 1, 1.0)
+        wait_for(lambda: time.monotonic() > fail_until[0] and robot.health.state is HealthState.OK, 4.0)
+        timeouts = robot.faults["timeouts"] - before
+        # attempts at about 0, 0.5 and 1.0 s fail, the next succeeds (plus one SYNC the restart may have cut)
+        assert 2 <= timeouts <= 6, robot.faults
+        robot.read()
+        assert robot.read(timeout_s=1.0)
+    finally:
+        robot.close()
+        emu.close()
+
+
 # --- 5. EMCY descriptions -------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("code, text", [(0x7305, "additional modules"), (0x8130, "monitoring: communication"),

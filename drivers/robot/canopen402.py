@@ -22,8 +22,11 @@ to a later SYNC only if it came more than 2 x the wait + ``late_limit_s`` after 
 
 Heartbeats are supervised (a node silent for 1.5 x its producer time is lost); a node that restarts (boot-up
 message, or a heartbeat saying pre-operational while it should be operational) is configured again and started
-(``node_restarts``; degraded until its readings resume). EMCY messages (described by their CiA 301 error class) and
-the statusword's fault bit mark the robot faulted until an error-reset EMCY or a clean statusword clears them.
+(``node_restarts``; degraded until its readings resume); from its restart on it owes no TPDO, so a restart during a
+SYNC's wait costs no wait for its late frame nor a SYNC pause. While configuring it again fails, it is tried again
+every ``reconnect_interval_s`` with no SYNC in between: one counted timeout per attempt. EMCY messages (described
+by their CiA 301 error class) and the statusword's fault bit mark the robot faulted until an error-reset EMCY or a
+clean statusword clears them.
 """
 
 from __future__ import annotations
@@ -375,6 +378,10 @@ class CANopenRobot(PollingRobotDriver):
                 self._restart_gen[node_id] = self._restart_gen.get(node_id, 0) + 1
                 self._node_state[node_id] = "restarted"
                 self._retry_at.pop(node_id, None)
+                # pre-operational from its restart on: it sends no TPDO1, so it owes no answer to the SYNC being
+                # waited for (nor its late one): the wait, and the drain after it, stop expecting it
+                self._owes.discard(node_id)
+                self._tpdo_lock.notify_all()
         if restarted and (state == NMT_BOOT_UP or was != "restarted"):
             message = (f"{self.device_name}: node {node_id} {restarted}: configuring its TPDO1 and heartbeat again "
                        f"and starting it")
@@ -402,10 +409,19 @@ class CANopenRobot(PollingRobotDriver):
 
         with self._tpdo_lock:
             todo = [(n, self._restart_gen.get(n, 0)) for n, st in self._node_state.items() if st == "restarted"]
+        if todo:
+            # after a failed attempt, no poll until the next one is due (every node is needed for a reading, and
+            # a restarted one sends none): one counted timeout per attempt, not one per poll of the back-off
+            due = min(self._retry_at.get(n, 0.0) for n, _ in todo)
+            while (left := due - time.monotonic()) > 0 and not self._stop.wait(min(left, 0.01)):
+                self._supervise_heartbeats()  # a lost heartbeat is still reported within 100 ms
+                with self._tpdo_lock:
+                    if any(self._retry_at.get(n, 0.0) <= time.monotonic() for n, _ in todo):
+                        break  # restarted again (boot-up): due at once
         failed = []
         for node_id, gen in todo:
             now = time.monotonic()
-            if now < self._retry_at.get(node_id, 0.0):
+            if now < self._retry_at.get(node_id, 0.0) or self._stop.is_set():
                 failed.append(node_id)
                 continue
             node = self._nodes[node_id]
@@ -462,7 +478,7 @@ class CANopenRobot(PollingRobotDriver):
                                     f"{self.sync_timeout_s * 1e3:g} ms of SYNC")
                 # wait as long again for the missing nodes' late answers, so that they come (and are discarded)
                 # before the next SYNC, not after it, where they could pass for its answers
-                expected = [n for n in missing if n in self._owes]  # not: a node restarted meanwhile
+                expected = [n for n in missing if n in self._owes]  # not a node restarted meanwhile (no longer owes)
                 drain_end = time.monotonic() + self.sync_timeout_s
                 while self._owes.intersection(expected):
                     left = drain_end - time.monotonic()
