@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lapreco_hil.drivers.device import ReaderHandover
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.robot.base import RobotDriver
 from lapreco_hil.drivers.robot.joint_map import JointMap
@@ -74,7 +75,7 @@ class _RateLimitedWarning:
         self._last, self._held = now, 0
 
 
-class PollingRobotDriver(RobotDriver):
+class PollingRobotDriver(ReaderHandover, RobotDriver):
     reconnect_interval_s = 0.5
     stale_after_periods = 3.0
     # readings lost to corrupt, late or missing replies mark the link degraded for this long after the last
@@ -102,16 +103,8 @@ class PollingRobotDriver(RobotDriver):
         self._cond = threading.Condition()
         self._new: collections.deque[JointSample] = collections.deque(maxlen=self.buffer_len)
         self._history: collections.deque[JointSample] = collections.deque(maxlen=self.buffer_len)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
-        self._connected = False
-        # the hand-over between close() and a reader thread it could not wait for: under _life, whether the reader
-        # still runs and whether close() gave up on it (the reader then disconnects itself when it ends)
-        self._life = threading.Lock()
-        self._reader_running = False
-        self._abandoned = False
-        self._leftover: threading.Thread | None = None  # a reader close() left busy (open() waits for it)
+        self._init_handover()  # (the reader disconnects itself when close() gave up waiting for it)
         self._device_faults: dict[str, str] = {}  # source -> message, while a device reports a fault
         self._last_fault = ""
         self._last_sample_wall = 0.0
@@ -150,36 +143,16 @@ class PollingRobotDriver(RobotDriver):
     def open(self) -> None:
         if self._thread is not None:
             return
-        if self._leftover is not None:  # the last close() left its reader busy: it ends at its next step
-            self._leftover.join(timeout=self.close_join_s)
-            if self._leftover.is_alive():
-                raise DeviceError(f"{self.device_name}: the previous session's reader thread is still busy "
-                                  f"(connecting?); try again")
-            self._leftover = None
+        self._wait_for_leftover("connecting?")
         self._stop.clear()
         self._connect()
-        self._connected = True
-        self._reader_running, self._abandoned = True, False
-        self._thread = threading.Thread(target=self._run, name=f"robot {self.device_name}", daemon=True)
-        self._thread.start()
+        self._reader_started(threading.Thread(target=self._run, name=f"robot {self.device_name}", daemon=True))
 
     def close(self) -> None:
         """Stop the reader and disconnect. A reader busy past ``close_join_s`` (a reconnect's _connect on a slow
         device, a blocked poll) is left to end by itself: it disconnects whatever it holds by then, so the
         transport is never left open with nobody to close it."""
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(timeout=self.close_join_s)
-        with self._life:
-            if self._reader_running:
-                self._abandoned = True
-                self._leftover = thread
-                log.warning("%s: the reader thread is still busy after %.1f s; it disconnects when it ends",
-                            self.device_name, self.close_join_s)
-                return
-            connected, self._connected = self._connected, False
-        if connected:
+        if self._stop_reader("disconnects"):
             self._disconnect_quietly()
 
     def _disconnect_quietly(self) -> None:

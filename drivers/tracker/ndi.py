@@ -51,7 +51,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from lapreco_hil.drivers.device import Discovery, FoundDevice
+from lapreco_hil.drivers.device import Discovery, FoundDevice, ReaderHandover
 from lapreco_hil.drivers.health import Health, HealthState
 from lapreco_hil.drivers.tracker.base import TrackerDriver
 from lapreco_hil.drivers.tracker.ndi_protocol import (BX_START, ERROR_NOT_TRACKING, HANDLE_MISSING, HANDLE_VALID,
@@ -109,7 +109,7 @@ def serial_ports() -> list[str]:
     return sorted(p.device for p in list_ports.comports())
 
 
-class NDITracker(TrackerDriver):
+class NDITracker(ReaderHandover, TrackerDriver):
     reconnect_interval_s = 0.5
     # replies lost in a row (timeouts, CRC errors, garbled replies) for this long, and at least lost_replies_min
     # of them, mean the device is not the one this session set up (reset, power blip): it is brought up again
@@ -149,16 +149,8 @@ class NDITracker(TrackerDriver):
         self.reset_seen = False  # whether the last bring-up got RESET after its break
         self._cond = threading.Condition()
         self._new: collections.deque[MarkerSample] = collections.deque(maxlen=self.buffer_len)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
-        self._connected = False
-        # the hand-over between close() and a reader thread it could not wait for: under _life, whether the reader
-        # still runs and whether close() gave up on it (the reader then ends the session itself)
-        self._life = threading.Lock()
-        self._reader_running = False
-        self._abandoned = False
-        self._leftover: threading.Thread | None = None  # a reader close() left busy (open() waits for it)
+        self._init_handover()  # (the reader ends the session itself when close() gave up waiting for it)
         self._recovering = False  # not connected, the port fine: the device is being brought up again
         self._after_reset = False  # the next bring-up follows a RESET the device sent: no break, straight to INIT
         self._faults: collections.Counter[str] = collections.Counter()
@@ -461,38 +453,19 @@ class NDITracker(TrackerDriver):
     def open(self) -> None:
         if self._thread is not None:
             return
-        if self._leftover is not None:  # the last close() left its reader busy: it ends at its next step
-            self._leftover.join(timeout=self.close_join_s)
-            if self._leftover.is_alive():
-                raise DeviceError(f"{self.device_name}: the previous session's reader thread is still busy "
-                                  f"(bringing the tracker up); try again")
-            self._leftover = None
+        self._wait_for_leftover("bringing the tracker up")
         self._stop.clear()  # before the bring-up, which stops at its next step once it is set
         self._connect()
-        self._connected = True
-        self._reader_running, self._abandoned = True, False
-        self._thread = threading.Thread(target=self._run, name=f"tracker {self.port_path}", daemon=True)
-        self._thread.start()
+        self._reader_started(threading.Thread(target=self._run, name=f"tracker {self.port_path}", daemon=True))
 
     def close(self) -> None:
         """Stop the reader, end the session (TSTOP, PHF) and close the port. A reader still busy past
         ``close_join_s`` (a bring-up step that waits for the device) is left to end by itself: it stops the
         bring-up at its next step, or ends the session it completed, and closes the port either way."""
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join(timeout=self.close_join_s)
-        with self._life:
-            if self._reader_running:
-                self._abandoned = True
-                self._leftover = thread
-                log.warning("%s: the reader thread is still busy after %.1f s; it closes the port when it ends",
-                            self.device_name, self.close_join_s)
-                return
-            connected, self._connected = self._connected, False
-        if connected:
+        if self._stop_reader("closes the port"):
             self._release_quietly()
-        self._close_port()
+        if not self._abandoned:
+            self._close_port()
 
     def _release_quietly(self) -> None:
         try:
