@@ -338,13 +338,23 @@ def session_pose_series(session, T_marker_camera: np.ndarray | None = None) -> P
     refuses left out; ``T_marker_camera`` in place of the session's) or the given camera poses."""
     where = f"session '{session.folder}'"
     if session.meta.pose_source == "marker_poses":
-        from lapreco_hil.pose_sources import MarkerPoseSource
-
-        track = MarkerPoseSource(session.meta.tracker, table=session.markers, T_marker_camera=T_marker_camera).track
-        if len(track) < 2:
-            raise CalibrationError(f"{where}: {len(track)} usable marker pose of the scope's tool "
-                                   f"'{session.meta.tracker.tool}'; the time offset needs the scope moving")
-        return PoseSeries(track.t_ns, track.poses)
+        setup, table = session.meta.tracker, session.markers
+        T_mc = setup.T_marker_camera if T_marker_camera is None else np.asarray(T_marker_camera, float)
+        if T_mc is None:
+            raise CalibrationError(f"{where}: the tracked scope has no hand-eye (T_marker_camera): pass --hand-eye "
+                                   f"handeye.yaml (from 'lapreco calibrate handeye-tracked')")
+        # the scope's samples a replay accepts (pose_sources.MarkerPoseSource's rule: finite, in the volume, the
+        # marker fit within max_rms_mm, time increasing); calib does not import the pose sources
+        keep = np.array([tool == setup.tool for tool in table.tools], bool) & np.asarray(table.in_volume, bool) \
+            & np.isfinite(table.rms_mm) & (np.asarray(table.rms_mm, float) <= setup.max_rms_mm) \
+            & np.all(np.isfinite(table.poses.reshape(len(table.poses), -1)), axis=1)
+        t_ns, poses = np.asarray(table.t_ns, np.int64)[keep], np.asarray(table.poses, float)[keep]
+        later = np.r_[True, t_ns[1:] > np.maximum.accumulate(t_ns)[:-1]] if len(t_ns) else np.zeros(0, bool)
+        t_ns, poses = t_ns[later], poses[later]
+        if len(t_ns) < 2:
+            raise CalibrationError(f"{where}: {len(t_ns)} usable marker pose of the scope's tool '{setup.tool}'; "
+                                   f"the time offset needs the scope moving")
+        return PoseSeries(t_ns, setup.T_world_tracker @ poses @ T_mc)
     if T_marker_camera is not None:
         raise CalibrationError(f"{where} gives camera poses directly; a hand-eye does not apply")
     if len(session.pose_t_ns) < 2:
