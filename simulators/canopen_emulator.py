@@ -10,7 +10,7 @@ Tests use python-can's in-process ``virtual`` interface (``canopen://virtual/<ch
 the process, and nothing outside it can reach the nodes. ``lapreco emulate canopen`` puts them on a SocketCAN
 interface instead (``interface="socketcan"``: a virtual ``vcan0`` on this machine, for other programs to reach);
 an interface that does not exist is a DeviceNotFoundError that says how to create one. No other python-can
-interface is taken (some of them, udp_multicast for one, leave the machine).
+interface is taken (some of them reach beyond this machine).
 
 Faults on demand: a node that goes silent (no TPDO, no heartbeat), a node whose heartbeat stops, an EMCY (and its
 reset), the statusword's fault bit, a position out of the joint's limits, a node whose

@@ -228,6 +228,27 @@ def test_calibrate_handeye_tracked_reads_a_calibration_session(tmp_path, warp_cp
         in capsys.readouterr().err
 
 
+def keep_the_runs_grabber(monkeypatch, holder: dict) -> None:
+    """``lapreco run``'s grabber put in ``holder["grabber"]`` when opened, and ``holder["open"]`` set once it is
+    open: an emulated tracker that follows the simulated world reads the true poses through it."""
+    from lapreco_hil.app import run as app_run
+
+    real_open_grabber = app_run.open_grabber
+
+    def keep(url, context):
+        grabber = holder["grabber"] = real_open_grabber(url, context)
+        real_open = grabber.open
+
+        def open_and_say_so():
+            real_open()
+            holder["open"] = True
+
+        grabber.open = open_and_say_so
+        return grabber
+
+    monkeypatch.setattr(app_run, "open_grabber", keep)
+
+
 def test_frames_a_tracked_calibration_leaves_out_are_counted_with_their_cause(tmp_path, warp_cpu, caplog):
     """A tracker clock 40 ms late that session.json does not declare leaves the first frames without a pose of
     the scope before them: they were left out of the calibration without a word."""
@@ -432,20 +453,7 @@ def test_run_with_a_marker_maps_the_tracked_scope_live(tmp_path, warp_cpu, monke
         T[:3, 3] *= 1e3
         return T, True
 
-    real_open_grabber = app_run.open_grabber
-
-    def keep(url, context):  # the test's emulator needs the run's grabber for the true poses
-        grabber = holder["grabber"] = real_open_grabber(url, context)
-        real_open = grabber.open
-
-        def open_and_say_so():
-            real_open()
-            holder["open"] = True
-
-        grabber.open = open_and_say_so
-        return grabber
-
-    monkeypatch.setattr(app_run, "open_grabber", keep)
+    keep_the_runs_grabber(monkeypatch, holder)  # the test's emulator needs the run's grabber for the true poses
     with NDITrackerEmulator(wired=[scope_mm], frame_rate_hz=60) as emu:
         report = app_run.run(None, ctx_frames, str(tmp_path / "out"), marker_url=f"ndi://{emu.port}?rate=60&{FAST}",
                              hand_eye_file=str(tmp_path / "handeye.yaml"), tracker="opencv", device=warp_cpu,

@@ -188,6 +188,8 @@ def test_a_live_run_with_a_tracker_watches_its_clock(tmp_path, warp_cpu, monkeyp
     from lapreco_hil.calib.files import write_handeye_yaml
     from lapreco_hil.simulators.ndi_emulator import NDITrackerEmulator
 
+    from test_marker_poses import keep_the_runs_grabber
+
     write_handeye_yaml(tmp_path / "handeye.yaml", T_MARKER_CAMERA)
     holder = {}
 
@@ -198,20 +200,7 @@ def test_a_live_run_with_a_tracker_watches_its_clock(tmp_path, warp_cpu, monkeyp
         T[:3, 3] *= 1e3
         return T, True
 
-    real_open_grabber = app_run.open_grabber
-
-    def keep(url, context):
-        grabber = holder["grabber"] = real_open_grabber(url, context)
-        real_open = grabber.open
-
-        def open_and_say_so():
-            real_open()
-            holder["open"] = True
-
-        grabber.open = open_and_say_so
-        return grabber
-
-    monkeypatch.setattr(app_run, "open_grabber", keep)
+    keep_the_runs_grabber(monkeypatch, holder)
     with NDITrackerEmulator(wired=[scope_mm], frame_rate_hz=60) as emu:
         report = app_run.run(None, "sim://skull?width=320&height=240&fps=10&frames=80", str(tmp_path / "out"),
                              marker_url=f"ndi://{emu.port}?rate=60&reset_wait_ms=100&timeout_ms=300",
