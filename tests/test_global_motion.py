@@ -175,3 +175,61 @@ def test_lk_from_the_prior_climbs_only_the_levels_its_error_needs(monkeypatch):
         shares[every_level] = tb.summarize([tb.score_tracks(obs, seq.H, seq.size)])["within_1px"]
     assert shares[False] >= 0.945, shares
     assert shares[False] >= shares[True] + 0.015, shares
+
+
+def test_the_device_alignment_matches_the_hosts(warp_cpu):
+    """The Warp front-end's alignment (frontend/warp/global_motion.py): the alignment image made on the device
+    from the grey frame is the host's up to rounding and borders, and ECC there from the identity finds a real
+    frame's motion as the host's OpenCV ECC does, in as many iterations; an unrelated frame correlates below
+    GOOD_CORRELATION, so the host's other seeds take it."""
+    import warp as wp
+
+    from lapreco_hil.frontend import global_motion as gm
+    from lapreco_hil.frontend.warp.global_motion import ITERATIONS, AlignmentImages
+
+    size = (1920, 1080)
+    H_true = _zoom_and_shift(size, (12.0, -7.0), 1.01, 0.5)
+    frame, moved = _frames("liver", H_true)
+    host = GlobalMotion(*size)
+    device = AlignmentImages(*size, host.factor, None, DEVICE)
+    images = []
+    for bgr in (frame.image, moved):
+        grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+        device.make(wp.array(grey, dtype=wp.uint8, device=DEVICE))
+        images.append(gm.alignment_image(gm.reduced_grey(bgr, host.factor, None)))
+    prev, cur = device.download()
+    assert np.abs(prev - images[0]).mean() < 0.01 and np.abs(cur - images[1]).mean() < 0.01
+
+    rho, H = device.align(np.eye(3))
+    assert H is not None and rho > 0.95
+    assert _median_error(host.to_full(H), H_true, size) < 0.5  # (measured: 0.18 px)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, gm.ECC_ITERATIONS, gm.ECC_EPS)
+    rho_cv, H_cv = cv2.findTransformECC(prev, cur, np.eye(3, dtype=np.float32), cv2.MOTION_HOMOGRAPHY, criteria,
+                                        None, 5)
+    assert abs(rho - rho_cv) < 1e-3
+    assert _median_error(host.to_full(H), host.to_full(H_cv.astype(np.float64)), size) < 0.1
+    assert device.state.numpy()[ITERATIONS] < gm.ECC_ITERATIONS  # it converged
+
+    other = tb.load_real_frames(None, ("viking-dotgrid",))[0].image
+    device.make(wp.array(cv2.cvtColor(other, cv2.COLOR_BGR2GRAY), dtype=wp.uint8, device=DEVICE))
+    rho, H = device.align(np.eye(3))
+    assert H is None or rho < gm.GOOD_CORRELATION
+
+
+def test_the_warp_front_end_aligns_a_smooth_motion_on_the_device(warp_cpu):
+    """Frames without a prediction moving smoothly: after the first alignment (the host's seeds: no motion is
+    known yet) every frame's prior comes from ECC on the device, seeded by the last frame's motion."""
+    from lapreco_hil.frontend import make_frontend
+
+    frame = tb.load_real_frames(None, ("liver",))[0]
+    size = frame.image.shape[1::-1]
+    frontend = make_frontend("warp", tb.camera_of(frame), TrackerConfig(), DEVICE)
+    truth = np.eye(3)
+    for k in range(5):
+        truth = _zoom_and_shift(size, (6.0 * k, -3.0 * k), 1.0 + 0.004 * k) if k else np.eye(3)
+        image = frame.image if k == 0 else cv2.warpPerspective(frame.image, truth, size,
+                                                               borderMode=cv2.BORDER_REFLECT_101)
+        frontend.process(Frame(image, 40_000_000 * k, k))
+    assert frontend.prior_aligned == {"device": 3, "host": 1, "none": 0}
+    step = truth @ np.linalg.inv(_zoom_and_shift(size, (18.0, -9.0), 1.012))
+    assert _median_error(frontend._global.last, step, size) < 0.5

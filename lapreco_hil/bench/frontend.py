@@ -133,6 +133,8 @@ def _run(make, frames, warmup: int, motion=None, page_locked=None, make_without_
         _, _, stages = _pass(profiled, frames, warmup)
     row = {"total_ms": float(np.median(totals)) * 1e3, "total_p95_ms": float(np.percentile(totals, 95)) * 1e3,
            "stages_ms": stages, "tracks_median": float(np.median(tracks))}
+    if hasattr(frontend, "prior_aligned"):  # the Warp front-end: where each frame's prior was aligned
+        row["prior_aligned"] = dict(frontend.prior_aligned)
     if make_without_prior is not None:
         bare, _, _ = _pass(make_without_prior(), frames, warmup)
         row["without_global_prior_ms"] = float(np.median(bare)) * 1e3

@@ -201,6 +201,29 @@ class GlobalMotion:
         self._prev_polar = None
         self.last = None
 
+    def to_alignment(self, H: np.ndarray) -> np.ndarray:
+        """A homography of full-resolution pixels in the finest alignment level's pixels."""
+        return _scaled(H, 1.0 / self.factor, 0.5 * (self.factor - 1.0))
+
+    def to_full(self, H: np.ndarray) -> np.ndarray:
+        """A homography of the finest alignment level's pixels in full-resolution pixels."""
+        f = float(self.factor)
+        return _scaled(H, f, -0.5 * (f - 1.0) / f)
+
+    def took(self, H: np.ndarray) -> None:
+        """The frame's motion ``H`` (full-resolution pixels) was found elsewhere (the device's alignment from
+        the first seed): it seeds the next frame; the host keeps no alignment image of it."""
+        self._prev = None
+        self._prev_polar = None
+        self.last = H
+
+    def estimate_images(self, prev: np.ndarray, cur: np.ndarray,
+                        seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
+        """``estimate_reduced`` of two frames' alignment images (``alignment_image``, made elsewhere: the
+        device's), the earlier one as the previous frame's."""
+        self._prev, self._prev_polar = self._pyramid(prev.astype(np.float32)), None
+        return self._estimate(self._pyramid(cur.astype(np.float32)), seeds)
+
     def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
         """``estimate_reduced`` of the undistorted full-resolution grey frame ``gray`` (uint8)."""
         return self.estimate_reduced(reduced(gray, self.factor), seeds)
@@ -210,7 +233,9 @@ class GlobalMotion:
         reduced by ``factor`` (uint8), or None (the first frame, or no alignment correlated well enough).
         ``seeds``: more starting motions (full-resolution pixels), e.g. the tracks' consensus of the previous
         frame."""
-        cur = self._pyramid(alignment_image(small))
+        return self._estimate(self._pyramid(alignment_image(small)), seeds)
+
+    def _estimate(self, cur: list[np.ndarray], seeds: tuple[np.ndarray, ...]) -> np.ndarray | None:
         prev, prev_polar = self._prev, self._prev_polar
         self._prev, self._prev_polar = cur, None
         if prev is None or prev[0].shape != cur[0].shape:
@@ -234,19 +259,16 @@ class GlobalMotion:
         if best is None or best_rho < MIN_CORRELATION:
             self.last = None
             return None
-        f = float(self.factor)
-        self.last = _scaled(best, f, -0.5 * (f - 1.0) / f)
+        self.last = self.to_full(best)
         return self.last
 
     def _seeds(self, prev: list[np.ndarray], cur: list[np.ndarray], prev_polar: np.ndarray | None,
                seeds: tuple[np.ndarray, ...]):
         """The starting motions (alignment pixels) and the level ECC starts each from, cheapest and likeliest
         first; each computed only when the ones before it did not align well enough (``GOOD_CORRELATION``)."""
-        f = float(self.factor)
-        centre = 0.5 * (f - 1.0)  # of a reduced pixel's block, in full-resolution pixels
         for H in (self.last, *seeds):
             if plausible(H):
-                yield _scaled(H, 1.0 / f, centre), 0
+                yield self.to_alignment(H), 0
         coarsest = self.levels - 1
         yield np.eye(3), coarsest
         (dx, dy), _ = cv2.phaseCorrelate(prev[0].astype(np.float64), cur[0].astype(np.float64))

@@ -10,6 +10,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 vec44 = wp.types.vector(length=44, dtype=wp.float32)  # upper triangle of an 8x8 normal matrix (36) + gradient (8)
+vec66 = wp.types.vector(length=66, dtype=wp.float32)  # ECC's sums (global_motion.py): moments, J, J'J, J'I, J'T
 
 # --- block sums --------------------------------------------------------------------------------------------
 # LK and the drift check sum per-lane values over their block once per iteration, and every lane needs the sum.
@@ -74,6 +75,10 @@ def block_sum4(v: wp.vec4, parity: int) -> wp.vec4: ...
 
 @wp.func_native(_BLOCK_SUM_SNIPPET)
 def block_sum44(v: vec44, parity: int) -> vec44: ...
+
+
+@wp.func_native(_BLOCK_SUM_SNIPPET)
+def block_sum66(v: vec66, parity: int) -> vec66: ...
 
 
 # An exclusive prefix sum of one int per lane over a tiled block (Hillis-Steele in shared memory), for kernels that

@@ -34,9 +34,9 @@ from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, prior_levels,
                                         shading_sigma_px, to_u8, tracker_image)
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
-from lapreco_hil.frontend.global_motion import GlobalMotion, reduced_grey, reduced_maps
+from lapreco_hil.frontend.global_motion import GOOD_CORRELATION, GlobalMotion, plausible, reduced_maps
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
-from lapreco_hil.frontend.warp import consensus, corners, drift_check, lk, predict, pyramid, tracks
+from lapreco_hil.frontend.warp import consensus, corners, drift_check, global_motion, lk, predict, pyramid, tracks
 from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
 
@@ -191,7 +191,12 @@ class WarpFrontEnd:
         # frames without a pose prediction: the image motion from the host's dense alignment of the frame
         # (frontend.global_motion), sent up before the frame's graph; _prior: this frame's tracks start from it
         self._global = GlobalMotion(W, H) if config.global_motion_prior else None
-        self._global_maps = reduced_maps(map_x, map_y, self._global.factor) if self._global is not None else None
+        # the frames' alignment images and ECC from the first seeds on the device; the host's seeds for the rest
+        self._align = None if self._global is None else global_motion.AlignmentImages(
+            W, H, self._global.factor, reduced_maps(map_x, map_y, self._global.factor), self.device)
+        self._align_has_prev = False  # the last frame's alignment image was made (it had no motion)
+        # frames whose prior came from the device's ECC, from the host's seeds, or from neither (no prior)
+        self.prior_aligned = {"device": 0, "host": 0, "none": 0}
         self._prior = False
         self._consensus_H: np.ndarray | None = None  # the last frame's consensus (pixels), a seed of the next
         with wp.ScopedDevice(self.device):
@@ -629,6 +634,7 @@ class WarpFrontEnd:
             self._rig = serving
             if self._global is not None:  # the black frames are no one's previous frame
                 self._global = GlobalMotion(self.width, self.height)
+                self._align_has_prev = False
                 self._consensus_H = None
 
     def _warm_prior_frame(self, frame: Frame) -> None:
@@ -703,7 +709,7 @@ class WarpFrontEnd:
                 depth = epipolar.start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
             # (a small motion: the frame's captured graph replays, as without a motion)
             self._set_motion(motion if depth is not None else None, depth)
-            self._set_prior(frame.image, motion)
+            self._set_prior(motion)
             return self._process_frame(frame, t0, cur)
         finally:
             if self._motion is not None:
@@ -711,23 +717,50 @@ class WarpFrontEnd:
             if self._prior:
                 self._clear_prior()
 
-    def _set_prior(self, image: np.ndarray, motion: FrameMotion | None) -> None:
-        """A frame without a motion: its image motion from the host's dense alignment (``frontend.global_motion``:
-        the frame reduced and undistorted on the host, aligned with the last one), sent up through a pinned
-        buffer, and LK starts every track from it (``predict.prior_starts``). It costs host time before the
-        graph, no device synchronisation. A frame with a motion costs nothing here (the next has no prior), a
-        small one included (the pose source says the image barely moved: the tracks start where they were)."""
+    def _set_prior(self, motion: FrameMotion | None) -> None:
+        """A frame without a motion: its image motion from a dense alignment with the last frame
+        (``frontend.global_motion``), and LK starts every track from it (``predict.prior_starts``). The frame's
+        alignment image is made on the device from its grey levels, and ECC runs there from the last frame's
+        motion and the tracks' consensus (``warp.global_motion``); a frame those seeds do not align well goes to
+        the host's other seeds, with the two alignment images brought down. A frame with a motion costs nothing
+        here (the next has no prior), a small one included (the pose source says the image barely moved: the
+        tracks start where they were)."""
         if self._global is None:
             return
         if motion is not None:
             self._global.forget()
+            self._align_has_prev = False
             return
-        small = reduced_grey(image, self._global.factor, self._global_maps)
+        self._align.make(self._frame)
+        has_prev, self._align_has_prev = self._align_has_prev, True
+        if not has_prev:
+            self._global.forget()
+            return
         seeds = () if self._consensus_H is None else (self._consensus_H,)
-        H = self._global.estimate_reduced(small, seeds)
+        H = self._device_prior(seeds)
+        if H is not None:
+            self.prior_aligned["device"] += 1
+        else:
+            H = self._global.estimate_images(*self._align.download(), seeds)
+            self.prior_aligned["host" if H is not None else "none"] += 1
         if H is None or self._n_tracks == 0:
             return
         self._use_prior(H)
+
+    def _device_prior(self, seeds: tuple[np.ndarray, ...]) -> np.ndarray | None:
+        """The frame's motion (full-resolution pixels) from ECC on the device, started from the last frame's
+        motion, then from each seed, taken where it aligns well (``GOOD_CORRELATION``); None otherwise."""
+        tried: list[np.ndarray] = []
+        for seed in (self._global.last, *seeds):
+            if not plausible(seed) or any(np.allclose(seed, t, atol=1e-6) for t in tried):
+                continue
+            tried.append(seed)
+            rho, H = self._align.align(self._global.to_alignment(seed))
+            if H is not None and plausible(H) and rho >= GOOD_CORRELATION:
+                full = self._global.to_full(H)
+                self._global.took(full)
+                return full
+        return None
 
     def _use_prior(self, H: np.ndarray) -> None:
         """This frame's tracks start where the homography H (pixels, previous frame -> this one) puts them: H up
