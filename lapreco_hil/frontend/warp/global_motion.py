@@ -17,6 +17,8 @@ that, so the two front-ends' priors agree to a fraction of an alignment pixel, n
 
 from __future__ import annotations
 
+import logging
+
 import cv2
 import numpy as np
 import warp as wp
@@ -25,6 +27,8 @@ from lapreco_hil.frontend.global_motion import ALIGN_HIGHPASS_SIGMA_PX, ECC_EPS,
 from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
 from lapreco_hil.frontend.warp.block_sum import block_sum66, vec66
 from lapreco_hil.frontend.warp.sampling import bilinear
+
+log = logging.getLogger(__name__)
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
@@ -308,7 +312,9 @@ def _gaussian_taps(sigma: float, ksize: int = 0) -> np.ndarray:
 
 class AlignmentImages:
     """The device's alignment images of consecutive frames (``make`` each frame) and ECC between the last two
-    (``align``): buffers allocated once, every call launches into them (no allocation, so they can be captured)."""
+    (``align``): buffers allocated once, every call launches into them. On CUDA each call is a graph, captured on
+    its second use (ECC's iterations a conditional loop in it), so a frame's alignment costs two graph launches
+    and one wait instead of a launch and a wait per iteration."""
 
     def __init__(self, width: int, height: int, factor: int, maps: tuple[np.ndarray, np.ndarray] | None,
                  device) -> None:
@@ -339,20 +345,43 @@ class AlignmentImages:
         self._down = wp.zeros(13, dtype=wp.float64, device="cpu", pinned=pinned)
         self._undistort = 1 if maps is not None else 0
         self.cur = 0  # which of the two buffers holds the last frame's image
+        self.use_graphs = wp.get_device(device).is_cuda
+        self._graphs: dict = {}
+        self._uses: dict = {}
+
+    def _run(self, key: tuple, launches) -> None:
+        """``launches()``, replayed from its graph on CUDA once it has run before under ``key`` (every module
+        is loaded by then); a capture that fails (a driver without conditional nodes) leaves launches."""
+        if self.use_graphs and self._uses.get(key, 0) >= 1 and key not in self._graphs:
+            try:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    launches()
+                self._graphs[key] = capture.graph
+            except Exception as exc:
+                log.warning("global motion prior: CUDA graph capture failed (%s); launching kernels one by one", exc)
+                self.use_graphs = False
+        if self.use_graphs and key in self._graphs:
+            wp.capture_launch(self._graphs[key])
+        else:
+            launches()
+        self._uses[key] = self._uses.get(key, 0) + 1
 
     def make(self, grey: wp.array) -> None:
         """The alignment image of the grey frame ``grey`` (H x W uint8 on the device, distorted) into the next
         buffer, and its ECC blur and gradients; the buffer before it keeps the previous frame's."""
+        self.cur = cur = 1 - self.cur
+        self._run(("make", cur, grey.ptr), lambda: self._make_kernels(grey, cur))
+
+    def _make_kernels(self, grey: wp.array, cur: int) -> None:
         dev, w, h = self.device, self.w, self.h
-        self.cur = 1 - self.cur
         wp.launch(_reduce_grey, dim=(h, w), inputs=[grey, self.factor, self._small, w], device=dev)
         wp.launch(_undistort_log_small, dim=(h, w), inputs=[self._small, w, h, self._maps, self._undistort,
                                                             self._log], device=dev)
         self._blur(self._log, self._highpass_taps, self._low)
-        image = self.images[self.cur]
+        image = self.images[cur]
         wp.launch(_highpass, dim=w * h, inputs=[self._log, self._low, image], device=dev)
-        self._blur(image, self._ecc_taps, self._blurred[self.cur])
-        wp.launch(_gradients, dim=(h, w), inputs=[self._blurred[self.cur], w, h, self._gx, self._gy], device=dev)
+        self._blur(image, self._ecc_taps, self._blurred[cur])
+        wp.launch(_gradients, dim=(h, w), inputs=[self._blurred[cur], w, h, self._gx, self._gy], device=dev)
 
     def _blur(self, src: wp.array, taps: wp.array, dst: wp.array) -> None:
         w, h = self.w, self.h
@@ -365,21 +394,20 @@ class AlignmentImages:
         up = self._up.numpy()
         up[:9] = (np.asarray(H0, np.float64) / H0[2, 2]).ravel()
         up[9:] = 0.0
-        wp.copy(self.H, self._up, 0, 0, 9)
-        wp.copy(self.state, self._up, 0, 9, 4)
-        self.launch_align()
-        wp.copy(self._down, self.H, 0, 0, 9)
-        wp.copy(self._down, self.state, 9, 0, 4)
+        self._run(("align", self.cur), self._align_launches)
         wp.synchronize_device(self.device)
         down = self._down.numpy()
         if down[9 + STATUS] == FAILED:
             return -1.0, None
         return float(down[9 + RHO]), down[:9].reshape(3, 3).copy()
 
-    def launch_align(self) -> None:
-        """ECC's launches from the homography and state already in ``H`` and ``state``."""
+    def _align_launches(self) -> None:
+        """The seed and a fresh state up from the pinned buffer, ECC's iterations until it stops, the outcome
+        down to the other pinned buffer."""
         dev, w, h = self.device, self.w, self.h
         reference, image = self._blurred[1 - self.cur], self._blurred[self.cur]
+        wp.copy(self.H, self._up, 0, 0, 9)
+        wp.copy(self.state, self._up, 0, 9, 4)
 
         def iteration():
             wp.launch_tiled(_ecc_sums, dim=[ECC_BLOCKS], inputs=[reference, image, self._gx, self._gy, w, h, self.H,
@@ -390,6 +418,8 @@ class AlignmentImages:
 
         self._running.fill_(1)
         wp.capture_while(self._running, iteration)
+        wp.copy(self._down, self.H, 0, 0, 9)
+        wp.copy(self._down, self.state, 9, 0, 4)
 
     def download(self) -> tuple[np.ndarray, np.ndarray]:
         """The previous and the last frame's alignment images (host copies; synchronises)."""
