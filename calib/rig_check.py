@@ -2,8 +2,9 @@
 ``T_cam0_cam[k]``, a length in the wrong unit, the wrong calibration) leave a run with almost no points and no
 word why. Features matched between camera 0 and camera k of one frame say which it is:
 
-- the matches' epipolar distances to the rig's essential matrix (most within a few pixels when it fits; a free
-  essential matrix fitted to the same matches shows whether the matches themselves are good);
+- the matches' epipolar distances to the rig's essential matrix and to its inverse's, each judged on its own
+  (most within a few pixels when it fits; a free essential matrix fitted to the same matches shows whether the
+  matches themselves are good): a rig rotated by a fraction of a degree, given inverted, fits only its inverse;
 - where they triangulate: in front of both cameras (an inverse rig puts them behind: with a rotation near the
   identity the inverse has nearly the same epipolar lines, so only the depths' sign tells), at a working distance
   a scope can have (a baseline in millimetres read as metres puts the scene a thousand times too far).
@@ -39,7 +40,8 @@ class RigFit:
     fitting_share: float  # of the matches within epipolar_distance_px of the rig's epipolar lines
     free_fitting_share: float  # ... of a free essential matrix's (what the matches allow at best)
     in_front_share: float  # of the fitting matches, triangulated in front of both cameras with the rig
-    inverse_in_front_share: float  # ... with the inverse of T_cam0_cam[k]
+    inverse_fitting_share: float  # of the matches within epipolar_distance_px of the inverse's epipolar lines
+    inverse_in_front_share: float  # of the matches fitting the inverse, in front of both cameras with it
     median_depth_m: float  # of the fitting matches in front, in camera 0
     problem: str | None  # a one-line statement of what is wrong and what to do; None: the rig fits
 
@@ -47,6 +49,7 @@ class RigFit:
         return {"camera": self.camera, "matches": self.matches, "fitting_share": round(self.fitting_share, 3),
                 "free_fitting_share": round(self.free_fitting_share, 3),
                 "in_front_share": round(self.in_front_share, 3),
+                "inverse_fitting_share": round(self.inverse_fitting_share, 3),
                 "inverse_in_front_share": round(self.inverse_in_front_share, 3),
                 # None: no fitting match in front of both cameras (report.json keeps to strict JSON)
                 "median_depth_m": self.median_depth_m if np.isfinite(self.median_depth_m) else None,
@@ -104,6 +107,19 @@ def _depths(T_cam0_camk: np.ndarray, x0: np.ndarray, xk: np.ndarray) -> tuple[np
     return X[:, 2], (X @ T_k0[:3, :3].T + T_k0[:3, 3])[:, 2]
 
 
+def _judged(T_cam0_camk: np.ndarray, x0: np.ndarray, xk: np.ndarray, f: float,
+            epipolar_px: float) -> tuple[float, float, float]:
+    """(the share of the matches within ``epipolar_px`` of the transform's epipolar lines, the share of those
+    triangulated in front of both cameras, their median depth in camera 0: NaN when none)."""
+    fitting = _sampson_px(_essential(T_cam0_camk), x0, xk, f) <= epipolar_px
+    if fitting.sum() < MIN_MATCHES // 2:
+        return float(np.mean(fitting)), 0.0, float("nan")
+    z0, zk = _depths(T_cam0_camk, x0[fitting], xk[fitting])
+    front = (z0 > 0) & (zk > 0)
+    median_depth = float(np.median(z0[front])) if front.any() else float("nan")
+    return float(np.mean(fitting)), float(np.mean(front)), median_depth
+
+
 def epipolar_distance_px(camera: CameraModel) -> float:
     """The Sampson distance within which a match fits an essential matrix, for a camera of this size."""
     return EPIPOLAR_PX * max(1.0, max(camera.width, camera.height) / EPIPOLAR_PER_PX)
@@ -120,38 +136,36 @@ def check_rig_pair(rig: Rig, k: int, image0: np.ndarray, image_k: np.ndarray) ->
     f = float(cam0.K[0, 0])
     T = np.asarray(rig.T_cam0_cam[k], float)
     epipolar_px = epipolar_distance_px(cam0)
-    fitting = _sampson_px(_essential(T), x0, xk, f) <= epipolar_px
     E_free, _ = cv2.findEssentialMat(xk, x0, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=epipolar_px / f)
     free_share = 0.0
     if E_free is not None and E_free.shape == (3, 3):
         # findEssentialMat(points1=xk, points2=x0) gives x0^T E xk = 0, as the rig's
         free_share = float(np.mean(_sampson_px(E_free, x0, xk, f) <= epipolar_px))
-    fit_share = float(np.mean(fitting))
-    in_front = inverse_in_front = 0.0
-    median_depth = float("nan")
-    if fitting.sum() >= MIN_MATCHES // 2:
-        z0, zk = _depths(T, x0[fitting], xk[fitting])
-        front = (z0 > 0) & (zk > 0)
-        in_front = float(np.mean(front))
-        if front.any():
-            median_depth = float(np.median(z0[front]))
-        iz0, izk = _depths(inv_T(T), x0[fitting], xk[fitting])
-        inverse_in_front = float(np.mean((iz0 > 0) & (izk > 0)))
+    # the given transform and its inverse, each judged on the matches that fit it: with a rotation near the
+    # identity both fit the same matches and only the depths' sign tells; with a rotation of a fraction of a
+    # degree (a real rig) the inverse's epipolar lines are already pixels off, so only its own matches fit it
+    fit_share, in_front, median_depth = _judged(T, x0, xk, f, epipolar_px)
+    inverse_fit_share, inverse_in_front, _ = _judged(inv_T(T), x0, xk, f, epipolar_px)
     field = f"rig.T_cam0_cam[{k}]"
     problem = None
-    if fit_share < FITS and free_share >= FITS:
+    right_way = fit_share >= FITS and in_front >= IN_FRONT
+    if inverse_fit_share >= FITS and inverse_in_front >= IN_FRONT and not right_way:
+        problem = (f"{field} looks inverted: {fit_share:.0%} of {len(uv0)} matches between camera 0 and camera {k} "
+                   f"lie within {epipolar_px:g} px of its epipolar lines ({in_front:.0%} of those in front of both "
+                   f"cameras), {inverse_fit_share:.0%} of its inverse's ({inverse_in_front:.0%} in front); "
+                   f"T_cam0_cam[{k}] maps points from camera {k} to camera 0 (a stereo calibration's R, T map camera "
+                   f"0 to camera {k}: give their inverse)")
+    elif fit_share < FITS and free_share >= FITS:
         problem = (f"{field} does not fit the images: {fit_share:.0%} of {len(uv0)} matches between camera 0 and "
-                   f"camera {k} lie within {epipolar_px:g} px of its epipolar lines, {free_share:.0%} of a free fit's; "
-                   "check the extrinsics and each camera's K and distortion against the calibration")
-    elif fit_share >= FITS and in_front < IN_FRONT and inverse_in_front >= IN_FRONT:
-        problem = (f"{field} looks inverted: with it {in_front:.0%} of the matched points lie in front of both "
-                   f"cameras, with its inverse {inverse_in_front:.0%}; T_cam0_cam[k] maps points from camera k to "
-                   "camera 0 (a stereo calibration's R, T map camera 0 to camera 1: give their inverse)")
-    elif fit_share >= FITS and in_front >= IN_FRONT and not (DEPTH_RANGE_M[0] <= median_depth <= DEPTH_RANGE_M[1]):
+                   f"camera {k} lie within {epipolar_px:g} px of its epipolar lines, {free_share:.0%} of a free fit's "
+                   f"({inverse_fit_share:.0%} of its inverse's); check the extrinsics and each camera's K and "
+                   "distortion against the calibration")
+    elif right_way and not (DEPTH_RANGE_M[0] <= median_depth <= DEPTH_RANGE_M[1]):
         problem = (f"{field}: the matched points lie at a median depth of {median_depth:.4g} m with a baseline of "
                    f"{rig.baseline_m(k):.4g} m; a scope sees tissue at {DEPTH_RANGE_M[0]:g}-{DEPTH_RANGE_M[1]:g} m: "
                    "is units.length right (the rig's translations are in it)?")
-    return RigFit(k, len(uv0), fit_share, free_share, in_front, inverse_in_front, median_depth, problem)
+    return RigFit(k, len(uv0), fit_share, free_share, in_front, inverse_fit_share, inverse_in_front, median_depth,
+                  problem)
 
 
 def check_rig(rig: Rig, images: tuple[np.ndarray, ...]) -> list[RigFit]:

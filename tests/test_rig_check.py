@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,3 +164,37 @@ def test_an_hd_scopes_own_calibration_is_not_called_a_misfit_but_wrong_extrinsic
     wrong[:3, 3] = [0.0, 0.0045, 0.0]
     fit = check_rig_pair(replace(rig, T_cam0_cam=(np.eye(4), wrong)), 1, None, None)
     assert fit.problem.startswith("rig.T_cam0_cam[1] does not fit the images") and "within 4 px" in fit.problem
+
+
+def test_a_rotated_rig_given_inverted_is_named_inverted_not_a_misfit(monkeypatch):
+    """A real rig is rotated by a fraction of a degree: given inverted (a stereo calibration's R, T as they come),
+    its epipolar lines miss the matches by pixels (0.7 deg is about 20 px at f = 782), so the depths' sign was never
+    looked at and it was called 'does not fit'. Its inverse fits: that is what is named, with the fix."""
+    import cv2
+
+    import lapreco_hil.calib.rig_check as rig_check
+    from lapreco_hil.camera import CameraModel, Rig
+
+    cam = CameraModel(720, 576, 782.4, 781.1, 369.3, 280.3)
+    T = np.eye(4)
+    # 0.7 deg, mostly toe-in about y, with some tilt and roll (a reviewer's rendered pair's rig)
+    T[:3, :3] = cv2.Rodrigues(np.array([0.00345, -0.0115, 0.0023]))[0]
+    T[:3, 3] = [0.00548, 0.00009, -0.00012]
+    true = Rig((cam, cam), (np.eye(4), T))
+    uv0, uv1 = _synthetic_matches(true, noise_px=0.3)
+    monkeypatch.setattr(rig_check, "_matches", lambda a, b: (uv0, uv1))
+    assert check_rig_pair(true, 1, None, None).problem is None
+    fit = check_rig_pair(replace(true, T_cam0_cam=(np.eye(4), inv_T(T))), 1, None, None)
+    assert fit.problem.startswith("rig.T_cam0_cam[1] looks inverted") and "give their inverse" in fit.problem
+    assert fit.fitting_share < 0.2 and fit.inverse_fitting_share > 0.9 and fit.inverse_in_front_share > 0.95
+
+
+def test_the_end_of_a_replay_warns_of_a_wrong_rig_naming_the_session_file(capsys):
+    """A replay whose rig fails the check still maps (what it can), but its closing lines say why it has so few
+    points, naming the file to fix."""
+    from lapreco_hil.cli.main import print_funnel
+
+    problem = "rig.T_cam0_cam[1] looks inverted: ... give their inverse"
+    print_funnel("replay", {"session": "sessions/liver90", "rig_check": [{"camera": 1, "problem": problem}]})
+    line = capsys.readouterr().out.strip()
+    assert line == f"lapreco replay: warning: {Path('sessions/liver90') / 'session.json'}: {problem}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from pathlib import Path
 
 from lapreco_hil import __version__
 from lapreco_hil.errors import ConfigError, LaprecoError
@@ -474,9 +475,11 @@ def print_funnel(command: str, report: dict) -> None:
         from lapreco_hil.funnel import Funnel
 
         print(f"lapreco {command}: funnel: {Funnel(dict(report['funnel'])).summary()}")
+    # the file (a replay's session.json) or device (a run's grabber) whose rig is wrong
+    source = str(Path(report["session"]) / "session.json") if report.get("session") else report.get("grabber")
     for fit in report.get("rig_check") or ():
         if fit.get("problem"):  # said at the start too; repeated here, where a run's few points are read
-            print(f"lapreco {command}: rig: {fit['problem']}")
+            print(f"lapreco {command}: warning: {source + ': ' if source else ''}{fit['problem']}")
 
 
 def _print_run(command: str, report: dict) -> None:
