@@ -3,6 +3,8 @@ pixel-noise scale of few-view fits, and the tracking funnel."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -128,6 +130,41 @@ def test_the_funnel_names_the_stage_that_lost_the_points():
     h.add({"corners": 1797, "after_lk": 0, "after_drift_check": 0, "candidates": 4, "triangulated": 4,
            "inliers": 1})
     assert h.lossy_stage() == "candidates"
+
+
+def test_a_rig_runs_funnel_names_its_left_right_matching_and_leaves_out_tracking_it_never_did():
+    """One stereo frame whose partner view finds only a third of the tracks: the funnel counts the left-right
+    matching by name (searched, found, dropped for want of a partner), says there was no tracking over time (not
+    'after_lk 0 -> after_drift_check 0') and names the left-right matching as where the points went."""
+    rng = np.random.default_rng(9)
+    rig, pts, _, frames = _stereo_world(rng, n_frames=1)
+    obs, prior, partner = frames[0]
+    obs = replace(obs, funnel={"corners": len(obs), "after_lk": 0, "after_drift_check": 0})
+    found = np.arange(len(partner)) % 3 == 0
+    partner = Observations(partner.frame_seq, partner.t_ns, partner.track_ids[found], partner.uv[found],
+                           partner.colors[found], camera=1)
+    mapper = Mapper(K0, MapperConfig(), rig=rig)
+    mapper.add(obs, prior, partners=[partner])
+    funnel = mapper.finish().stats["funnel"]
+    assert funnel["frames"] == 1 and funnel["partner_searched"] == len(pts)
+    assert funnel["partner_matched"] == found.sum() and funnel["without_partner"] == len(pts) - found.sum()
+    assert funnel["candidates"] == found.sum()
+    line = Funnel(funnel).summary()
+    assert "after_lk" not in line and "one frame: no tracking over time" in line
+    assert f"left-right matching: {found.sum()} of {len(pts)} tracks found in a partner view" in line
+    assert line.endswith("(most were lost at left-right matching)")
+    # over three frames a track the partner view never finds still gets a point from the scope's motion: it is
+    # searched, not found, and not counted as lost for want of a partner
+    rig, pts, _, frames = _stereo_world(np.random.default_rng(10), n_frames=3)
+    mapper = Mapper(K0, MapperConfig(), rig=rig)
+    for obs, prior, partner in frames:
+        keep = partner.track_ids >= 100  # tracks 0-99 never found in the partner view
+        mapper.add(obs, prior, partners=[Observations(partner.frame_seq, partner.t_ns, partner.track_ids[keep],
+                                                      partner.uv[keep], partner.colors[keep], camera=1)])
+    funnel = mapper.finish().stats["funnel"]
+    assert funnel["frames"] == 3 and funnel["partner_searched"] == len(pts)
+    assert funnel["partner_matched"] == len(pts) - 100 and funnel["without_partner"] == 0
+    assert "per frame, summed" in Funnel(funnel).summary()
 
 
 def test_a_point_seen_by_both_eyes_at_two_instants_is_an_inlier():

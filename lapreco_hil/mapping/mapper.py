@@ -170,7 +170,11 @@ class Mapper:
         self.config = config
         # a stereo scope: each keyframe's partner views join as keyframes of their own, tied to it
         self.rig = rig if rig is not None and rig.is_stereo else None
-        self.funnel = Funnel()
+        self.funnel = Funnel.for_rig() if self.rig is not None else Funnel()
+        # a rig: each active track searched for in a partner view -> found there yet (let go at retirement, when
+        # one never found and never a candidate is counted in _without_partner)
+        self._partnered: dict[int, bool] = {}
+        self._without_partner = 0
         self._tried: set[int] = set()  # tracks tried for a point (active ones: let go at retirement)
         self.image_motion_px: list[float] = []  # per frame: the median track displacement from the frame before
         self.schedule = schedule if schedule is not None else MapperSchedule.offline()
@@ -219,6 +223,7 @@ class Mapper:
         frame's tracks as the other cameras saw them at the same instant (Observations with ``camera`` set, in
         that camera's pinhole pixels), or a callable returning them, called only for a keyframe."""
         self.funnel.add(obs.funnel)
+        self.funnel.add({"frames": 1})
         self._measure_motion(obs)
         is_kf = is_keyframe(self._last_reference(), obs, prior, self.K, self.config)
         if is_kf and len(self._untriangulated) >= 2:
@@ -244,8 +249,10 @@ class Mapper:
         self._note_views(kf)
         record.T_refined = kf.T_world_camera
         if self.rig is not None and partners is not None:
-            for view in (partners() if callable(partners) else partners):
+            views = list(partners() if callable(partners) else partners)
+            for view in views:
                 self._add_partner(kf, view)
+            self._count_partners(kf, views)
         self._untriangulated.append(PendingStructure(kf.id, local_ba and not self._local_ba_before_points))
         if local_ba and self._local_ba_before_points and len(self.keyframes) >= 2:
             self._local_ba_wanted = True  # its points follow in idle moments, while the worker solves
@@ -313,6 +320,30 @@ class Mapper:
                 continue  # only the reference camera's tracks (the partner view adds their other eye)
             self.retirement.seen(tid, partner.id, seen[-1][0])
             seen.append((partner.id, p))
+
+    def _count_partners(self, kf: Keyframe, views: list[Observations]) -> None:
+        """The funnel's left-right matching: keyframe ``kf``'s active tracks searched for in its partner views,
+        and those found there, each track counted once (the first time it is searched, and found)."""
+        found = set(itertools.chain.from_iterable(v.track_ids.tolist() for v in views))
+        partnered, tracks = self._partnered, self.tracks
+        searched = matched = 0
+        for tid in kf.track_ids.tolist():
+            if tid not in tracks:
+                continue  # retired: its point is final
+            before = partnered.get(tid)
+            hit = tid in found
+            if before is None:
+                searched += 1
+            if hit and not before:
+                matched += 1
+            partnered[tid] = bool(before) or hit
+        self.funnel.add({"partner_searched": searched, "partner_matched": matched})
+
+    def _unpartnered(self, track_ids) -> int:
+        """How many of ``track_ids`` were searched for in a partner view, never found and never a candidate (let
+        go here: the funnel's ``without_partner``)."""
+        partnered, tried = self._partnered, self._tried
+        return sum(1 for t in track_ids if partnered.pop(t, True) is False and t not in tried)
 
     def track_depths(self, track_ids: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The depth (z in the camera at ``T_world_camera``) of each of ``track_ids`` that has a landmark:
@@ -434,6 +465,8 @@ class Mapper:
                              np.array([self.landmark_colors[t] for t in with_point], np.uint8), inlier)
             self.archive.observations += int(len(good))
             self.archive.inlier_observations += int(good.sum())
+        if self._partnered:
+            self._without_partner += self._unpartnered(retired)
         # (C-level loops over the retired tracks, a thousand or more a keyframe)
         self._tried.difference_update(retired)
         collections.deque(map(self.tracks.pop, retired), maxlen=0)
@@ -809,6 +842,9 @@ class Mapper:
         n_obs += self.archive.observations
         n_inlier_obs += self.archive.inlier_observations
         self.funnel.counts["inliers"] = int(inlier.sum())
+        if self.rig is not None:  # the active tracks' share too (every attempt at a point is over)
+            active = sum(1 for t, found in self._partnered.items() if not found and t not in self._tried)
+            self.funnel.counts["without_partner"] = self._without_partner + active
         stats = {
             "keyframes": sum(1 for k in self.keyframes if k.reference is None),
             "partner_views": sum(1 for k in self.keyframes if k.reference is not None),
