@@ -160,7 +160,9 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
         "device": device,
         "resolution": [camera.width, camera.height],
         "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "dist": list(camera.dist),
-                   "fov_radius_px": camera.fov_radius_px},
+                   "fov_radius_px": camera.fov_radius_px,
+                   # any other field of view (evaluate's coverage reads it back: evaluation.compare.read_report_camera)
+                   **({"fov": _fov_fields(camera.fov)} if camera.fov is not None else {})},
         "out": str(out_dir),
         **metrics,
         "wall_s": run_wall_s + surface_s + output_s,
@@ -192,16 +194,21 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
     return report
 
 
+def _fov_fields(fov) -> dict:
+    return {f.name: getattr(fov, f.name) for f in dataclasses.fields(fov) if not f.name.startswith("_")}
+
+
 def _surface_accuracy(m, camera: CameraModel, truth: GroundTruth, points: np.ndarray, dense) -> dict | None:
     """The sparse points and the dense surface side by side against the true surface the reference keyframes
-    saw (their refined poses, the lens's field of view)."""
-    from lapreco_hil.dense.surface import undistortion
+    saw (their refined poses; what the real camera sees, its distortion and field of view: ``camera_view``)."""
+    from lapreco_hil.evaluation.coverage import camera_view
 
     poses = np.array([k.T_world_camera for k in m.keyframes if k.reference is None]).reshape(-1, 4, 4)
     if not len(poses):
         return None
-    return surface_report(truth.surface, poses, camera.K, (camera.width, camera.height), sparse=points,
-                          dense=dense.points if dense is not None else None, mask=undistortion(camera)[2])
+    K, size, mask = camera_view(camera)
+    return surface_report(truth.surface, poses, K, size, sparse=points,
+                          dense=dense.points if dense is not None else None, mask=mask)
 
 
 def _render_picture(path: Path, mesh, points, colors, cams, camera: CameraModel, config: PipelineConfig) -> str | None:

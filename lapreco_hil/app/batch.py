@@ -98,19 +98,17 @@ def process_session(session: str, out_dir: str, options: BatchOptions) -> Sessio
 def _evaluate(session: str, out: Path, report: dict) -> tuple[dict | None, str | None]:
     """Similarity ICP and coverage of the run's points against the session's true surface (lapreco evaluate's
     figures); (None, None) without one, (None, why) when the points cannot be evaluated."""
-    import numpy as np
-
-    from lapreco_hil.evaluation.compare import read_points_ply, read_tum
+    from lapreco_hil.evaluation.compare import read_points_ply, read_report_camera, read_tum
+    from lapreco_hil.evaluation.coverage import camera_view
     from lapreco_hil.evaluation.icp import evaluate_points
     from lapreco_hil.sessions import Session
 
     truth = Session(session).ground_truth()
     if truth is None or truth.surface is None:
         return None, None
-    cam = report["camera"]
     _, poses = read_tum(out / "trajectory.tum")
-    result = evaluate_points(read_points_ply(out / "points.ply"), truth.surface, poses, np.array(cam["K"]),
-                             (cam["width"], cam["height"]))
+    K, size, mask = camera_view(read_report_camera(report["camera"]))  # what the real camera saw
+    result = evaluate_points(read_points_ply(out / "points.ply"), truth.surface, poses, K, size, mask=mask)
     if "error" in result:
         return None, f"evaluate: {result['error']}"
     return result, None

@@ -11,7 +11,8 @@ import logging
 import numpy as np
 
 from lapreco_hil.evaluation.compare import (VARIANTS, SEED_FIGURES, format_markdown, frame_timings, plot_tracking_times,
-                                  read_points_ply, read_tum, variant_name)
+                                  read_points_ply, read_report_camera, read_tum, variant_name)
+from lapreco_hil.evaluation.coverage import camera_view
 from lapreco_hil.evaluation.icp import evaluate_points
 from lapreco_hil.outputs import prepare_output_dir
 from lapreco_hil.sessions import Session
@@ -46,8 +47,9 @@ def run_comparison(session: str, out: str, device: str = "auto", config_path: st
         if truth is not None and truth.surface is not None:
             cam = report["camera"]
             _, poses = read_tum(out_dir / name / "trajectory.tum")
-            ev = evaluate_points(read_points_ply(out_dir / name / "points.ply"), truth.surface, poses,
-                                 np.array(cam["K"]), (cam["width"], cam["height"]))
+            K, size, mask = camera_view(read_report_camera(cam))  # what the real camera saw
+            ev = evaluate_points(read_points_ply(out_dir / name / "points.ply"), truth.surface, poses, K, size,
+                                 mask=mask)
             if "error" in ev:  # (a truth in another unit, ...): said, and kept in the row, not blank columns
                 log.error("compare: %s: evaluation failed: %s", name, ev["error"])
                 row["evaluation_error"] = ev["error"]

@@ -8,11 +8,10 @@ import json
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from lapreco_hil.errors import ConfigError
 from lapreco_hil.evaluation.accuracy import surface_report
-from lapreco_hil.evaluation.compare import read_points_ply, read_tum
+from lapreco_hil.evaluation.compare import read_points_ply, read_report_camera, read_tum
+from lapreco_hil.evaluation.coverage import camera_view
 from lapreco_hil.evaluation.icp import evaluate_points, unit_mismatch
 
 log = logging.getLogger(__name__)
@@ -42,7 +41,7 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0, truth_unit:
         raise ConfigError(f"{truth_file}: the mesh is empty")
     if TRUTH_UNITS[unit] != 1.0:
         truth = truth.scale(TRUTH_UNITS[unit])
-    poses = K = size = cam = None
+    poses = K = size = mask = cam = None
     no_poses = None
     if not (out / "trajectory.tum").is_file():
         no_poses = f"{out / 'trajectory.tum'} is missing"
@@ -52,7 +51,8 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0, truth_unit:
         cam = json.loads((out / "report.json").read_text()).get("camera")
         if cam:
             _, poses = read_tum(out / "trajectory.tum")
-            K, size = np.array(cam["K"]), (cam["width"], cam["height"])
+            # what the real camera saw: its distortion and field of view, not the undistorted frame's crop
+            K, size, mask = camera_view(read_report_camera(cam))
         else:
             no_poses = f"{out / 'report.json'} records no camera"
     points = read_points_ply(points_file)
@@ -61,7 +61,7 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0, truth_unit:
         hint = (" (--truth-unit mm reads it so)" if unit == "m" and "millimetres" in mismatch
                 else f" (it was read in {unit}: {unit_from})")
         raise ConfigError(f"{truth_file}: {mismatch}{hint}")
-    result = evaluate_points(points, truth, poses, K, size, coverage_mm)
+    result = evaluate_points(points, truth, poses, K, size, coverage_mm, mask=mask)
     if "error" in result:
         raise ConfigError(f"{points_file}: {result['error']}")
     result["truth"] = {"file": str(truth_file), "unit": unit, "unit_from": unit_from}
@@ -71,21 +71,8 @@ def evaluate(outdir: str, truth_path: str, coverage_mm: float = 3.0, truth_unit:
         log.warning("%s", warning)
     if (out / "dense.ply").is_file() and poses is not None:
         dense = read_points_ply(out / "dense.ply")
-        result["surface"] = surface_report(truth, poses, K, size, sparse=points, dense=dense, mask=_field_of_view(cam))
+        result["surface"] = surface_report(truth, poses, K, size, sparse=points, dense=dense, mask=mask)
     return result
-
-
-def _field_of_view(cam: dict) -> np.ndarray | None:
-    """The lens's field of view in the undistorted image, from report.json's camera (None: not recorded)."""
-    if not cam.get("fov_radius_px"):
-        return None
-    from lapreco_hil.camera import CameraModel
-    from lapreco_hil.dense.surface import undistortion
-
-    K = np.array(cam["K"])
-    camera = CameraModel(cam["width"], cam["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(cam["dist"]),
-                         cam["fov_radius_px"])
-    return undistortion(camera)[2]
 
 
 def _truth_file_and_unit(path: Path, truth_unit: str | None) -> tuple[Path, str, str]:

@@ -82,8 +82,9 @@ def surface_report(surface: pv.PolyData, poses: np.ndarray, K: np.ndarray, size:
                    sparse: np.ndarray | None = None, dense: np.ndarray | None = None, mask: np.ndarray | None = None,
                    radius_mm: float = 1.0, beyond_mm: float = 5.0, max_points: int = 200_000) -> dict:
     """Sparse and dense reconstructions side by side against the true surface: distances to it (mm; the share
-    beyond ``beyond_mm``) and coverage: the share of the true surface seen by the cameras at ``poses`` (in
-    ``mask``, unoccluded) with a reconstructed point within ``radius_mm``. No alignment: the reconstruction and
+    beyond ``beyond_mm``) and coverage: the share of the true surface seen by the cameras at ``poses`` (the
+    pinhole image of ``K``, ``size``, in ``mask``, unoccluded; a real camera's: ``coverage.camera_view``) with
+    a reconstructed point within ``radius_mm``. No alignment: the reconstruction and
     the truth share the world frame of the robot's poses. Distances are taken on at most ``max_points`` points,
     evenly thinned."""
     from lapreco_hil.evaluation.coverage import covered_fraction, sample_surface, visible_samples

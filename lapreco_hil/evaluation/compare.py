@@ -33,6 +33,17 @@ def variant_label(tracker: str, drift: bool, device: str) -> str:
     return name + (" drift corr." if drift else "")
 
 
+def read_report_camera(cam: dict):
+    """The camera a run's report.json records (``camera``: size, K, distortion, field of view) as a CameraModel."""
+    from lapreco_hil.camera import CameraModel, FieldOfView
+
+    K = np.asarray(cam["K"], float)
+    fov = cam.get("fov")
+    return CameraModel(int(cam["width"]), int(cam["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                       tuple(cam.get("dist") or ()), float(cam.get("fov_radius_px") or 0.0),
+                       FieldOfView(**fov) if fov else None)
+
+
 def read_points_ply(path: Path) -> np.ndarray:
     import pyvista as pv
 

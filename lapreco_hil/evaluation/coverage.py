@@ -1,6 +1,11 @@
 """How much of a true surface the cameras saw, and how much of that a reconstruction covers: samples spread by
 area over the true surface, the ones some camera had in view, and the share of those with a reconstructed point
-within a radius. One function for the sparse points (``lapreco evaluate``, after ICP) and the dense surface."""
+within a radius. One function for the sparse points (``lapreco evaluate``, after ICP) and the dense surface.
+
+"In view" is what the real camera sees (``camera_view``): a ray its distortion model projects into its own image,
+inside its field of view. A pinhole image of the same K and size (what the app undistorts to) leaves out the
+outer band of a barrel-distorted frame, and a surface seen only there would not count against a reconstruction.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,8 @@ import cv2
 import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
+
+from lapreco_hil.camera import CameraModel
 
 # the samples' own z-buffer, each sample splatted over a disc 4 sample spacings wide (a gap in the front surface's
 # samples would let a hidden one show through); a sample within 3 splat radii (a 72-degree slope) of the nearest
@@ -32,11 +39,61 @@ def sample_surface(surface: pv.PolyData, spacing_m: float, max_points: int = 300
     return pts
 
 
+# the canvas of camera_view is at most this many times the image's size each way (a lens model whose edge rays
+# undistort to enormous angles would otherwise ask for a canvas of millions of pixels)
+CANVAS_MAX_SCALE = 3.0
+# a ray is the camera's when undistorting the pixel it projects to gives it back within this (pinhole pixels):
+# beyond its fold a polynomial lens model projects far rays into the frame too, rays the camera never sees
+ROUND_TRIP_PX = 1.0
+
+
+def camera_view(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
+    """What ``camera`` sees, as a pinhole image (``visible_samples``' K, size and mask): the camera's focal
+    lengths, a size that holds its whole field of view undistorted, and a mask of the rays it sees (projected
+    with its distortion into its image, inside its field of view, and given back by undistorting that pixel, as
+    the renderer and cv2.undistortPoints do). A camera without distortion is its own image and field of view."""
+    fov = camera.fov_mask() > 0
+    if not np.any(camera.dist_array):
+        return camera.K, (camera.width, camera.height), fov
+    # the canvas: the bounding box of the field of view's outline undistorted (pixels of the pinhole K)
+    padded = cv2.copyMakeBorder(fov.astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    contours, _ = cv2.findContours(padded, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return camera.K, (camera.width, camera.height), fov
+    outline = camera.undistort_pixels(np.concatenate([c.reshape(-1, 2) for c in contours]).astype(float) - 1.0)
+    w, h = camera.width, camera.height
+    lo = np.maximum(np.floor(outline.min(axis=0)) - 2, [camera.cx - CANVAS_MAX_SCALE / 2 * w,
+                                                         camera.cy - CANVAS_MAX_SCALE / 2 * h])
+    hi = np.minimum(np.ceil(outline.max(axis=0)) + 2, [camera.cx + CANVAS_MAX_SCALE / 2 * w,
+                                                        camera.cy + CANVAS_MAX_SCALE / 2 * h])
+    x0, y0 = int(np.floor(min(lo[0], 0))), int(np.floor(min(lo[1], 0)))
+    size = (int(np.ceil(max(hi[0], w))) - x0, int(np.ceil(max(hi[1], h))) - y0)
+    K = camera.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    # each canvas pixel's ray through the real lens
+    yy, xx = np.mgrid[0:size[1], 0:size[0]]
+    pin = np.column_stack([xx.ravel() + x0, yy.ravel() + y0]).astype(float)  # pixels of the camera's pinhole K
+    rays = np.column_stack([(pin[:, 0] - camera.cx) / camera.fx, (pin[:, 1] - camera.cy) / camera.fy,
+                            np.ones(len(pin))])
+    uv = camera.project(rays)
+    px = np.round(uv).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    idx = np.flatnonzero(inside)
+    idx = idx[fov[px[idx, 1], px[idx, 0]]]
+    back = camera.undistort_pixels(uv[idx])
+    idx = idx[np.linalg.norm(back - pin[idx], axis=1) <= ROUND_TRIP_PX]
+    mask = np.zeros(size[0] * size[1], bool)
+    mask[idx] = True
+    return K, size, mask.reshape(size[1], size[0])
+
+
 def visible_samples(samples: np.ndarray, poses: np.ndarray, K: np.ndarray, size: tuple,
                     near_m: float = 0.01, far_m: float = 0.3, max_views: int = 60, mask: np.ndarray | None = None,
                     occlusion_m: float | None = None, spacing_m: float | None = None) -> np.ndarray:
-    """Which true-surface samples some camera had in view: in front of it, inside the image (and inside
-    ``mask``, bool H x W, where given: the scope's field of view), within range. With ``occlusion_m`` (and the
+    """Which true-surface samples some camera had in view: in front of it, inside the pinhole image of ``K``
+    and ``size`` (and inside ``mask``, bool H x W, where given: the scope's field of view), within range. A real
+    camera's view is ``camera_view(camera)``'s K, size and mask. With ``occlusion_m`` (and the
     samples' ``spacing_m``) a sample farther than that, plus the slope allowance, behind the nearest sample in
     its z-buffer cell is hidden; without, surfaces hidden behind others count as visible and the coverage is a
     lower bound."""

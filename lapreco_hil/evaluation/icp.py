@@ -153,12 +153,14 @@ def _motion(T: np.ndarray) -> tuple[float, float]:
 
 
 def evaluate_points(points: np.ndarray, surface: pv.PolyData, poses: np.ndarray | None = None,
-                    K: np.ndarray | None = None, size: tuple | None = None, coverage_mm: float = 3.0) -> dict:
+                    K: np.ndarray | None = None, size: tuple | None = None, coverage_mm: float = 3.0,
+                    mask: np.ndarray | None = None) -> dict:
     """The points against a true surface (mm): ``unaligned`` (the shared world frame, no alignment) and ``icp``
     (after rigid ICP, scale fixed at 1) are the headline; ``similarity`` (after similarity ICP: the scale the
     map would need) is an extra. ``relief``: the principal extents of the truth under the points; ``warnings``:
     a scale far from 1, a truth too flat to pin an alignment down, a truth in another frame. ``coverage``: the
-    share of the visible true surface with a rigidly aligned point (an unaligned one on a flat truth) within
+    share of the visible true surface (in the pinhole image of ``K``, ``size``, in ``mask``: a real camera's
+    view is ``coverage.camera_view``) with a rigidly aligned point (an unaligned one on a flat truth) within
     ``coverage_mm`` (None, with ``why``, when it cannot be told)."""
     if len(points) < 3:
         return {"points": int(len(points)), "error": "fewer than 3 points: nothing to align"}
@@ -216,7 +218,7 @@ def evaluate_points(points: np.ndarray, surface: pv.PolyData, poses: np.ndarray 
         out["coverage"] = {"radius_mm": coverage_mm, "covered_fraction": None,
                            "why": "no camera poses: which part of the truth was seen is unknown"}
     else:
-        vis = visible_samples(samples, poses, K, size)
+        vis = visible_samples(samples, poses, K, size, mask=mask)
         # on a flat truth the rigid ICP may slide the points along it: the shared world frame is the better guess
         covering = points if flat and rigid.start == "identity (shared world frame)" else moved
         if vis.any():
