@@ -143,7 +143,13 @@ def write_outputs(m, camera: CameraModel, config: PipelineConfig, out_dir: Path,
     write_mesh_ply(out_dir / "mesh.ply", mesh)
     if dense is not None:
         write_dense_ply(out_dir / "dense.ply", dense.points, dense.normals, dense.colours)
-    write_tum(out_dir / "trajectory.tum", np.array([f.t_ns for f in m.frames]), m.frame_poses)
+    t_ns, poses = [f.t_ns for f in m.frames], list(m.frame_poses)
+    pair = (report_fields or {}).get("two_frames_as_rig")
+    second = next((k for k in m.keyframes if k.reference is not None), None) if pair else None
+    if second is not None:  # a pair read as a rig: the second frame's refined pose is its camera-1 view's
+        t_ns.append(pair["second_frame_t_ns"])
+        poses.append(second.T_world_camera)
+    write_tum(out_dir / "trajectory.tum", np.array(t_ns), np.array(poses))
     cams = [(k.T_world_camera, k.refined) for k in m.keyframes if k.reference is None]
     picture = _render_picture(out_dir / "reconstruction.png", mesh, points, colors, cams, camera, config)
     output_s = time.perf_counter() - t1

@@ -68,7 +68,9 @@ def test_the_hamlyn_pair_as_a_two_frame_session_reconstructs_hundreds_of_points(
     report = run_replay(str(session), str(tmp_path / "out"), tracker="opencv", device="cpu", progress=False)
     assert report["inliers"] >= 500, report["funnel"]
     assert report["reprojection"]["median_px"] <= 0.5
-    # the calibrated relative pose is kept (the trajectory is in metres)
+    # the pair is matched as a stereo rig's one frame (Session._pair_as_rig): the second view a partner view
+    assert report["two_frames_as_rig"]["second_frame_t_ns"] > 0 and report["partner_views"] == 1
+    # the calibrated relative pose is kept (the trajectory is in metres), both frames' poses in it
     _, (left, right) = read_tum(tmp_path / "out" / "trajectory.tum")
     T_rel = np.linalg.inv(left) @ right
     T_true = T_world_right.copy()

@@ -176,7 +176,7 @@ def test_a_bad_version_1_session_gives_one_clear_line(case, tmp_path):
 def test_extra_top_level_keys_are_still_allowed(tmp_path):
     """The top level of session.json is open (informative fields of other writers); the objects are not."""
     s = Session(write_v1(tmp_path / "v1", notes={"operator": "A"}, my_tool_version="3.1"))
-    assert len(s) == 2 and s.camera == LEFT
+    assert len(s) == 1 and s.pair_as_rig and s.camera == LEFT  # (its two frames read as a pair)
 
 
 def test_a_jpeg_frame_is_read_with_one_warning_per_session(tmp_path, caplog):

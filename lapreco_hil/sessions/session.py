@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -50,6 +51,38 @@ class Session:
             log.warning("session '%s' was not closed cleanly (recording cut short?); reading its %d complete "
                         "frames", self.folder, len(self.frame_t_ns))
         self._check_counts()
+        self.pair_as_rig = False  # a version-1 pair of frames read as one frame of a rig of two (_pair_as_rig)
+        self._pair_as_rig()
+
+    def _pair_as_rig(self) -> None:
+        """A version-1 session of exactly two frames with their camera poses is two views of known relative
+        pose, as a calibrated stereo pair is written in version 1: it is read as one frame of a rig of two, the
+        second view camera 1 at the poses' relative transform (held by bundle adjustment within both poses'
+        sigmas). Why: a rig's views are matched along their epipolar lines with an affine refinement, while
+        the temporal tracker's first step with a motion slides along the line on weak texture; an outside
+        review's rendered skull pair made its sparse points at 0.56 mm RMS as two frames and 0.27 mm as a rig
+        (docs/session-format.md, "Two frames"). Only where each frame has a pose at its own time."""
+        if (self.meta.file_version != 1 or self.meta.pose_source != "camera_poses" or len(self.frame_t_ns) != 2
+                or len(self.meta.rig) != 1):
+            return
+        at = self.frame_t_ns + self.meta.time_offset_ns
+        idx = np.searchsorted(self.pose_t_ns, at)
+        if np.any(idx >= len(self.pose_t_ns)) or np.any(self.pose_t_ns[np.minimum(idx, len(self.pose_t_ns) - 1)]
+                                                          != at):
+            return
+        T0, T1 = self.poses[idx[0]], self.poses[idx[1]]
+        sigma = self.meta.pose_sigma
+        rig = Rig((self.meta.camera, self.meta.camera), (np.eye(4), np.linalg.inv(T0) @ T1),
+                  sigma_rotation_rad=float(np.sqrt(2.0) * sigma.rotation_rad),
+                  sigma_translation_m=float(np.sqrt(2.0) * sigma.translation_m))
+        self.meta = replace(self.meta, rig=rig, camera_names=("first", "second"))
+        self._files = [(self._files[0][0], self._files[1][0])]
+        self.frame_files = self.frame_files[:1]
+        self.second_frame = (int(self.frame_seq[1]), int(self.frame_t_ns[1]))  # (seq, t_ns), for the outputs
+        self.frame_seq, self.frame_t_ns = self.frame_seq[:1], self.frame_t_ns[:1]
+        self.pair_as_rig = True
+        log.info("session '%s': its two frames read as a stereo pair (camera 1 at the poses' relative transform, "
+                 "baseline %.2f mm)", self.folder, 1e3 * float(np.linalg.norm(rig.T_cam0_cam[1][:3, 3])))
 
     def _check_counts(self) -> None:
         """Compare the rows found with the counts session.json recorded: a table cut short after the recording
