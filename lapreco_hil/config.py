@@ -258,6 +258,11 @@ class DepthConfig:
     # semi-global matching against that one partner (dense/stereo_fill.py), checked left-right as every depth is
     # (docs/dense.md, "Two views")
     two_view_sgbm: bool = True
+    # the depth maps' pinhole image holds the whole field of view: a barrel lens undistorted at the frame's size
+    # and K loses its outer band (a fifth of the image on a real 720x576 scope), so the canvas grows to hold it,
+    # by at most ``canvas_max_pad`` of the frame's width and height on each side (docs/dense.md, "The canvas")
+    full_field_of_view: bool = True
+    canvas_max_pad: float = ranged(0.25, ge=0.0, le=1.0)
     highlight_value: float = ranged(0.97, gt=0.0, le=1.0)  # a saturated highlight: max(RGB) at least this ...
     highlight_saturation: float = ranged(0.15, ge=0.0, le=1.0)  # ... and (max - min) / max at most this
     highlight_dilate_px: int = ranged(3, ge=0)  # its halo (bloom, a window that overlaps it) is excluded too

@@ -37,10 +37,12 @@ def pinhole(camera: CameraModel) -> CameraModel:
 
 
 def true_depth_fn(world):
-    """A stand-in for compute_depth: the true surface's depth at the view's pose (confidence 1 inside its mask)."""
-    cam = pinhole(world.camera)
+    """A stand-in for compute_depth: the true surface's depth at the view's pose (confidence 1 inside its mask),
+    rendered with the view's pinhole K and size (the dense canvas, which holds the whole field of view)."""
 
     def depth_fn(ref, sources, config, device):
+        K = ref.K
+        cam = CameraModel(ref.size[0], ref.size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
         _, depth = world.renderer.render(ref.T_world_camera, camera=cam)
         valid = depth > 0
         if ref.mask is not None:
@@ -109,10 +111,11 @@ def test_fused_true_depth_lies_on_the_true_surface_and_covers_what_was_seen(skul
     assert np.mean(np.sum(to_camera * result.normals, axis=1) > 0) > 0.85
     # each vertex has the colour the keyframes saw there: compare with the first view's undistorted image
     view = dense.keyframe_view(0)
+    canvas = CameraModel(view.size[0], view.size[1], view.K[0, 0], view.K[1, 1], view.K[0, 2], view.K[1, 2])
     pc = (result.points - poses[0][:3, 3]) @ poses[0][:3, :3]
-    uv = np.round(pc[:, :2] / pc[:, 2:3] @ np.diag([cam.fx, cam.fy]) + [cam.cx, cam.cy]).astype(int)
-    _, depth = world.renderer.render(poses[0], camera=pinhole(cam))
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    uv = np.round(pc[:, :2] / pc[:, 2:3] @ np.diag([canvas.fx, canvas.fy]) + [canvas.cx, canvas.cy]).astype(int)
+    _, depth = world.renderer.render(poses[0], camera=canvas)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < canvas.width) & (uv[:, 1] >= 0) & (uv[:, 1] < canvas.height)
     uv, pc, rgb = uv[inside], pc[inside], result.colours[inside]
     front = (np.abs(depth[uv[:, 1], uv[:, 0]] - pc[:, 2]) < 0.0005) & view.mask[uv[:, 1], uv[:, 0]]
     seen = view.colour[uv[front, 1], uv[front, 0]].astype(float)
@@ -127,7 +130,8 @@ def test_taking_a_map_out_restores_the_volume_bit_for_bit(skull_world, warp_cpu)
     from lapreco_hil.dense.types import KeyframeView
 
     def depth_map(kf_id, T, confidence):
-        m = depth_fn(KeyframeView(kf_id, np.zeros((1, 1, 3), np.uint8), world.camera.K, T), [], None, "cpu")
+        image = np.zeros((world.camera.height, world.camera.width, 3), np.uint8)
+        m = depth_fn(KeyframeView(kf_id, image, world.camera.K, T), [], None, "cpu")
         m.confidence *= confidence
         return m
 
@@ -184,8 +188,9 @@ def test_kept_keyframes_are_bounded_the_oldest_let_go_first(warp_cpu):
         dense.add_view(i, rng.integers(0, 255, (48, 64, 3), np.uint8), make_T(np.eye(3), [0.001 * i, 0, 0]))
     assert list(dense.views) == [3, 4, 5] and dense.released == 3
     view = dense.keyframe_view(5)
-    assert view.colour.shape == (48, 64, 3) and view.mask.shape == (48, 64)
-    assert view.mask[24, 32] and not view.mask[0, 0]  # the lens's circle, undistorted
+    w, h = dense.size  # (the canvas that holds the whole field of view: taller than the frame with this lens)
+    assert view.colour.shape == (h, w, 3) and view.mask.shape == (h, w) and h > 48
+    assert view.mask[h // 2, w // 2] and not view.mask[0, 0]  # the lens's circle, undistorted
     assert dense.fuse_pending() == 0 and dense.depth_failures == 3  # no depth map: nothing fused, counted
 
 

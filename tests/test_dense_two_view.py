@@ -257,3 +257,28 @@ def test_partner_maps_are_made_by_the_final_build_up_to_the_configured_reference
         dense, made = surface(up_to)
         dense.build_at(poses, {k: (0.04, 0.06) for k in poses})
         assert sorted(made) == [0, 2, 4] and dense.fused == 3 and dense.partners_fused == 0
+
+
+def test_the_dense_canvas_holds_a_barrel_lens_whole_field_of_view():
+    """A barrel lens undistorted at its own K and size loses its outer band (the rays of the frame's edge land
+    beyond it): the dense maps' canvas (dense/surface.py ``canvas``) keeps the focal lengths and grows to hold
+    every distorted pixel's ray, inside its field-of-view mask; a lens without distortion keeps its frame."""
+    from lapreco_hil.dense.surface import canvas, undistortion
+
+    lens = CameraModel(720, 576, 780.0, 780.0, 369.3, 280.3, (-0.35, 0.15, 0.0005, -0.0003, -0.03))
+    K, (w, h) = canvas([lens], 0.25)
+    assert (K[0, 0], K[1, 1]) == (lens.fx, lens.fy) and w > 720 and h > 576
+    ys, xs = np.mgrid[0:576:9, 0:720:9]
+    uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
+    at_own_K = lens.undistort_pixels(uv)
+    lost = ~((at_own_K >= -0.5) & (at_own_K <= [719.5, 575.5])).all(axis=1)
+    assert lost.mean() > 0.05  # the band the frame's own K and size would lose
+    on_canvas = np.round(at_own_K + (K[:2, 2] - lens.K[:2, 2])).astype(int)
+    _, _, mask = undistortion(lens, K, (w, h))
+    assert ((on_canvas >= 0) & (on_canvas < [w, h])).all()
+    assert mask[on_canvas[:, 1], on_canvas[:, 0]].mean() > 0.99
+    assert mask.sum() > 1.1 * undistortion(lens)[2].sum()
+
+    plain = CameraModel(720, 576, 780.0, 780.0, 359.5, 287.5)
+    K, size = canvas([plain], 0.25)
+    assert size == (720, 576) and np.allclose(K, plain.K)

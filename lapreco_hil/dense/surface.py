@@ -131,8 +131,10 @@ class DenseSurface:
         self.rig = rig if rig is not None and rig.is_stereo else None
         self.config = config
         self.device = device
-        self.K = camera.K
-        self.size = (camera.width, camera.height)
+        # the maps' pinhole camera: camera 0's K, on a canvas that holds every rig camera's whole field of view
+        cameras = [camera] if self.rig is None else list(self.rig.cameras)
+        self.K, self.size = (canvas(cameras, config.depth.canvas_max_pad) if config.depth.full_field_of_view
+                             else (camera.K, (camera.width, camera.height)))
         self.volume = TsdfVolume(config.fusion, device)
         self.views: OrderedDict[int, _View] = OrderedDict()
         self._undistort: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -538,10 +540,56 @@ def _encode_pngs(d16: np.ndarray, c8: np.ndarray) -> tuple[bytes, bytes]:
 
 def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):
     """cv2.remap maps from ``camera``'s distorted frame to the pinhole ``K`` (default: its own) at ``size``, and its
-    field of view in that undistorted image (bool H x W: the lens's circle, and nothing outside the frame)."""
+    field of view in that undistorted image (bool H x W: the lens's circle, nothing outside the frame, and nothing
+    outside the outline of the frame's field of view undistorted: beyond it a lens model can fold back into the
+    frame and would paint a ghost of it)."""
     mx, my = camera.undistort_maps(K, size)
     mask = cv2.remap(camera.fov_mask(), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return mx, my, mask > 0
+    outline = np.zeros_like(mask)
+    for contour in _fov_outlines(camera):
+        pts = _undistorted_to(camera, contour, camera.K if K is None else K)
+        cv2.fillPoly(outline, [np.round(pts).astype(np.int32)], 255)
+    return mx, my, (mask > 0) & (outline > 0)
+
+
+def _fov_outlines(camera: CameraModel) -> list[np.ndarray]:
+    """The outlines (N x 2 distorted pixels) of the camera's field of view in its frame."""
+    region = camera.fov_mask()
+    padded = cv2.copyMakeBorder(region, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # the frame's edge closes it
+    contours, _ = cv2.findContours(padded, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    return [c.reshape(-1, 2).astype(np.float64) - 1.0 for c in contours if len(c) >= 3]
+
+
+def _undistorted_to(camera: CameraModel, uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Distorted pixels of ``camera`` as pixels of the pinhole ``K`` (the same viewing rays)."""
+    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPointsIter(pts, camera.K, camera.dist_array, None, K,
+                                   (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+
+
+def canvas(cameras: list[CameraModel], max_pad: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """(K, (width, height)) of a pinhole image with the first camera's focal lengths that holds every camera's
+    field of view undistorted (each camera's rays in the first's K; a stereo partner is undistorted to it): the
+    first camera's frame, grown on each side by what its outline reaches beyond it, by at most ``max_pad`` of
+    the frame's width or height. A lens without distortion, or a field of view inside the frame, grows nothing."""
+    first = cameras[0]
+    K = first.K
+    w, h = first.width, first.height
+    lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
+    for cam in cameras:
+        for contour in _fov_outlines(cam):
+            pts = _undistorted_to(cam, contour, K)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            if len(pts):
+                lo = np.minimum(lo, pts.min(axis=0))
+                hi = np.maximum(hi, pts.max(axis=0))
+    cap = np.array([max_pad * w, max_pad * h])
+    before = np.minimum(np.ceil(-lo - 0.5).clip(0.0), cap).astype(int)  # (a fraction of a pixel is no column)
+    after = np.minimum(np.ceil(hi - np.array([w - 1.0, h - 1.0]) - 0.5).clip(0.0), cap).astype(int)
+    K_canvas = K.copy()
+    K_canvas[0, 2] += before[0]
+    K_canvas[1, 2] += before[1]
+    return K_canvas, (int(w + before[0] + after[0]), int(h + before[1] + after[1]))
 
 
 def final_poses_and_ranges(m) -> tuple[dict[int, np.ndarray], dict[int, tuple[float, float] | None]]:
