@@ -167,6 +167,42 @@ class CameraModel:
         return cv2.initUndistortRectifyMap(self.K, self.dist_array, None, self.K if K is None else K,
                                            size or (self.width, self.height), cv2.CV_32FC1)
 
+    def undistorted_outline(self, K: np.ndarray) -> np.ndarray:
+        """The outline of the field of view in the frame (the frame's edge closes it), as pixels of the pinhole
+        ``K`` (the same rays), (N, 2); only points that the lens model gives back (beyond a fold of the model a
+        point undistorts to a wrong ray, finite but far)."""
+        padded = cv2.copyMakeBorder(self.fov_mask(), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+        contours, _ = cv2.findContours(padded, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if not contours:
+            return np.zeros((0, 2))
+        uv = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64) - 1.0
+        rays = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, self.dist_array, None, None,
+                                       (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+        ok = np.isfinite(rays).all(axis=1)
+        back = self.project(np.column_stack([rays[ok], np.ones(int(ok.sum()))]))
+        ok[ok] = np.linalg.norm(back - uv[ok], axis=1) <= 1.0
+        return rays[ok] @ K[:2, :2].T + K[:2, 2]
+
+    def seen_region(self, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+        """Which pixels of a pinhole image this camera sees (bool), from the image's undistortion maps
+        (``undistort_maps``: each pixel's place in the frame): inside the frame and its field of view, and
+        before any fold of the lens model, where the map from the pinhole image to the frame keeps its
+        orientation (its Jacobian's determinant positive, in the region about the principal point). Beyond a
+        fold a model maps rays back into the frame and would paint a ghost of it."""
+        h, w = map_x.shape
+        inside = cv2.remap(self.fov_mask(), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0) > 0
+        dxx, dxy = np.gradient(map_x, axis=1), np.gradient(map_x, axis=0)
+        dyx, dyy = np.gradient(map_y, axis=1), np.gradient(map_y, axis=0)
+        unfolded = ((dxx * dyy - dxy * dyx) > 0) & inside
+        n, labels = cv2.connectedComponents(unfolded.astype(np.uint8), connectivity=4)
+        if n <= 2:
+            return unfolded
+        # the region about the principal point: the component holding the pixel nearest to the frame's centre
+        d = (map_x - self.cx) ** 2 + (map_y - self.cy) ** 2
+        centre = np.unravel_index(np.argmin(np.where(unfolded, d, np.inf)), d.shape)
+        return labels == labels[centre]
+
     @property
     def field_of_view(self) -> FieldOfView | None:
         """The field of view as a region (``fov``, or the circle of ``fov_radius_px``); None: the whole image."""

@@ -176,7 +176,28 @@ def test_a_bad_version_1_session_gives_one_clear_line(case, tmp_path):
 def test_extra_top_level_keys_are_still_allowed(tmp_path):
     """The top level of session.json is open (informative fields of other writers); the objects are not."""
     s = Session(write_v1(tmp_path / "v1", notes={"operator": "A"}, my_tool_version="3.1"))
-    assert len(s) == 1 and s.pair_as_rig and s.camera == LEFT  # (its two frames read as a pair)
+    assert len(s) == 2 and s.camera == LEFT
+
+
+def test_a_version_1_pair_of_frames_reads_as_one_rig_frame_when_asked(tmp_path):
+    """Session.pair_frames_as_rig (what a replay asks for): two frames with poses at their own times become one
+    frame of a rig of two, camera 1 at the poses' relative transform; other readers see two frames; frames at
+    one place (no baseline) or without poses at their times stay two frames."""
+    s = Session(write_v1(tmp_path / "pair"))
+    assert len(s) == 2 and not s.pair_as_rig  # (an export, a live run's replay:// grabber)
+    assert s.pair_frames_as_rig()
+    assert len(s) == 1 and s.pair_as_rig and len(s.rig) == 2 and s.second_frame == (1, 6000)
+    assert np.allclose(s.rig.T_cam0_cam[1][:3, 3], [0.0, 0.0, 0.001])
+    frame = s.frame(0)
+    assert frame.t_ns == 5000 and len(frame.views) == 1 and frame.views[0].shape == frame.image.shape
+    assert not s.pair_frames_as_rig()  # (once)
+
+    still = write_v1(tmp_path / "still")
+    (still / "camera_poses.csv").write_text("t_ns,tx,ty,tz,qx,qy,qz,qw\n5000,0,0,0,0,0,0,1\n6000,0,0,0,0,0,0,1\n")
+    s = Session(still)
+    assert not s.pair_frames_as_rig() and len(s) == 2
+    s = Session(write_v1(tmp_path / "offset"))
+    assert not s.pair_frames_as_rig(offset_ns=500) and len(s) == 2  # no pose at the frames' times
 
 
 def test_a_jpeg_frame_is_read_with_one_warning_per_session(tmp_path, caplog):

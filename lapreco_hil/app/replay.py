@@ -58,6 +58,9 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
         raise CalibrationError(f"{camera_file}: calibrated for {camera.width}x{camera.height}, the session's frames "
                                f"are {meta.camera.width}x{meta.camera.height}")
     offset_ns = meta.time_offset_ns if time_offset_ms is None else int(round(time_offset_ms * 1e6))
+    # a version-1 pair of frames with their poses: one frame of a rig of two (Session.pair_frames_as_rig)
+    if meta.pose_source == "camera_poses" and grabber.session.pair_frames_as_rig(camera, offset_ns):
+        meta = grabber.session.meta
     if meta.pose_source == "joints":
         robot = open_robot(url, context)
         description = robot.description

@@ -132,7 +132,7 @@ class DenseSurface:
         self.config = config
         self.device = device
         # the maps' pinhole camera: camera 0's K, on a canvas that holds every rig camera's whole field of view
-        cameras = [camera] if self.rig is None else list(self.rig.cameras)
+        cameras = [camera] if self.rig is None else [camera, *self.rig.cameras[1:]]
         self.K, self.size = (canvas(cameras, config.depth.canvas_max_pad) if config.depth.full_field_of_view
                              else (camera.K, (camera.width, camera.height)))
         self.volume = TsdfVolume(config.fusion, device)
@@ -540,31 +540,10 @@ def _encode_pngs(d16: np.ndarray, c8: np.ndarray) -> tuple[bytes, bytes]:
 
 def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[int, int] | None = None):
     """cv2.remap maps from ``camera``'s distorted frame to the pinhole ``K`` (default: its own) at ``size``, and its
-    field of view in that undistorted image (bool H x W: the lens's circle, nothing outside the frame, and nothing
-    outside the outline of the frame's field of view undistorted: beyond it a lens model can fold back into the
-    frame and would paint a ghost of it)."""
+    field of view in that undistorted image (bool H x W: the lens's region, nothing outside the frame, nothing past
+    a fold of the lens model: ``CameraModel.seen_region``)."""
     mx, my = camera.undistort_maps(K, size)
-    mask = cv2.remap(camera.fov_mask(), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    outline = np.zeros_like(mask)
-    for contour in _fov_outlines(camera):
-        pts = _undistorted_to(camera, contour, camera.K if K is None else K)
-        cv2.fillPoly(outline, [np.round(pts).astype(np.int32)], 255)
-    return mx, my, (mask > 0) & (outline > 0)
-
-
-def _fov_outlines(camera: CameraModel) -> list[np.ndarray]:
-    """The outlines (N x 2 distorted pixels) of the camera's field of view in its frame."""
-    region = camera.fov_mask()
-    padded = cv2.copyMakeBorder(region, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)  # the frame's edge closes it
-    contours, _ = cv2.findContours(padded, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    return [c.reshape(-1, 2).astype(np.float64) - 1.0 for c in contours if len(c) >= 3]
-
-
-def _undistorted_to(camera: CameraModel, uv: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Distorted pixels of ``camera`` as pixels of the pinhole ``K`` (the same viewing rays)."""
-    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
-    return cv2.undistortPointsIter(pts, camera.K, camera.dist_array, None, K,
-                                   (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)).reshape(-1, 2)
+    return mx, my, camera.seen_region(mx, my)
 
 
 def canvas(cameras: list[CameraModel], max_pad: float) -> tuple[np.ndarray, tuple[int, int]]:
@@ -577,12 +556,10 @@ def canvas(cameras: list[CameraModel], max_pad: float) -> tuple[np.ndarray, tupl
     w, h = first.width, first.height
     lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
     for cam in cameras:
-        for contour in _fov_outlines(cam):
-            pts = _undistorted_to(cam, contour, K)
-            pts = pts[np.isfinite(pts).all(axis=1)]
-            if len(pts):
-                lo = np.minimum(lo, pts.min(axis=0))
-                hi = np.maximum(hi, pts.max(axis=0))
+        pts = cam.undistorted_outline(K)
+        if len(pts):
+            lo = np.minimum(lo, pts.min(axis=0))
+            hi = np.maximum(hi, pts.max(axis=0))
     cap = np.array([max_pad * w, max_pad * h])
     before = np.minimum(np.ceil(-lo - 0.5).clip(0.0), cap).astype(int)  # (a fraction of a pixel is no column)
     after = np.minimum(np.ceil(hi - np.array([w - 1.0, h - 1.0]) - 0.5).clip(0.0), cap).astype(int)

@@ -42,25 +42,20 @@ def sample_surface(surface: pv.PolyData, spacing_m: float, max_points: int = 300
 # the canvas of camera_view is at most this many times the image's size each way (a lens model whose edge rays
 # undistort to enormous angles would otherwise ask for a canvas of millions of pixels)
 CANVAS_MAX_SCALE = 3.0
-# a ray is the camera's when undistorting the pixel it projects to gives it back within this (pinhole pixels):
-# beyond its fold a polynomial lens model projects far rays into the frame too, rays the camera never sees
-ROUND_TRIP_PX = 1.0
 
 
 def camera_view(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
     """What ``camera`` sees, as a pinhole image (``visible_samples``' K, size and mask): the camera's focal
     lengths, a size that holds its whole field of view undistorted, and a mask of the rays it sees (projected
-    with its distortion into its image, inside its field of view, and given back by undistorting that pixel, as
-    the renderer and cv2.undistortPoints do). A camera without distortion is its own image and field of view."""
+    with its distortion into its image, inside its field of view, before any fold of the lens model:
+    ``CameraModel.seen_region``). A camera without distortion is its own image and field of view."""
     fov = camera.fov_mask() > 0
     if not np.any(camera.dist_array):
         return camera.K, (camera.width, camera.height), fov
     # the canvas: the bounding box of the field of view's outline undistorted (pixels of the pinhole K)
-    padded = cv2.copyMakeBorder(fov.astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
-    contours, _ = cv2.findContours(padded, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if not contours:
+    outline = camera.undistorted_outline(camera.K)
+    if not len(outline):
         return camera.K, (camera.width, camera.height), fov
-    outline = camera.undistort_pixels(np.concatenate([c.reshape(-1, 2) for c in contours]).astype(float) - 1.0)
     w, h = camera.width, camera.height
     lo = np.maximum(np.floor(outline.min(axis=0)) - 2, [camera.cx - CANVAS_MAX_SCALE / 2 * w,
                                                          camera.cy - CANVAS_MAX_SCALE / 2 * h])
@@ -71,21 +66,8 @@ def camera_view(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], np.nd
     K = camera.K.copy()
     K[0, 2] -= x0
     K[1, 2] -= y0
-    # each canvas pixel's ray through the real lens
-    yy, xx = np.mgrid[0:size[1], 0:size[0]]
-    pin = np.column_stack([xx.ravel() + x0, yy.ravel() + y0]).astype(float)  # pixels of the camera's pinhole K
-    rays = np.column_stack([(pin[:, 0] - camera.cx) / camera.fx, (pin[:, 1] - camera.cy) / camera.fy,
-                            np.ones(len(pin))])
-    uv = camera.project(rays)
-    px = np.round(uv).astype(np.int64)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-    idx = np.flatnonzero(inside)
-    idx = idx[fov[px[idx, 1], px[idx, 0]]]
-    back = camera.undistort_pixels(uv[idx])
-    idx = idx[np.linalg.norm(back - pin[idx], axis=1) <= ROUND_TRIP_PX]
-    mask = np.zeros(size[0] * size[1], bool)
-    mask[idx] = True
-    return K, size, mask.reshape(size[1], size[0])
+    map_x, map_y = camera.undistort_maps(K, size)
+    return K, size, camera.seen_region(map_x, map_y)
 
 
 def visible_samples(samples: np.ndarray, poses: np.ndarray, K: np.ndarray, size: tuple,

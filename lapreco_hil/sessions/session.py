@@ -19,6 +19,10 @@ from lapreco_hil.sessions import format as fmt
 
 log = logging.getLogger(__name__)
 
+# two frames read as a stereo pair must stand at least this far apart (below it there is no epipolar line to
+# search along: the pair is tracked as two frames)
+MIN_PAIR_BASELINE_M = 1e-4
+
 
 class Session:
     """A session opened for reading. Everything but the images is read and checked on open, so a bad
@@ -51,31 +55,35 @@ class Session:
             log.warning("session '%s' was not closed cleanly (recording cut short?); reading its %d complete "
                         "frames", self.folder, len(self.frame_t_ns))
         self._check_counts()
-        self.pair_as_rig = False  # a version-1 pair of frames read as one frame of a rig of two (_pair_as_rig)
-        self._pair_as_rig()
+        self.pair_as_rig = False  # a version-1 pair of frames read as one frame of a rig of two (pair_frames_as_rig)
 
-    def _pair_as_rig(self) -> None:
-        """A version-1 session of exactly two frames with their camera poses is two views of known relative
-        pose, as a calibrated stereo pair is written in version 1: it is read as one frame of a rig of two, the
-        second view camera 1 at the poses' relative transform (held by bundle adjustment within both poses'
-        sigmas). Why: a rig's views are matched along their epipolar lines with an affine refinement, while
-        the temporal tracker's first step with a motion slides along the line on weak texture; an outside
-        review's rendered skull pair made its sparse points at 0.56 mm RMS as two frames and 0.27 mm as a rig
-        (docs/session-format.md, "Two frames"). Only where each frame has a pose at its own time."""
-        if (self.meta.file_version != 1 or self.meta.pose_source != "camera_poses" or len(self.frame_t_ns) != 2
-                or len(self.meta.rig) != 1):
-            return
-        at = self.frame_t_ns + self.meta.time_offset_ns
-        idx = np.searchsorted(self.pose_t_ns, at)
-        if np.any(idx >= len(self.pose_t_ns)) or np.any(self.pose_t_ns[np.minimum(idx, len(self.pose_t_ns) - 1)]
-                                                          != at):
-            return
+    def pair_frames_as_rig(self, camera: CameraModel | None = None, offset_ns: int | None = None) -> bool:
+        """Read a version-1 session of exactly two frames with their camera poses, two views of known relative
+        pose as a calibrated stereo pair is written in version 1, as one frame of a rig of two: the second view
+        camera 1 at the poses' relative transform (held by bundle adjustment within both poses' sigmas), both
+        views ``camera`` (default: the session's). Only where each frame has a pose at its own time (plus
+        ``offset_ns``, default the session's) and the two are apart (a baseline of at least MIN_PAIR_BASELINE_M).
+        Why: a rig's views are matched along their epipolar lines with an affine refinement, while the temporal
+        tracker's first step with a motion slides along the line on weak texture; an outside review's rendered
+        skull pair made its sparse points at 0.56 mm RMS as two frames and 0.31 mm as a rig (docs/session-format.md,
+        "Two frames"). The replay asks for it; other readers (an export, a live run's replay:// grabber) see the
+        two frames. Returns whether it did."""
+        if (self.pair_as_rig or self.meta.file_version != 1 or self.meta.pose_source != "camera_poses"
+                or len(self.frame_t_ns) != 2 or len(self.meta.rig) != 1):
+            return False
+        at = self.frame_t_ns + (self.meta.time_offset_ns if offset_ns is None else offset_ns)
+        idx = np.minimum(np.searchsorted(self.pose_t_ns, at), len(self.pose_t_ns) - 1)
+        if np.any(self.pose_t_ns[idx] != at):
+            return False
         T0, T1 = self.poses[idx[0]], self.poses[idx[1]]
+        T01 = np.linalg.inv(T0) @ T1
+        if np.linalg.norm(T01[:3, 3]) < MIN_PAIR_BASELINE_M:
+            return False
+        camera = self.meta.camera if camera is None else camera
         sigma = self.meta.pose_sigma
-        rig = Rig((self.meta.camera, self.meta.camera), (np.eye(4), np.linalg.inv(T0) @ T1),
-                  sigma_rotation_rad=float(np.sqrt(2.0) * sigma.rotation_rad),
+        rig = Rig((camera, camera), (np.eye(4), T01), sigma_rotation_rad=float(np.sqrt(2.0) * sigma.rotation_rad),
                   sigma_translation_m=float(np.sqrt(2.0) * sigma.translation_m))
-        self.meta = replace(self.meta, rig=rig, camera_names=("first", "second"))
+        self.meta = replace(self.meta, camera=camera, rig=rig, camera_names=("first", "second"))
         self._files = [(self._files[0][0], self._files[1][0])]
         self.frame_files = self.frame_files[:1]
         self.second_frame = (int(self.frame_seq[1]), int(self.frame_t_ns[1]))  # (seq, t_ns), for the outputs
@@ -83,6 +91,7 @@ class Session:
         self.pair_as_rig = True
         log.info("session '%s': its two frames read as a stereo pair (camera 1 at the poses' relative transform, "
                  "baseline %.2f mm)", self.folder, 1e3 * float(np.linalg.norm(rig.T_cam0_cam[1][:3, 3])))
+        return True
 
     def _check_counts(self) -> None:
         """Compare the rows found with the counts session.json recorded: a table cut short after the recording

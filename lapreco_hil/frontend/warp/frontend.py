@@ -636,6 +636,7 @@ class WarpFrontEnd:
                 self._global = GlobalMotion(self.width, self.height)
                 self._align_has_prev = False
                 self._consensus_H = None
+                self.prior_aligned = dict.fromkeys(self.prior_aligned, 0)
 
     def _warm_prior_frame(self, frame: Frame) -> None:
         """One frame of the kind without a motion whose tracks start from the image motion (the identity here):
@@ -643,6 +644,9 @@ class WarpFrontEnd:
         self._marks = {}
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
+        if self._align is not None:  # the alignment's graphs too (each parity's, captured on its second use)
+            self._align.make(self._frame)
+            self._align.align(np.eye(3))
         self._use_prior(np.eye(3))
         try:
             self._process_frame(frame, time.perf_counter(), cur)

@@ -395,7 +395,9 @@ class AlignmentImages:
         up[:9] = (np.asarray(H0, np.float64) / H0[2, 2]).ravel()
         up[9:] = 0.0
         self._run(("align", self.cur), self._align_launches)
-        wp.synchronize_device(self.device)
+        device = wp.get_device(self.device)
+        if device.is_cuda:  # (the stream's work only: another stream's may run on)
+            wp.synchronize_stream(wp.get_stream(device))
         down = self._down.numpy()
         if down[9 + STATUS] == FAILED:
             return -1.0, None
