@@ -282,3 +282,19 @@ def test_the_dense_canvas_holds_a_barrel_lens_whole_field_of_view():
     plain = CameraModel(720, 576, 780.0, 780.0, 359.5, 287.5)
     K, size = canvas([plain], 0.25)
     assert size == (720, 576) and np.allclose(K, plain.K)
+
+
+def test_the_canvas_mask_stops_at_the_lens_models_fold():
+    """A wide lens whose model folds inside its frame (f 400 px on 720 px, k1 -0.35): past the fold the model maps
+    far rays back into the frame, a ghost of it. The canvas's mask (CameraModel.seen_region) keeps only rays that
+    the model gives back (a review found 16 836 ghost pixels with the outline's polygon as the mask)."""
+    from lapreco_hil.dense.surface import canvas, undistortion
+
+    lens = CameraModel(720, 576, 400.0, 400.0, 359.5, 287.5, (-0.35, 0.15, 0.0, 0.0, -0.03))
+    K, size = canvas([lens], 0.25)
+    _, _, mask = undistortion(lens, K, size)
+    ys, xs = np.nonzero(mask)
+    rays = np.column_stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones(len(xs))])
+    back = lens.undistort_pixels(lens.project(rays)) - lens.K[:2, 2] + K[:2, 2]
+    ghosts = np.linalg.norm(back - np.column_stack([xs, ys]), axis=1) > 1.0
+    assert len(xs) > 500_000 and ghosts.mean() < 0.01  # (measured: 0.4%, along the fold)
