@@ -233,3 +233,31 @@ def test_the_warp_front_end_aligns_a_smooth_motion_on_the_device(warp_cpu):
     assert frontend.prior_aligned == {"device": 3, "host": 1, "none": 0}
     step = truth @ np.linalg.inv(_zoom_and_shift(size, (18.0, -9.0), 1.012))
     assert _median_error(frontend._global.last, step, size) < 0.5
+
+
+def test_the_hosts_seeds_take_over_from_the_devices_without_repeating_them(monkeypatch):
+    """A frame the device's seeds did not align well (below GOOD_CORRELATION) goes to the host's seeds
+    (GlobalMotion.estimate_images with the device's alignments): the starts the device tried are not aligned
+    again, and the device's alignment still competes as the best."""
+    from lapreco_hil.frontend import global_motion as gm
+
+    size = (1920, 1080)
+    frame, moved = _frames("liver", _zoom_and_shift(size, (12.0, -7.0), 1.01, 0.5))
+    motion = GlobalMotion(*size)
+    prev = gm.alignment_image(gm.reduced_grey(frame.image, motion.factor, None))
+    cur = gm.alignment_image(gm.reduced_grey(moved, motion.factor, None))
+    motion.last = _zoom_and_shift(size, (10.0, -5.0), 1.0)  # the last frame's motion: the device's first seed
+    start = motion.to_alignment(motion.last)
+    device_H = motion.to_alignment(_zoom_and_shift(size, (11.0, -6.0), 1.0))
+    starts = []
+    align = GlobalMotion._align
+
+    def counted(prev_levels, cur_levels, H0, first):
+        starts.append((H0.copy(), first))
+        return -1.0, None  # every host alignment fails: the device's is the best there is
+
+    monkeypatch.setattr(GlobalMotion, "_align", staticmethod(counted))
+    H = motion.estimate_images(prev, cur, aligned=((start, 0.9, device_H),))
+    assert starts and not any(first == 0 and np.allclose(H0, start) for H0, first in starts)
+    assert np.allclose(H, motion.to_full(device_H))
+    monkeypatch.setattr(GlobalMotion, "_align", align)

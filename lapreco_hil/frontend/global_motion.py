@@ -217,12 +217,14 @@ class GlobalMotion:
         self._prev_polar = None
         self.last = H
 
-    def estimate_images(self, prev: np.ndarray, cur: np.ndarray,
-                        seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
+    def estimate_images(self, prev: np.ndarray, cur: np.ndarray, seeds: tuple[np.ndarray, ...] = (),
+                        aligned: tuple = ()) -> np.ndarray | None:
         """``estimate_reduced`` of two frames' alignment images (``alignment_image``, made elsewhere: the
-        device's), the earlier one as the previous frame's."""
+        device's), the earlier one as the previous frame's. ``aligned``: alignments already made of these images
+        on the finest level, (start, correlation, homography or None) in alignment pixels: their starts are not
+        tried again, and each competes as the best."""
         self._prev, self._prev_polar = self._pyramid(prev.astype(np.float32)), None
-        return self._estimate(self._pyramid(cur.astype(np.float32)), seeds)
+        return self._estimate(self._pyramid(cur.astype(np.float32)), seeds, aligned)
 
     def estimate(self, gray: np.ndarray, seeds: tuple[np.ndarray, ...] = ()) -> np.ndarray | None:
         """``estimate_reduced`` of the undistorted full-resolution grey frame ``gray`` (uint8)."""
@@ -235,7 +237,7 @@ class GlobalMotion:
         frame."""
         return self._estimate(self._pyramid(alignment_image(small)), seeds)
 
-    def _estimate(self, cur: list[np.ndarray], seeds: tuple[np.ndarray, ...]) -> np.ndarray | None:
+    def _estimate(self, cur: list[np.ndarray], seeds: tuple[np.ndarray, ...], aligned: tuple = ()) -> np.ndarray | None:
         prev, prev_polar = self._prev, self._prev_polar
         self._prev, self._prev_polar = cur, None
         if prev is None or prev[0].shape != cur[0].shape:
@@ -245,7 +247,11 @@ class GlobalMotion:
         h, w = cur[0].shape
         corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]).reshape(-1, 1, 2)
         seen = []
-        for H0, first in self._seeds(prev, cur, prev_polar, seeds):
+        for H0, rho, H in aligned:
+            seen.append(cv2.perspectiveTransform(corners, np.asarray(H0, np.float64)).reshape(-1, 2))
+            if H is not None and rho > best_rho and plausible(H):
+                best_rho, best = rho, H
+        for H0, first in ([] if best_rho >= GOOD_CORRELATION else self._seeds(prev, cur, prev_polar, seeds)):
             # a seed within a pixel of an earlier one (at every corner of the alignment image) would end there too
             moved = cv2.perspectiveTransform(corners, H0).reshape(-1, 2)
             if any(np.abs(moved - m).max() < SAME_SEED_PX for m in seen):

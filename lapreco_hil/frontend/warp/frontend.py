@@ -741,30 +741,34 @@ class WarpFrontEnd:
             self._global.forget()
             return
         seeds = () if self._consensus_H is None else (self._consensus_H,)
-        H = self._device_prior(seeds)
+        H, tried = self._device_prior(seeds)
         if H is not None:
             self.prior_aligned["device"] += 1
-        else:
-            H = self._global.estimate_images(*self._align.download(), seeds)
+        else:  # the host's other seeds, the device's alignments competing as they are
+            H = self._global.estimate_images(*self._align.download(), seeds, aligned=tuple(tried))
             self.prior_aligned["host" if H is not None else "none"] += 1
         if H is None or self._n_tracks == 0:
             return
         self._use_prior(H)
 
-    def _device_prior(self, seeds: tuple[np.ndarray, ...]) -> np.ndarray | None:
+    def _device_prior(self, seeds: tuple[np.ndarray, ...]) -> tuple[np.ndarray | None, list[tuple]]:
         """The frame's motion (full-resolution pixels) from ECC on the device, started from the last frame's
-        motion, then from each seed, taken where it aligns well (``GOOD_CORRELATION``); None otherwise."""
-        tried: list[np.ndarray] = []
+        motion, then from each seed, taken where it aligns well (``GOOD_CORRELATION``; else None), and the
+        alignments made: (start, correlation, homography or None), alignment pixels."""
+        tried: list[tuple] = []
         for seed in (self._global.last, *seeds):
-            if not plausible(seed) or any(np.allclose(seed, t, atol=1e-6) for t in tried):
+            if not plausible(seed):
                 continue
-            tried.append(seed)
-            rho, H = self._align.align(self._global.to_alignment(seed))
+            H0 = self._global.to_alignment(seed)
+            if any(np.allclose(H0, t[0], atol=1e-6) for t in tried):
+                continue
+            rho, H = self._align.align(H0)
+            tried.append((H0, rho, H))
             if H is not None and plausible(H) and rho >= GOOD_CORRELATION:
                 full = self._global.to_full(H)
                 self._global.took(full)
-                return full
-        return None
+                return full, tried
+        return None, tried
 
     def _use_prior(self, H: np.ndarray) -> None:
         """This frame's tracks start where the homography H (pixels, previous frame -> this one) puts them: H up
