@@ -249,3 +249,26 @@ class Rig:
 
     def baseline_m(self, k: int = 1) -> float:
         return float(np.linalg.norm(self.T_cam0_cam[k][:3, 3]))
+
+
+def pinhole_canvas(cameras: list[CameraModel], max_pad: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """(K, (width, height)) of a pinhole image with the first camera's focal lengths that holds every camera's
+    field of view undistorted (each camera's rays in the first's K; a stereo partner is undistorted to it): the
+    first camera's frame, grown on each side by what its outline reaches beyond it, by at most ``max_pad`` of
+    the frame's width or height. A lens without distortion, or a field of view inside the frame, grows nothing."""
+    first = cameras[0]
+    K = first.K
+    w, h = first.width, first.height
+    lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
+    for cam in cameras:
+        pts = cam.undistorted_outline(K)
+        if len(pts):
+            lo = np.minimum(lo, pts.min(axis=0))
+            hi = np.maximum(hi, pts.max(axis=0))
+    cap = np.array([max_pad * w, max_pad * h])
+    before = np.minimum(np.ceil(-lo - 0.5).clip(0.0), cap).astype(int)  # (a fraction of a pixel is no column)
+    after = np.minimum(np.ceil(hi - np.array([w - 1.0, h - 1.0]) - 0.5).clip(0.0), cap).astype(int)
+    K_canvas = K.copy()
+    K_canvas[0, 2] += before[0]
+    K_canvas[1, 2] += before[1]
+    return K_canvas, (int(w + before[0] + after[0]), int(h + before[1] + after[1]))

@@ -261,9 +261,10 @@ def test_partner_maps_are_made_by_the_final_build_up_to_the_configured_reference
 
 def test_the_dense_canvas_holds_a_barrel_lens_whole_field_of_view():
     """A barrel lens undistorted at its own K and size loses its outer band (the rays of the frame's edge land
-    beyond it): the dense maps' canvas (dense/surface.py ``canvas``) keeps the focal lengths and grows to hold
+    beyond it): the dense maps' canvas (``camera.pinhole_canvas``) keeps the focal lengths and grows to hold
     every distorted pixel's ray, inside its field-of-view mask; a lens without distortion keeps its frame."""
-    from lapreco_hil.dense.surface import canvas, undistortion
+    from lapreco_hil.camera import pinhole_canvas as canvas
+    from lapreco_hil.dense.surface import undistortion
 
     lens = CameraModel(720, 576, 780.0, 780.0, 369.3, 280.3, (-0.35, 0.15, 0.0005, -0.0003, -0.03))
     K, (w, h) = canvas([lens], 0.25)
@@ -288,7 +289,8 @@ def test_the_canvas_mask_stops_at_the_lens_models_fold():
     """A wide lens whose model folds inside its frame (f 400 px on 720 px, k1 -0.35): past the fold the model maps
     far rays back into the frame, a ghost of it. The canvas's mask (CameraModel.seen_region) keeps only rays that
     the model gives back (a review found 16 836 ghost pixels with the outline's polygon as the mask)."""
-    from lapreco_hil.dense.surface import canvas, undistortion
+    from lapreco_hil.camera import pinhole_canvas as canvas
+    from lapreco_hil.dense.surface import undistortion
 
     lens = CameraModel(720, 576, 400.0, 400.0, 359.5, 287.5, (-0.35, 0.15, 0.0, 0.0, -0.03))
     K, size = canvas([lens], 0.25)

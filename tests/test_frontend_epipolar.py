@@ -185,8 +185,8 @@ def test_frames_with_a_motion_replay_as_graphs_what_they_launch_one_by_one(warp_
     for a, b in zip(replayed, launched):
         assert np.array_equal(tracks(a), tracks(b))
     assert len(replayed[-1]) > 100
-    replays = [kind for kind, runs in with_graphs._runs.items() if kind.motion and runs >= 3]
-    assert replays and all(kind in with_graphs._graphs for kind in replays), with_graphs._runs
+    replays = [kind for kind, runs in with_graphs._graphs.runs.items() if kind.motion and runs >= 3]
+    assert replays and all(kind in with_graphs._graphs.captured for kind in replays), with_graphs._graphs.runs
 
 
 def test_a_small_motion_is_settled_on_the_tracks_own_depths_without_borrowing(monkeypatch):
@@ -389,7 +389,7 @@ def test_the_warm_up_runs_every_kind_of_frame_a_live_run_meets(warp_cpu, reduced
     fe = make_frontend("warp", camera(K, left), TrackerConfig(redetect_below=0.001,
                                                               reduced_predicted_levels=reduced_levels), DEVICE)
     fe.warm_up()
-    warmed = set(fe._runs)
+    warmed = set(fe._graphs.runs)
     assert any(kind.motion for kind in warmed)  # (frames with a motion among them)
     steps = [plane_motion(K, 0.08, px, np.radians(1.0)) for px in (5.0, 60.0, 8.0, 70.0)]
     H_total = np.eye(3)
@@ -398,8 +398,8 @@ def test_the_warm_up_runs_every_kind_of_frame_a_live_run_meets(warp_cpu, reduced
         H_total = H @ H_total
         fe.process(Frame(cv2.cvtColor(warp_frame(grey, H_total), cv2.COLOR_GRAY2BGR), k, k),
                    FrameMotion(T, depth_range_m=(0.03, 0.3)))
-    met = set(fe._runs)
+    met = set(fe._graphs.runs)
     assert any(kind.budget > fe.config.max_features for kind in met)  # (fast frames met the larger budget)
     assert met <= warmed, met - warmed
     if fe.device.is_cuda:
-        assert met <= set(fe._graphs)
+        assert met <= fe._graphs.captured

@@ -227,5 +227,5 @@ def test_a_rigs_frames_replay_as_graphs_what_they_launch_one_by_one():
         for a, b in zip(replayed, launched):
             assert same([a], [b], "warp")
         # a frame's kind: (buffer, motion, LK levels, budget, rig, global prior); the rig's, run 3 times or more
-        rig_kinds = [kind for kind, n in with_graphs._runs.items() if kind.rig and n >= 3]
-        assert rig_kinds and all(kind in with_graphs._graphs for kind in rig_kinds), with_graphs._runs
+        rig_kinds = [kind for kind, n in with_graphs._graphs.runs.items() if kind.rig and n >= 3]
+        assert rig_kinds and all(kind in with_graphs._graphs.captured for kind in rig_kinds), with_graphs._graphs.runs

@@ -87,7 +87,7 @@ def run_replay(session: str, out: str, tracker: str = "auto", device: str = "aut
               "session_shortfall": grabber.session.shortfall,
               # a stereo rig's extrinsics against its first frame: inverted, the wrong unit, not fitting
               "rig_check": check_session_rig(grabber.session)}
-    if grabber.session.pair_as_rig:  # two frames read as one frame of a rig of two (Session._pair_as_rig)
+    if grabber.session.pair_as_rig:  # two frames read as one frame of a rig of two (Session.pair_frames_as_rig)
         seq, t_ns = grabber.session.second_frame
         fields["two_frames_as_rig"] = {"second_frame_seq": seq, "second_frame_t_ns": t_ns}
     if meta.pose_source == "marker_poses":

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import pyvista as pv
 
-from lapreco_hil.camera import CameraModel, Rig
+from lapreco_hil.camera import CameraModel, Rig, pinhole_canvas
 from lapreco_hil.config import DepthConfig, PipelineConfig
 from lapreco_hil.dense.fill import fill_holes
 from lapreco_hil.dense.stereo_fill import fill_from, sgbm_depth
@@ -133,8 +133,8 @@ class DenseSurface:
         self.device = device
         # the maps' pinhole camera: camera 0's K, on a canvas that holds every rig camera's whole field of view
         cameras = [camera] if self.rig is None else [camera, *self.rig.cameras[1:]]
-        self.K, self.size = (canvas(cameras, config.depth.canvas_max_pad) if config.depth.full_field_of_view
-                             else (camera.K, (camera.width, camera.height)))
+        self.K, self.size = (pinhole_canvas(cameras, config.depth.canvas_max_pad)
+                             if config.depth.full_field_of_view else (camera.K, (camera.width, camera.height)))
         self.volume = TsdfVolume(config.fusion, device)
         self.views: OrderedDict[int, _View] = OrderedDict()
         self._undistort: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -544,29 +544,6 @@ def undistortion(camera: CameraModel, K: np.ndarray | None = None, size: tuple[i
     a fold of the lens model: ``CameraModel.seen_region``)."""
     mx, my = camera.undistort_maps(K, size)
     return mx, my, camera.seen_region(mx, my)
-
-
-def canvas(cameras: list[CameraModel], max_pad: float) -> tuple[np.ndarray, tuple[int, int]]:
-    """(K, (width, height)) of a pinhole image with the first camera's focal lengths that holds every camera's
-    field of view undistorted (each camera's rays in the first's K; a stereo partner is undistorted to it): the
-    first camera's frame, grown on each side by what its outline reaches beyond it, by at most ``max_pad`` of
-    the frame's width or height. A lens without distortion, or a field of view inside the frame, grows nothing."""
-    first = cameras[0]
-    K = first.K
-    w, h = first.width, first.height
-    lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
-    for cam in cameras:
-        pts = cam.undistorted_outline(K)
-        if len(pts):
-            lo = np.minimum(lo, pts.min(axis=0))
-            hi = np.maximum(hi, pts.max(axis=0))
-    cap = np.array([max_pad * w, max_pad * h])
-    before = np.minimum(np.ceil(-lo - 0.5).clip(0.0), cap).astype(int)  # (a fraction of a pixel is no column)
-    after = np.minimum(np.ceil(hi - np.array([w - 1.0, h - 1.0]) - 0.5).clip(0.0), cap).astype(int)
-    K_canvas = K.copy()
-    K_canvas[0, 2] += before[0]
-    K_canvas[1, 2] += before[1]
-    return K_canvas, (int(w + before[0] + after[0]), int(h + before[1] + after[1]))
 
 
 def final_poses_and_ranges(m) -> tuple[dict[int, np.ndarray], dict[int, tuple[float, float] | None]]:

@@ -14,7 +14,7 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
-from lapreco_hil.camera import CameraModel
+from lapreco_hil.camera import CameraModel, pinhole_canvas
 
 # the samples' own z-buffer, each sample splatted over a disc 4 sample spacings wide (a gap in the front surface's
 # samples would let a hidden one show through); a sample within 3 splat radii (a 72-degree slope) of the nearest
@@ -39,9 +39,9 @@ def sample_surface(surface: pv.PolyData, spacing_m: float, max_points: int = 300
     return pts
 
 
-# the canvas of camera_view is at most this many times the image's size each way (a lens model whose edge rays
-# undistort to enormous angles would otherwise ask for a canvas of millions of pixels)
-CANVAS_MAX_SCALE = 3.0
+# the canvas of camera_view grows by at most this share of the image's size on each side (a lens model whose edge
+# rays undistort to enormous angles would otherwise ask for a canvas of millions of pixels)
+CANVAS_MAX_PAD = 1.0
 
 
 def camera_view(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
@@ -52,20 +52,7 @@ def camera_view(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], np.nd
     fov = camera.fov_mask() > 0
     if not np.any(camera.dist_array):
         return camera.K, (camera.width, camera.height), fov
-    # the canvas: the bounding box of the field of view's outline undistorted (pixels of the pinhole K)
-    outline = camera.undistorted_outline(camera.K)
-    if not len(outline):
-        return camera.K, (camera.width, camera.height), fov
-    w, h = camera.width, camera.height
-    lo = np.maximum(np.floor(outline.min(axis=0)) - 2, [camera.cx - CANVAS_MAX_SCALE / 2 * w,
-                                                         camera.cy - CANVAS_MAX_SCALE / 2 * h])
-    hi = np.minimum(np.ceil(outline.max(axis=0)) + 2, [camera.cx + CANVAS_MAX_SCALE / 2 * w,
-                                                        camera.cy + CANVAS_MAX_SCALE / 2 * h])
-    x0, y0 = int(np.floor(min(lo[0], 0))), int(np.floor(min(lo[1], 0)))
-    size = (int(np.ceil(max(hi[0], w))) - x0, int(np.ceil(max(hi[1], h))) - y0)
-    K = camera.K.copy()
-    K[0, 2] -= x0
-    K[1, 2] -= y0
+    K, size = pinhole_canvas([camera], CANVAS_MAX_PAD)
     map_x, map_y = camera.undistort_maps(K, size)
     return K, size, camera.seen_region(map_x, map_y)
 

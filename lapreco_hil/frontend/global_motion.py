@@ -153,6 +153,24 @@ def fourier_mellin(prev: np.ndarray, cur: np.ndarray, prev_polar: np.ndarray,
     return S @ np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
 
 
+class DistinctStarts:
+    """Starting homographies of one alignment, each aligned once: a start within SAME_SEED_PX of an earlier one at
+    every corner of the alignment image (``shape``: its rows, columns) would end where that one did."""
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        h, w = shape
+        self._corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]).reshape(-1, 1, 2)
+        self._seen: list[np.ndarray] = []
+
+    def new(self, H0: np.ndarray) -> bool:
+        """Whether ``H0`` is a new start (it is remembered)."""
+        moved = cv2.perspectiveTransform(self._corners, np.asarray(H0, np.float64)).reshape(-1, 2)
+        if any(np.abs(moved - m).max() < SAME_SEED_PX for m in self._seen):
+            return False
+        self._seen.append(moved)
+        return True
+
+
 class GlobalMotion:
     """The image motion between consecutive frames of one camera (``estimate``); it keeps the previous frame's
     alignment image and motion."""
@@ -244,19 +262,14 @@ class GlobalMotion:
             self.last = None
             return None
         best_rho, best = -1.0, None
-        h, w = cur[0].shape
-        corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]).reshape(-1, 1, 2)
-        seen = []
+        starts = DistinctStarts(cur[0].shape)
         for H0, rho, H in aligned:
-            seen.append(cv2.perspectiveTransform(corners, np.asarray(H0, np.float64)).reshape(-1, 2))
+            starts.new(H0)
             if H is not None and rho > best_rho and plausible(H):
                 best_rho, best = rho, H
         for H0, first in ([] if best_rho >= GOOD_CORRELATION else self._seeds(prev, cur, prev_polar, seeds)):
-            # a seed within a pixel of an earlier one (at every corner of the alignment image) would end there too
-            moved = cv2.perspectiveTransform(corners, H0).reshape(-1, 2)
-            if any(np.abs(moved - m).max() < SAME_SEED_PX for m in seen):
+            if not starts.new(H0):
                 continue
-            seen.append(moved)
             rho, H = self._align(prev, cur, H0, first)
             if H is not None and rho > best_rho and plausible(H):
                 best_rho, best = rho, H

@@ -17,7 +17,6 @@ front-end does (``_rescue_kernels``); a rig's frames are kinds of their own, so 
 
 from __future__ import annotations
 
-import logging
 import time
 from typing import NamedTuple
 
@@ -34,13 +33,14 @@ from lapreco_hil.frontend.image import (HIGHPASS_GAIN, LOG_OFFSET, prior_levels,
                                         shading_sigma_px, to_u8, tracker_image)
 from lapreco_hil.frontend.drift import drift_smoothing_weights
 from lapreco_hil.frontend.epipolar import FORWARD_BACKWARD_PX
-from lapreco_hil.frontend.global_motion import GOOD_CORRELATION, GlobalMotion, plausible, reduced_maps
+from lapreco_hil.frontend.global_motion import (GOOD_CORRELATION, DistinctStarts, GlobalMotion, plausible,
+                                                 reduced_maps)
 from lapreco_hil.frontend.opencv import colors_at, undistort_view
 from lapreco_hil.frontend.warp import consensus, corners, drift_check, global_motion, lk, predict, pyramid, tracks
+from lapreco_hil.frontend.warp.graphs import CapturedLaunches
 from lapreco_hil.frontend.warp.page_locked import bgr_to_grey, page_locked_source
 from lapreco_hil.frontend.warp.tracks import RESULT_HEADER
 
-log = logging.getLogger(__name__)
 
 # rounds of the parallel greedy selection; a corner still undecided after them is dropped (a chain of ever
 # stronger neighbours longer than this): 8 leave next to none undecided (docs/benchmarks.md)
@@ -245,7 +245,6 @@ class WarpFrontEnd:
         # events the host waits on: the surviving tracks' results are in, the frame's results are in
         self._tracked = wp.Event(self.device) if self.device.is_cuda else None
         self._done = wp.Event(self.device) if self.device.is_cuda else None
-        self.use_graphs = True
         self.frames_page_locked = 0  # frames that came up by the page-locked path (``page_locked``)
         # the corner response and selection run beside tracking, at high priority: theirs is a chain of short
         # launches, which should not queue behind the blocks of LK and the drift check
@@ -253,10 +252,8 @@ class WarpFrontEnd:
         self.profile = False  # synchronise at stage ends to time each stage (benchmarks); no graphs then
         self._marks: dict[str, float] = {}
         # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget, the
-        # rescue's launches: a rig's frames); the launches of each kind run once eagerly (modules loaded, scratch
-        # allocated) before it is captured
-        self._graphs: dict[tuple, object] = {}
-        self._runs: dict[tuple, int] = {}
+        # rescue's launches: a rig's frames, the prior)
+        self._graphs = CapturedLaunches(self.device, "front-end")
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
         self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
@@ -673,6 +670,15 @@ class WarpFrontEnd:
         self._lk_levels = self.levels
         self._budget = self.config.max_features
 
+    @property
+    def use_graphs(self) -> bool:
+        """Whether frames replay CUDA graphs (False off CUDA, after a failed capture, or when switched off)."""
+        return self._graphs.enabled
+
+    @use_graphs.setter
+    def use_graphs(self, on: bool) -> None:
+        self._graphs.enabled = bool(on) and self.device.is_cuda
+
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         with device_lock(self.device):
             return self._process(frame, motion)
@@ -756,11 +762,12 @@ class WarpFrontEnd:
         motion, then from each seed, taken where it aligns well (``GOOD_CORRELATION``; else None), and the
         alignments made: (start, correlation, homography or None), alignment pixels."""
         tried: list[tuple] = []
+        starts = DistinctStarts((self._align.h, self._align.w))
         for seed in (self._global.last, *seeds):
             if not plausible(seed):
                 continue
             H0 = self._global.to_alignment(seed)
-            if any(np.allclose(H0, t[0], atol=1e-6) for t in tried):
+            if not starts.new(H0):
                 continue
             rho, H = self._align.align(H0)
             tried.append((H0, rho, H))
@@ -802,20 +809,7 @@ class WarpFrontEnd:
         # On CUDA a frame is one graph replay per kind of frame, captured on the kind's second use (once every
         # kernel module is loaded and the scan's scratch exists); elsewhere, and when profiling, launches.
         kind = FrameKind(cur, self._motion is not None, self._lk_levels, self._budget, self._rescuing(), self._prior)
-        graphs = self.device.is_cuda and self.use_graphs and not self.profile
-        if graphs and self._runs.get(kind, 0) >= 1 and kind not in self._graphs:
-            try:
-                with wp.ScopedCapture(device=self.device) as capture:
-                    self._frame_kernels()
-                self._graphs[kind] = capture.graph
-            except Exception as exc:  # e.g. a driver without conditional graph nodes (CUDA < 12.4)
-                log.warning("front-end: CUDA graph capture failed (%s); launching kernels one by one", exc)
-                self.use_graphs = graphs = False
-        if graphs and kind in self._graphs:
-            wp.capture_launch(self._graphs[kind])
-        else:
-            self._frame_kernels()
-        self._runs[kind] = self._runs.get(kind, 0) + 1
+        self._graphs.run(kind, self._frame_kernels, graphs=not self.profile)
         # the surviving tracks' results and colours are read while detection runs (new tracks only append)
         if self._tracked is not None:
             wp.synchronize_event(self._tracked)

@@ -17,8 +17,6 @@ that, so the two front-ends' priors agree to a fraction of an alignment pixel, n
 
 from __future__ import annotations
 
-import logging
-
 import cv2
 import numpy as np
 import warp as wp
@@ -26,9 +24,10 @@ import warp as wp
 from lapreco_hil.frontend.global_motion import ALIGN_HIGHPASS_SIGMA_PX, ECC_EPS, ECC_ITERATIONS
 from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
 from lapreco_hil.frontend.warp.block_sum import block_sum66, vec66
+from lapreco_hil.frontend.warp.graphs import CapturedLaunches
+from lapreco_hil.frontend.warp import pyramid
+from lapreco_hil.frontend.warp.pyramid import block_mean, border_index
 from lapreco_hil.frontend.warp.sampling import bilinear
-
-log = logging.getLogger(__name__)
 
 # nothing differentiates these kernels, so no adjoints: they only add compile time
 wp.set_module_options({"enable_backward": False})
@@ -48,21 +47,9 @@ RUNNING, DONE, FAILED = 0.0, 1.0, 2.0
 
 @wp.kernel
 def _reduce_grey(frame: wp.array2d(dtype=wp.uint8), factor: int, dst: wp.array(dtype=float), dw: int):
-    """factor x factor block means of the grey frame (a block past the border: its pixels inside)."""
+    """factor x factor block means of the grey frame."""
     y, x = wp.tid()
-    h = frame.shape[0]
-    w = frame.shape[1]
-    s = float(0.0)
-    n = int(0)
-    for j in range(factor):
-        yy = y * factor + j
-        if yy < h:
-            for i in range(factor):
-                xx = x * factor + i
-                if xx < w:
-                    s += float(frame[yy, xx])
-                    n += 1
-    dst[y * dw + x] = s / float(wp.max(n, 1))
+    dst[y * dw + x] = block_mean(frame, x, y, factor)
 
 
 @wp.kernel
@@ -84,26 +71,6 @@ def _undistort_log_small(small: wp.array(dtype=float), w: int, h: int, maps: wp.
 def _highpass(log_img: wp.array(dtype=float), low: wp.array(dtype=float), dst: wp.array(dtype=float)):
     i = wp.tid()
     dst[i] = wp.clamp(log_img[i] - low[i], -HIGHPASS_RANGE, HIGHPASS_RANGE)
-
-
-@wp.func
-def _reflect(x: int, n: int) -> int:
-    return wp.clamp((n - 1) - wp.abs((n - 1) - wp.abs(x)), 0, n - 1)
-
-
-@wp.kernel
-def _blur_reflect(src: wp.array(dtype=float), w: int, h: int, taps: wp.array(dtype=float), step_x: int,
-                  step_y: int, dst: wp.array(dtype=float)):
-    """One pass of a separable filter along (step_x, step_y), the border reflected (BORDER_REFLECT_101, what
-    cv2.GaussianBlur does: the alignment image's borders are a fifth of it at the high-pass's radius)."""
-    y, x = wp.tid()
-    r = (taps.shape[0] - 1) // 2
-    s = float(0.0)
-    for k in range(taps.shape[0]):
-        xx = _reflect(x + (k - r) * step_x, w)
-        yy = _reflect(y + (k - r) * step_y, h)
-        s += taps[k] * src[yy * w + xx]
-    dst[y * w + x] = s
 
 
 @wp.func
@@ -131,8 +98,8 @@ def _gradients(img: wp.array(dtype=float), w: int, h: int, gx: wp.array(dtype=fl
     takes them)."""
     y, x = wp.tid()
     i = y * w + x
-    gx[i] = 0.5 * (img[y * w + _reflect(x + 1, w)] - img[y * w + _reflect(x - 1, w)])
-    gy[i] = 0.5 * (img[_reflect(y + 1, h) * w + x] - img[_reflect(y - 1, h) * w + x])
+    gx[i] = 0.5 * (img[y * w + border_index(x + 1, w, True)] - img[y * w + border_index(x - 1, w, True)])
+    gy[i] = 0.5 * (img[border_index(y + 1, h, True) * w + x] - img[border_index(y - 1, h, True) * w + x])
 
 
 @wp.kernel
@@ -140,9 +107,9 @@ def _ecc_sums(reference: wp.array(dtype=float), image: wp.array(dtype=float), gx
               gy: wp.array(dtype=float), w: int, h: int, H: wp.array(dtype=wp.float64),
               state: wp.array(dtype=wp.float64), totals: wp.array(dtype=wp.float64)):
     """Every template pixel whose warped position lies inside the image: the image and its gradients sampled
-    there, the homography's Jacobian, and their products summed per block (float32 within a block; the solve
-    adds the blocks in float64). The sums' order: count; I, T, II, TT, IT; J (8); J'J upper triangle (36);
-    J'I (8); J'T (8). Each block's lane 0 adds the block's sums to the float64 totals."""
+    there, the homography's Jacobian, and their products summed per block (float32 within a block), and each
+    block's lane 0 adds the block's sums to the float64 totals. The sums' order: count; I, T, II, TT, IT; J (8);
+    J'J upper triangle (36); J'I (8); J'T (8)."""
     b, lane = wp.tid()
     if state[STATUS] != wp.float64(RUNNING):
         return  # the whole launch leaves: no block sum is left waiting
@@ -340,37 +307,19 @@ class AlignmentImages:
             self.state = wp.zeros(4, dtype=wp.float64)
             self._totals = wp.zeros(66, dtype=wp.float64)
             self._running = wp.zeros(1, dtype=wp.int32)
-        pinned = wp.get_device(device).is_cuda
-        self._up = wp.zeros(13, dtype=wp.float64, device="cpu", pinned=pinned)  # H (9) and a fresh state (4)
-        self._down = wp.zeros(13, dtype=wp.float64, device="cpu", pinned=pinned)
+        self._cuda = wp.get_device(device).is_cuda
+        self._up = wp.zeros(13, dtype=wp.float64, device="cpu", pinned=self._cuda)  # H (9) and a fresh state (4)
+        self._down = wp.zeros(13, dtype=wp.float64, device="cpu", pinned=self._cuda)
+        self._up_np, self._down_np = self._up.numpy(), self._down.numpy()
         self._undistort = 1 if maps is not None else 0
         self.cur = 0  # which of the two buffers holds the last frame's image
-        self.use_graphs = wp.get_device(device).is_cuda
-        self._graphs: dict = {}
-        self._uses: dict = {}
-
-    def _run(self, key: tuple, launches) -> None:
-        """``launches()``, replayed from its graph on CUDA once it has run before under ``key`` (every module
-        is loaded by then); a capture that fails (a driver without conditional nodes) leaves launches."""
-        if self.use_graphs and self._uses.get(key, 0) >= 1 and key not in self._graphs:
-            try:
-                with wp.ScopedCapture(device=self.device) as capture:
-                    launches()
-                self._graphs[key] = capture.graph
-            except Exception as exc:
-                log.warning("global motion prior: CUDA graph capture failed (%s); launching kernels one by one", exc)
-                self.use_graphs = False
-        if self.use_graphs and key in self._graphs:
-            wp.capture_launch(self._graphs[key])
-        else:
-            launches()
-        self._uses[key] = self._uses.get(key, 0) + 1
+        self._graphs = CapturedLaunches(device, "global motion prior")
 
     def make(self, grey: wp.array) -> None:
         """The alignment image of the grey frame ``grey`` (H x W uint8 on the device, distorted) into the next
         buffer, and its ECC blur and gradients; the buffer before it keeps the previous frame's."""
         self.cur = cur = 1 - self.cur
-        self._run(("make", cur, grey.ptr), lambda: self._make_kernels(grey, cur))
+        self._graphs.run(("make", cur, grey.ptr), lambda: self._make_kernels(grey, cur))
 
     def _make_kernels(self, grey: wp.array, cur: int) -> None:
         dev, w, h = self.device, self.w, self.h
@@ -384,21 +333,21 @@ class AlignmentImages:
         wp.launch(_gradients, dim=(h, w), inputs=[self._blurred[cur], w, h, self._gx, self._gy], device=dev)
 
     def _blur(self, src: wp.array, taps: wp.array, dst: wp.array) -> None:
-        w, h = self.w, self.h
-        wp.launch(_blur_reflect, dim=(h, w), inputs=[src, w, h, taps, 1, 0, self._tmp], device=self.device)
-        wp.launch(_blur_reflect, dim=(h, w), inputs=[self._tmp, w, h, taps, 0, 1, dst], device=self.device)
+        """Separable, the border reflected as cv2.GaussianBlur's (the high-pass's radius is a fifth of the image)."""
+        w, h, dev = self.w, self.h, self.device
+        pyramid.blur_1d(src, w, h, taps, 1, 0, self._tmp, dev, reflect=True)
+        pyramid.blur_1d(self._tmp, w, h, taps, 0, 1, dst, dev, reflect=True)
 
     def align(self, H0: np.ndarray) -> tuple[float, np.ndarray | None]:
         """ECC of the last image to the one before from the homography ``H0`` (alignment pixels, previous ->
         last), until it converges: (correlation, homography), or (-1, None) where it failed. Synchronises."""
-        up = self._up.numpy()
+        up = self._up_np
         up[:9] = (np.asarray(H0, np.float64) / H0[2, 2]).ravel()
         up[9:] = 0.0
-        self._run(("align", self.cur), self._align_launches)
-        device = wp.get_device(self.device)
-        if device.is_cuda:  # (the stream's work only: another stream's may run on)
-            wp.synchronize_stream(wp.get_stream(device))
-        down = self._down.numpy()
+        self._graphs.run(("align", self.cur), self._align_launches)
+        if self._cuda:  # (the stream's work only: another stream's may run on)
+            wp.synchronize_stream(wp.get_stream(self.device))
+        down = self._down_np
         if down[9 + STATUS] == FAILED:
             return -1.0, None
         return float(down[9 + RHO]), down[:9].reshape(3, 3).copy()

@@ -4,6 +4,8 @@ offsets, widths and heights (kernels cannot take a list of arrays)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from lapreco_hil.frontend.image import HIGHPASS_RANGE, LOG_OFFSET
@@ -40,12 +42,9 @@ def _undistort_log(frame: wp.array2d(dtype=wp.uint8), remap: wp.array2d(dtype=wp
     log_out[y, x] = wp.log(LOG_OFFSET + g)
 
 
-@wp.kernel
-def _box_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int, factor: int):
-    """factor x factor mean into a reduced flat image (a block past the border: its pixels inside). The shading
-    estimate is a wide blur, so it is taken at a resolution where its sigma is a few pixels: factor^2 fewer
-    pixels and factor times fewer taps, and the block's own blur is small beside the Gaussian's."""
-    y, x = wp.tid()
+@wp.func
+def block_mean(src: wp.array2d(dtype=Any), x: int, y: int, factor: int) -> float:
+    """The mean of ``src``'s factor x factor block (x, y) (a block past the border: its pixels inside)."""
     h = src.shape[0]
     w = src.shape[1]
     s = float(0.0)
@@ -56,17 +55,34 @@ def _box_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int,
             for i in range(factor):
                 xx = x * factor + i
                 if xx < w:
-                    s += src[yy, xx]
+                    s += float(src[yy, xx])
                     n += 1
-    dst[y * dw + x] = s / float(wp.max(n, 1))
+    return s / float(wp.max(n, 1))
+
+
+@wp.func
+def border_index(x: int, n: int, reflect: bool) -> int:
+    """x inside [0, n): mirrored about the border pixel (BORDER_REFLECT_101) or replicated."""
+    r = wp.clamp((n - 1) - wp.abs((n - 1) - wp.abs(x)), 0, n - 1)
+    return wp.where(reflect, r, wp.clamp(x, 0, n - 1))
+
+
+@wp.kernel
+def _box_mean(src: wp.array2d(dtype=float), dst: wp.array(dtype=float), dw: int, factor: int):
+    """factor x factor mean into a reduced flat image (a block past the border: its pixels inside). The shading
+    estimate is a wide blur, so it is taken at a resolution where its sigma is a few pixels: factor^2 fewer
+    pixels and factor times fewer taps, and the block's own blur is small beside the Gaussian's."""
+    y, x = wp.tid()
+    dst[y * dw + x] = block_mean(src, x, y, factor)
 
 
 @wp.kernel
 def _blur_1d(src: wp.array(dtype=float), w: int, h: int, weights: wp.array(dtype=float), step_x: int,
-             step_y: int, dst: wp.array(dtype=float)):
+             step_y: int, reflect: int, dst: wp.array(dtype=float)):
     """One pass of a separable filter along (step_x, step_y) over a flat w x h image: run it along rows, then
-    along columns. Away from the border the taps walk a flat index with no clamping (the pass is bound by its
-    instruction count, not by memory)."""
+    along columns; at the border replicated, or reflected (``reflect``: BORDER_REFLECT_101). Away from the
+    border the taps walk a flat index with no clamping (the pass is bound by its instruction count, not by
+    memory)."""
     y, x = wp.tid()
     r = (weights.shape[0] - 1) // 2
     s = float(0.0)
@@ -78,8 +94,8 @@ def _blur_1d(src: wp.array(dtype=float), w: int, h: int, weights: wp.array(dtype
             i += stride
     else:
         for k in range(weights.shape[0]):
-            xx = wp.clamp(x + (k - r) * step_x, 0, w - 1)
-            yy = wp.clamp(y + (k - r) * step_y, 0, h - 1)
+            xx = border_index(x + (k - r) * step_x, w, reflect != 0)
+            yy = border_index(y + (k - r) * step_y, h, reflect != 0)
             s += weights[k] * src[yy * w + xx]
     dst[y * w + x] = s
 
@@ -104,13 +120,6 @@ def _level0(log_img: wp.array2d(dtype=float), low_lit: wp.array(dtype=float), lw
     pyr[y * log_img.shape[1] + x] = v
 
 
-@wp.func
-def _border_index(x: int, n: int, reflect: bool) -> int:
-    """x inside [0, n): mirrored about the border pixel (BORDER_REFLECT_101) or replicated."""
-    r = wp.clamp((n - 1) - wp.abs((n - 1) - wp.abs(x)), 0, n - 1)
-    return wp.where(reflect, r, wp.clamp(x, 0, n - 1))
-
-
 @wp.kernel
 def _pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_off: int, dw: int, dh: int):
     """Gaussian 5-tap [1 4 6 4 1]/16 in both directions, then every other pixel, the border reflected
@@ -131,8 +140,8 @@ def _pyr_down(pyr: wp.array(dtype=float), src_off: int, sw: int, sh: int, dst_of
                 wx = 4.0
             if i == 2:
                 wx = 6.0
-            s += wx * wy * pyr[src_off + _border_index(2 * y + j - 2, sh, True) * sw
-                               + _border_index(2 * x + i - 2, sw, True)]
+            s += wx * wy * pyr[src_off + border_index(2 * y + j - 2, sh, True) * sw
+                               + border_index(2 * x + i - 2, sw, True)]
     pyr[dst_off + y * dw + x] = s / 256.0
 
 
@@ -161,11 +170,11 @@ def _sobel_levels(pyr: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.
     side = wp.where(coarse, 3.0, 1.0)
     mid = wp.where(coarse, 10.0, 2.0)
     scale = wp.where(coarse, 1.0 / 32.0, 1.0 / 8.0)
-    xm = _border_index(x - 1, w, coarse)
-    xp = _border_index(x + 1, w, coarse)
-    rm = off + _border_index(y - 1, h, coarse) * w
+    xm = border_index(x - 1, w, coarse)
+    xp = border_index(x + 1, w, coarse)
+    rm = off + border_index(y - 1, h, coarse) * w
     r0 = off + y * w
-    rp = off + _border_index(y + 1, h, coarse) * w
+    rp = off + border_index(y + 1, h, coarse) * w
     a = pyr[rm + xm]
     b = pyr[rm + x]
     c = pyr[rm + xp]
@@ -190,9 +199,11 @@ def box_mean(src: wp.array, dst: wp.array, dw: int, dh: int, factor: int, device
 
 
 def blur_1d(src: wp.array, w: int, h: int, weights: wp.array, step_x: int, step_y: int, dst: wp.array,
-            device) -> None:
-    """``dst`` <- one separable-filter pass of the flat w x h ``src`` along (step_x, step_y)."""
-    wp.launch(_blur_1d, dim=(h, w), inputs=[src, w, h, weights, step_x, step_y, dst], device=device)
+            device, reflect: bool = False) -> None:
+    """``dst`` <- one separable-filter pass of the flat w x h ``src`` along (step_x, step_y), the border
+    replicated or ``reflect``-ed."""
+    wp.launch(_blur_1d, dim=(h, w), inputs=[src, w, h, weights, step_x, step_y, 1 if reflect else 0, dst],
+              device=device)
 
 
 def level0(log_img: wp.array, low_lit: wp.array, lw: int, lh: int, factor: int, subtract: bool, pyr: wp.array,
