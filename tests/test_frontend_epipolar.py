@@ -208,6 +208,51 @@ def test_a_small_motion_is_settled_on_the_tracks_own_depths_without_borrowing(mo
     assert borrowed and np.isfinite(depth).all()
 
 
+@pytest.mark.parametrize("case", ["borrowed", "unreachable", "short lines", "few own depths"])
+def test_the_device_borrows_and_settles_start_depths_as_the_host_does(warp_cpu, case):
+    """The Warp front-end sends only the tracks' own depths up (``own_start_depths``) and borrows the others'
+    on the device (``predict.borrow_and_settle``): the same start depths as ``start_depths`` gives (the nearest
+    tracks' median within reach, else the range's far end for a short line, else none)."""
+    import warp as wp
+
+    from lapreco_hil.frontend.warp import predict
+
+    rng = np.random.default_rng(5)
+    size = (1920, 1080)
+    K = np.array([[1100.0, 0, 960], [0, 1050.0, 540], [0, 0, 1]])
+    n = 3000
+    uv = rng.uniform([0, 0], size, (n, 2))
+    ids = np.arange(n, dtype=np.int64)
+    own = rng.random(n) < {"borrowed": 0.8, "unreachable": 0.8, "short lines": 0.8, "few own depths": 0.003}[case]
+    if case != "borrowed":
+        own &= uv[:, 0] < 500  # most tracks beyond reach (0.15 of 1920 px) of any with a depth
+    T = np.eye(4)
+    T[:3, 3] = [0.004, 0.002, 0.001]
+    if case == "short lines":  # a turn of the scope moves every track alike, whatever its depth: short lines
+        c, s = np.cos(0.02), np.sin(0.02)
+        T[:3, :3], T[:3, 3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]], [1e-4, 2e-4, 1e-4]
+    motion = FrameMotion(T, ids[own], rng.uniform(0.05, 0.12, own.sum()), (0.03, 0.3))
+    expected = epipolar.start_depths(uv, ids, motion, K, size)
+    sent, plan = epipolar.own_start_depths(uv, ids, motion, K, size)
+    # the plan's depths: a stand-in for every borrowed one (with few own depths, the host's own start depths)
+    if case == "few own depths":
+        np.testing.assert_array_equal(plan, expected)
+    else:
+        assert np.isfinite(plan).all()
+    with wp.ScopedDevice(warp_cpu):
+        depth = wp.zeros(n, dtype=float)
+        T_up, range_up = predict.motion_params(T, motion.depth_range_m)
+        predict.borrow_and_settle(wp.array(uv.astype(np.float32), dtype=wp.vec2), wp.array([n], dtype=wp.int32),
+                                  wp.array(np.nan_to_num(sent, nan=0.0).astype(np.float32), dtype=float), K,
+                                  wp.array(T_up, dtype=wp.mat44), wp.array(range_up, dtype=wp.vec2), size, depth,
+                                  warp_cpu)
+    expected = np.nan_to_num(expected, nan=0.0)
+    np.testing.assert_allclose(depth.numpy(), expected, rtol=1e-6, atol=1e-9)
+    kinds = {"borrowed": (expected > 0) & ~own, "unreachable": expected == 0,
+             "short lines": expected == 0.3, "few own depths": (expected > 0) & ~own}[case]
+    assert kinds.sum() > 100  # the case's kind of start depth is there to compare
+
+
 def test_a_predicted_frame_runs_lk_on_the_levels_its_prediction_needs():
     """The pyramid for tracks started from a pose prediction follows how far off the starts may be: a landmark's
     depth (a few px at 70 px of motion) or the sweep's step needs what the robot's pose noise needs (two levels),
@@ -403,3 +448,11 @@ def test_the_warm_up_runs_every_kind_of_frame_a_live_run_meets(warp_cpu, reduced
     assert met <= warmed, met - warmed
     if fe.device.is_cuda:
         assert met <= fe._graphs.captured
+
+
+def test_the_prediction_kernels_compile_for_cuda(sm90_ptx):
+    """CI has no GPU: the prediction's kernels, the device's borrowing among them, still compile for an H100."""
+    from lapreco_hil.frontend.warp import predict
+
+    ptx = sm90_ptx(predict)
+    assert all(name in ptx for name in ("_borrow_and_settle", "_predict", "_sweep_scores", "_sweep_pick"))

@@ -254,6 +254,30 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     return _settle_short_lines(terms, depth, motion.depth_range_m)
 
 
+def own_start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
+                     image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+    """``start_depths`` for a front-end that borrows and settles the depths itself (the Warp one, on the device:
+    ``warp.predict.borrow_and_settle``): (the depths it starts from, NaN where a track has none of its own and
+    -1 where it has none to take either; the depths its ``prediction_plan`` is made from, those with the others at
+    the own depths' median, a borrowed depth's stand-in), or None for a small motion. Where fewer than 10 tracks
+    have a depth of their own, the small-motion test needs the borrowed ones: the host then makes them
+    (``start_depths``, few to borrow from), the tracks left without one are sent as -1, and the plan is made from
+    ``start_depths``' answer."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    if len(uv) == 0:
+        return None
+    depth = own_depths(ids, motion.track_ids, motion.depth_m)
+    known = np.isfinite(depth)
+    if np.count_nonzero(known) < 10:
+        full = start_depths(uv, ids, motion, K, image_size)
+        return None if full is None else (np.where(np.isfinite(full), full, -1.0), full)
+    if _small_motion(uv, _homography_terms(uv, K, K, np.asarray(motion.T_cur_prev, np.float64)), depth):
+        return None
+    plan = depth.copy()
+    plan[~known] = np.median(depth[known])
+    return depth, plan
+
+
 def _small_motion(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray) -> bool:
     """Whether the motion (``_homography_terms``) moves the tracks with a depth by less than SMALL_MOTION_PX
     (median, at least 10)."""

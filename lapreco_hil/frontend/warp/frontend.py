@@ -164,8 +164,10 @@ class WarpFrontEnd:
             self._slot = wp.zeros(n, dtype=wp.int32)
             # a frame's results, packed for their copies to the host (pack_results)
             self._packed = (wp.zeros(n, dtype=wp.vec4), wp.zeros(n + RESULT_HEADER, dtype=wp.int32))
-            # pose-predicted starts (FrameMotion): each slot's depth (<= 0: none), the start positions, the
-            # epipolar sweep's scratch, and whether LK starts from them (0 in every captured graph)
+            # pose-predicted starts (FrameMotion): each slot's own depth as the host sends it (<= 0: none) and
+            # its start depth (borrowed, settled; <= 0: none), the start positions, the epipolar sweep's scratch,
+            # and whether LK starts from them (0 in every captured graph)
+            self._own_depth = wp.zeros(n, dtype=float)
             self._depth = wp.zeros(n, dtype=float)
             # the frame's motion (T_cur_prev; 1 / near, 1 / far), read by the prediction kernels from the device
             # so that a captured graph replays them for any motion
@@ -229,7 +231,7 @@ class WarpFrontEnd:
             self._out_kept, self._out_all = ((wp.zeros(n, dtype=wp.vec4, pinned=pinned),
                                               wp.zeros(n + RESULT_HEADER, dtype=wp.int32, pinned=pinned))
                                              for _ in range(2))
-            # a frame's motion goes up from here (the slots' depths, T_cur_prev, the inverse depth range); the
+            # a frame's motion goes up from here (the slots' own depths, T_cur_prev, the inverse depth range); the
             # previous frame's copies are done by then (each frame ends waiting for its results)
             self._motion_up = (wp.zeros(n, dtype=float, pinned=pinned), wp.zeros(1, dtype=wp.mat44, pinned=pinned),
                                wp.zeros(1, dtype=wp.vec2, pinned=pinned))
@@ -422,6 +424,8 @@ class WarpFrontEnd:
         offs, ws, hs = self._lv
         level = min(epipolar.SWEEP_LEVEL, self.levels - 1)
         prev, cur = 1 - self._cur, self._cur
+        predict.borrow_and_settle(self._pts[prev], self._count[prev], self._own_depth, self.camera.K, self._motion_T,
+                                  self._inverse_range, (self.width, self.height), self._depth, self.device)
         predict.predict_starts(self._pyr[prev], self._pyr[cur], offs[level], ws[level], hs[level], level,
                                self._pts[prev], self._count[prev], self._depth, self.camera.K, self._motion_T,
                                self._inverse_range, self._sweep_scores, self._sweep_cand, self._guess,
@@ -657,7 +661,7 @@ class WarpFrontEnd:
         self._cur = cur = 1 - self._cur
         self._to_staging(frame.image)
         try:
-            self._set_motion(motion, np.zeros(0))
+            self._set_motion(motion, (np.zeros(0), np.zeros(0)))
             self._budget, self._lk_levels = budget, lk_levels
             self._process_frame(frame, time.perf_counter(), cur)
         finally:
@@ -683,26 +687,28 @@ class WarpFrontEnd:
         with device_lock(self.device):
             return self._process(frame, motion)
 
-    def _set_motion(self, motion: FrameMotion | None, depth: np.ndarray | None = None) -> None:
-        """The frame's motion to the device: each slot's depth (its own, its neighbours', or none), the flag
-        that makes LK start from the predicted positions, LK's pyramid levels for the prediction's uncertainty
-        and the frame's track budget (``epipolar.prediction_plan``). The depths and the motion go up through
-        pinned buffers, and the prediction kernels read them there (a captured graph replays them)."""
+    def _set_motion(self, motion: FrameMotion | None, depths: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """The frame's motion to the device: each slot's own depth (``depths``: ``epipolar.own_start_depths``;
+        the device borrows the others' from their neighbours), the flag that makes LK start from the predicted
+        positions, LK's pyramid levels for the prediction's uncertainty and the frame's track budget
+        (``epipolar.prediction_plan``). The depths and the motion go up through pinned buffers, and the
+        prediction kernels read them there (a captured graph replays them)."""
         self._motion = motion
         self._lk_levels = self.levels
         self._budget = self.config.max_features
         if motion is None:
             return
         _, _, ids, uv = self._last
+        depth, plan_depth = depths
         self._budget, lk_levels = epipolar.prediction_plan(self.config, self.pyramid_levels, (self.width, self.height),
-                                                           uv, ids, depth, motion, self.camera.K)
+                                                           uv, ids, plan_depth, motion, self.camera.K)
         self._lk_levels = lk_levels + 1  # (with full resolution)
         self._depth_range = motion.depth_range_m
         depth_up, T_up, range_up = self._motion_up_np
         depth_up[:] = 0.0
         depth_up[:len(depth)] = np.nan_to_num(depth, nan=0.0)
         T_up[:], range_up[:] = predict.motion_params(motion.T_cur_prev, motion.depth_range_m)
-        for target, source in zip((self._depth, self._motion_T, self._inverse_range), self._motion_up):
+        for target, source in zip((self._own_depth, self._motion_T, self._inverse_range), self._motion_up):
             wp.copy(target, source)
         self._use_guess.fill_(1)
 
@@ -713,12 +719,12 @@ class WarpFrontEnd:
         self._to_staging(frame.image)
         self._stereo_prior = (self._last[2], self._last[3], motion)  # (arrays replaced, never written in place)
         try:
-            depth = None
+            depths = None
             if motion is not None and self._n_tracks > 0:
                 _, _, ids, uv = self._last
-                depth = epipolar.start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
+                depths = epipolar.own_start_depths(uv, ids, motion, self.camera.K, (self.width, self.height))
             # (a small motion: the frame's captured graph replays, as without a motion)
-            self._set_motion(motion if depth is not None else None, depth)
+            self._set_motion(motion if depths is not None else None, depths)
             self._set_prior(motion)
             return self._process_frame(frame, t0, cur)
         finally:

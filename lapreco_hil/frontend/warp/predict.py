@@ -16,6 +16,8 @@ wp.set_module_options({"enable_backward": False})
 SWEEP_SAMPLES = 64
 SWEEP_PATCH = epipolar.SWEEP_PATCH_PX
 SWEEP_HALF = (SWEEP_PATCH - 1) // 2
+NEIGHBOURS = wp.constant(epipolar.NEIGHBOURS)
+_neighbour_vec = wp.types.vector(length=epipolar.NEIGHBOURS, dtype=float)
 
 
 @wp.func
@@ -51,6 +53,89 @@ def _predict(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), dept
         guess[f] = _project(K, _rotation(T), _translation(T), pts[f], d)
     else:
         guess[f] = wp.vec2(wp.nan, wp.nan)
+
+
+@wp.kernel
+def _borrow_and_settle(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), own: wp.array(dtype=float),
+                       reach_sq: float, K: wp.vec4, motion: wp.array(dtype=wp.mat44),
+                       inverse_range: wp.array(dtype=wp.vec2), short_px: float, depth: wp.array(dtype=float)):
+    """``epipolar.borrow_depths`` then ``settle_short_lines`` per track: its own depth (> 0; < 0: none, nothing
+    to take: 0); else the median of
+    the own depths of its NEIGHBOURS nearest tracks within reach (every track compared: a few thousand, read
+    by all threads alike); else the range's far depth where its epipolar segment is short; else 0 (swept)."""
+    f = wp.tid()
+    if f >= count[0]:
+        return
+    d = own[f]
+    if d != 0.0:
+        depth[f] = wp.max(d, 0.0)  # (< 0: the host found none to take)
+        return
+    p = pts[f]
+    big = float(1.0e30)
+    dist = _neighbour_vec()
+    near = _neighbour_vec()
+    for i in range(NEIGHBOURS):
+        dist[i] = big
+        near[i] = big
+    n = count[0]
+    for j in range(n):
+        z = own[j]
+        if z > 0.0:
+            q = pts[j] - p
+            e = wp.dot(q, q)
+            if e <= reach_sq and e < dist[NEIGHBOURS - 1]:
+                # insert (e, z) into the sorted list (compare-and-swap down it)
+                for i in range(NEIGHBOURS):
+                    if e < dist[i]:
+                        te = dist[i]
+                        tz = near[i]
+                        dist[i] = e
+                        near[i] = z
+                        e = te
+                        z = tz
+    m = int(0)
+    for i in range(NEIGHBOURS):
+        if dist[i] < big:
+            m += 1
+    if m > 0:
+        # the median of the m depths found (sorted; the unused slots stay at the end)
+        for r in range(NEIGHBOURS - 1):
+            for c in range(NEIGHBOURS - 1 - r):
+                if near[c] > near[c + 1]:
+                    swap = near[c]
+                    near[c] = near[c + 1]
+                    near[c + 1] = swap
+        lo = (m - 1) // 2
+        hi = m // 2
+        zl = float(0.0)
+        zh = float(0.0)
+        for i in range(NEIGHBOURS):
+            if i == lo:
+                zl = near[i]
+            if i == hi:
+                zh = near[i]
+        depth[f] = 0.5 * (zl + zh)
+        return
+    # no neighbour: a short segment over the whole range starts at its far end (``_shift_px`` about the middle)
+    T = motion[0]
+    ray = _rotation(T) * wp.vec3((p[0] - K[2]) / K[0], (p[1] - K[3]) / K[1], 1.0)
+    a = wp.vec3(K[0] * ray[0] + K[2] * ray[2], K[1] * ray[1] + K[3] * ray[2], ray[2])
+    t = _translation(T)
+    b = wp.vec3(K[0] * t[0] + K[2] * t[2], K[1] * t[1] + K[3] * t[2], t[2])
+    inv_near = inverse_range[0][0]
+    inv_far = inverse_range[0][1]
+    z_near = 1.0 / inv_near
+    z_far = 1.0 / inv_far
+    mid = 2.0 / (inv_near + inv_far)
+    w_mid = mid * a[2] + b[2]
+    w_near = z_near * a[2] + b[2]
+    w_far = z_far * a[2] + b[2]
+    depth[f] = 0.0
+    if w_mid > 1.0e-9 and w_near > 1.0e-9 and w_far > 1.0e-9:
+        line = wp.length(wp.vec2(a[0] * b[2] - b[0] * a[2], a[1] * b[2] - b[1] * a[2]))
+        worst = wp.max(wp.abs(z_near - mid) / w_near, wp.abs(z_far - mid) / w_far)
+        if line * worst / w_mid <= short_px:
+            depth[f] = z_far
 
 
 @wp.kernel
@@ -161,6 +246,19 @@ def forward_backward(depth: wp.array, prev_pts: wp.array, back: wp.array, back_s
 def swept_and_tracked(depth: wp.array, status: wp.array, count: wp.array, out: wp.array, device) -> None:
     """``out`` <- 1 for the slots ``forward_backward`` will judge (LK back runs for those only), else 0."""
     wp.launch(_swept_and_tracked, dim=depth.shape[0], inputs=[depth, status, count, out], device=device)
+
+
+def borrow_and_settle(pts: wp.array, count: wp.array, own: wp.array, K, motion: wp.array, inverse_range: wp.array,
+                      image_size: tuple[int, int], depth: wp.array, device) -> None:
+    """``depth`` <- each of the first ``count[0]`` tracks' start depth from ``own`` (its landmark's; 0: none, take
+    one; < 0: none, none to take) as
+    ``epipolar.start_depths`` makes it after its small-motion test: borrowed from the nearest tracks with one,
+    else the far depth where its epipolar segment is short, else 0 (swept along its line)."""
+    Kv = wp.vec4(float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2]))
+    reach = epipolar.NEIGHBOUR_RADIUS * max(image_size)
+    wp.launch(_borrow_and_settle, dim=pts.shape[0], inputs=[pts, count, own, float(reach * reach), Kv, motion,
+                                                             inverse_range, float(epipolar.SHORT_LINE_PX), depth],
+              device=device)
 
 
 def motion_params(T_cur_prev, depth_range_m) -> tuple[np.ndarray, np.ndarray]:
