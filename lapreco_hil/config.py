@@ -240,7 +240,7 @@ class DepthConfig:
     # the dense surface's final build (offline, and the keyframes a live run leaves to it) makes every map first,
     # then keeps of each the depths that ``consistency_min_views`` of the maps of its ``consistency_views`` nearest
     # keyframes (its sources first) confirm forward-backward (0: no such check; docs/dense.md, "Session 17")
-    consistency_views: int = ranged(8, ge=0)
+    consistency_views: int = ranged(7, ge=0)  # (8 before the coarse level, session 24)
     consistency_min_views: int = ranged(3, ge=1)
     # ... after filling each map's holes of up to ``consistency_fill_px`` pixels (0: none) where at least
     # ``consistency_fill_lines`` of its row, column and diagonals bridge them between depths within
@@ -250,6 +250,14 @@ class DepthConfig:
     consistency_fill_rel: float = ranged(0.04, gt=0.0)
     consistency_fill_lines: int = ranged(1, ge=1, le=4)
     consistency_fill_weight: float = ranged(0.5, gt=0.0, le=1.0)
+    # ... and, before the filling, each map's pixels whose window was too flat or match too weak take the depth of a
+    # map of its views reduced by ``coarse_level`` (2: half, 4: quarter; 0: none), the same window spanning more of
+    # the scene, where that map's four depths about the pixel agree within ``coarse_max_rel`` (inverse depth), at
+    # ``coarse_weight`` of its confidence; vetted by the check like any other (dense/coarse.py; docs/dense.md,
+    # "Session 24")
+    coarse_level: int = ranged(2, ge=0)
+    coarse_max_rel: float = ranged(0.02, gt=0.0)
+    coarse_weight: float = ranged(0.5, gt=0.0, le=1.0)
     # a stereo scope's partner views (rig camera >= 1) get depth maps of their own in the final build, filled,
     # checked and fused as the reference keyframes' are, when the run keeps at most this many reference keyframes
     # (0: never; the live incremental fusion is reference-only; docs/dense.md, "Two views")

@@ -2,7 +2,9 @@
 cached by settings and code), then fused and evaluated per consistency filter: filters=none,MIN:VIEWS,... (MIN
 of the maps of the VIEWS nearest keyframes, its sources first, must agree). usage: dense_replay.py SCENE
 [key=value ...] [filters=none,2:8]. Prints coverage and accuracy per filter. The final build's hole filling
-(``consistency_fill_*`` settings) applies to the cached maps before the check (the maps are not made again).
+(``consistency_fill_*`` settings) applies to the cached maps before the check (the maps are not made again), and so
+does the coarse level (``coarse_level=2 coarse_weight=W coarse_max_rel=R``: its maps cached apart;
+``coarsev=V``: its depths need V maps to agree).
 ``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map; ``rounds=2``: the checked maps filled
 and checked again (against each other's)."""
 # Session 17 (docs/dense.md, "Session 17: coverage"): the depth + fusion stage of the sequential demo re-run on saved
@@ -26,20 +28,17 @@ import lapreco_hil.dense.warp.plane_sweep as sweep_module
 WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
-sets, fsets, filters, nb, fill_sources, rounds = {}, {}, ["none", "2:8"], 0, True, 1
-coarse, coarse_weight = 0, 0.5  # coarse=2: holes of each map filled from a map made on views reduced by 2
+sets, fsets, filters, nb, fill_sources, rounds, coarse_views = {}, {}, ["none", "2:8"], 0, True, 1, 0
 for a in sys.argv[2:]:
     k, v = a.split("=")
     if k == "filters":
         filters = [x for x in v.split(",")]; continue
     if k == "nb":
         nb = int(v); continue
+    if k == "coarsev":
+        coarse_views = int(v); continue
     if k == "rounds":
         rounds = int(v); continue
-    if k == "coarse":
-        coarse = int(v); continue
-    if k == "coarsew":
-        coarse_weight = float(v); continue
     if k == "fillsrc":
         fill_sources = bool(int(v)); continue
     target = fsets if k.startswith("f.") else sets
@@ -54,29 +53,24 @@ fcfg = dataclasses.replace(fcfg, **fsets)
 est = DepthEstimator(dcfg, "cpu", host_buffers=0)
 t0 = time.time()
 import hashlib
-key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith("consistency_fill")), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read())).encode()).hexdigest()[:10]
+# (the settings applied after the maps are made leave them as cached)
+after = ("consistency_fill", "coarse_")
+key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith(after)), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read())).encode()).hexdigest()[:10]
 cache = f"{WORK}/maps-{key}.pkl"
-if os.path.exists(cache):
+codes_cache = f"{WORK}/codes-{key}.pkl"  # each map's rejection codes (for the coarse level)
+if os.path.exists(cache) and os.path.exists(codes_cache):
     maps = pickle.load(open(cache, "rb"))
+    codes = pickle.load(open(codes_cache, "rb"))
 else:
-    maps = {}
+    maps, codes = {}, {}
     for ref_id, src_ids in rec["jobs"]:
         maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids])
+        codes[ref_id] = est.rejection_codes()
     pickle.dump(maps, open(cache, "wb"))
-if coarse > 1:
-    import cv2
-    from lapreco_hil.dense.types import DepthMap, KeyframeView
-
-    def reduced_view(v, f):
-        K = np.array(v.K, float)
-        K[:2, :] /= f
-        K[0, 2] = (v.K[0, 2] + 0.5) / f - 0.5
-        K[1, 2] = (v.K[1, 2] + 0.5) / f - 0.5
-        w, h = v.size
-        size = (w // f, h // f)
-        colour = cv2.resize(v.colour, size, interpolation=cv2.INTER_AREA)
-        mask = None if v.mask is None else cv2.resize(v.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-        return dataclasses.replace(v, colour=colour, K=K, mask=mask)
+    pickle.dump(codes, open(codes_cache, "wb"))
+coarse = dcfg.coarse_level
+if coarse > 1:  # [depth] coarse_level (session 24): the holes of weak texture from a map of the views reduced by it
+    from lapreco_hil.dense.coarse import coarse_into_holes, reduced_view
 
     ckey = f"{WORK}/coarse{coarse}-{key}.pkl"
     if os.path.exists(ckey):
@@ -86,21 +80,10 @@ if coarse > 1:
         small = {i: reduced_view(v, coarse) for i, v in rec["views"].items()}
         cmaps = {ref_id: cest.compute(small[ref_id], [small[s] for s in src_ids]) for ref_id, src_ids in rec["jobs"]}
         pickle.dump(cmaps, open(ckey, "wb"))
-    merged = {}
-    for i, m in maps.items():
-        c = cmaps[i]
-        h, w = m.depth_m.shape
-        # nearest upsampling (a depth is never blended across an edge), at the coarse map's pixel centres
-        ys = np.clip(((np.arange(h) + 0.5) / coarse - 0.5).round().astype(int), 0, c.depth_m.shape[0] - 1)
-        xs = np.clip(((np.arange(w) + 0.5) / coarse - 0.5).round().astype(int), 0, c.depth_m.shape[1] - 1)
-        cd = c.depth_m[np.ix_(ys, xs)]
-        cc = c.confidence[np.ix_(ys, xs)]
-        hole = (m.depth_m <= 0) & (cd > 0)
-        d = np.where(hole, cd, m.depth_m).astype(np.float32)
-        conf = np.where(hole, coarse_weight * cc, m.confidence).astype(np.float32)
-        merged[i] = DepthMap(m.kf_id, d, conf, m.K, m.T_world_camera, m.stats)
-        print(i, "coarse adds", int(hole.sum()), "of", int((m.depth_m > 0).sum()), flush=True) if i == rec["jobs"][0][0] else None
-    maps = merged
+    maps = {i: coarse_into_holes(m, codes[i], cmaps[i], coarse, dcfg.coarse_max_rel, dcfg.coarse_weight)
+            for i, m in maps.items()}
+    print("coarse level adds", sum(m.stats["coarse_pixels"] for m in maps.values()), "pixels to",
+          sum(int((m.depth_m > 0).sum()) for m in maps.values()), flush=True)
 t1 = time.time()
 from lapreco_hil.dense.fill import fill_holes
 raw = maps
@@ -126,6 +109,13 @@ def checked(filt, nb, own, others):
                           if o != ref_id and o not in ids)
             ids += [o for _, o in near[:nb - len(ids)]]
         out[ref_id] = est.check_geometry(own[ref_id], [others[s] for s in ids])
+        taken = (own[ref_id].stats or {}).get("coarse_taken")
+        if coarse_views and taken is not None and taken.any():  # the coarse level's depths need more maps to agree
+            strict = est.check_geometry(own[ref_id], [others[s] for s in ids], coarse_views)
+            drop = taken & (strict.depth_m <= 0)
+            m = out[ref_id]
+            out[ref_id] = dataclasses.replace(m, depth_m=np.where(drop, 0, m.depth_m).astype(np.float32),
+                                              confidence=np.where(drop, 0, m.confidence).astype(np.float32))
     return out
 
 

@@ -821,10 +821,31 @@ class KeptEstimator:
     def __init__(self) -> None:
         self._estimator: DepthEstimator | None = None
         self._key: tuple[DepthConfig, str] | None = None
+        self._coarse: DepthEstimator | None = None  # the coarse level's (``with_coarse_level``)
+        self._coarse_key: tuple[DepthConfig, str] | None = None
 
     def __call__(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
                  source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
         return self._kept(config, device).compute(ref, sources, source_depths)
+
+    def with_coarse_level(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig,
+                          device: str) -> DepthMap:
+        """The depth map, its holes that a flat window or a weak match left given the depth of a map made the same
+        way from the views reduced by ``[depth] coarse_level`` (lapreco_hil.dense.coarse; its own kept estimator),
+        marked in ``stats["coarse_taken"]``: for the final build, whose consistency check vets them."""
+        from lapreco_hil.dense.coarse import coarse_into_holes, reduced_view
+
+        estimator = self._kept(config, device)
+        full = estimator.compute(ref, sources)
+        factor = config.coarse_level
+        w, h = ref.size
+        if factor < 2 or min(w, h) // factor < 16:
+            return full
+        codes = estimator.rejection_codes()
+        if self._coarse_key != (config, str(device)):
+            self._coarse, self._coarse_key = DepthEstimator(config, device, host_buffers=0), (config, str(device))
+        coarse = self._coarse.compute(reduced_view(ref, factor), [reduced_view(s, factor) for s in sources])
+        return coarse_into_holes(full, codes, coarse, factor, config.coarse_max_rel, config.coarse_weight, device)
 
     def compute_on_device(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig,
                           device: str):

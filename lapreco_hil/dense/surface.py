@@ -32,6 +32,7 @@ import pyvista as pv
 
 from lapreco_hil.camera import CameraModel, Rig, pinhole_canvas
 from lapreco_hil.config import DepthConfig, PipelineConfig
+from lapreco_hil.dense.coarse import without_coarse
 from lapreco_hil.dense.fill import fill_holes
 from lapreco_hil.dense.stereo_fill import fill_from, sgbm_depth
 from lapreco_hil.dense.fusion import TsdfVolume
@@ -358,7 +359,9 @@ class DenseSurface:
                 continue
             self.without_sources.discard(kf_id)
             t0 = time.perf_counter()
-            depth = self.depth_fn(ref, sources, cfg, self.device)
+            # with ``[depth] coarse_level``, holes of weak texture given a coarser map's depths, which the check vets
+            coarse = getattr(self.depth_fn, "with_coarse_level", None) if cfg.coarse_level > 1 else None
+            depth = (coarse or self.depth_fn)(ref, sources, cfg, self.device)
             self.timings["depth_s"] += time.perf_counter() - t0
             if depth is None or not _has_depth(depth):
                 self.depth_failures += 1
@@ -388,8 +391,8 @@ class DenseSurface:
             t0 = time.perf_counter()
             maps = [m for m in (self._map_of(n, made, stored) for n in self._neighbours(kf_id, chosen[kf_id], made))
                     if m is not None]
-            if not maps:  # (a filled depth is never fused unconfirmed)
-                as_kept = unfilled.get(kf_id, as_kept)
+            if not maps:  # (a filled or coarse depth is never fused unconfirmed)
+                as_kept = without_coarse(unfilled.get(kf_id, as_kept))
             checked = check(as_kept, maps, cfg, self.device, cfg.consistency_min_views) if maps else as_kept
             t1 = time.perf_counter()
             self.timings["depth_s"] += t1 - t0
