@@ -55,48 +55,118 @@ def _predict(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), dept
         guess[f] = wp.vec2(wp.nan, wp.nan)
 
 
-@wp.kernel
+# The lanes of one warp share a track's search for its nearest tracks with a depth: each lane scans a stride of
+# the frame's tracks, then NEIGHBOURS rounds of a warp-wide minimum merge the lanes' lists (shuffles only: no
+# shared memory, no barrier). On the CPU a tiled launch has one lane, which scans them all.
+BORROW_LANES = 32
+_WARP_MIN2_SNIPPET = """
+#if defined(__CUDA_ARCH__)
+    static_assert(WP_TILE_BLOCK_DIM == 32, "one warp per block");
+    auto s = v;
+    float* c = reinterpret_cast<float*>(&s);
+    float a = c[0], b = c[1];
+    #pragma unroll
+    for (int o = 16; o > 0; o >>= 1) {
+        float oa = __shfl_xor_sync(0xffffffffu, a, o);
+        float ob = __shfl_xor_sync(0xffffffffu, b, o);
+        if (oa < a || (oa == a && ob < b)) { a = oa; b = ob; }
+    }
+    c[0] = a;
+    c[1] = b;
+    return s;
+#else
+    static_assert(WP_TILE_BLOCK_DIM == 1, "warp minima on the CPU need one lane per block");
+    return v;
+#endif
+"""
+
+
+@wp.func_native(_WARP_MIN2_SNIPPET)
+def _warp_min2(v: wp.vec2) -> wp.vec2: ...
+
+
+@wp.func
+def _settled_depth(p: wp.vec2, K: wp.vec4, T: wp.mat44, inverse_range: wp.vec2, short_px: float) -> float:
+    """The range's far depth where pixel p's epipolar segment over the whole range stays within ``short_px`` of
+    its middle (``epipolar._settle_short_lines``), else 0."""
+    ray = _rotation(T) * wp.vec3((p[0] - K[2]) / K[0], (p[1] - K[3]) / K[1], 1.0)
+    a = wp.vec3(K[0] * ray[0] + K[2] * ray[2], K[1] * ray[1] + K[3] * ray[2], ray[2])
+    t = _translation(T)
+    b = wp.vec3(K[0] * t[0] + K[2] * t[2], K[1] * t[1] + K[3] * t[2], t[2])
+    z_near = 1.0 / inverse_range[0]
+    z_far = 1.0 / inverse_range[1]
+    mid = 2.0 / (inverse_range[0] + inverse_range[1])
+    w_mid = mid * a[2] + b[2]
+    w_near = z_near * a[2] + b[2]
+    w_far = z_far * a[2] + b[2]
+    out = float(0.0)
+    if w_mid > 1.0e-9 and w_near > 1.0e-9 and w_far > 1.0e-9:
+        line = wp.length(wp.vec2(a[0] * b[2] - b[0] * a[2], a[1] * b[2] - b[1] * a[2]))
+        worst = wp.max(wp.abs(z_near - mid) / w_near, wp.abs(z_far - mid) / w_far)
+        if line * worst / w_mid <= short_px:
+            out = z_far
+    return out
+
+
+@wp.kernel(module="unique", module_options={"block_dim": BORROW_LANES}, enable_backward=False)
 def _borrow_and_settle(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.int32), own: wp.array(dtype=float),
                        reach_sq: float, K: wp.vec4, motion: wp.array(dtype=wp.mat44),
                        inverse_range: wp.array(dtype=wp.vec2), short_px: float, depth: wp.array(dtype=float)):
-    """``epipolar.borrow_depths`` then ``settle_short_lines`` per track: its own depth (> 0; < 0: none, nothing
-    to take: 0); else the median of
-    the own depths of its NEIGHBOURS nearest tracks within reach (every track compared: a few thousand, read
-    by all threads alike); else the range's far depth where its epipolar segment is short; else 0 (swept)."""
-    f = wp.tid()
-    if f >= count[0]:
+    """``epipolar.borrow_depths`` then ``settle_short_lines`` per track (a warp each): its own depth (> 0; < 0:
+    none, nothing to take: 0); else the median of the own depths of its NEIGHBOURS nearest tracks within reach
+    (ties by index); else the range's far depth where its epipolar segment is short; else 0 (swept)."""
+    f, lane = wp.tid()
+    n = count[0]
+    if f >= n:
         return
     d = own[f]
     if d != 0.0:
-        depth[f] = wp.max(d, 0.0)  # (< 0: the host found none to take)
+        if lane == 0:
+            depth[f] = wp.max(d, 0.0)  # (< 0: the host found none to take)
         return
     p = pts[f]
     big = float(1.0e30)
     dist = _neighbour_vec()
-    near = _neighbour_vec()
+    index = _neighbour_vec()
     for i in range(NEIGHBOURS):
         dist[i] = big
-        near[i] = big
-    n = count[0]
-    for j in range(n):
+        index[i] = big
+    j = lane
+    while j < n:
         z = own[j]
         if z > 0.0:
             q = pts[j] - p
             e = wp.dot(q, q)
+            k = float(j)
             if e <= reach_sq and e < dist[NEIGHBOURS - 1]:
-                # insert (e, z) into the sorted list (compare-and-swap down it)
+                # insert (e, j) into the lane's sorted list (compare-and-swap down it)
                 for i in range(NEIGHBOURS):
-                    if e < dist[i]:
+                    if e < dist[i] or (e == dist[i] and k < index[i]):
                         te = dist[i]
-                        tz = near[i]
+                        tk = index[i]
                         dist[i] = e
-                        near[i] = z
+                        index[i] = k
                         e = te
-                        z = tz
+                        k = tk
+        j += wp.block_dim()
+    # the warp's NEIGHBOURS nearest: each round takes the smallest of the lanes' list heads
+    near = _neighbour_vec()
     m = int(0)
-    for i in range(NEIGHBOURS):
-        if dist[i] < big:
+    head = int(0)
+    for r in range(NEIGHBOURS):
+        mine = wp.vec2(big, big)
+        for i in range(NEIGHBOURS):
+            if i == head:
+                mine = wp.vec2(dist[i], index[i])
+        best = _warp_min2(mine)
+        near[r] = big
+        if best[0] < big:
+            if mine[0] == best[0] and mine[1] == best[1]:
+                head += 1
+            near[r] = own[int(best[1])]
             m += 1
+    if lane != 0:
+        return
     if m > 0:
         # the median of the m depths found (sorted; the unused slots stay at the end)
         for r in range(NEIGHBOURS - 1):
@@ -115,27 +185,8 @@ def _borrow_and_settle(pts: wp.array(dtype=wp.vec2), count: wp.array(dtype=wp.in
             if i == hi:
                 zh = near[i]
         depth[f] = 0.5 * (zl + zh)
-        return
-    # no neighbour: a short segment over the whole range starts at its far end (``_shift_px`` about the middle)
-    T = motion[0]
-    ray = _rotation(T) * wp.vec3((p[0] - K[2]) / K[0], (p[1] - K[3]) / K[1], 1.0)
-    a = wp.vec3(K[0] * ray[0] + K[2] * ray[2], K[1] * ray[1] + K[3] * ray[2], ray[2])
-    t = _translation(T)
-    b = wp.vec3(K[0] * t[0] + K[2] * t[2], K[1] * t[1] + K[3] * t[2], t[2])
-    inv_near = inverse_range[0][0]
-    inv_far = inverse_range[0][1]
-    z_near = 1.0 / inv_near
-    z_far = 1.0 / inv_far
-    mid = 2.0 / (inv_near + inv_far)
-    w_mid = mid * a[2] + b[2]
-    w_near = z_near * a[2] + b[2]
-    w_far = z_far * a[2] + b[2]
-    depth[f] = 0.0
-    if w_mid > 1.0e-9 and w_near > 1.0e-9 and w_far > 1.0e-9:
-        line = wp.length(wp.vec2(a[0] * b[2] - b[0] * a[2], a[1] * b[2] - b[1] * a[2]))
-        worst = wp.max(wp.abs(z_near - mid) / w_near, wp.abs(z_far - mid) / w_far)
-        if line * worst / w_mid <= short_px:
-            depth[f] = z_far
+    else:
+        depth[f] = _settled_depth(p, K, motion[0], inverse_range[0], short_px)
 
 
 @wp.kernel
@@ -256,9 +307,9 @@ def borrow_and_settle(pts: wp.array, count: wp.array, own: wp.array, K, motion: 
     else the far depth where its epipolar segment is short, else 0 (swept along its line)."""
     Kv = wp.vec4(float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2]))
     reach = epipolar.NEIGHBOUR_RADIUS * max(image_size)
-    wp.launch(_borrow_and_settle, dim=pts.shape[0], inputs=[pts, count, own, float(reach * reach), Kv, motion,
-                                                             inverse_range, float(epipolar.SHORT_LINE_PX), depth],
-              device=device)
+    wp.launch_tiled(_borrow_and_settle, dim=[pts.shape[0]], inputs=[
+        pts, count, own, float(reach * reach), Kv, motion, inverse_range, float(epipolar.SHORT_LINE_PX), depth],
+        block_dim=BORROW_LANES, device=device)
 
 
 def motion_params(T_cur_prev, depth_range_m) -> tuple[np.ndarray, np.ndarray]:
