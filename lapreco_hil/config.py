@@ -241,7 +241,8 @@ class DepthConfig:
     # then keeps of each the depths that ``consistency_min_views`` of the maps of its ``consistency_views`` nearest
     # keyframes (its sources first) confirm forward-backward (0: no such check; docs/dense.md, "Session 17")
     consistency_views: int = ranged(7, ge=0)  # (8 before the coarse level, session 24)
-    consistency_min_views: int = ranged(3, ge=1)
+    # (3 with 4 sources; 2 since the final build's 8 sources lead the neighbours: each a view at a useful angle)
+    consistency_min_views: int = ranged(2, ge=1)
     # ... after filling each map's holes of up to ``consistency_fill_px`` pixels (0: none) where at least
     # ``consistency_fill_lines`` of its row, column and diagonals bridge them between depths within
     # ``consistency_fill_rel`` (inverse depth), at ``consistency_fill_weight`` of their confidence; the check vets
@@ -258,6 +259,14 @@ class DepthConfig:
     coarse_level: int = ranged(2, ge=0)
     coarse_max_rel: float = ranged(0.02, gt=0.0)
     coarse_weight: float = ranged(0.5, gt=0.0, le=1.0)
+    # ... and each map's range reaches this factor past its landmarks' far end: surface behind the last landmarks
+    # (the liver's far omentum) gets depths, vetted by the check (docs/dense.md, "Session 24: the far range and
+    # more views")
+    final_far_factor: float = ranged(1.25, ge=1.0)
+    # ... from this many source views (``source_views`` live, for its cost): where few of four neighbours see a
+    # surface, best_k of more may; at most 8 score per pixel (patchmatch) (docs/dense.md, "Session 24: the far range
+    # and more views")
+    final_source_views: int = ranged(8, ge=1)
     # a stereo scope's partner views (rig camera >= 1) get depth maps of their own in the final build, filled,
     # checked and fused as the reference keyframes' are, when the run keeps at most this many reference keyframes
     # (0: never; the live incremental fusion is reference-only; docs/dense.md, "Two views")

@@ -6,7 +6,11 @@ of the maps of the VIEWS nearest keyframes, its sources first, must agree). usag
 does the coarse level (``coarse_level=2 coarse_weight=W coarse_max_rel=R``: its maps cached apart;
 ``coarsev=V``: its depths need V maps to agree).
 ``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map; ``rounds=2``: the checked maps filled
-and checked again (against each other's)."""
+and checked again (against each other's). Inputs re-derived from the capture (session 24, "the far range and more
+views"): ``sources=N``: each keyframe's sources chosen again by ``choose_sources`` (N of them, among the 64 nearest
+captured views, as the surface does); ``rnear=F rfar=F``: every view's landmark depth range widened (near / F, far x
+F) before its map is made; ``runion=1``: a map's range the union of its own and its sources' ranges; ``checksrc=N``: only the first N sources
+lead a map's check's neighbours (the nearest keyframes follow)."""
 # Session 17 (docs/dense.md, "Session 17: coverage"): the depth + fusion stage of the sequential demo re-run on saved
 # keyframes. Files live in $DENSE_REPLAY_DIR (default /tmp/dense-replay). Not part of the package.
 import dataclasses
@@ -29,12 +33,18 @@ WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
 sets, fsets, filters, nb, fill_sources, rounds, coarse_views = {}, {}, ["none", "2:8"], 0, True, 1, 0
+inputs = {}  # the capture's inputs re-derived: sources, depth ranges
+check_sources = None
 for a in sys.argv[2:]:
     k, v = a.split("=")
+    if k in ("sources", "rnear", "rfar", "runion"):
+        inputs[k] = float(v); continue
     if k == "filters":
         filters = [x for x in v.split(",")]; continue
     if k == "nb":
         nb = int(v); continue
+    if k == "checksrc":  # only a map's first N sources lead its check's neighbours (then the nearest keyframes)
+        check_sources = int(v); continue
     if k == "coarsev":
         coarse_views = int(v); continue
     if k == "rounds":
@@ -47,6 +57,28 @@ for a in sys.argv[2:]:
     except Exception: pass
     target[k] = v
 rec = pickle.load(open(f"{WORK}/{scene}.pkl", "rb"))
+if "sources" in inputs:  # chosen again on the landmark ranges, as the surface does (before any widening)
+    from lapreco_hil.dense.depth import choose_sources
+    from lapreco_hil.dense.surface import CANDIDATE_POSES, same_rig_view
+
+    jobs = []
+    for ref_id, _ in rec["jobs"]:
+        ref = rec["views"][ref_id]
+        c = ref.T_world_camera[:3, 3]
+        others = sorted((v for v in rec["views"].values() if v.kf_id != ref_id),
+                        key=lambda v: (not same_rig_view(v, ref), np.linalg.norm(v.T_world_camera[:3, 3] - c)))
+        jobs.append((ref_id, [v.kf_id for v in choose_sources(ref, others[:CANDIDATE_POSES], int(inputs["sources"]))]))
+    print("sources changed for", sum(a != b for a, b in zip(jobs, rec["jobs"])), "of", len(jobs), "keyframes",
+          flush=True)
+    rec["jobs"] = jobs
+if {"rnear", "rfar", "runion"} & set(inputs):
+    landmark = {i: v.depth_range_m for i, v in rec["views"].items()}
+    for ref_id, src_ids in rec["jobs"]:
+        rs = [landmark[i] for i in [ref_id] + (src_ids if inputs.get("runion") else []) if landmark[i] is not None]
+        if rs:
+            near, far = min(r[0] for r in rs), max(r[1] for r in rs)
+            rec["views"][ref_id] = dataclasses.replace(rec["views"][ref_id], depth_range_m=(
+                near / inputs.get("rnear", 1.0), far * inputs.get("rfar", 1.0)))
 dcfg, fcfg = rec["config"]
 dcfg = dataclasses.replace(dcfg, **sets)
 fcfg = dataclasses.replace(fcfg, **fsets)
@@ -55,7 +87,7 @@ t0 = time.time()
 import hashlib
 # (the settings applied after the maps are made leave them as cached)
 after = ("consistency_fill", "coarse_")
-key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith(after)), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read())).encode()).hexdigest()[:10]
+key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith(after)), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read()) + ((tuple(sorted(inputs.items())),) if inputs else ())).encode()).hexdigest()[:10]
 cache = f"{WORK}/maps-{key}.pkl"
 codes_cache = f"{WORK}/codes-{key}.pkl"  # each map's rejection codes (for the coarse level)
 if os.path.exists(cache) and os.path.exists(codes_cache):
@@ -63,9 +95,11 @@ if os.path.exists(cache) and os.path.exists(codes_cache):
     codes = pickle.load(open(codes_cache, "rb"))
 else:
     maps, codes = {}, {}
+    cpu0 = time.process_time()
     for ref_id, src_ids in rec["jobs"]:
         maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids])
         codes[ref_id] = est.rejection_codes()
+    print(f"full-resolution maps: {time.time() - t0:.0f} s wall, {time.process_time() - cpu0:.0f} s CPU", flush=True)
     pickle.dump(maps, open(cache, "wb"))
     pickle.dump(codes, open(codes_cache, "wb"))
 coarse = dcfg.coarse_level
@@ -102,12 +136,13 @@ def checked(filt, nb, own, others):
     out = {}
     est.config = dataclasses.replace(dcfg, geometric_min_views=filt)
     for ref_id, src_ids in rec["jobs"]:
-        ids = [s for s in src_ids if s in others]
+        ids = [s for s in src_ids[:check_sources] if s in others]
         if nb > len(ids):
             c = rec["views"][ref_id].T_world_camera[:3, 3]
             near = sorted((np.linalg.norm(rec["views"][o].T_world_camera[:3, 3] - c), o) for o in others
                           if o != ref_id and o not in ids)
             ids += [o for _, o in near[:nb - len(ids)]]
+        ids = ids[:nb]  # (as the surface's _neighbours: more sources than VIEWS are cut)
         out[ref_id] = est.check_geometry(own[ref_id], [others[s] for s in ids])
         taken = (own[ref_id].stats or {}).get("coarse_taken")
         if coarse_views and taken is not None and taken.any():  # the coarse level's depths need more maps to agree

@@ -23,7 +23,7 @@ import logging
 import time
 from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import cv2
@@ -185,7 +185,8 @@ class DenseSurface:
         bgr = cv2.imdecode(np.frombuffer(self.views[kf_id].jpeg, np.uint8), cv2.IMREAD_COLOR)
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         self._decoded[kf_id] = rgb
-        while len(self._decoded) > CANDIDATE_FACTOR * self.config.depth.source_views + 2:
+        while len(self._decoded) > CANDIDATE_FACTOR * max(self.config.depth.source_views,
+                                                          self.config.depth.final_source_views) + 2:
             self._decoded.popitem(last=False)
         return rgb
 
@@ -274,8 +275,8 @@ class DenseSurface:
         v.depth_png = v.confidence_png = None
         v.encoding = self._encoder.submit(_encode_pngs, d16, c8)
 
-    def _sources(self, ref: KeyframeView) -> list[KeyframeView]:
-        n = self.config.depth.source_views
+    def _sources(self, ref: KeyframeView, n: int | None = None) -> list[KeyframeView]:
+        n = n or self.config.depth.source_views
         c = ref.T_world_camera[:3, 3]
         others = [v for v in self.views.values() if v.kf_id != ref.kf_id]
         others.sort(key=lambda v: (not same_rig_view(v, ref), np.linalg.norm(v.T_world_camera[:3, 3] - c)))
@@ -353,11 +354,15 @@ class DenseSurface:
         chosen: dict[int, list[int]] = {}
         for kf_id in todo:
             ref = self.keyframe_view(kf_id)
-            sources = self._sources(ref)
+            sources = self._sources(ref, cfg.final_source_views)
             if not sources:
                 self.without_sources.add(kf_id)
                 continue
             self.without_sources.discard(kf_id)
+            if ref.depth_range_m is not None and cfg.final_far_factor != 1.0:
+                # (the sources stay chosen on the landmarks' range; the check vets what lies beyond it)
+                near, far = ref.depth_range_m
+                ref = replace(ref, depth_range_m=(near, far * cfg.final_far_factor))
             t0 = time.perf_counter()
             # with ``[depth] coarse_level``, holes of weak texture given a coarser map's depths, which the check vets
             coarse = getattr(self.depth_fn, "with_coarse_level", None) if cfg.coarse_level > 1 else None
