@@ -322,6 +322,11 @@ class FusionConfig:
     # a voxel with less weight (1 = one view at full confidence) is unobserved for meshing: single weak views
     # leave no surface
     mesh_min_weight: float = ranged(0.5, ge=0.0)
+    # ... but in a two-view final build (a stereo pair, a run of two keyframes: every fused map checked against the
+    # one other map) a voxel needs only this: each fused depth is already confirmed by the only other view there is,
+    # and two maps of filled or semi-global depths (confidence 0.15-0.3 each) never sum to mesh_min_weight
+    # (docs/dense.md, "Session 25")
+    pair_mesh_min_weight: float = ranged(0.0, ge=0.0)
     # a fused keyframe whose pose update moves its fused points (at most: translation + rotation x its farthest
     # point's distance) more than this many voxels is taken out and fused again at its new pose, once its pose
     # has settled (a pose update no longer includes it: it left bundle adjustment's window; docs/dense.md)

@@ -148,6 +148,8 @@ class DenseSurface:
         self.refused_final = 0  # ... of them by the final build
         self.refusions: Counter = Counter()  # kf_id -> its re-fusions
         self.depth_failures = 0
+        # per map the final build fused after its consistency check: how many other maps it was checked against
+        self.checked_against: list[int] = []
         self.without_sources: set[int] = set()  # keyframes no neighbour could serve as a stereo source for
         self.released = 0
         # one thread PNG-encodes the fused maps, so the fusing thread does not wait for it
@@ -405,9 +407,20 @@ class DenseSurface:
                 self.depth_failures += 1
                 continue
             self._fuse_and_keep(v, checked, self._colour(kf_id))
+            self.checked_against.append(len(maps))
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         return done
+
+    def mesh_min_weight(self) -> float:
+        """The weight a voxel needs to be meshed: ``[fusion] mesh_min_weight`` (single weak views leave no surface),
+        or ``pair_mesh_min_weight`` where every fused map is a two-view final build's (each checked against exactly
+        one other map: a stereo pair, a run of two keyframes). There the check has confirmed every fused depth by
+        the only other view there is, and no surface can gather more than two maps' weight."""
+        fc = self.config.fusion
+        if self.checked_against and set(self.checked_against) == {1} and self.fused == len(self.checked_against):
+            return fc.pair_mesh_min_weight
+        return fc.mesh_min_weight
 
     def _sgbm_filled(self, kf_id: int, depth: DepthMap, sources: list[int]) -> DepthMap:
         """A two-view map (its first source its stereo partner, or the run's other keyframe) with its holes from
@@ -468,7 +481,7 @@ class DenseSurface:
 
     def extract(self) -> DenseResult:
         t0 = time.perf_counter()
-        mesh = self.volume.extract_mesh()
+        mesh = self.volume.extract_mesh(self.mesh_min_weight())
         self.timings["meshing_s"] += time.perf_counter() - t0
         return dense_result(mesh, self.report(mesh))
 
@@ -489,6 +502,7 @@ class DenseSurface:
             "refusions_per_keyframe": {"mean": self.refused / max(self.fused, 1),
                                        "max": max(self.refusions.values(), default=0)},
             "depth_maps_failed": self.depth_failures,
+            "mesh_min_weight": self.mesh_min_weight(),  # (``pair_mesh_min_weight`` for a two-view final build)
             "keyframes_without_sources": len(self.without_sources),
             "keyframes_released": self.released,
             "voxel_mm": vol.voxel_m * 1e3,
