@@ -431,8 +431,12 @@ class DenseSurface:
         if not (same_rig_view(view, partner) or len(self.views) == 2):
             return depth
         cfg = self.config.depth
-        other = sgbm_depth(self.keyframe_view(kf_id), self.keyframe_view(partner.kf_id),
-                           view.depth_range or (cfg.default_near_m, cfg.default_far_m), cfg)
+        near, far = view.depth_range or (cfg.default_near_m, cfg.default_far_m)
+        if view.depth_range is not None:
+            # the range the map itself searched (``final_far_factor``): a surface past the landmarks' far end has a
+            # disparity below a search that stops there, and would be matched to the wrong one or none
+            far *= cfg.final_far_factor
+        other = sgbm_depth(self.keyframe_view(kf_id), self.keyframe_view(partner.kf_id), (near, far), cfg)
         if other is None:
             return depth
         self.sgbm_filled += 1
