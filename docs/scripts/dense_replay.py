@@ -4,7 +4,8 @@ of the maps of the VIEWS nearest keyframes, its sources first, must agree). usag
 [key=value ...] [filters=none,2:8]. Prints coverage and accuracy per filter. The final build's hole filling
 (``consistency_fill_*`` settings) applies to the cached maps before the check (the maps are not made again), and so
 does the coarse level (``coarse_level=2 coarse_weight=W coarse_max_rel=R``: its maps cached apart;
-``coarsev=V``: its depths need V maps to agree).
+``coarsev=V``: its depths need V maps to agree; ``ctex=1``: its maps' ``min_texture`` divided by the level, as
+``coarse.coarse_config`` does since session 25, ``ctex=0``: not).
 ``fillsrc=0``: the neighbours' maps as made (unfilled) confirm the filled map; ``rounds=2``: the checked maps filled
 and checked again (against each other's). Inputs re-derived from the capture (session 24, "the far range and more
 views"): ``sources=N``: each keyframe's sources chosen again by ``choose_sources`` (N of them, among the 64 nearest
@@ -33,6 +34,7 @@ WORK = os.environ.get("DENSE_REPLAY_DIR", "/tmp/dense-replay")
 
 scene = sys.argv[1]
 sets, fsets, filters, nb, fill_sources, rounds, coarse_views = {}, {}, ["none", "2:8"], 0, True, 1, 0
+coarse_texture = None  # ``ctex=0/1``; None: as the package's KeptEstimator does
 inputs = {}  # the capture's inputs re-derived: sources, depth ranges
 check_sources = None
 for a in sys.argv[2:]:
@@ -45,6 +47,8 @@ for a in sys.argv[2:]:
         nb = int(v); continue
     if k == "checksrc":  # only a map's first N sources lead its check's neighbours (then the nearest keyframes)
         check_sources = int(v); continue
+    if k == "ctex":  # session 25: the coarse level's min_texture divided by its factor (1) or not (0)
+        coarse_texture = bool(int(v)); continue
     if k == "coarsev":
         coarse_views = int(v); continue
     if k == "rounds":
@@ -106,11 +110,16 @@ coarse = dcfg.coarse_level
 if coarse > 1:  # [depth] coarse_level (session 24): the holes of weak texture from a map of the views reduced by it
     from lapreco_hil.dense.coarse import coarse_into_holes, reduced_view
 
-    ckey = f"{WORK}/coarse{coarse}-{key}.pkl"
+    from lapreco_hil.dense import coarse as coarse_module
+
+    ccfg = coarse_module.coarse_config(dcfg) if hasattr(coarse_module, "coarse_config") else dcfg
+    if coarse_texture is not None:  # (session 25: the coarse level's texture threshold by its noise, or as before)
+        ccfg = dataclasses.replace(dcfg, min_texture=dcfg.min_texture / (coarse if coarse_texture else 1))
+    ckey = f"{WORK}/coarse{coarse}-{key}" + ("" if ccfg == dcfg else f"-t{ccfg.min_texture:g}") + ".pkl"
     if os.path.exists(ckey):
         cmaps = pickle.load(open(ckey, "rb"))
     else:
-        cest = DepthEstimator(dcfg, "cpu", host_buffers=0)
+        cest = DepthEstimator(ccfg, "cpu", host_buffers=0)
         small = {i: reduced_view(v, coarse) for i, v in rec["views"].items()}
         cmaps = {ref_id: cest.compute(small[ref_id], [small[s] for s in src_ids]) for ref_id, src_ids in rec["jobs"]}
         pickle.dump(cmaps, open(ckey, "wb"))

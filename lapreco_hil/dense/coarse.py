@@ -15,10 +15,20 @@ import dataclasses
 import cv2
 import numpy as np
 
+from lapreco_hil.config import DepthConfig
 from lapreco_hil.dense.types import DepthMap, KeyframeView
 from lapreco_hil.warp_device import device_lock, init_warp
 
 TAKEN = "coarse_taken"  # a map's stats key: (H, W) bool, where its depth came from the coarse level
+
+
+def coarse_config(config: DepthConfig) -> DepthConfig:
+    """The coarse level's depth settings: ``min_texture`` divided by ``coarse_level``. The threshold is a window's
+    contrast below which its ZNCC is noise; the area mean of ``coarse_level`` x ``coarse_level`` pixels averages the
+    sensor's noise down by that factor, so a window needs that much less contrast to stand as far above it (a
+    vignetted periphery's faint texture, the blurred far surface)."""
+    factor = max(int(config.coarse_level), 1)
+    return dataclasses.replace(config, min_texture=config.min_texture / factor)
 
 
 def reduced_view(view: KeyframeView, factor: int) -> KeyframeView:

@@ -833,7 +833,7 @@ class KeptEstimator:
         """The depth map, its holes that a flat window or a weak match left given the depth of a map made the same
         way from the views reduced by ``[depth] coarse_level`` (lapreco_hil.dense.coarse; its own kept estimator),
         marked in ``stats["coarse_taken"]``: for the final build, whose consistency check vets them."""
-        from lapreco_hil.dense.coarse import coarse_into_holes, reduced_view
+        from lapreco_hil.dense.coarse import coarse_config, coarse_into_holes, reduced_view
 
         estimator = self._kept(config, device)
         full = estimator.compute(ref, sources)
@@ -843,7 +843,9 @@ class KeptEstimator:
             return full
         codes = estimator.rejection_codes()
         if self._coarse_key != (config, str(device)):
-            self._coarse, self._coarse_key = DepthEstimator(config, device, host_buffers=0), (config, str(device))
+            # (its texture threshold scaled to the reduced image's noise: ``coarse_config``)
+            self._coarse = DepthEstimator(coarse_config(config), device, host_buffers=0)
+            self._coarse_key = (config, str(device))
         coarse = self._coarse.compute(reduced_view(ref, factor), [reduced_view(s, factor) for s in sources])
         return coarse_into_holes(full, codes, coarse, factor, config.coarse_max_rel, config.coarse_weight, device)
 
