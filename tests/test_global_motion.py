@@ -235,6 +235,35 @@ def test_the_warp_front_end_aligns_a_smooth_motion_on_the_device(warp_cpu):
     assert _median_error(frontend._global.last, step, size) < 0.5
 
 
+@pytest.mark.skipif(not DEVICE.startswith("cuda"), reason="CUDA streams and graphs: run with LAPRECO_TEST_DEVICE=cuda:0")
+def test_frames_aligned_beside_their_image_stages_replay_as_graphs_what_they_launch():
+    """On CUDA a frame without a prediction makes its alignment image and runs ECC on the side stream while its
+    image stages run on the main one (``_start_prior``), each from its own graph: the priors and the tracks are
+    those of the same frames launched one by one, and every kind of frame and of image stages replays a graph."""
+    from lapreco_hil.frontend import make_frontend
+
+    frame = tb.load_real_frames(None, ("liver",))[0]
+    size = frame.image.shape[1::-1]
+    images = [frame.image] + [cv2.warpPerspective(frame.image, _zoom_and_shift(size, (6.0 * k, -3.0 * k),
+                                                                                1.0 + 0.004 * k), size,
+                                                  borderMode=cv2.BORDER_REFLECT_101) for k in range(1, 9)]
+
+    def run(graphs):
+        frontend = make_frontend("warp", tb.camera_of(frame), TrackerConfig(), DEVICE)
+        frontend.use_graphs = graphs
+        out = [frontend.process(Frame(image, 40_000_000 * k, k)) for k, image in enumerate(images)]
+        return frontend, out
+
+    replayed_fe, replayed = run(True)
+    launched_fe, launched = run(False)
+    for a, b in zip(replayed, launched):
+        assert np.array_equal(a.track_ids, b.track_ids) and np.array_equal(a.uv, b.uv)
+    assert replayed_fe.prior_aligned == launched_fe.prior_aligned and replayed_fe.prior_aligned["device"] >= 6
+    for graphs in (replayed_fe._graphs, replayed_fe._image_graphs):
+        again = [kind for kind, runs in graphs.runs.items() if runs >= 3]
+        assert again and all(kind in graphs.captured for kind in again), graphs.runs
+
+
 def test_the_hosts_seeds_take_over_from_the_devices_without_repeating_them(monkeypatch):
     """A frame the device's seeds did not align well (below GOOD_CORRELATION) goes to the host's seeds
     (GlobalMotion.estimate_images with the device's alignments): the starts the device tried are not aligned

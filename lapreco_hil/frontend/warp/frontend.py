@@ -18,7 +18,7 @@ front-end does (``_rescue_kernels``); a rig's frames are kinds of their own, so 
 from __future__ import annotations
 
 import time
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -73,6 +73,14 @@ class FrameKind(NamedTuple):
     budget: int  # the frame's track budget (larger in fast motion)
     rig: bool  # a stereo rig's frame (the rescue's kernels follow)
     prior: bool  # without a motion, the tracks start from the global image motion
+
+
+class ImageKind(NamedTuple):
+    """What makes one frame's image stages differ from another's (a graph of their own, launched before the host
+    prepares the frame's tracking)."""
+
+    buffer: int  # the frame buffer's parity
+    rig: bool  # a stereo rig's frame (the rescue's smoothed image follows)
 
 class WarpFrontEnd:
     def __init__(self, camera: CameraModel, config: TrackerConfig, device: str | None = None) -> None:
@@ -197,6 +205,7 @@ class WarpFrontEnd:
         self._align = None if self._global is None else global_motion.AlignmentImages(
             W, H, self._global.factor, reduced_maps(map_x, map_y, self._global.factor), self.device)
         self._align_has_prev = False  # the last frame's alignment image was made (it had no motion)
+        self._aligning = None  # the seed whose ECC _start_prior launched for this frame, if any
         # frames whose prior came from the device's ECC, from the host's seeds, or from neither (no prior)
         self.prior_aligned = {"device": 0, "host": 0, "none": 0}
         self._prior = False
@@ -256,6 +265,8 @@ class WarpFrontEnd:
         # one CUDA graph per kind of frame: (buffer parity, with a motion, LK's levels, the track budget, the
         # rescue's launches: a rig's frames, the prior)
         self._graphs = CapturedLaunches(self.device, "front-end")
+        # and one per kind of image stages: they run while the host prepares the frame's motion or prior
+        self._image_graphs = CapturedLaunches(self.device, "front-end image stages")
         self._cur = 0  # which of the double buffers holds the current pyramid / track state
         self._n_tracks = 0
         self._lit_min = float(np.log(config.min_brightness + LOG_OFFSET))
@@ -273,6 +284,16 @@ class WarpFrontEnd:
         return self._n_tracks
 
     # --- image stages -----------------------------------------------------------------------------------------
+    def _stage_image(self, image: np.ndarray, motion: FrameMotion | None = None) -> None:
+        """The frame's grey levels up and its image stages queued (``_image_kernels``); for a frame without a
+        motion, its alignment image and ECC from the last frame's motion first, on the side stream
+        (``_start_prior``): both run while the host goes on."""
+        self._to_staging(image)
+        beside = self._start_prior(motion)
+        self._image_graphs.run(ImageKind(self._cur, self._rescuing()), self._image_kernels, graphs=not self.profile)
+        if beside:  # what follows on the main stream (the next frame's upload among it) waits for the alignment
+            wp.get_stream(self.device).wait_stream(self._side_stream)
+
     def _to_staging(self, image: np.ndarray) -> None:
         """The frame's grey levels into the pinned staging buffer and on to the device, band by band: each band's
         copy runs while the host converts the next (the frame's graph starts after the last on the same
@@ -554,23 +575,32 @@ class WarpFrontEnd:
         tracks.commit_new_tracks(self._taken, count, self._n_new, self._next_id, dev)
 
     # --- the frame ----------------------------------------------------------------------------------------------
-    def _frame_kernels(self) -> None:
-        """A frame once its grey levels are on the device (one CUDA graph): image stages, tracking,
-        the surviving tracks' results into pinned memory (then the ``tracked`` event: the host reads their colours
-        while the rest runs), new corners when too few tracks are left (a conditional node), and every track's
-        results into a second set of pinned buffers.
-
-        On CUDA the corner selection runs on a second stream: its occupancy discs during the image stages, the
-        response and the greedy selection beside tracking (they need nothing from it). It is wasted on frames
-        that need no new corners, which costs GPU time but no latency."""
+    def _image_kernels(self) -> None:
+        """A frame's image stages once its grey levels are on the device (one CUDA graph per ``ImageKind``),
+        launched before the host prepares the frame's tracking (the motion's start depths, the plan, the prior),
+        so the two overlap. On CUDA the corner selection's occupancy discs run beside them on a second stream."""
         side = self._side_stream if not self.profile else None
+        self._sync_for_profile("upload")
         if side is not None:
             main = wp.get_stream(self.device)
             side.wait_stream(main)
             with wp.ScopedStream(side, sync_enter=False):
                 self._selection_start()
-        self._sync_for_profile("upload")
         self._prepare_kernels()
+        if side is not None:
+            main.wait_stream(side)  # (a graph's streams join before it ends)
+
+    def _frame_kernels(self) -> None:
+        """A frame once its image stages are queued (one CUDA graph per ``FrameKind``): the tracks' starts,
+        tracking, the surviving tracks' results into pinned memory (then the ``tracked`` event: the host reads their
+        colours while the rest runs), new corners when too few tracks are left (a conditional node), and every
+        track's results into a second set of pinned buffers.
+
+        On CUDA the corner response and the greedy selection run on a second stream beside tracking (they need
+        nothing from it). They are wasted on frames that need no new corners, which costs GPU time but no
+        latency."""
+        side = self._side_stream if not self.profile else None
+        main = wp.get_stream(self.device) if side is not None else None
         if self._motion is not None:
             self._predict_kernels(self._motion)
         elif self._prior:
@@ -648,6 +678,8 @@ class WarpFrontEnd:
         if self._align is not None:  # the alignment's graphs too (each parity's, captured on its second use)
             self._align.make(self._frame)
             self._align.align(np.eye(3))
+        self._aligning = None
+        self._image_graphs.run(ImageKind(cur, self._rescuing()), self._image_kernels, graphs=not self.profile)
         self._use_prior(np.eye(3))
         try:
             self._process_frame(frame, time.perf_counter(), cur)
@@ -659,7 +691,7 @@ class WarpFrontEnd:
         would choose: launched, or captured on the kind's second use (``_process_frame``)."""
         self._marks = {}
         self._cur = cur = 1 - self._cur
-        self._to_staging(frame.image)
+        self._stage_image(frame.image, motion)
         try:
             self._set_motion(motion, (np.zeros(0), np.zeros(0)))
             self._budget, self._lk_levels = budget, lk_levels
@@ -677,11 +709,11 @@ class WarpFrontEnd:
     @property
     def use_graphs(self) -> bool:
         """Whether frames replay CUDA graphs (False off CUDA, after a failed capture, or when switched off)."""
-        return self._graphs.enabled
+        return self._graphs.enabled and self._image_graphs.enabled
 
     @use_graphs.setter
     def use_graphs(self, on: bool) -> None:
-        self._graphs.enabled = bool(on) and self.device.is_cuda
+        self._graphs.enabled = self._image_graphs.enabled = bool(on) and self.device.is_cuda
 
     def process(self, frame: Frame, motion: FrameMotion | None = None) -> Observations:
         with device_lock(self.device):
@@ -716,7 +748,7 @@ class WarpFrontEnd:
         self._marks = {}
         t0 = time.perf_counter()
         self._cur = cur = 1 - self._cur
-        self._to_staging(frame.image)
+        self._stage_image(frame.image, motion)
         self._stereo_prior = (self._last[2], self._last[3], motion)  # (arrays replaced, never written in place)
         try:
             depths = None
@@ -733,6 +765,34 @@ class WarpFrontEnd:
             if self._prior:
                 self._clear_prior()
 
+    def _start_prior(self, motion: FrameMotion | None) -> bool:
+        """For a frame without a motion (and the prior on): the alignment image, then ECC from the last frame's
+        motion, launched without waiting (``_set_prior`` collects them). On CUDA they go on the side stream once
+        the frame is up, so they run beside the image stages: neither needs the other. Whether they went there."""
+        self._aligning = None
+        if self._global is None or motion is not None:
+            return False
+        side = self._side_stream if not self.profile else None
+        first = self._global.last if self._align_has_prev and plausible(self._global.last) else None
+
+        def launches():
+            self._align.make(self._frame)
+            if first is not None:
+                self._align.launch_align(self._global.to_alignment(first))
+
+        self._on_side(side, launches)
+        self._aligning = first
+        return side is not None
+
+    def _on_side(self, side, launches: Callable[[], None]) -> None:
+        """``launches()`` on the side stream after the main stream's work so far (CUDA; else where they are)."""
+        if side is None:
+            launches()
+            return
+        side.wait_stream(wp.get_stream(self.device))
+        with wp.ScopedStream(side, sync_enter=False):
+            launches()
+
     def _set_prior(self, motion: FrameMotion | None) -> None:
         """A frame without a motion: its image motion from a dense alignment with the last frame
         (``frontend.global_motion``), and LK starts every track from it (``predict.prior_starts``). The frame's
@@ -747,8 +807,7 @@ class WarpFrontEnd:
             self._global.forget()
             self._align_has_prev = False
             return
-        self._align.make(self._frame)
-        has_prev, self._align_has_prev = self._align_has_prev, True
+        has_prev, self._align_has_prev = self._align_has_prev, True  # (its image was made: _start_prior)
         if not has_prev:
             self._global.forget()
             return
@@ -769,13 +828,18 @@ class WarpFrontEnd:
         alignments made: (start, correlation, homography or None), alignment pixels."""
         tried: list[tuple] = []
         starts = DistinctStarts((self._align.h, self._align.w))
+        side = self._side_stream if not self.profile else None
         for seed in (self._global.last, *seeds):
             if not plausible(seed):
                 continue
             H0 = self._global.to_alignment(seed)
             if not starts.new(H0):
                 continue
-            rho, H = self._align.align(H0)
+            if self._aligning is not None and seed is self._aligning:
+                rho, H = self._align.collect()  # (launched with the frame's image stages: _start_prior)
+            else:
+                self._on_side(side, lambda: self._align.launch_align(H0))
+                rho, H = self._align.collect()
             tried.append((H0, rho, H))
             if H is not None and plausible(H) and rho >= GOOD_CORRELATION:
                 full = self._global.to_full(H)

@@ -314,6 +314,7 @@ class AlignmentImages:
         self._undistort = 1 if maps is not None else 0
         self.cur = 0  # which of the two buffers holds the last frame's image
         self._graphs = CapturedLaunches(device, "global motion prior")
+        self._launched_on = None  # the stream of the last launch_align (CUDA)
 
     def make(self, grey: wp.array) -> None:
         """The alignment image of the grey frame ``grey`` (H x W uint8 on the device, distorted) into the next
@@ -341,12 +342,23 @@ class AlignmentImages:
     def align(self, H0: np.ndarray) -> tuple[float, np.ndarray | None]:
         """ECC of the last image to the one before from the homography ``H0`` (alignment pixels, previous ->
         last), until it converges: (correlation, homography), or (-1, None) where it failed. Synchronises."""
+        self.launch_align(H0)
+        return self.collect()
+
+    def launch_align(self, H0: np.ndarray) -> None:
+        """``align``'s launches on the current stream, without waiting for them (``collect`` does): the host may
+        queue other work meanwhile."""
         up = self._up_np
         up[:9] = (np.asarray(H0, np.float64) / H0[2, 2]).ravel()
         up[9:] = 0.0
         self._graphs.run(("align", self.cur), self._align_launches)
-        if self._cuda:  # (the stream's work only: another stream's may run on)
-            wp.synchronize_stream(wp.get_stream(self.device))
+        self._launched_on = wp.get_stream(self.device) if self._cuda else None
+
+    def collect(self) -> tuple[float, np.ndarray | None]:
+        """The outcome of the last ``launch_align``, once its stream has done it (another stream's work may run
+        on)."""
+        if self._launched_on is not None:
+            wp.synchronize_stream(self._launched_on)
         down = self._down_np
         if down[9 + STATUS] == FAILED:
             return -1.0, None
