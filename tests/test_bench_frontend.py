@@ -43,3 +43,12 @@ def test_the_kernel_profile_adds_each_kernels_time_per_frame_without_prefix_or_h
                                                    "kernels_ms": times}}
     table = bench.format_table({"device": "cuda:0", "frames": 2, "warmup": 1, "cpu_threads": 2, "rows": [row]})
     assert "lk_track 0.400, _score 0.100, memcpy HtoD 0.050" in table
+
+
+def test_the_warp_rows_alone_leave_the_baseline_out(warp_cpu):
+    """``lapreco bench frontend --warp-only``: the Warp rows without OpenCV's (slow on the CPU at 4K); the table
+    shows the baseline's columns empty."""
+    result = bench.run("cpu", [(160, 120)], [100], frames=3, warmup=1, baseline=False)
+    row = result["rows"][0]
+    assert "opencv" not in row and row["warp"]["total_ms"] > 0
+    assert "160x120" in bench.format_table(result) and " nan " in bench.format_table(result)

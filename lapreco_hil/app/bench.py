@@ -107,11 +107,12 @@ def bench_soak(device: str = "auto", resolution: tuple[int, int] = (320, 240), f
             "samples": samples}
 
 
-def bench_frontend(device: str = "auto", resolutions=((1920, 1080),), features=(2000,), frames: int = 40) -> dict:
-    """The Warp front-end against the OpenCV baseline, per stage."""
+def bench_frontend(device: str = "auto", resolutions=((1920, 1080),), features=(2000,), frames: int = 40,
+                   baseline: bool = True) -> dict:
+    """The Warp front-end against the OpenCV baseline (``baseline``), per stage."""
     from lapreco_hil.bench.frontend import run
 
-    return run(resolve_device(device), list(resolutions), list(features), frames=frames)
+    return run(resolve_device(device), list(resolutions), list(features), frames=frames, baseline=baseline)
 
 
 def bench_ba(repeats: int = 3, device: str = "cpu") -> dict:

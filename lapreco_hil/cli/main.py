@@ -188,6 +188,8 @@ def build_parser() -> ArgumentParser:
     bench_fe.add_argument("--resolution", type=resolution, nargs="+", default=[(1920, 1080)])
     bench_fe.add_argument("--features", type=positive_int, nargs="+", default=[2000])
     bench_fe.add_argument("--frames", type=positive_int, default=40)
+    bench_fe.add_argument("--warp-only", action="store_true",
+                          help="the Warp rows alone, without the OpenCV baseline's (slow at 4K on the CPU)")
     bench_fe.add_argument("--json", default=None, help="also write the figures to this JSON file")
     bench_fe.set_defaults(func=_cmd_bench_frontend)
     bench_t = bench_sub.add_parser("tracking", help="the front-ends on real frames moved by known homographies: "
@@ -305,7 +307,8 @@ def _cmd_bench_frontend(args) -> int:
     from lapreco_hil.app.bench import bench_frontend
     from lapreco_hil.bench.frontend import format_table
 
-    result = bench_frontend(args.device, args.resolution, args.features, frames=args.frames)
+    result = bench_frontend(args.device, args.resolution, args.features, frames=args.frames,
+                            baseline=not args.warp_only)
     print(format_table(result))
     _write_json(args.json, result)
     return 0
