@@ -324,7 +324,7 @@ class FusionConfig:
     mesh_min_weight: float = ranged(0.5, ge=0.0)
     # ... but in a two-view final build (a stereo pair, a run of two keyframes: every fused map checked against the
     # one other map) a voxel needs only this: each fused depth is already confirmed by the only other view there is,
-    # and two maps of filled or semi-global depths (confidence 0.15-0.3 each) never sum to mesh_min_weight
+    # and two filled, coarse or semi-global depths (a fraction of a match's confidence) rarely sum to mesh_min_weight
     # (docs/dense.md, "Session 25")
     pair_mesh_min_weight: float = ranged(0.0, ge=0.0)
     # a fused keyframe whose pose update moves its fused points (at most: translation + rotation x its farthest
