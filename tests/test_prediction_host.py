@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lapreco_hil.config import TrackerConfig
-from lapreco_hil.frontend import epipolar, track_budget
+from lapreco_hil.frontend import epipolar, track_budget, track_capacity
 from lapreco_hil.frontend.image import predicted_levels
 from lapreco_hil.types import FrameMotion
 
@@ -217,3 +217,28 @@ def test_borrowed_depths_where_the_tracks_without_one_gather_equal_the_plain_ref
     if pattern == "hole":  # (its middle borrows from landmarks 200-288 px away, beyond its cells' 7 x 7 blocks)
         assert np.isfinite(expected[np.linalg.norm(uv - [900, 500], axis=1) < 30]).all()
         assert candidate is not None and not candidate[~query].all()
+
+
+def test_the_plan_from_the_small_motion_tests_work_is_the_plan_made_afresh():
+    """The Warp front-end's plan reuses ``own_start_depths``' projections (``OwnStartDepths.moved_sq``, ``terms``):
+    the budget and levels are those ``prediction_plan`` makes from the plan's depths alone, for slow and fast
+    motions, with the budget's option and the reduced levels on."""
+    rng = np.random.default_rng(7)
+    K = np.array([[1100.0, 0, 960], [0, 1100.0, 540], [0, 0, 1]])
+    size = (1920, 1080)
+    uv = rng.uniform([0, 0], size, (1500, 2))
+    ids = np.arange(1500, dtype=np.int64)
+    own = rng.random(1500) < 0.7
+    cfg = TrackerConfig(reduced_predicted_levels=True)
+    budgets = set()
+    for scale in (1.0, 3.0, 12.0, 30.0):
+        T = np.eye(4)
+        T[:3, 3] = np.array([1.2, 0.6, 1.5]) * 1e-3 * scale
+        motion = FrameMotion(T, ids[own], rng.uniform(0.04, 0.12, own.sum()), (0.03, 0.3))
+        got = epipolar.own_start_depths(uv, ids, motion, K, size)
+        assert got is not None and got.moved_sq is not None
+        afresh = epipolar.prediction_plan(cfg, 5, size, uv, ids, got.plan, motion, K)
+        reused = epipolar.prediction_plan(cfg, 5, size, uv, ids, got.plan, motion, K, got.moved_sq, got.terms)
+        assert reused == afresh
+        budgets.add(afresh[0])
+    assert budgets == {cfg.max_features, track_capacity(cfg)}  # both budgets met

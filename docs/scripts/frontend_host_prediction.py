@@ -5,6 +5,9 @@ with a landmark at random; "band": all but a 200 px band at the left edge), 1920
 median ms of 100 calls and the plan (budget, LK levels) each gives.
 
     python docs/scripts/frontend_host_prediction.py
+
+(Session 25: "after" passes the small-motion test's projections on to the plan, as the front-end does; with
+``PYTHONPATH=`` a checkout of an earlier tree, the same script times that tree's functions.)
 """
 import time, numpy as np, dataclasses
 from lapreco_hil.config import TrackerConfig
@@ -28,7 +31,9 @@ for cfg_name, cfg in (("default", TrackerConfig()), ("reduced levels", dataclass
             def before():
                 d = ep.start_depths(uv, ids, m, K, SIZE); return ep.prediction_plan(cfg, 5, SIZE, uv, ids, d, m, K)
             def after():
-                r = ep.own_start_depths(uv, ids, m, K, SIZE); return ep.prediction_plan(cfg, 5, SIZE, uv, ids, r[1], m, K)
+                r = ep.own_start_depths(uv, ids, m, K, SIZE)
+                shared = (r.moved_sq, r.terms) if hasattr(r, "moved_sq") else ()  # (session 25 on: reused)
+                return ep.prediction_plan(cfg, 5, SIZE, uv, ids, r[1], m, K, *shared)
             res = {}
             for name, f in (("before", before), ("after", after)) * 2:
                 for _ in range(5): f()

@@ -10,6 +10,7 @@ camera to the destination camera.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -254,13 +255,24 @@ def start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     return _settle_short_lines(terms, depth, motion.depth_range_m)
 
 
+class OwnStartDepths(NamedTuple):
+    """``own_start_depths``' answer: what the device starts from, what the plan is made from, and what the plan can
+    reuse of the small-motion test's work (None where the host borrowed)."""
+
+    depth: np.ndarray  # each track's own depth, NaN where it has none, -1 where it has none to take either
+    plan: np.ndarray  # the depths ``prediction_plan`` is made from
+    moved_sq: np.ndarray | None = None  # each track's squared predicted motion (px^2) at its plan depth
+    terms: tuple[np.ndarray, np.ndarray] | None = None  # ``_homography_terms`` of the tracks under the motion
+
+
 def own_start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
-                     image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+                     image_size: tuple[int, int]) -> OwnStartDepths | None:
     """``start_depths`` for a front-end that borrows and settles the depths itself (the Warp one, on the device:
-    ``warp.predict.borrow_and_settle``): (the depths it starts from, NaN where a track has none of its own and
-    -1 where it has none to take either; the depths its ``prediction_plan`` is made from, those with the others at
-    the own depths' median, a borrowed depth's stand-in), or None for a small motion. Where fewer than 10 tracks
-    have a depth of their own, the small-motion test needs the borrowed ones: the host then makes them
+    ``warp.predict.borrow_and_settle``): the depths it starts from (NaN where a track has none of its own and -1
+    where it has none to take either) and the depths its ``prediction_plan`` is made from (the others at the own
+    depths' median, a borrowed depth's stand-in), or None for a small motion. The small-motion test's projections
+    serve the plan too (``OwnStartDepths.moved_sq``: an own depth's motion is the same for both). Where fewer than
+    10 tracks have a depth of their own, the small-motion test needs the borrowed ones: the host then makes them
     (``start_depths``, few to borrow from), the tracks left without one are sent as -1, and the plan is made from
     ``start_depths``' answer."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -270,12 +282,16 @@ def own_start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     known = np.isfinite(depth)
     if np.count_nonzero(known) < 10:
         full = start_depths(uv, ids, motion, K, image_size)
-        return None if full is None else (np.where(np.isfinite(full), full, -1.0), full)
-    if _small_motion(uv, _homography_terms(uv, K, K, np.asarray(motion.T_cur_prev, np.float64)), depth):
-        return None
+        return None if full is None else OwnStartDepths(np.where(np.isfinite(full), full, -1.0), full)
     plan = depth.copy()
     plan[~known] = np.median(depth[known])
-    return depth, plan
+    terms = _homography_terms(uv, K, K, np.asarray(motion.T_cur_prev, np.float64))
+    moved_sq = _moved_sq(uv, terms, plan)
+    own_moved = moved_sq[known]
+    own_moved = own_moved[np.isfinite(own_moved)]
+    if len(own_moved) and _median_below(own_moved, SMALL_MOTION_PX):  # (``_small_motion`` on the own depths)
+        return None
+    return OwnStartDepths(depth, plan, moved_sq, terms)
 
 
 def _small_motion(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth: np.ndarray) -> bool:
@@ -370,12 +386,15 @@ def _start_uncertainty_px(terms: tuple[np.ndarray, np.ndarray], ids: np.ndarray,
 
 
 def prediction_plan(config, levels: int, size: tuple[int, int], uv: np.ndarray, ids: np.ndarray, depth: np.ndarray,
-                    motion, K: np.ndarray) -> tuple[int, int]:
+                    motion, K: np.ndarray, moved_sq: np.ndarray | None = None,
+                    terms: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[int, int]:
     """For a frame tracked from ``motion``'s prediction (``depth``: its tracks' start depths, ``start_depths``):
     (the tracks it keeps, ``track_budget``; LK's pyramid levels above full resolution of the front-end's
     ``levels``, ``image.predicted_levels``). Each is measured only where its option is on
-    (``fast_features_scale`` above 1, ``reduced_predicted_levels``): both front-ends run this every frame."""
-    from lapreco_hil.frontend import track_budget
+    (``fast_features_scale`` above 1, ``reduced_predicted_levels``): both front-ends run this every frame.
+    ``moved_sq`` and ``terms``: the tracks' squared motion at ``depth`` and their ``_homography_terms``, where the
+    caller has them (``OwnStartDepths``)."""
+    from lapreco_hil.frontend import track_capacity
     from lapreco_hil.frontend.image import predicted_levels
 
     budget, lk_levels = config.max_features, levels
@@ -383,9 +402,14 @@ def prediction_plan(config, levels: int, size: tuple[int, int], uv: np.ndarray, 
         return budget, lk_levels
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     depth = np.asarray(depth, np.float64)
-    terms = _homography_terms(uv, K, K, motion.T_cur_prev)  # (shared by both measures)
+    if terms is None:
+        terms = _homography_terms(uv, K, K, motion.T_cur_prev)  # (shared by both measures)
     if config.fast_features_scale > 1.0:
-        budget = track_budget(config, _start_motion_px(uv, terms, depth))
+        # ``track_budget``'s rule (the median motion at least fast_motion_px), counted rather than sorted
+        moved_sq = _moved_sq(uv, terms, depth) if moved_sq is None else moved_sq
+        moved_sq = moved_sq[np.isfinite(moved_sq)]
+        if len(moved_sq) and not _median_below(moved_sq, config.fast_motion_px):
+            budget = track_capacity(config)
     if config.reduced_predicted_levels:
         uncertainty = _start_uncertainty_px(terms, ids, depth, motion) if len(uv) else POSE_UNCERTAINTY_PX
         lk_levels = predicted_levels(config, levels, size[0], size[1], uncertainty)

@@ -693,7 +693,7 @@ class WarpFrontEnd:
         self._cur = cur = 1 - self._cur
         self._stage_image(frame.image, motion)
         try:
-            self._set_motion(motion, (np.zeros(0), np.zeros(0)))
+            self._set_motion(motion, epipolar.OwnStartDepths(np.zeros(0), np.zeros(0)))
             self._budget, self._lk_levels = budget, lk_levels
             self._process_frame(frame, time.perf_counter(), cur)
         finally:
@@ -719,7 +719,7 @@ class WarpFrontEnd:
         with device_lock(self.device):
             return self._process(frame, motion)
 
-    def _set_motion(self, motion: FrameMotion | None, depths: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    def _set_motion(self, motion: FrameMotion | None, depths: epipolar.OwnStartDepths | None = None) -> None:
         """The frame's motion to the device: each slot's own depth (``depths``: ``epipolar.own_start_depths``;
         the device borrows the others' from their neighbours), the flag that makes LK start from the predicted
         positions, LK's pyramid levels for the prediction's uncertainty and the frame's track budget
@@ -731,9 +731,10 @@ class WarpFrontEnd:
         if motion is None:
             return
         _, _, ids, uv = self._last
-        depth, plan_depth = depths
+        depth = depths.depth
         self._budget, lk_levels = epipolar.prediction_plan(self.config, self.pyramid_levels, (self.width, self.height),
-                                                           uv, ids, plan_depth, motion, self.camera.K)
+                                                           uv, ids, depths.plan, motion, self.camera.K,
+                                                           depths.moved_sq, depths.terms)
         self._lk_levels = lk_levels + 1  # (with full resolution)
         self._depth_range = motion.depth_range_m
         depth_up, T_up, range_up = self._motion_up_np
