@@ -1,13 +1,15 @@
 """The Warp front-end object: owns its device buffers (allocated once, reused every frame) and turns a frame
 into observations. Track bookkeeping (live counts, ids, compaction, the choice of new corners) stays on the
 device, so on CUDA a frame is the grey conversion on the host, uploaded band by band as it is converted, then
-one graph replay: the image stages, tracking, detection, and two small copies of the per-track results into pinned
-memory (the surviving tracks' part first, so the host reads their colours while detection finishes). Images never
-come back: colours are read on the host from the frame in hand, at each track's position in the distorted frame.
+two graph replays: the image stages (launched at once, so they run while the host prepares the frame's motion or
+prior), then tracking, detection, and two small copies of the per-track results into pinned memory (the surviving
+tracks' part first, so the host reads their colours while detection finishes). Images never come back: colours are
+read on the host from the frame in hand, at each track's position in the distorted frame.
 
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
-its motion goes up to the device first, so it too is a graph replay (one graph per kind of frame: buffer parity,
-with or without a motion, LK's levels, the track budget, serving a rig). ``match_view`` brings this frame's tracker image
+its motion goes up to the device first, so it too is a graph replay (one tracking graph per kind of frame: buffer
+parity, with or without a motion, LK's levels, the track budget, serving a rig). A frame without one aligns with
+the last on the side stream beside its image stages (the global motion prior, ``_start_prior``). ``match_view`` brings this frame's tracker image
 back once and matches on the host (``frontend.epipolar``).
 
 With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
@@ -199,7 +201,7 @@ class WarpFrontEnd:
             self._one = wp.ones(1, dtype=wp.int32)
         self._consensus = consensus.ConsensusBuffers(n, W, H, self.device)
         # frames without a pose prediction: the image motion from the host's dense alignment of the frame
-        # (frontend.global_motion), sent up before the frame's graph; _prior: this frame's tracks start from it
+        # (frontend.global_motion), sent up before the frame's tracking graph; _prior: this frame's tracks start from it
         self._global = GlobalMotion(W, H) if config.global_motion_prior else None
         # the frames' alignment images and ECC from the first seeds on the device; the host's seeds for the rest
         self._align = None if self._global is None else global_motion.AlignmentImages(
