@@ -235,7 +235,8 @@ def test_the_warp_front_end_aligns_a_smooth_motion_on_the_device(warp_cpu):
     assert _median_error(frontend._global.last, step, size) < 0.5
 
 
-@pytest.mark.skipif(not DEVICE.startswith("cuda"), reason="CUDA streams and graphs: run with LAPRECO_TEST_DEVICE=cuda:0")
+@pytest.mark.skipif(not DEVICE.startswith("cuda"),
+                    reason="CUDA streams and graphs: run with LAPRECO_TEST_DEVICE=cuda:0")
 def test_frames_aligned_beside_their_image_stages_replay_as_graphs_what_they_launch():
     """On CUDA a frame without a prediction makes its alignment image and runs ECC on the side stream while its
     image stages run on the main one (``_start_prior``), each from its own graph: the priors and the tracks are

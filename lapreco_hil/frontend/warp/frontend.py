@@ -9,8 +9,8 @@ read on the host from the frame in hand, at each track's position in the distort
 A frame that comes with a ``FrameMotion`` starts LK where the motion predicts each track (``warp/predict.py``);
 its motion goes up to the device first, so it too is a graph replay (one tracking graph per kind of frame: buffer
 parity, with or without a motion, LK's levels, the track budget, serving a rig). A frame without one aligns with
-the last on the side stream beside its image stages (the global motion prior, ``_start_prior``). ``match_view`` brings this frame's tracker image
-back once and matches on the host (``frontend.epipolar``).
+the last on the side stream beside its image stages (the global motion prior, ``_start_prior``). ``match_view``
+brings this frame's tracker image back once and matches on the host (``frontend.epipolar``).
 
 With a stereo rig (``match_view`` called) and fast image motion, a new track the drift check refuses at its first
 step is judged again on the tracker image smoothed by ``TrackerConfig.rescue_smoothing_px``, as the OpenCV
@@ -201,7 +201,8 @@ class WarpFrontEnd:
             self._one = wp.ones(1, dtype=wp.int32)
         self._consensus = consensus.ConsensusBuffers(n, W, H, self.device)
         # frames without a pose prediction: the image motion from the host's dense alignment of the frame
-        # (frontend.global_motion), sent up before the frame's tracking graph; _prior: this frame's tracks start from it
+        # (frontend.global_motion), sent up before the frame's tracking graph; _prior: this frame's tracks start
+        # from it
         self._global = GlobalMotion(W, H) if config.global_motion_prior else None
         # the frames' alignment images and ECC from the first seeds on the device; the host's seeds for the rest
         self._align = None if self._global is None else global_motion.AlignmentImages(
