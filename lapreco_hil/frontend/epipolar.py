@@ -135,6 +135,13 @@ def _median_below(values_sq: np.ndarray, threshold: float) -> bool:
     return bool((lower + upper) / 2 < threshold)
 
 
+def _median_motion_below(moved_sq: np.ndarray, px: float) -> bool | None:
+    """Whether the tracks' median motion (``_moved_sq``, NaN where unknown) is below ``px``; None where no track has
+    a motion."""
+    moved_sq = moved_sq[np.isfinite(moved_sq)]
+    return _median_below(moved_sq, px) if len(moved_sq) else None
+
+
 def depths_for_tracks(uv: np.ndarray, ids: np.ndarray, known_ids: np.ndarray, known_depth: np.ndarray,
                       image_size: tuple[int, int]) -> np.ndarray:
     """Each track's depth: its own where ``known_ids`` has it, else the median of its nearest tracks' that have
@@ -287,9 +294,7 @@ def own_start_depths(uv: np.ndarray, ids: np.ndarray, motion, K: np.ndarray,
     plan[~known] = np.median(depth[known])
     terms = _homography_terms(uv, K, K, np.asarray(motion.T_cur_prev, np.float64))
     moved_sq = _moved_sq(uv, terms, plan)
-    own_moved = moved_sq[known]
-    own_moved = own_moved[np.isfinite(own_moved)]
-    if len(own_moved) and _median_below(own_moved, SMALL_MOTION_PX):  # (``_small_motion`` on the own depths)
+    if _median_motion_below(moved_sq[known], SMALL_MOTION_PX):  # (``_small_motion`` on the own depths)
         return None
     return OwnStartDepths(depth, plan, moved_sq, terms)
 
@@ -299,9 +304,7 @@ def _small_motion(uv: np.ndarray, terms: tuple[np.ndarray, np.ndarray], depth: n
     (median, at least 10)."""
     if np.count_nonzero(np.isfinite(depth)) < 10:
         return False
-    moved_sq = _moved_sq(uv, terms, depth)
-    moved_sq = moved_sq[np.isfinite(moved_sq)]
-    return bool(len(moved_sq)) and _median_below(moved_sq, SMALL_MOTION_PX)
+    return bool(_median_motion_below(_moved_sq(uv, terms, depth), SMALL_MOTION_PX))
 
 
 def start_motion_px(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cur_prev: np.ndarray) -> float | None:
@@ -407,8 +410,7 @@ def prediction_plan(config, levels: int, size: tuple[int, int], uv: np.ndarray, 
     if config.fast_features_scale > 1.0:
         # ``track_budget``'s rule (the median motion at least fast_motion_px), counted rather than sorted
         moved_sq = _moved_sq(uv, terms, depth) if moved_sq is None else moved_sq
-        moved_sq = moved_sq[np.isfinite(moved_sq)]
-        if len(moved_sq) and not _median_below(moved_sq, config.fast_motion_px):
+        if _median_motion_below(moved_sq, config.fast_motion_px) is False:  # (None: no motion known)
             budget = track_capacity(config)
     if config.reduced_predicted_levels:
         uncertainty = _start_uncertainty_px(terms, ids, depth, motion) if len(uv) else POSE_UNCERTAINTY_PX

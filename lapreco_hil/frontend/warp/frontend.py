@@ -293,9 +293,12 @@ class WarpFrontEnd:
         (``_start_prior``): both run while the host goes on."""
         self._to_staging(image)
         beside = self._start_prior(motion)
-        self._image_graphs.run(ImageKind(self._cur, self._rescuing()), self._image_kernels, graphs=not self.profile)
+        self._launch_image_stages()
         if beside:  # what follows on the main stream (the next frame's upload among it) waits for the alignment
             wp.get_stream(self.device).wait_stream(self._side_stream)
+
+    def _launch_image_stages(self) -> None:
+        self._image_graphs.run(ImageKind(self._cur, self._rescuing()), self._image_kernels, graphs=not self.profile)
 
     def _to_staging(self, image: np.ndarray) -> None:
         """The frame's grey levels into the pinned staging buffer and on to the device, band by band: each band's
@@ -582,7 +585,7 @@ class WarpFrontEnd:
         """A frame's image stages once its grey levels are on the device (one CUDA graph per ``ImageKind``),
         launched before the host prepares the frame's tracking (the motion's start depths, the plan, the prior),
         so the two overlap. On CUDA the corner selection's occupancy discs run beside them on a second stream."""
-        side = self._side_stream if not self.profile else None
+        side = self._side
         self._sync_for_profile("upload")
         if side is not None:
             main = wp.get_stream(self.device)
@@ -602,7 +605,7 @@ class WarpFrontEnd:
         On CUDA the corner response and the greedy selection run on a second stream beside tracking (they need
         nothing from it). They are wasted on frames that need no new corners, which costs GPU time but no
         latency."""
-        side = self._side_stream if not self.profile else None
+        side = self._side
         main = wp.get_stream(self.device) if side is not None else None
         if self._motion is not None:
             self._predict_kernels(self._motion)
@@ -682,7 +685,7 @@ class WarpFrontEnd:
             self._align.make(self._frame)
             self._align.align(np.eye(3))
         self._aligning = None
-        self._image_graphs.run(ImageKind(cur, self._rescuing()), self._image_kernels, graphs=not self.profile)
+        self._launch_image_stages()
         self._use_prior(np.eye(3))
         try:
             self._process_frame(frame, time.perf_counter(), cur)
@@ -776,7 +779,6 @@ class WarpFrontEnd:
         self._aligning = None
         if self._global is None or motion is not None:
             return False
-        side = self._side_stream if not self.profile else None
         first = self._global.last if self._align_has_prev and plausible(self._global.last) else None
 
         def launches():
@@ -784,18 +786,27 @@ class WarpFrontEnd:
             if first is not None:
                 self._align.launch_align(self._global.to_alignment(first))
 
-        self._on_side(side, launches)
+        beside = self._on_side(launches)
         self._aligning = first
-        return side is not None
+        return beside
 
-    def _on_side(self, side, launches: Callable[[], None]) -> None:
-        """``launches()`` on the side stream after the main stream's work so far (CUDA; else where they are)."""
+    @property
+    def _side(self):
+        """The second stream for work beside the main one (CUDA), or None: off CUDA, and when profiling (stage
+        times need one stream)."""
+        return self._side_stream if not self.profile else None
+
+    def _on_side(self, launches: Callable[[], None]) -> bool:
+        """``launches()`` on the side stream after the main stream's work so far (CUDA; else where they are):
+        whether they went there."""
+        side = self._side
         if side is None:
             launches()
-            return
+            return False
         side.wait_stream(wp.get_stream(self.device))
         with wp.ScopedStream(side, sync_enter=False):
             launches()
+        return True
 
     def _set_prior(self, motion: FrameMotion | None) -> None:
         """A frame without a motion: its image motion from a dense alignment with the last frame
@@ -832,18 +843,15 @@ class WarpFrontEnd:
         alignments made: (start, correlation, homography or None), alignment pixels."""
         tried: list[tuple] = []
         starts = DistinctStarts((self._align.h, self._align.w))
-        side = self._side_stream if not self.profile else None
         for seed in (self._global.last, *seeds):
             if not plausible(seed):
                 continue
             H0 = self._global.to_alignment(seed)
             if not starts.new(H0):
                 continue
-            if self._aligning is not None and seed is self._aligning:
-                rho, H = self._align.collect()  # (launched with the frame's image stages: _start_prior)
-            else:
-                self._on_side(side, lambda: self._align.launch_align(H0))
-                rho, H = self._align.collect()
+            if self._aligning is None or seed is not self._aligning:  # (else launched by _start_prior)
+                self._on_side(lambda: self._align.launch_align(H0))
+            rho, H = self._align.collect()
             tried.append((H0, rho, H))
             if H is not None and plausible(H) and rho >= GOOD_CORRELATION:
                 full = self._global.to_full(H)
