@@ -267,6 +267,14 @@ class DepthConfig:
     # surface, best_k of more may; at most 8 score per pixel (patchmatch) (docs/dense.md, "Session 24: the far range
     # and more views")
     final_source_views: int = ranged(8, ge=1)
+    # ... and, method "patchmatch", made a second time with the first pass's maps of its sources (every scored
+    # pixel's depth, unchecked, as ACMM's) as a geometric term (ACMM's geometric consistency): each source's score
+    # of a plane less ``geometric_pass_weight`` x its forward-backward reprojection error through that source's map
+    # (full-resolution pixels, at most ``geometric_pass_tau_px``; ACMM's 0.2 and 3), so that pixels whose windows
+    # barely tell planes apart take the one the neighbours' maps agree on (docs/dense.md, "Session 26")
+    final_geometric_pass: bool = False
+    geometric_pass_weight: float = ranged(0.2, ge=0.0)
+    geometric_pass_tau_px: float = ranged(3.0, gt=0.0)
     # a stereo scope's partner views (rig camera >= 1) get depth maps of their own in the final build, filled,
     # checked and fused as the reference keyframes' are, when the run keeps at most this many reference keyframes
     # (0: never; the live incremental fusion is reference-only; docs/dense.md, "Two views")

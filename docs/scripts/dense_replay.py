@@ -11,7 +11,12 @@ and checked again (against each other's). Inputs re-derived from the capture (se
 views"): ``sources=N``: each keyframe's sources chosen again by ``choose_sources`` (N of them, among the 64 nearest
 captured views, as the surface does); ``rnear=F rfar=F``: every view's landmark depth range widened (near / F, far x
 F) before its map is made; ``runion=1``: a map's range the union of its own and its sources' ranges; ``checksrc=N``: only the first N sources
-lead a map's check's neighbours (the nearest keyframes follow)."""
+lead a map's check's neighbours (the nearest keyframes follow). ``geopass=1``: every map made a second
+time with its sources' first-pass maps as PatchMatch's geometric term (``[depth] final_geometric_pass``, session
+26; ``geometric_pass_weight=W geometric_pass_tau_px=T`` as settings; its maps cached apart; ``geofirst=checked``: the
+first pass's checked maps as the term, instead of its unchecked depths). ``dump=1``: the last filter's maps (as made, with the
+coarse level; filled; checked), rejection codes and fused points saved to $DENSE_REPLAY_DIR/SCENE-dump.pkl for
+dense_coverage_attribution.py (session 26)."""
 # Session 17 (docs/dense.md, "Session 17: coverage"): the depth + fusion stage of the sequential demo re-run on saved
 # keyframes. Files live in $DENSE_REPLAY_DIR (default /tmp/dense-replay). Not part of the package.
 import dataclasses
@@ -37,6 +42,9 @@ sets, fsets, filters, nb, fill_sources, rounds, coarse_views = {}, {}, ["none", 
 coarse_texture = None  # ``ctex=0/1``; None: as the package's KeptEstimator does
 inputs = {}  # the capture's inputs re-derived: sources, depth ranges
 check_sources = None
+dump = False
+geo_pass = False
+geo_first = "unchecked"
 for a in sys.argv[2:]:
     k, v = a.split("=")
     if k in ("sources", "rnear", "rfar", "runion"):
@@ -53,6 +61,12 @@ for a in sys.argv[2:]:
         coarse_views = int(v); continue
     if k == "rounds":
         rounds = int(v); continue
+    if k == "geopass":
+        geo_pass = bool(int(v)); continue
+    if k == "geofirst":  # the geometric pass's first-pass maps: "unchecked" (the package's) or "checked"
+        geo_first = v; continue
+    if k == "dump":
+        dump = bool(int(v)); continue
     if k == "fillsrc":
         fill_sources = bool(int(v)); continue
     target = fsets if k.startswith("f.") else sets
@@ -90,22 +104,44 @@ est = DepthEstimator(dcfg, "cpu", host_buffers=0)
 t0 = time.time()
 import hashlib
 # (the settings applied after the maps are made leave them as cached)
-after = ("consistency_fill", "coarse_")
+after = ("consistency_fill", "coarse_", "geometric_pass_")
 key = hashlib.md5(repr((scene, sorted((k, v) for k, v in sets.items() if not k.startswith(after)), open(pm_module.__file__).read(), open(depth_module.__file__).read(), open(sweep_module.__file__).read()) + ((tuple(sorted(inputs.items())),) if inputs else ())).encode()).hexdigest()[:10]
 cache = f"{WORK}/maps-{key}.pkl"
 codes_cache = f"{WORK}/codes-{key}.pkl"  # each map's rejection codes (for the coarse level)
-if os.path.exists(cache) and os.path.exists(codes_cache):
+unchecked_cache = f"{WORK}/unchecked-{key}.pkl"  # each map's depths before the checks (the geometric pass's input)
+if os.path.exists(cache) and os.path.exists(codes_cache) and (os.path.exists(unchecked_cache) or not geo_pass):
     maps = pickle.load(open(cache, "rb"))
     codes = pickle.load(open(codes_cache, "rb"))
 else:
-    maps, codes = {}, {}
+    maps, codes, unchecked = {}, {}, {}
     cpu0 = time.process_time()
     for ref_id, src_ids in rec["jobs"]:
         maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids])
         codes[ref_id] = est.rejection_codes()
+        if dcfg.method == "patchmatch":
+            unchecked[ref_id] = est.unchecked_depth()
     print(f"full-resolution maps: {time.time() - t0:.0f} s wall, {time.process_time() - cpu0:.0f} s CPU", flush=True)
     pickle.dump(maps, open(cache, "wb"))
     pickle.dump(codes, open(codes_cache, "wb"))
+    pickle.dump(unchecked, open(unchecked_cache, "wb"))
+if geo_pass:  # session 26: the second pass, each map against its sources' first-pass maps (ACMM)
+    gkey = f"{WORK}/geo-{key}-w{dcfg.geometric_pass_weight:g}-t{dcfg.geometric_pass_tau_px:g}-{geo_first}"
+    if os.path.exists(gkey + ".pkl"):
+        maps, codes = pickle.load(open(gkey + ".pkl", "rb"))
+    else:
+        # the first pass as the geometric term sees it: every scored pixel's depth, unchecked (as ACMM's maps)
+        unc = pickle.load(open(unchecked_cache, "rb"))
+        first = {i: dataclasses.replace(m, depth_m=unc[i], confidence=(unc[i] > 0).astype(np.float32))
+                 for i, m in maps.items()}
+        if geo_first == "checked":  # (the first try: the checked maps, with their holes)
+            first = maps
+        maps, codes = {}, {}
+        cpu0, t00 = time.process_time(), time.time()
+        for ref_id, src_ids in rec["jobs"]:
+            maps[ref_id] = est.compute(rec["views"][ref_id], [rec["views"][s] for s in src_ids], geometry=first)
+            codes[ref_id] = est.rejection_codes()
+        print(f"second pass: {time.time() - t00:.0f} s wall, {time.process_time() - cpu0:.0f} s CPU", flush=True)
+        pickle.dump((maps, codes), open(gkey + ".pkl", "wb"))
 coarse = dcfg.coarse_level
 if coarse > 1:  # [depth] coarse_level (session 24): the holes of weak texture from a map of the views reduced by it
     from lapreco_hil.dense.coarse import coarse_into_holes, reduced_view
@@ -184,3 +220,8 @@ for spec in filters:
     extra = f"median {np.median(dd):.3f} p90 {np.percentile(dd, 90):.2f} >1mm {100*np.mean(dd > 1):.1f}% >2mm {100*np.mean(dd > 2):.1f}% rms<2mm {np.sqrt(np.mean(dd[dd<2]**2)):.3f}"
     print(f"{scene} {' '.join(sys.argv[2:])} geo={spec}: {extra} coverage {100*d['coverage']:.1f}% rms {d['rms_mm']:.3f} mm "
           f">5mm {100*d['beyond_5mm']:.2f}% points {d['points']} depth {t1-t0:.0f}s fill {t2-t1:.1f}s", flush=True)
+    if dump:
+        f32 = lambda ms: {i: np.asarray(m.depth_m, np.float32) for i, m in ms.items()}
+        pickle.dump({"jobs": rec["jobs"], "raw": f32(raw), "filled": f32(filled), "final": f32(final), "codes": codes,
+                     "points": pts.astype(np.float32), "filter": spec},
+                    open(f"{WORK}/{scene}-dump.pkl", "wb"))

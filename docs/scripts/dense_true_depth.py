@@ -19,8 +19,10 @@ cam = CameraModel(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
 out = {}
 for ref_id, _ in rec["jobs"]:
     v = rec["views"][ref_id]
-    assert np.allclose(v.K, cam.K), (v.K, cam.K)
-    _, depth = world.renderer.render(v.T_world_camera, camera=cam)
+    # (the view's own pinhole image: since session 23 a canvas larger than the frame holds the whole field of view)
+    K = np.asarray(v.K, float)
+    view_cam = CameraModel(v.size[0], v.size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    _, depth = world.renderer.render(v.T_world_camera, camera=view_cam)
     out[ref_id] = depth.astype(np.float32)
 np.savez_compressed(f"{WORK}/{scene}-truedepth.npz", **{str(k): d for k, d in out.items()})
 print("ok", len(out))

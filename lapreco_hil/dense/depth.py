@@ -387,6 +387,7 @@ class DepthEstimator:
             self.pm_plane = self._alloc((h // 2, w // 2), wp.vec3)  # inverse depth and its gradient
             self.pm_score = self._alloc((h // 2, w // 2), float)
             self.pm_full_plane = self._alloc((h, w), wp.vec3)
+            self.pm_unchecked = self._alloc((h, w), float)  # every scored pixel's depth (``unchecked_depth``)
         self._shape = shape
 
     def _ensure_parameters(self, n_src: int) -> None:
@@ -541,16 +542,20 @@ class DepthEstimator:
 
     # --- the depth map ----------------------------------------------------------------------------------------
     def compute(self, ref: KeyframeView, sources: list[KeyframeView],
-                source_depths: dict[int, DepthMap] | None = None, on_device: bool = False) -> DepthMap:
+                source_depths: dict[int, DepthMap] | None = None, on_device: bool = False,
+                geometry: dict[int, DepthMap] | None = None) -> DepthMap:
         """The depth map of ``ref`` against ``sources`` (see the module's docstring); ``source_depths`` (kf_id ->
         that source's own depth map) adds the forward-backward check for the sources it holds. ``on_device``: the
         map's depth and confidence are left on the device, as Warp arrays that this estimator's next ``compute``
         or ``check_geometry`` overwrites (only the funnel's counts come back; ``stats["kept_pixels"]`` says
-        whether it has any depth). Either way the device has finished the map when it returns."""
+        whether it has any depth). Either way the device has finished the map when it returns. ``geometry``
+        (kf_id -> a source's map from a first pass; method "patchmatch", ``[depth] geometric_pass_weight`` > 0):
+        PatchMatch scores each plane with the sources' reprojection errors through those maps too (ACMM's
+        geometric consistency; warp/patchmatch.py), ``stats["geometry_sources"]`` says which sources had one."""
         # Warp's current stream is one per device for the whole process: take turns with the other threads
         # that drive this device (a CUDA graph capture in the front-end must not catch these launches)
         with device_lock(self.device):
-            return self._compute(ref, sources, source_depths, on_device)
+            return self._compute(ref, sources, source_depths, on_device, geometry)
 
     def view_colour(self, kf_id: int):
         """A cached view's colour on the device ((H, W, 3) uint8 Warp array, as uploaded), or None when it is not
@@ -559,7 +564,8 @@ class DepthEstimator:
         return None if entry is None else self._slot_arrays[entry.slot][0]
 
     def _compute(self, ref: KeyframeView, sources: list[KeyframeView],
-                 source_depths: dict[int, DepthMap] | None, on_device: bool = False) -> DepthMap:
+                 source_depths: dict[int, DepthMap] | None, on_device: bool = False,
+                 geometry: dict[int, DepthMap] | None = None) -> DepthMap:
         cfg = self.config
         if not sources:
             raise ReconstructionError(f"keyframe {ref.kf_id}: a depth map needs at least one source view")
@@ -619,6 +625,7 @@ class DepthEstimator:
         t0 = self._step(times, "coarse_sweep_ms", t0)
 
         if cfg.method == "patchmatch":
+            with_geometry = self._geometry(ref, sources, geometry or {}, A_f, b_f)
             t0 = self._patchmatch(times, t0, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src, rho_lo,
                                   rho_hi, drho_c, step_px, K_ref, ref.kf_id, r)
         else:
@@ -655,9 +662,57 @@ class DepthEstimator:
                  "method": cfg.method, "planes": n_planes, "depth_range_m": (near, far), "window_radius_px": r,
                  "sources": [s.kf_id for s in sources], "geometric_sources": [s.kf_id for s in given],
                  "prepared": prepared, "kept_pixels": list(funnel.values())[-1]}
+        if cfg.method == "patchmatch" and with_geometry:
+            stats["geometry_sources"] = with_geometry
         log.debug("depth map of keyframe %d: %s, %.1f ms", ref.kf_id, funnel, times["total_ms"])
         return DepthMap(ref.kf_id, out[0], out[1], np.array(ref.K, float), np.array(ref.T_world_camera, float),
                         stats)
+
+    def _geometry(self, ref: KeyframeView, sources: list[KeyframeView], maps: dict[int, DepthMap], A_f,
+                  b_f) -> list[int]:
+        """The PatchMatch kernels' geometric term (``pm.Geometry``, at half and full resolution): the sources'
+        first-pass maps uploaded and the terms that carry a source pixel back into the reference; its weight 0
+        (off) without maps or with ``geometric_pass_weight`` 0. The kf_ids of the sources with a map."""
+        wp = self.wp
+        cfg = self.config
+        h, w = ref.size[1], ref.size[0]
+        n = min(len(sources), pm.MAX_SOURCES)
+        given = [s.kf_id for s in sources[:n] if s.kf_id in maps] if cfg.geometric_pass_weight > 0 else []
+        shape = (n, h, w) if given else (1, 1, 1)  # (off: a placeholder the kernels do not read)
+        if getattr(self, "_geo_shape", None) != (shape, n):
+            self.geo_depth = self._alloc(shape, float)
+            self.geo_C = self._alloc(n, wp.mat33)
+            self.geo_c = self._alloc(n, wp.vec3)
+            self._geo_shape = (shape, n)
+            self._geo = [pm.Geometry(), pm.Geometry()]  # half, full resolution
+        for geo, scale, offset in zip(self._geo, (2.0, 1.0), (0.5, 0.0)):
+            geo.weight = float(cfg.geometric_pass_weight) if given else 0.0
+            geo.tau = float(cfg.geometric_pass_tau_px)
+            geo.scale, geo.offset = scale, offset
+            geo.depth, geo.A, geo.b, geo.C, geo.c = self.geo_depth, A_f, b_f, self.geo_C, self.geo_c
+        if not given:
+            return []
+        K_ref = np.asarray(ref.K, float)
+        C = np.zeros((n, 3, 3), np.float32)
+        c = np.zeros((n, 3), np.float32)
+        depths = np.zeros((n, h, w), np.float32)  # a source without a map: no depth (the largest error)
+        for i, s in enumerate(sources[:n]):
+            T_ref_src = np.linalg.inv(np.asarray(ref.T_world_camera, float)) @ np.asarray(s.T_world_camera, float)
+            C[i] = K_ref @ T_ref_src[:3, :3] @ np.linalg.inv(np.asarray(s.K, float))
+            c[i] = K_ref @ T_ref_src[:3, 3]
+            if s.kf_id in maps:
+                if maps[s.kf_id].depth_m.shape != (h, w):
+                    raise ReconstructionError(f"keyframe {s.kf_id}'s map is {maps[s.kf_id].depth_m.shape}, keyframe "
+                                              f"{ref.kf_id} is {w}x{h}: the geometric term needs one size")
+                depths[i] = maps[s.kf_id].depth_m
+        self._assign(self.geo_depth, depths)
+        self._assign_typed(self.geo_C, C, wp.mat33)
+        self._assign_typed(self.geo_c, c, wp.vec3)
+        return given
+
+    def _assign_typed(self, target, values: np.ndarray, dtype) -> None:
+        values = np.ascontiguousarray(values, np.float32)
+        self._copy_in(target, self.wp.array(values, dtype=dtype, device="cpu", copy=False), values.nbytes)
 
     def _patchmatch(self, times: dict, t0: float, ref_state, ref_half, ref_full, A_c, b_c, A_f, b_f, n_src: int,
                     rho_lo: float, rho_hi: float, drho_c: float, step_px: float, K_ref: np.ndarray,
@@ -682,7 +737,7 @@ class DepthEstimator:
         self._launch(pm.init_planes, (hc, wc),
                      [self.coarse.plane, rho_lo, drho_c, rho_lo, rho_hi, focal_half, cfg.patchmatch_max_slope,
                       cfg.patchmatch_perturb_slope, seed, ref_half, self.coarse.std, self.half_grey, *half,
-                      self.pm_plane, self.pm_score])
+                      self.pm_plane, self.pm_score, self._geo[0]])
         for it in range(cfg.patchmatch_iterations):
             shrink = 0.5 ** it
             for parity in (0, 1):
@@ -690,7 +745,7 @@ class DepthEstimator:
                              [parity, it, seed, cfg.patchmatch_far_px, rho_lo, rho_hi, focal_half,
                               cfg.patchmatch_max_slope, cfg.patchmatch_perturb_px * rho_per_px * shrink,
                               cfg.patchmatch_perturb_slope * shrink, ref_half, self.coarse.std, self.half_grey,
-                              *half, self.pm_plane, self.pm_score])
+                              *half, self.pm_plane, self.pm_score, self._geo[0]])
         t0 = self._step(times, "patchmatch_ms", t0)
         full = list(common)
         full[5:7] = [r_full, 1]
@@ -700,7 +755,8 @@ class DepthEstimator:
                      [ref_state, ref_full, self.fine.std, self.pm_plane, self.full_grey, *full, rho_lo, rho_hi,
                       0.5 * drho_c, 0.5 * cfg.patchmatch_refine_px * rho_per_px, cfg.min_zncc, cfg.view_min_zncc,
                       cfg.min_views, self.depth, self.confidence, self.code, self.pm_full_plane,
-                      wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()), cfg.patchmatch_angle_weight])
+                      wp.mat33(*K_ref.ravel()), wp.mat33(*np.linalg.inv(K_ref).ravel()), cfg.patchmatch_angle_weight,
+                      self._geo[1], self.pm_unchecked])
         # support against the pixel's plane; the depth-edge check reaches as far as the half-resolution window does
         self._launch(pm.plane_support, (h, w),
                      [self.depth, self.pm_full_plane, cfg.support_radius_px, cfg.support_max_rel, cfg.min_support,
@@ -746,6 +802,11 @@ class DepthEstimator:
         """A host float array into the device's (a pageable copy: the geometric check's inputs)."""
         values = np.ascontiguousarray(values, np.float32)
         self._copy_in(target, self.wp.array(values, dtype=float, device="cpu", copy=False), values.nbytes)
+
+    def unchecked_depth(self) -> np.ndarray:
+        """(H, W) float32 of the last ``compute`` (method "patchmatch"): every scored pixel's depth before the
+        checks (0 where none), the first-pass map of the geometric term (``compute(..., geometry=)``)."""
+        return self.pm_unchecked.numpy().copy()
 
     def rejection_codes(self) -> np.ndarray:
         """(H, W) uint8 of the last ``compute``, for diagnostics: code k < len(FUNNEL) - 1 means the pixel failed
@@ -825,18 +886,29 @@ class KeptEstimator:
         self._coarse_key: tuple[DepthConfig, str] | None = None
 
     def __call__(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig, device: str,
-                 source_depths: dict[int, DepthMap] | None = None) -> DepthMap:
-        return self._kept(config, device).compute(ref, sources, source_depths)
+                 source_depths: dict[int, DepthMap] | None = None,
+                 geometry: dict[int, DepthMap] | None = None) -> DepthMap:
+        return self._kept(config, device).compute(ref, sources, source_depths, geometry=geometry)
+
+    def unchecked(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig,
+                  device: str) -> DepthMap:
+        """A first pass for the geometric term: the map of every scored pixel's depth before the checks
+        (``DepthEstimator.unchecked_depth``; confidence 1 where it has one)."""
+        estimator = self._kept(config, device)
+        made = estimator.compute(ref, sources)
+        depth = estimator.unchecked_depth()
+        return DepthMap(ref.kf_id, depth, (depth > 0).astype(np.float32), made.K, made.T_world_camera, made.stats)
 
     def with_coarse_level(self, ref: KeyframeView, sources: list[KeyframeView], config: DepthConfig,
-                          device: str) -> DepthMap:
+                          device: str, geometry: dict[int, DepthMap] | None = None) -> DepthMap:
         """The depth map, its holes that a flat window or a weak match left given the depth of a map made the same
         way from the views reduced by ``[depth] coarse_level`` (lapreco_hil.dense.coarse; its own kept estimator),
-        marked in ``stats["coarse_taken"]``: for the final build, whose consistency check vets them."""
+        marked in ``stats["coarse_taken"]``: for the final build, whose consistency check vets them. ``geometry``:
+        the sources' first-pass maps, for the full-resolution map's geometric term (``DepthEstimator.compute``)."""
         from lapreco_hil.dense.coarse import coarse_config, coarse_into_holes, reduced_view
 
         estimator = self._kept(config, device)
-        full = estimator.compute(ref, sources)
+        full = estimator.compute(ref, sources, geometry=geometry)
         factor = config.coarse_level
         w, h = ref.size
         if factor < 2 or min(w, h) // factor < 16:

@@ -354,6 +354,11 @@ class DenseSurface:
         cfg = self.config.depth
         made: dict[int, DepthMap] = {}  # kf_id -> its map as it will be kept
         chosen: dict[int, list[int]] = {}
+        refs: dict[int, KeyframeView] = {}
+        # ``[depth] final_geometric_pass``: every map made twice, the second time with its sources' first-pass maps
+        # as PatchMatch's geometric term (ACMM); the first pass needs no coarse level (only the second is kept)
+        second_pass = (cfg.final_geometric_pass and cfg.method == "patchmatch"
+                       and getattr(self.depth_fn, "unchecked", None) is not None)
         for kf_id in todo:
             ref = self.keyframe_view(kf_id)
             sources = self._sources(ref, cfg.final_source_views)
@@ -368,7 +373,9 @@ class DenseSurface:
             t0 = time.perf_counter()
             # with ``[depth] coarse_level``, holes of weak texture given a coarser map's depths, which the check vets
             coarse = getattr(self.depth_fn, "with_coarse_level", None) if cfg.coarse_level > 1 else None
-            depth = (coarse or self.depth_fn)(ref, sources, cfg, self.device)
+            # (a first pass for the geometric term: the unchecked map, every scored pixel's depth)
+            depth = (self.depth_fn.unchecked if second_pass else coarse or self.depth_fn)(ref, sources, cfg,
+                                                                                         self.device)
             self.timings["depth_s"] += time.perf_counter() - t0
             if depth is None or not _has_depth(depth):
                 self.depth_failures += 1
@@ -378,6 +385,9 @@ class DenseSurface:
                                    depth.stats)
             made[kf_id] = as_kept
             chosen[kf_id] = [s.kf_id for s in sources]
+            refs[kf_id] = ref
+        if second_pass and made:
+            made = self._geometric_pass(made, chosen, refs)
         unfilled = made
         if cfg.consistency_fill_px > 0:
             # holes filled (a guess each): a filled depth is fused only where other maps confirm it, and it
@@ -411,6 +421,29 @@ class DenseSurface:
             self.timings["integration_s"] += time.perf_counter() - t1
             done += 1
         return done
+
+    def _geometric_pass(self, first: dict[int, DepthMap], chosen: dict[int, list[int]],
+                        refs: dict[int, KeyframeView]) -> dict[int, DepthMap]:
+        """Each map of ``first`` (unchecked first-pass maps) made again with its sources' first-pass maps (of this
+        batch, or, for a source fused before, its kept checked map) as PatchMatch's geometric term, with the coarse
+        level where set; kept quantised as before. A map whose second pass fails is left out."""
+        cfg = self.config.depth
+        fn = getattr(self.depth_fn, "with_coarse_level") if cfg.coarse_level > 1 else self.depth_fn
+        stored: OrderedDict[int, DepthMap] = OrderedDict()
+        out: dict[int, DepthMap] = {}
+        for kf_id, ref in refs.items():
+            geometry = {s: m for s in chosen[kf_id] if (m := self._map_of(s, first, stored)) is not None}
+            sources = [self.keyframe_view(s) for s in chosen[kf_id]]
+            t0 = time.perf_counter()
+            depth = fn(ref, sources, cfg, self.device, geometry=geometry)
+            self.timings["depth_s"] += time.perf_counter() - t0
+            if depth is None or not _has_depth(depth):
+                self.depth_failures += 1
+                continue
+            d16, c8 = _quantised(depth)
+            out[kf_id] = _dequantised(kf_id, d16, c8, np.array(depth.K, float), np.array(depth.T_world_camera, float),
+                                      depth.stats)
+        return out
 
     def mesh_min_weight(self) -> float:
         """The weight a voxel needs to be meshed: ``[fusion] mesh_min_weight`` (single weak views leave no surface),

@@ -14,6 +14,12 @@ planes (no thread reads a plane another writes), each pixel trying its 4 adjacen
 its depth and slant in a range that halves each iteration, and one random plane. Planes stay inside the sweep's
 inverse-depth range. The slant is bounded as ``slope`` = |gradient| x f / rho (the tangent of the surface's angle
 to the image plane for a ray along the axis) <= ``max_slope``.
+
+Geometric consistency (ACMM's second pass, ``Geometry``; off where its weight is 0): with the sources' own depth
+maps from a first pass, each source's score of a plane loses ``weight`` x its forward-backward reprojection error
+(the plane's point seen in the source, read back with the source's depth there and re-projected into the
+reference, in full-resolution pixels, at most ``tau``; ``tau`` where the source has no depth there), so that a pixel
+whose windows barely tell its planes apart takes the one its neighbours' maps agree on.
 """
 
 from __future__ import annotations
@@ -29,6 +35,85 @@ wp.set_module_options({"enable_backward": False})
 
 MAX_SOURCES = 8  # sources scored per plane (per-view scores live in registers: a fixed-size vector)
 vec8 = wp.types.vector(length=MAX_SOURCES, dtype=wp.float32)
+
+
+@wp.struct
+class Geometry:
+    """The sources' first-pass depth maps and what maps the reference into them and back: source full-resolution
+    pixel ~ A @ (xf, yf, 1) + rho b (the full-resolution homography terms), reference pixel ~ d_s C @ (u, v, 1) + c;
+    a level's pixel x is the full-resolution scale x + offset."""
+    weight: float
+    tau: float
+    scale: float
+    offset: float
+    depth: wp.array3d(dtype=float)
+    A: wp.array(dtype=wp.mat33)
+    b: wp.array(dtype=wp.vec3)
+    C: wp.array(dtype=wp.mat33)
+    c: wp.array(dtype=wp.vec3)
+
+
+@wp.func
+def _map_depth(depth: wp.array3d(dtype=float), s: int, u: float, v: float) -> float:
+    """Map ``s``'s depth at (u, v): bilinear where the four pixels about it all have one (a surface), the nearest
+    pixel's otherwise (0 where it has none or (u, v) lies outside)."""
+    h = depth.shape[1]
+    w = depth.shape[2]
+    if u < -0.5 or v < -0.5 or u > float(w) - 0.5 or v > float(h) - 0.5:
+        return 0.0
+    x0 = wp.clamp(int(wp.floor(u)), 0, w - 2)
+    y0 = wp.clamp(int(wp.floor(v)), 0, h - 2)
+    fx = wp.clamp(u - float(x0), 0.0, 1.0)
+    fy = wp.clamp(v - float(y0), 0.0, 1.0)
+    d00 = depth[s, y0, x0]
+    d01 = depth[s, y0, x0 + 1]
+    d10 = depth[s, y0 + 1, x0]
+    d11 = depth[s, y0 + 1, x0 + 1]
+    if d00 > 0.0 and d01 > 0.0 and d10 > 0.0 and d11 > 0.0:
+        return (1.0 - fy) * ((1.0 - fx) * d00 + fx * d01) + fy * ((1.0 - fx) * d10 + fx * d11)
+    return depth[s, wp.clamp(int(wp.round(v)), 0, h - 1), wp.clamp(int(wp.round(u)), 0, w - 1)]
+
+
+@wp.func
+def _reprojection_errors(geo: Geometry, n_src: int, x: int, y: int, rho: float) -> vec8:
+    """Per source: the forward-backward reprojection error (full-resolution pixels, at most ``geo.tau``) of the
+    reference pixel (x, y) at inverse depth ``rho`` through the source's depth map."""
+    errors = vec8()
+    xf = geo.scale * float(x) + geo.offset
+    yf = geo.scale * float(y) + geo.offset
+    for s in range(MAX_SOURCES):
+        e = geo.tau
+        if s < n_src:
+            p = geo.A[s] * wp.vec3(xf, yf, 1.0) + rho * geo.b[s]
+            if p[2] > 1.0e-9:
+                u = p[0] / p[2]
+                v = p[1] / p[2]
+                ds = _map_depth(geo.depth, s, u, v)
+                if ds > 0.0:
+                    # (the source's depth along the ray through the projected point itself: no rounding, so
+                    # that the error changes smoothly with the plane)
+                    q = ds * (geo.C[s] * wp.vec3(u, v, 1.0)) + geo.c[s]
+                    if q[2] > 1.0e-9:
+                        dx = q[0] / q[2] - xf
+                        dy = q[1] / q[2] - yf
+                        e = wp.min(wp.sqrt(dx * dx + dy * dy), geo.tau)
+        errors[s] = e
+    return errors
+
+
+@wp.func
+def _with_geometry(scores: vec8, geo: Geometry, n_src: int, x: int, y: int, rho: float) -> vec8:
+    """The sources' scores less ``geo.weight`` x their reprojection errors (unchanged where the weight is 0, and
+    for a source that did not score)."""
+    if geo.weight <= 0.0:
+        return scores
+    errors = _reprojection_errors(geo, n_src, x, y, rho)
+    out = vec8()
+    for s in range(MAX_SOURCES):
+        out[s] = scores[s]
+        if scores[s] > NO_SCORE + 0.5:
+            out[s] = scores[s] - geo.weight * errors[s]
+    return out
 
 
 @wp.func
@@ -91,9 +176,9 @@ def _best_k(scores: vec8, n_src: int, k: int) -> float:
 @wp.func
 def _score(ref: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
            A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), n_src: int, k: int, x: int, y: int, rho: float,
-           gx: float, gy: float, r: int, step: int, min_std: float, min_valid: float) -> float:
-    return _best_k(_view_scores(ref, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid),
-                   n_src, k)
+           gx: float, gy: float, r: int, step: int, min_std: float, min_valid: float, geo: Geometry) -> float:
+    scores = _view_scores(ref, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
+    return _best_k(_with_geometry(scores, geo, n_src, x, y, rho), n_src, k)
 
 
 @wp.func
@@ -111,7 +196,8 @@ def init_planes(coarse_plane: wp.array2d(dtype=float), rho0: float, drho: float,
                 focal: float, max_slope: float, init_slope: float, seed: int, ref: wp.array2d(dtype=float),
                 ref_std: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
                 A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), n_src: int, k: int, r: int, step: int,
-                min_std: float, min_valid: float, plane: wp.array2d(dtype=wp.vec3), score: wp.array2d(dtype=float)):
+                min_std: float, min_valid: float, plane: wp.array2d(dtype=wp.vec3), score: wp.array2d(dtype=float),
+                geo: Geometry):
     """Each pixel's first plane: the plane sweep's depth where it has one, slanted as the sweep's depths about it
     (central differences, where both neighbours have one), a random plane elsewhere; and its score."""
     y, x = wp.tid()
@@ -139,7 +225,7 @@ def init_planes(coarse_plane: wp.array2d(dtype=float), rho0: float, drho: float,
     plane[y, x] = wp.vec3(rho, g[0], g[1])
     sc = float(NO_SCORE)
     if ref_std[y, x] > 0.0:
-        sc = _score(ref, src, slots, A, b, n_src, k, x, y, rho, g[0], g[1], r, step, min_std, min_valid)
+        sc = _score(ref, src, slots, A, b, n_src, k, x, y, rho, g[0], g[1], r, step, min_std, min_valid, geo)
     score[y, x] = sc
 
 
@@ -155,7 +241,8 @@ def propagate(parity: int, iteration: int, seed: int, far: int, rho_lo: float, r
               max_slope: float, perturb_rho: float, perturb_slope: float, ref: wp.array2d(dtype=float),
               ref_std: wp.array2d(dtype=float), src: wp.array3d(dtype=float), slots: wp.array(dtype=int),
               A: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.vec3), n_src: int, k: int, r: int, step: int,
-              min_std: float, min_valid: float, plane: wp.array2d(dtype=wp.vec3), score: wp.array2d(dtype=float)):
+              min_std: float, min_valid: float, plane: wp.array2d(dtype=wp.vec3), score: wp.array2d(dtype=float),
+              geo: Geometry):
     """One colour of the checkerboard: thread (y, j) updates pixel (2 j + (y + parity) % 2, y). Its 4 adjacent
     and 4 far (``far`` px, odd: the other colour) neighbours' planes, then its own perturbed by at most
     ``perturb_rho`` in inverse depth and ``perturb_slope`` in slope (each alone, then both), then a random
@@ -209,7 +296,8 @@ def propagate(parity: int, iteration: int, seed: int, far: int, rho_lo: float, r
             continue
         g = _clip_slope(wp.vec2(cand[1], cand[2]), cand[0], focal, max_slope)
         cand = wp.vec3(cand[0], g[0], g[1])
-        sc = _score(ref, src, slots, A, b, n_src, k, x, y, cand[0], cand[1], cand[2], r, step, min_std, min_valid)
+        sc = _score(ref, src, slots, A, b, n_src, k, x, y, cand[0], cand[1], cand[2], r, step, min_std, min_valid,
+                    geo)
         if sc > best_score:
             best_score = sc
             best = cand
@@ -225,16 +313,20 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
                     min_valid: float, rho_lo: float, rho_hi: float, edge_rho: float, refine_rho: float,
                     min_zncc: float, view_min_zncc: float, min_views: int, depth: wp.array2d(dtype=float),
                     confidence: wp.array2d(dtype=float), code: wp.array2d(dtype=wp.uint8),
-                    plane: wp.array2d(dtype=wp.vec3), K: wp.mat33, K_inv: wp.mat33, angle_weight: float):
+                    plane: wp.array2d(dtype=wp.vec3), K: wp.mat33, K_inv: wp.mat33, angle_weight: float,
+                    geo: Geometry, unchecked: wp.array2d(dtype=float)):
     """Full resolution: the half-resolution plane of the pixel carried to it, scored at full resolution at its
     inverse depth and ``refine_rho`` either side (a parabola through the three where the middle is best, else the
     better side): the depth, the funnel code (in view, not a highlight, textured, matched, in range: not within
     ``edge_rho`` of the range's ends, views agree), a confidence (the score's, times the cosine between the ray and
     the plane's normal to the power ``angle_weight``: a depth seen at a grazing angle is the least certain, and
-    fusion weighs it less), the pixel's plane (inverse depth and its gradient per pixel) for the support check."""
+    fusion weighs it less), the pixel's plane (inverse depth and its gradient per pixel) for the support check;
+    ``unchecked``: every scored pixel's depth before the checks (the geometric term's first-pass map: ACMM's maps
+    have no holes, and a hole would weigh against the planes that see it)."""
     y, x = wp.tid()
     depth[y, x] = 0.0
     confidence[y, x] = 0.0
+    unchecked[y, x] = 0.0
     if state[y, x] == wp.uint8(STATE_OUT_OF_VIEW):
         code[y, x] = wp.uint8(CODE_OUT_OF_VIEW)
         return
@@ -256,9 +348,9 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
     gx = 0.5 * q[1]
     gy = 0.5 * q[2]
     s0 = _view_scores(grey, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
-    c0 = _best_k(s0, n_src, k)
-    cm = _score(grey, src, slots, A, b, n_src, k, x, y, rho - refine_rho, gx, gy, r, step, min_std, min_valid)
-    cp = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid)
+    c0 = _best_k(_with_geometry(s0, geo, n_src, x, y, rho), n_src, k)
+    cm = _score(grey, src, slots, A, b, n_src, k, x, y, rho - refine_rho, gx, gy, r, step, min_std, min_valid, geo)
+    cp = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid, geo)
     best = c0
     scores = s0
     # a parabola through the best of the three and its two neighbours: where a side scored best, one more score a
@@ -269,18 +361,25 @@ def finalise_planes(state: wp.array2d(dtype=wp.uint8), grey: wp.array2d(dtype=fl
         rho = rho - refine_rho
         best = cm
         hi = c0
-        lo = _score(grey, src, slots, A, b, n_src, k, x, y, rho - refine_rho, gx, gy, r, step, min_std, min_valid)
+        lo = _score(grey, src, slots, A, b, n_src, k, x, y, rho - refine_rho, gx, gy, r, step, min_std, min_valid,
+                    geo)
         scores = _view_scores(grey, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
     elif cp > c0:
         rho = rho + refine_rho
         best = cp
         lo = c0
-        hi = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid)
+        hi = _score(grey, src, slots, A, b, n_src, k, x, y, rho + refine_rho, gx, gy, r, step, min_std, min_valid,
+                    geo)
         scores = _view_scores(grey, src, slots, A, b, n_src, x, y, rho, gx, gy, r, step, min_std, min_valid)
     if lo > NO_SCORE + 0.5 and hi > NO_SCORE + 0.5:
         den = lo - 2.0 * best + hi
         if den < -1.0e-6:
             rho = rho + refine_rho * wp.clamp(0.5 * (lo - hi) / den, -0.5, 0.5)
+    # the match itself is judged on the windows alone (with geometry, ``best`` includes the reprojection errors)
+    if geo.weight > 0.0:
+        best = _best_k(scores, n_src, k)
+    if best > NO_SCORE + 0.5 and rho > 0.0:
+        unchecked[y, x] = 1.0 / rho
     if best < min_zncc:
         code[y, x] = wp.uint8(CODE_NO_MATCH)
         return
