@@ -40,7 +40,8 @@ def test_preload_loads_the_kernels_a_factory_made_too():
     device = resolve_device("cpu")
     preload_kernels("lapreco_hil.mapping.schur_kernels", device)
     preload_kernels("lapreco_hil.frontend.warp", device)
-    for kernel in (schur_kernels._schur_blocks, schur_kernels._schur_blocks_band, lk._lk_track):
+    for kernel in (schur_kernels._schur_blocks, schur_kernels._schur_blocks_band, lk._lk_track_slots,
+                   lk._lk_track_resampled):
         assert kernel.module.name != kernel.func.__module__  # (a module of its own)
         assert kernel.module.execs, f"{kernel.key} not loaded on {device}"
 

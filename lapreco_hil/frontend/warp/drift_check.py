@@ -104,11 +104,13 @@ def _sample_patches(img: wp.array(dtype=float), w: int, h: int, pts: wp.array(dt
         steps[s] = wp.vec2(0.0, 0.0)
 
 
-def _make_drift_check(per_lane: int):
+def _make_drift_check(per_lane: int, min_blocks: int | None = None):
     """The drift check for lanes that each take ``per_lane`` patch pixels per pass (unrolled, loads in
-    flight together)."""
+    flight together); ``min_blocks``: the blocks of DRIFT_LANES an SM must hold at once (CUDA's launch bounds;
+    None: no bound)."""
+    bounds = None if min_blocks is None else (DRIFT_LANES, min_blocks)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, launch_bounds=bounds)
     def _drift_check(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), w: int,
                      h: int, patches: wp.array2d(dtype=float), A: wp.array(dtype=wp.mat22),
                      pts: wp.array(dtype=wp.vec2), status: wp.array(dtype=wp.int32), mask: wp.array2d(dtype=wp.uint8),
@@ -228,7 +230,8 @@ def _make_drift_check(per_lane: int):
     return _drift_check
 
 
-_drift_check = _make_drift_check((PATCH * PATCH + DRIFT_LANES - 1) // DRIFT_LANES)
+DRIFT_PER_LANE = (PATCH * PATCH + DRIFT_LANES - 1) // DRIFT_LANES
+_drift_check = _make_drift_check(DRIFT_PER_LANE)
 
 
 def sample_patches(img: wp.array, w: int, h: int, pts: wp.array, count: wp.array, taken: wp.array,

@@ -99,12 +99,55 @@ def _window_inside(o: wp.vec4, win: int, w: int, h: int) -> bool:
     return o[0] >= 0.0 and o[1] >= 0.0 and o[0] + float(win) <= float(w - 1) and o[1] + float(win) <= float(h - 1)
 
 
-def _make_lk_track(cache: int):
-    """The LK kernel for lanes that each keep ``cache`` window pixels (and their gradients) in registers."""
-    cache_vec = wp.types.vector(length=cache, dtype=wp.float32)
-    cache_ivec = wp.types.vector(length=cache, dtype=wp.int32)
+_WINDOW_SLOT_SNIPPET = """
+#if defined(__CUDA_ARCH__)
+    __shared__ float4 slots[SLOTS * WP_TILE_BLOCK_DIM];
+    float4* s = &slots[slot * WP_TILE_BLOCK_DIM + threadIdx.x];
+    if (store)
+        *s = make_float4(v[0], v[1], v[2], v[3]);
+    const float4 r = *s;
+    return wp::vec4(r.x, r.y, r.z, r.w);
+#else
+    return v;
+#endif
+"""
 
-    @wp.kernel(module="unique", enable_backward=False)
+
+@wp.func
+def _cache_sample(img: wp.array(dtype=float), gx: wp.array(dtype=float), gy: wp.array(dtype=float), off: int, w: int,
+                  h: int, o: wp.vec4, k: int, n: int, win: int, inv_win: float, inside: bool) -> wp.vec4:
+    """(pixel, gx, gy, offset from the window's corner) of pixel k of a window with origin o; past the window
+    (k >= n) the gradients weigh 0 and the offset is 0 (a lane's unused slot reads the corner)."""
+    valid = wp.where(k < n, 1.0, 0.0)
+    row = int((float(k) + 0.5) * inv_win)
+    at = wp.where(k < n, row * w + k - row * win, 0)
+    vx = _window_grad(gx, off, w, h, o, k, win, inv_win, inside and k < n) * valid
+    vy = _window_grad(gy, off, w, h, o, k, win, inv_win, inside and k < n) * valid
+    return wp.vec4(_window_px(img, off, w, h, o, k, win, inv_win), vx, vy, float(at))
+
+
+def _window_slots(cache: int):
+    """A lane's ``cache`` slots of (pixel, gx, gy, offset) in the block's shared memory: ``f(store, slot, v)``
+    writes v into the slot when ``store`` is 1 and returns the slot. Each lane only touches its own slots, so no
+    barrier is needed."""
+
+    @wp.func_native(_WINDOW_SLOT_SNIPPET.replace("SLOTS", str(cache)))
+    def window_slot(store: int, slot: int, v: wp.vec4) -> wp.vec4: ...
+
+    return window_slot
+
+
+def _make_lk_track(slots: int, min_blocks: int | None = None):
+    """The LK kernel. With ``slots`` > 0 (CUDA): each lane keeps ``slots`` window pixels with their gradients in the
+    block's shared memory, for windows of at most ``slots`` x LK_LANES pixels; with 0 (the CPU device's one lane per
+    block, or a wider window), every iteration samples the previous window again. ``min_blocks``: the blocks of
+    LK_LANES an SM must hold at once (CUDA's launch bounds; None: none). Each build holds only its own path: a kernel
+    is given the registers of its heaviest path, and the paths together took 240 per lane, two blocks an SM."""
+    cached = slots > 0
+    window_slot = _window_slots(max(slots, 1))
+    bounds = None if min_blocks is None else (LK_LANES, min_blocks)
+
+    @wp.kernel(module="unique", enable_backward=False, launch_bounds=bounds)
     def _lk_track(prev: wp.array(dtype=float), prev_gx: wp.array(dtype=float), prev_gy: wp.array(dtype=float),
                   cur: wp.array(dtype=float), offs: wp.array(dtype=int), ws: wp.array(dtype=int),
                   hs: wp.array(dtype=int), levels: int, fine_win: int, coarse_win: int, coarse_from: int,
@@ -114,13 +157,14 @@ def _make_lk_track(cache: int):
                   only: wp.array(dtype=wp.int32), out_pts: wp.array(dtype=wp.vec2),
                   status: wp.array(dtype=wp.int32), error: wp.array(dtype=float)):
         """Bouguet's pyramidal LK: per level, the window's spatial gradient matrix from the previous image, then
-        Newton steps on the temporal difference; the lanes of a block share the window, tile sums combine them.
+        Newton steps on the temporal difference; the lanes of a block share the window, block sums combine them.
 
         The time goes into the iterations of the slowest features (30 per level at most, as OpenCV), so each
         iteration is kept short: the window's sub-pixel fractions are computed once per iteration, not per pixel,
-        each lane keeps its pixels of the previous window and their gradients in registers (with enough lanes,
-        i.e. on CUDA; with one lane, on the CPU device, it re-samples them instead), and its loads of the current
-        window carry no branch, so they are all in flight together."""
+        each lane keeps its pixels of the previous window and their gradients in shared memory (on CUDA), and its
+        loads of the current window carry no branch, so they are all in flight together. The gradient pass and a
+        window at the level's border take one slot at a time: they are rare, and their loads in flight would cost
+        every iteration registers."""
         f, lane = wp.tid()
         if f >= count[0]:
             return  # the launch covers every slot; the live count is on the device (the whole block leaves)
@@ -148,32 +192,22 @@ def _make_lk_track(cache: int):
             n = win * win
             r = float(win - 1) * 0.5
             inv_win = 1.0 / float(win)
-            cached = n <= cache * nl
+            used = (n + nl - 1) // nl  # the slots a lane's share of the window takes
             off = offs[lvl]
             w = ws[lvl]
             h = hs[lvl]
             p = p0 * (1.0 / float(1 << lvl))
             o = _window_origin(p[0] - r, p[1] - r)
             inside = _window_inside(o, win, w, h)
-            # spatial gradient matrix over the window in the previous image (its pixels cached on the way)
+            # spatial gradient matrix over the window in the previous image (its pixels kept on the way)
             acc = wp.vec3(0.0, 0.0, 0.0)
-            c_i = cache_vec()
-            c_x = cache_vec()
-            c_y = cache_vec()
-            c_o = cache_ivec()  # each cached pixel's offset in the level (row * w + col); 0 past the window
-            if cached:
-                for j in range(cache):
-                    # unconditional loads, masked: a lane's slots past the window read a clamped pixel, weigh 0
-                    k = lane + j * nl
-                    valid = wp.where(k < n, 1.0, 0.0)
-                    row = int((float(k) + 0.5) * inv_win)
-                    c_o[j] = wp.where(k < n, row * w + k - row * win, 0)
-                    vx = _window_grad(prev_gx, off, w, h, o, k, win, inv_win, inside and k < n) * valid
-                    vy = _window_grad(prev_gy, off, w, h, o, k, win, inv_win, inside and k < n) * valid
-                    c_i[j] = _window_px(prev, off, w, h, o, k, win, inv_win)
-                    c_x[j] = vx
-                    c_y[j] = vy
-                    acc += wp.vec3(vx * vx, vx * vy, vy * vy)
+            if wp.static(cached):
+                for j in range(used):
+                    c = _cache_sample(prev, prev_gx, prev_gy, off, w, h, o, lane + j * nl, n, win, inv_win, inside)
+                    window_slot(1, j, c)
+                    acc += wp.vec3(c[1] * c[1], c[1] * c[2], c[2] * c[2])
+                for j in range(used, slots):
+                    window_slot(1, j, wp.vec4(0.0))  # weighs nothing, reads the window's corner
             else:
                 k = lane
                 while k < n:
@@ -210,25 +244,32 @@ def _make_lk_track(cache: int):
                         ok = 0
                     break
                 bacc = wp.vec3(0.0, 0.0, 0.0)
-                if cached and _window_inside(oq, win, w, h):
-                    # the window and its bilinear neighbours lie inside the level (the same answer in every lane):
-                    # each pixel is its precomputed offset from the window's corner, four loads and three lerps
-                    corner = off + int(oq[1]) * w + int(oq[0])
-                    for j in range(cache):
-                        i = corner + c_o[j]
-                        p00 = cur[i]
-                        p01 = cur[i + 1]
-                        p10 = cur[i + w]
-                        p11 = cur[i + w + 1]
-                        top = p00 + oq[2] * (p01 - p00)
-                        diff = (c_i[j] - top - oq[3] * (p10 + oq[2] * (p11 - p10) - top)) * wp.where(
-                            lane + j * nl < n, 1.0, 0.0)
-                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
-                elif cached:
-                    for j in range(cache):
-                        k = lane + j * nl
-                        diff = (c_i[j] - _window_px(cur, off, w, h, oq, k, win, inv_win)) * wp.where(k < n, 1.0, 0.0)
-                        bacc += wp.vec3(diff * c_x[j], diff * c_y[j], wp.abs(diff))
+                if wp.static(cached):
+                    if _window_inside(oq, win, w, h):
+                        # the window and its bilinear neighbours lie inside the level (the same answer in every
+                        # lane): each pixel is its slot's offset from the window's corner, four loads, three lerps;
+                        # the slots in groups of four, each group's loads in flight together
+                        corner = off + int(oq[1]) * w + int(oq[0])
+                        for group in range((used + 3) // 4):
+                            for jj in range(4):
+                                j = group * 4 + jj
+                                c = window_slot(0, j, wp.vec4(0.0))
+                                i = corner + int(c[3])
+                                p00 = cur[i]
+                                p01 = cur[i + 1]
+                                p10 = cur[i + w]
+                                p11 = cur[i + w + 1]
+                                top = p00 + oq[2] * (p01 - p00)
+                                diff = (c[0] - top - oq[3] * (p10 + oq[2] * (p11 - p10) - top)) * wp.where(
+                                    lane + j * nl < n, 1.0, 0.0)
+                                bacc += wp.vec3(diff * c[1], diff * c[2], wp.abs(diff))
+                    else:
+                        for j in range(used):
+                            k = lane + j * nl
+                            c = window_slot(0, j, wp.vec4(0.0))
+                            diff = (c[0] - _window_px(cur, off, w, h, oq, k, win, inv_win)) * wp.where(
+                                k < n, 1.0, 0.0)
+                            bacc += wp.vec3(diff * c[1], diff * c[2], wp.abs(diff))
                 else:
                     k = lane
                     while k < n:
@@ -269,8 +310,11 @@ def _make_lk_track(cache: int):
     return _lk_track
 
 
-# each lane caches enough pixels that the lanes cover windows up to 22 x 22
-_lk_track = _make_lk_track((22 * 22 + LK_LANES - 1) // LK_LANES)
+# each lane keeps 8 pixels of a window (a multiple of 4, the slots' groups): with 128 lanes, windows up to 32 x 32
+# (the default 21 and 31 px)
+LK_SLOTS = 8
+_lk_track_slots = _make_lk_track(LK_SLOTS)
+_lk_track_resampled = _make_lk_track(0)
 
 
 def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array, offs: wp.array, ws: wp.array,
@@ -291,7 +335,10 @@ def lk_track(prev: wp.array, prev_gx: wp.array, prev_gy: wp.array, cur: wp.array
     coarse_win = win if coarse_win is None else coarse_win
     coarse_from = levels if coarse_from is None else coarse_from
     coarse_eps = eps if coarse_eps is None else coarse_eps
-    wp.launch_tiled(_lk_track, dim=[pts.shape[0]], inputs=[
+    widest = max(win, coarse_win if coarse_win > win and coarse_from < levels else win)
+    kernel = _lk_track_slots if wp.get_device(device).is_cuda and widest * widest <= LK_SLOTS * LK_LANES \
+        else _lk_track_resampled
+    wp.launch_tiled(kernel, dim=[pts.shape[0]], inputs=[
         prev, prev_gx, prev_gy, cur, offs, ws, hs, levels, win, coarse_win, coarse_from, iterations, eps, coarse_eps,
         min_eig, max_error, pts, count,
         guess, use_guess, only, out_pts, status, error], block_dim=LK_LANES, device=device)
