@@ -193,3 +193,22 @@ def test_lk_tracks_only_the_slots_asked_for(wp):
     np.testing.assert_array_equal(some_status[wanted] == 1, all_kept[wanted])
     np.testing.assert_allclose(some_pts[wanted], all_pts[wanted], atol=1e-5)
     assert np.all(some_status[~wanted] == -1) and np.all(np.isnan(some_pts[~wanted]))
+
+
+@pytest.mark.skipif(DEVICE == "cpu", reason="the shared-memory build is CUDA's (a CPU block has one lane)")
+def test_the_shared_memory_build_tracks_as_the_resampling_build(wp, monkeypatch):
+    """On CUDA LK keeps each lane's window pixels in shared memory (``_lk_track_slots``); the resampling build,
+    which the CPU runs and CUDA runs for windows wider than the slots, samples them again every iteration. The
+    two are one kernel body and sum in the same order, so they track alike, the 31 px coarse windows included."""
+    from lapreco_hil.frontend.warp import lk
+
+    cfg = TrackerConfig()
+    _, _, levels, prev, cur, pts = dot_grid_moved_80px(cfg)
+    assert levels > cfg.coarse_from_level and cfg.coarse_window_px ** 2 <= lk.LK_SLOTS * lk.LK_LANES
+    slots_pts, slots_kept, _ = warp_lk(wp, cfg, prev, cur, levels, pts)
+    monkeypatch.setattr(lk, "LK_SLOTS", 0)  # no window fits: the resampling build
+    resampled_pts, resampled_kept, _ = warp_lk(wp, cfg, prev, cur, levels, pts)
+    assert slots_kept.sum() > 0.85 * len(pts)
+    assert np.mean(slots_kept == resampled_kept) >= 0.995
+    both = slots_kept & resampled_kept
+    assert np.percentile(np.linalg.norm(slots_pts[both] - resampled_pts[both], axis=1), 99) <= 1e-3
