@@ -271,7 +271,9 @@ class DepthConfig:
     # pixel's depth, unchecked, as ACMM's) as a geometric term (ACMM's geometric consistency): each source's score
     # of a plane less ``geometric_pass_weight`` x its forward-backward reprojection error through that source's map
     # (full-resolution pixels, at most ``geometric_pass_tau_px``; ACMM's 0.2 and 3), so that pixels whose windows
-    # barely tell planes apart take the one the neighbours' maps agree on (docs/dense.md, "Session 26")
+    # barely tell planes apart take the one the neighbours' maps agree on. Off: it adds coverage on both simulated
+    # scenes but takes the liver's RMS past 0.5 mm, and doubles the final build's depth time (docs/dense.md,
+    # "Session 26")
     final_geometric_pass: bool = False
     geometric_pass_weight: float = ranged(0.2, ge=0.0)
     geometric_pass_tau_px: float = ranged(3.0, gt=0.0)

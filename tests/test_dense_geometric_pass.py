@@ -136,3 +136,28 @@ def test_the_geometric_term_compiles_for_cuda(sm90_ptx):
 
     ptx = sm90_ptx(patchmatch)
     assert "propagate" in ptx and "finalise_planes" in ptx
+
+
+def test_a_two_view_build_makes_each_map_once(warp_cpu, monkeypatch):
+    """A map of one source (a stereo pair, a run of two keyframes) gets no second pass: the one partner's map is
+    what its left-right check tests."""
+    from lapreco_hil.dense.depth import DepthEstimator
+    from lapreco_hil.dense.surface import DenseSurface, nearest_views
+
+    calls = []
+    compute = DepthEstimator.compute
+
+    def spy(self, ref, sources, *args, geometry=None, **kwargs):
+        calls.append(bool(geometry))
+        return compute(self, ref, sources, *args, geometry=geometry, **kwargs)
+
+    monkeypatch.setattr(DepthEstimator, "compute", spy)
+    views = _views(blur_px=0.0)
+    base = PipelineConfig()
+    config = dataclasses.replace(base, depth=dataclasses.replace(base.depth, final_geometric_pass=True))
+    dense = DenseSurface(CAMERA, config, DEVICE, sources_fn=nearest_views)
+    for i in (1, 2):
+        dense.add_view(i, views[i].colour[:, :, ::-1], views[i].T_world_camera)
+    result = dense.build_at({i: views[i].T_world_camera for i in (1, 2)}, {i: (0.04, 0.06) for i in (1, 2)})
+    assert dense.fused == 2 and len(result.points) > 1000
+    assert calls and not any(calls)

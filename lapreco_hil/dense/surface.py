@@ -355,10 +355,13 @@ class DenseSurface:
         made: dict[int, DepthMap] = {}  # kf_id -> its map as it will be kept
         chosen: dict[int, list[int]] = {}
         refs: dict[int, KeyframeView] = {}
-        # ``[depth] final_geometric_pass``: every map made twice, the second time with its sources' first-pass maps
-        # as PatchMatch's geometric term (ACMM); the first pass needs no coarse level (only the second is kept)
+        # ``[depth] final_geometric_pass``: every map of several sources made twice, the second time with its
+        # sources' first-pass maps as PatchMatch's geometric term (ACMM); the first pass is the unchecked map (only
+        # the second is kept). A map of one source (a stereo pair, a run of two keyframes) is made once: there the
+        # one partner's map is what the left-right check tests, and the pairs were measured without it
         second_pass = (cfg.final_geometric_pass and cfg.method == "patchmatch"
                        and getattr(self.depth_fn, "unchecked", None) is not None)
+        again: set[int] = set()  # the maps the second pass makes again
         for kf_id in todo:
             ref = self.keyframe_view(kf_id)
             sources = self._sources(ref, cfg.final_source_views)
@@ -373,9 +376,12 @@ class DenseSurface:
             t0 = time.perf_counter()
             # with ``[depth] coarse_level``, holes of weak texture given a coarser map's depths, which the check vets
             coarse = getattr(self.depth_fn, "with_coarse_level", None) if cfg.coarse_level > 1 else None
-            # (a first pass for the geometric term: the unchecked map, every scored pixel's depth)
-            depth = (self.depth_fn.unchecked if second_pass else coarse or self.depth_fn)(ref, sources, cfg,
-                                                                                         self.device)
+            if second_pass and len(sources) > 1:
+                # (a first pass for the geometric term: the unchecked map, every scored pixel's depth)
+                depth = self.depth_fn.unchecked(ref, sources, cfg, self.device)
+                again.add(kf_id)
+            else:
+                depth = (coarse or self.depth_fn)(ref, sources, cfg, self.device)
             self.timings["depth_s"] += time.perf_counter() - t0
             if depth is None or not _has_depth(depth):
                 self.depth_failures += 1
@@ -386,8 +392,8 @@ class DenseSurface:
             made[kf_id] = as_kept
             chosen[kf_id] = [s.kf_id for s in sources]
             refs[kf_id] = ref
-        if second_pass and made:
-            made = self._geometric_pass(made, chosen, refs)
+        if again:
+            made = self._geometric_pass(made, chosen, {kf_id: refs[kf_id] for kf_id in made if kf_id in again})
         unfilled = made
         if cfg.consistency_fill_px > 0:
             # holes filled (a guess each): a filled depth is fused only where other maps confirm it, and it
@@ -424,14 +430,19 @@ class DenseSurface:
 
     def _geometric_pass(self, first: dict[int, DepthMap], chosen: dict[int, list[int]],
                         refs: dict[int, KeyframeView]) -> dict[int, DepthMap]:
-        """Each map of ``first`` (unchecked first-pass maps) made again with its sources' first-pass maps (of this
-        batch, or, for a source fused before, its kept checked map) as PatchMatch's geometric term, with the coarse
-        level where set; kept quantised as before. A map whose second pass fails is left out."""
+        """The maps of ``refs`` (unchecked first-pass maps in ``first``) made again with their sources' first-pass
+        maps (of this batch, or, for a source fused before, its kept checked map) as PatchMatch's geometric term, with
+        the coarse level where set; kept quantised as before, with the other maps of ``first`` as they are. A map
+        whose second pass fails is left out."""
         cfg = self.config.depth
-        fn = getattr(self.depth_fn, "with_coarse_level") if cfg.coarse_level > 1 else self.depth_fn
+        fn = (getattr(self.depth_fn, "with_coarse_level", None) if cfg.coarse_level > 1 else None) or self.depth_fn
         stored: OrderedDict[int, DepthMap] = OrderedDict()
         out: dict[int, DepthMap] = {}
-        for kf_id, ref in refs.items():
+        for kf_id, made in first.items():
+            ref = refs.get(kf_id)
+            if ref is None:  # (a map made once)
+                out[kf_id] = made
+                continue
             geometry = {s: m for s in chosen[kf_id] if (m := self._map_of(s, first, stored)) is not None}
             sources = [self.keyframe_view(s) for s in chosen[kf_id]]
             t0 = time.perf_counter()
