@@ -7,12 +7,12 @@ from __future__ import annotations
 import dataclasses
 import os
 
-import cv2
 import numpy as np
 
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import DepthConfig, PipelineConfig
 from lapreco_hil.geometry import make_T
+from textures import plane_grey_views
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 CAMERA = CameraModel(320, 240, 600.0, 600.0, 159.5, 119.5)
@@ -26,17 +26,9 @@ CAMERA_X_M = {0: 0.0, 1: 0.0036, 2: 0.0044, 3: 0.0052, 4: 0.006, 5: -0.0018, 6: 
 def _views():
     from lapreco_hil.dense.types import KeyframeView
 
-    rng = np.random.default_rng(0)
-    n = 2048
-    texture = cv2.GaussianBlur(rng.standard_normal((n, n)), (0, 0), 1.5)
-    texture = (128 + 40 * texture / texture.std()).astype(np.float32)
-    v, u = np.mgrid[0:CAMERA.height, 0:CAMERA.width].astype(np.float32)
     views = {}
-    for i, x0 in CAMERA_X_M.items():
-        x = x0 + (u - CAMERA.cx) / CAMERA.fx * PLANE_Z_M
-        y = (v - CAMERA.cy) / CAMERA.fy * PLANE_Z_M
-        grey = cv2.remap(texture, (x / TEXEL_M + n / 2).astype(np.float32), (y / TEXEL_M + n / 2).astype(np.float32),
-                         cv2.INTER_LINEAR)
+    for i, grey in plane_grey_views(CAMERA, PLANE_Z_M, TEXEL_M, CAMERA_X_M).items():
+        x0 = CAMERA_X_M[i]
         colour = np.repeat(np.clip(np.round(grey), 0, 255).astype(np.uint8)[:, :, None], 3, axis=2)
         views[i] = KeyframeView(i, colour, CAMERA.K.copy(), make_T(np.eye(3), [x0, 0.0, 0.0]),
                                 depth_range_m=(0.04, 0.06))

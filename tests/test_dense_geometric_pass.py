@@ -15,6 +15,7 @@ import numpy as np
 from lapreco_hil.camera import CameraModel
 from lapreco_hil.config import DepthConfig, PipelineConfig
 from lapreco_hil.geometry import make_T
+from textures import plane_grey_views
 
 DEVICE = os.environ.get("LAPRECO_TEST_DEVICE", "cpu")
 CAMERA = CameraModel(320, 240, 600.0, 600.0, 159.5, 119.5)
@@ -29,16 +30,9 @@ def _views(blur_px: float = 3.0):
     from lapreco_hil.dense.types import KeyframeView
 
     rng = np.random.default_rng(0)
-    n = 2048
-    texture = cv2.GaussianBlur(rng.standard_normal((n, n)), (0, 0), 1.5)
-    texture = (128 + 40 * texture / texture.std()).astype(np.float32)
-    v, u = np.mgrid[0:CAMERA.height, 0:CAMERA.width].astype(np.float32)
     views = {}
-    for i, x0 in CAMERA_X_M.items():
-        x = x0 + (u - CAMERA.cx) / CAMERA.fx * PLANE_Z_M
-        y = (v - CAMERA.cy) / CAMERA.fy * PLANE_Z_M
-        grey = cv2.remap(texture, (x / TEXEL_M + n / 2).astype(np.float32), (y / TEXEL_M + n / 2).astype(np.float32),
-                         cv2.INTER_LINEAR)
+    for i, grey in plane_grey_views(CAMERA, PLANE_Z_M, TEXEL_M, CAMERA_X_M).items():
+        x0 = CAMERA_X_M[i]
         grey = grey + rng.normal(0.0, 2.0, grey.shape)
         if i == 0 and blur_px > 0:
             grey[BLURRED] = cv2.GaussianBlur(grey, (0, 0), blur_px)[BLURRED]
