@@ -158,7 +158,8 @@ def test_method_and_patchmatch_settings_are_checked():
 
 
 def test_the_patchmatch_kernels_compile_for_cuda(sm90_ptx):
-    """CI has no GPU: the refinement's kernels still compile for an H100 (sm_90)."""
+    """CI has no GPU: the refinement's kernels (the geometric term's second pass included: the same kernels) still
+    compile for an H100 (sm_90)."""
     from lapreco_hil.dense.warp import patchmatch
 
     ptx = sm90_ptx(patchmatch)

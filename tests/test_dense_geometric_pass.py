@@ -124,14 +124,6 @@ def test_the_final_build_makes_each_map_again_with_its_sources_first_maps(warp_c
             assert all(len(g) == 4 and kf not in g for kf, g in calls[5:])
 
 
-def test_the_geometric_term_compiles_for_cuda(sm90_ptx):
-    """CI has no GPU: the kernels with the geometric term still compile for an H100 (sm_90)."""
-    from lapreco_hil.dense.warp import patchmatch
-
-    ptx = sm90_ptx(patchmatch)
-    assert "propagate" in ptx and "finalise_planes" in ptx
-
-
 def test_a_two_view_build_makes_each_map_once(warp_cpu, monkeypatch):
     """A map of one source (a stereo pair, a run of two keyframes) gets no second pass: the one partner's map is
     what its left-right check tests."""
